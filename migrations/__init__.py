@@ -1,0 +1,1 @@
+"""Alembic migrations of the crowdslam store (run them with ``crowdslam migrate``)."""

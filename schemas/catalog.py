@@ -1,0 +1,55 @@
+"""The public models, their JSON Schemas and examples, for client developers and the MCAP channels."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from pydantic import BaseModel, TypeAdapter
+
+from schemas.anchors import ANCHOR_EXAMPLE, AnchorMergeIn, BuildingAnchor, KnownAnchorIn
+from schemas.buildings import BUILDING_EXAMPLE, Building
+from schemas.errors import PROBLEM_EXAMPLE, Problem
+from schemas.estimates import ESTIMATE_EXAMPLE, EncounterEvent, Estimate
+from schemas.live import LIVE_MESSAGE_ADAPTER
+from schemas.sensors import BATCH_EXAMPLE, SensorBatch
+
+PUBLIC_MODELS: dict[str, type[BaseModel] | TypeAdapter[Any]] = {
+    "SensorBatch": SensorBatch,
+    "Estimate": Estimate,
+    "EncounterEvent": EncounterEvent,
+    "BuildingAnchor": BuildingAnchor,
+    "KnownAnchorIn": KnownAnchorIn,
+    "AnchorMergeIn": AnchorMergeIn,
+    "Building": Building,
+    "LiveMessage": LIVE_MESSAGE_ADAPTER,
+    "Problem": Problem,
+}
+
+EXAMPLES: dict[str, dict[str, Any]] = {
+    "batch": BATCH_EXAMPLE,
+    "estimate": ESTIMATE_EXAMPLE,
+    "anchor": ANCHOR_EXAMPLE,
+    "building": BUILDING_EXAMPLE,
+    "problem": PROBLEM_EXAMPLE,
+}
+"""Named examples, each valid against its model (a test checks)."""
+
+EXAMPLE_MODELS: dict[str, type[BaseModel]] = {
+    "batch": SensorBatch,
+    "estimate": Estimate,
+    "anchor": BuildingAnchor,
+    "building": Building,
+    "problem": Problem,
+}
+
+
+def json_schemas() -> dict[str, dict[str, Any]]:
+    """JSON Schema (draft 2020-12, validation mode) of every public model, keyed by file stem."""
+    out: dict[str, dict[str, Any]] = {}
+    for name, model in PUBLIC_MODELS.items():
+        schema = model.json_schema() if isinstance(model, TypeAdapter) else model.model_json_schema()
+        schema.setdefault("title", name)
+        schema["$schema"] = "https://json-schema.org/draft/2020-12/schema"
+        schema["$id"] = f"https://crowdslam.dev/schemas/v1/{name}.json"
+        out[name] = schema
+    return out

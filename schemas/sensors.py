@@ -1,0 +1,360 @@
+"""The sensor batch a phone posts: any mix of raw IMU streams, client-side steps, radio scans and landmarks.
+
+A batch covers a short span of time (typically one second, at most ``MAX_BATCH_SPAN_MS``). A batch with
+only IMU, or only steps, is normal: iPhones send no WiFi scans and Android throttles them to 4 per 2 min.
+
+IMU streams are columnar (one list per axis) so a second at 200 Hz is a few short arrays, not hundreds of
+objects. Axes and units follow Android's ``SensorEvent`` semantics in the phone's own frame.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal, Self
+
+from pydantic import Field, model_validator
+
+from schemas.common import (
+    MAX_TIME_MS,
+    MIN_TIME_MS,
+    Identifier,
+    IncreasingTimes,
+    RssiDbm,
+    TimeMs,
+    TxPowerDbm,
+    WireModel,
+    wire_config,
+)
+
+MAX_BATCH_SPAN_MS = 60_000
+"""A batch spans at most one minute of sensor time."""
+MAX_IMU_SAMPLES = 12_000
+"""Per stream: one minute at 200 Hz."""
+MAX_STEPS = 300
+MAX_WIFI_SCANS = 60
+MAX_APS_PER_SCAN = 512
+MAX_BLUETOOTH_SIGHTINGS = 3_000
+MAX_LANDMARKS = 100
+MAX_LTE_MEASUREMENTS = 300
+MAX_BATCH_BYTES = 2 * 1024 * 1024
+"""Largest accepted request body (bytes); larger bodies are refused with 413 before parsing."""
+
+
+class _Stream(WireModel):
+    t_ms: IncreasingTimes = Field(
+        max_length=MAX_IMU_SAMPLES, description="Sample times, strictly increasing."
+    )
+
+    def _check_columns(self, **columns: list[float] | None) -> None:
+        n = len(self.t_ms)
+        for name, values in columns.items():
+            if values is not None and len(values) != n:
+                raise ValueError(f"column '{name}' has {len(values)} values but t_ms has {n}")
+
+
+class Vector3Stream(_Stream):
+    """Three-axis samples in the phone frame (Android ``SensorEvent.values[0..2]``)."""
+
+    x: list[float] = Field(max_length=MAX_IMU_SAMPLES)
+    y: list[float] = Field(max_length=MAX_IMU_SAMPLES)
+    z: list[float] = Field(max_length=MAX_IMU_SAMPLES)
+
+    @model_validator(mode="after")
+    def _columns(self) -> Self:
+        self._check_columns(x=self.x, y=self.y, z=self.z)
+        return self
+
+
+class RotationVectorStream(_Stream):
+    """Android rotation vector: the unit quaternion's vector part (x, y, z = axis * sin(angle/2)) and,
+    when the phone sends it, its scalar part w = cos(angle/2). Without ``w`` it is reconstructed."""
+
+    x: list[float] = Field(max_length=MAX_IMU_SAMPLES)
+    y: list[float] = Field(max_length=MAX_IMU_SAMPLES)
+    z: list[float] = Field(max_length=MAX_IMU_SAMPLES)
+    w: list[float] | None = Field(default=None, max_length=MAX_IMU_SAMPLES)
+
+    @model_validator(mode="after")
+    def _columns(self) -> Self:
+        self._check_columns(x=self.x, y=self.y, z=self.z, w=self.w)
+        for i, (a, b, c) in enumerate(zip(self.x, self.y, self.z, strict=True)):
+            norm2 = a * a + b * b + c * c + (self.w[i] ** 2 if self.w is not None else 0.0)
+            if norm2 > 1.0 + 1e-3:
+                raise ValueError(
+                    f"rotation vector sample {i} has norm {norm2**0.5:.4f} > 1; not a unit quaternion"
+                )
+        return self
+
+
+class ScalarStream(_Stream):
+    """One value per sample (pressure in hPa)."""
+
+    value: list[float] = Field(max_length=MAX_IMU_SAMPLES)
+
+    @model_validator(mode="after")
+    def _columns(self) -> Self:
+        self._check_columns(value=self.value)
+        return self
+
+
+class Step(WireModel):
+    """A step detected on the phone. Give the absolute azimuth, the heading change, or both."""
+
+    t_ms: TimeMs
+    length_m: float = Field(gt=0.0, le=3.0, description="Step length in metres.")
+    azimuth_rad: float | None = Field(
+        default=None,
+        ge=-7.0,
+        le=7.0,
+        description="Direction of travel, clockwise from north (Android getOrientation()[0] convention).",
+    )
+    heading_change_rad: float | None = Field(
+        default=None,
+        ge=-7.0,
+        le=7.0,
+        description="Change of direction since the previous step, counter-clockwise positive.",
+    )
+
+    @model_validator(mode="after")
+    def _has_direction(self) -> Self:
+        if self.azimuth_rad is None and self.heading_change_rad is None:
+            raise ValueError("a step needs azimuth_rad, heading_change_rad or both")
+        return self
+
+
+class WifiAp(WireModel):
+    bssid: str = Field(pattern=r"^[0-9a-fA-F]{2}(:[0-9a-fA-F]{2}){5}$", examples=["0e:74:9c:a7:b2:e4"])
+    ssid: str = Field(default="", max_length=64)
+    rssi_dbm: RssiDbm
+    frequency_mhz: int = Field(ge=2400, le=7125)
+    last_seen_ms: TimeMs | None = Field(
+        default=None,
+        description="When the AP was last actually heard (Android ScanResult.timestamp as wall clock). "
+        "Scans re-report cached APs; entries older than the scan are down-weighted or dropped.",
+    )
+
+
+class WifiScan(WireModel):
+    t_ms: TimeMs
+    aps: list[WifiAp] = Field(min_length=1, max_length=MAX_APS_PER_SCAN)
+
+    @model_validator(mode="after")
+    def _unique_and_causal(self) -> Self:
+        seen: set[str] = set()
+        for ap in self.aps:
+            key = ap.bssid.lower()
+            if key in seen:
+                raise ValueError(f"BSSID {ap.bssid} appears twice in one scan")
+            seen.add(key)
+            if ap.last_seen_ms is not None and ap.last_seen_ms > self.t_ms + 1_000:
+                raise ValueError(f"AP {ap.bssid} last_seen_ms is after the scan time t_ms")
+        return self
+
+
+class PeerSighting(WireModel):
+    """Another phone running the app, heard over Bluetooth LE by its advertised id."""
+
+    kind: Literal["peer"] = "peer"
+    t_ms: TimeMs
+    peer_advertised_id: Identifier
+    rssi_dbm: RssiDbm
+    tx_power_dbm: TxPowerDbm | None = None
+
+
+class BeaconSighting(WireModel):
+    """A fixed Bluetooth beacon; identified by MAC (uuid/major/minor repeat across beacons in practice)."""
+
+    kind: Literal["beacon"] = "beacon"
+    t_ms: TimeMs
+    mac: str = Field(pattern=r"^[0-9a-fA-F]{2}(:[0-9a-fA-F]{2}){5}$")
+    uuid: str | None = Field(default=None, max_length=36)
+    major: int | None = Field(default=None, ge=0, le=65535)
+    minor: int | None = Field(default=None, ge=0, le=65535)
+    rssi_dbm: RssiDbm
+    tx_power_dbm: TxPowerDbm | None = None
+
+
+BluetoothSighting = Annotated[PeerSighting | BeaconSighting, Field(discriminator="kind")]
+
+
+class GpsFix(WireModel):
+    kind: Literal["gps"] = "gps"
+    t_ms: TimeMs
+    lat_deg: float = Field(ge=-90.0, le=90.0)
+    lon_deg: float = Field(ge=-180.0, le=180.0)
+    accuracy_m: float = Field(gt=0.0, le=500.0)
+
+
+class TagReading(WireModel):
+    """A QR code or NFC tag. ``payload`` may encode its own position as in SignalSLAM, e.g.
+    ``#6e1ebc 40.684492,-74.401406 z0`` (id, latitude, longitude, floor)."""
+
+    kind: Literal["tag"] = "tag"
+    t_ms: TimeMs
+    tag_id: Identifier
+    payload: str | None = Field(default=None, max_length=256)
+
+
+class AnchorReading(WireModel):
+    """The user confirmed being at an operator-known anchor (by its id)."""
+
+    kind: Literal["anchor"] = "anchor"
+    t_ms: TimeMs
+    anchor_id: Identifier
+
+
+Landmark = Annotated[GpsFix | TagReading | AnchorReading, Field(discriminator="kind")]
+
+
+class LteMeasurement(WireModel):
+    t_ms: TimeMs
+    cell_id: Identifier = Field(description="E-UTRAN cell identity (ECI) or PCI/EARFCN pair, as a string.")
+    rsrp_dbm: float = Field(ge=-140.0, le=-44.0)
+    rsrq_db: float | None = Field(default=None, ge=-34.0, le=3.0)
+
+
+BATCH_EXAMPLE: dict[str, Any] = {
+    "building_id": "hq",
+    "device_id": "phone-1",
+    "user_id": "alice",
+    "batch_id": "phone-1-000042",
+    "seq": 42,
+    "ble_advertised_id": "a1b2c3d4",
+    "accelerometer": {
+        "t_ms": [1700000000000, 1700000000020, 1700000000040],
+        "x": [0.12, 0.10, 0.15],
+        "y": [0.31, 0.29, 0.35],
+        "z": [9.79, 9.85, 9.72],
+    },
+    "gyroscope": {
+        "t_ms": [1700000000000, 1700000000020, 1700000000040],
+        "x": [0.01, 0.00, -0.01],
+        "y": [0.00, 0.02, 0.01],
+        "z": [0.05, 0.04, 0.06],
+    },
+    "rotation_vector": {
+        "t_ms": [1700000000000, 1700000000020, 1700000000040],
+        "x": [0.01, 0.01, 0.01],
+        "y": [0.02, 0.02, 0.02],
+        "z": [0.38, 0.38, 0.39],
+    },
+    "steps": [{"t_ms": 1700000000500, "length_m": 0.68, "azimuth_rad": 0.79}],
+    "wifi_scans": [
+        {
+            "t_ms": 1700000000900,
+            "aps": [
+                {
+                    "bssid": "0e:74:9c:a7:b2:e4",
+                    "ssid": "lobby",
+                    "rssi_dbm": -43,
+                    "frequency_mhz": 5805,
+                    "last_seen_ms": 1700000000850,
+                },
+                {"bssid": "04:33:89:79:fc:7c", "rssi_dbm": -70, "frequency_mhz": 2412},
+            ],
+        }
+    ],
+    "bluetooth": [
+        {"kind": "peer", "t_ms": 1700000000300, "peer_advertised_id": "e5f6a7b8", "rssi_dbm": -71},
+        {
+            "kind": "beacon",
+            "t_ms": 1700000000400,
+            "mac": "E0:78:A3:3D:B5:D6",
+            "rssi_dbm": -82,
+            "tx_power_dbm": -56,
+        },
+    ],
+    "landmarks": [
+        {
+            "kind": "tag",
+            "t_ms": 1700000000700,
+            "tag_id": "6e1ebc",
+            "payload": "#6e1ebc 40.684492,-74.401406 z0",
+        }
+    ],
+    "lte": [{"t_ms": 1700000000600, "cell_id": "310-410-12345", "rsrp_dbm": -95.5, "rsrq_db": -11.0}],
+}
+
+
+class SensorBatch(WireModel):
+    """What a phone posts, about once a second. ``(device_id, batch_id)`` is unique: a retried batch is
+    recognised and not applied twice. ``seq`` increases by one per batch of a device and orders them."""
+
+    model_config = wire_config(BATCH_EXAMPLE)
+
+    building_id: Identifier
+    device_id: Identifier
+    user_id: Identifier | None = Field(default=None, description="Defaults to the device id.")
+    batch_id: Identifier = Field(description="Client-unique id of this batch; reuse it when retrying.")
+    seq: int = Field(ge=0, le=2**62, description="Per-device sequence number, +1 per batch.")
+    ble_advertised_id: Identifier | None = Field(
+        default=None,
+        description="This phone's own Bluetooth LE advertised id, so peers' sightings can be matched.",
+    )
+    accelerometer: Vector3Stream | None = Field(default=None, description="m/s^2, gravity included.")
+    gyroscope: Vector3Stream | None = Field(default=None, description="rad/s, calibrated.")
+    magnetometer: Vector3Stream | None = Field(default=None, description="microtesla, calibrated.")
+    rotation_vector: RotationVectorStream | None = None
+    game_rotation_vector: RotationVectorStream | None = None
+    pressure: ScalarStream | None = Field(default=None, description="hPa.")
+    steps: list[Step] = Field(default_factory=list, max_length=MAX_STEPS)
+    wifi_scans: list[WifiScan] = Field(default_factory=list, max_length=MAX_WIFI_SCANS)
+    bluetooth: list[BluetoothSighting] = Field(default_factory=list, max_length=MAX_BLUETOOTH_SIGHTINGS)
+    landmarks: list[Landmark] = Field(default_factory=list, max_length=MAX_LANDMARKS)
+    lte: list[LteMeasurement] = Field(default_factory=list, max_length=MAX_LTE_MEASUREMENTS)
+
+    @property
+    def effective_user_id(self) -> str:
+        return self.user_id or self.device_id
+
+    def time_span_ms(self) -> tuple[int, int] | None:
+        """First and last sensor time in the batch, or None for an empty batch."""
+        times: list[int] = []
+        for stream in (
+            self.accelerometer,
+            self.gyroscope,
+            self.magnetometer,
+            self.rotation_vector,
+            self.game_rotation_vector,
+            self.pressure,
+        ):
+            if stream is not None and stream.t_ms:
+                times += (stream.t_ms[0], stream.t_ms[-1])
+        for items in (self.steps, self.wifi_scans, self.bluetooth, self.landmarks, self.lte):
+            times += [item.t_ms for item in items]
+        return (min(times), max(times)) if times else None
+
+    @model_validator(mode="after")
+    def _consistent(self) -> Self:
+        for name in ("steps", "wifi_scans"):
+            items = getattr(self, name)
+            for i in range(1, len(items)):
+                if items[i].t_ms <= items[i - 1].t_ms:
+                    raise ValueError(f"{name}[{i}].t_ms must be after {name}[{i - 1}].t_ms")
+        span = self.time_span_ms()
+        if span is not None and span[1] - span[0] > MAX_BATCH_SPAN_MS:
+            raise ValueError(
+                f"batch spans {span[1] - span[0]} ms of sensor time; at most {MAX_BATCH_SPAN_MS} ms per batch"
+            )
+        return self
+
+
+__all__ = [
+    "MAX_BATCH_BYTES",
+    "MAX_TIME_MS",
+    "MIN_TIME_MS",
+    "AnchorReading",
+    "BeaconSighting",
+    "BluetoothSighting",
+    "GpsFix",
+    "Landmark",
+    "LteMeasurement",
+    "PeerSighting",
+    "RotationVectorStream",
+    "ScalarStream",
+    "SensorBatch",
+    "Step",
+    "TagReading",
+    "Vector3Stream",
+    "WifiAp",
+    "WifiScan",
+]

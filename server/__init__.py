@@ -1,0 +1,1 @@
+"""crowdslam server: the only package with I/O (HTTP, WebSocket, SQL, MCAP, files, CLI)."""

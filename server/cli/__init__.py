@@ -1,0 +1,1 @@
+"""The ``crowdslam`` command line: each subcommand parses, calls one library function, prints."""

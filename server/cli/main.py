@@ -1,0 +1,56 @@
+"""Entry point of the ``crowdslam`` console script.
+
+Subcommand modules are imported only when their command runs, so ``crowdslam --help`` stays fast
+(no numpy, numba, SQLAlchemy or FastAPI import).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Sequence
+
+# name -> (module implementing ``add_arguments(parser)`` and ``run(args) -> int``, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "schema": ("server.cli.schema_cmd", "write the JSON Schema of every public model, or print an example"),
+    "migrate": ("server.cli.migrate_cmd", "upgrade the database (SQLite by default) to the latest schema"),
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="crowdslam",
+        description="Indoor localization server without a site survey (DynamicSLAM + SignalSLAM).",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name, (module_name, help_text) in COMMANDS.items():
+        command_parser = sub.add_parser(name, help=help_text, description=help_text)
+        command_parser.set_defaults(_module=module_name)
+        # Arguments are declared by the command module, loaded only for the command being parsed.
+        if name in _requested_commands():
+            importlib.import_module(module_name).add_arguments(command_parser)
+    return parser
+
+
+def _requested_commands() -> set[str]:
+    return {arg for arg in sys.argv[1:] if arg in COMMANDS}
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    if argv is not None:
+        sys.argv = [sys.argv[0], *argv]
+    parser = build_parser()
+    args = parser.parse_args()
+    module = importlib.import_module(args._module)
+    try:
+        return int(module.run(args))
+    except KeyboardInterrupt:
+        return 130
+    except BrokenPipeError:  # output piped into `head` and closed early
+        sys.stderr.close()
+        return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,85 @@
+"""Errors that end a request, each with its HTTP status and Problem body; mapped to HTTP in one place."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+from pydantic import ValidationError
+
+from schemas.errors import FieldProblem, Problem
+
+
+class ProblemError(Exception):
+    """Base: an error that a client caused and can act on."""
+
+    status = 400
+    title = "Bad request"
+
+    def __init__(self, detail: str, errors: Sequence[FieldProblem] = ()) -> None:
+        super().__init__(detail)
+        self.detail = detail
+        self.errors = list(errors)
+
+    def to_problem(self) -> Problem:
+        return Problem(title=self.title, status=self.status, detail=self.detail, errors=self.errors)
+
+
+class MalformedBodyError(ProblemError):
+    status = 400
+    title = "Malformed request body"
+
+
+class BodyTooLargeError(ProblemError):
+    status = 413
+    title = "Request body too large"
+
+    def __init__(self, n_bytes: int, limit: int) -> None:
+        super().__init__(f"the body has {n_bytes} bytes; at most {limit} bytes are accepted per request")
+        self.n_bytes = n_bytes
+        self.limit = limit
+
+
+class InvalidInputError(ProblemError):
+    status = 422
+    title = "Invalid input"
+
+    @classmethod
+    def from_validation_error(cls, error: ValidationError, title: str | None = None) -> InvalidInputError:
+        problems = [field_problem(e) for e in error.errors(include_url=False)]
+        noun = "field is" if len(problems) == 1 else "fields are"
+        instance = cls(
+            f"{len(problems)} {noun} invalid: " + "; ".join(f"{p.loc}: {p.msg}" for p in problems[:5]),
+            problems,
+        )
+        if title is not None:
+            instance.title = title
+        return instance
+
+
+class UnauthorizedError(ProblemError):
+    status = 401
+    title = "Unauthorized"
+
+
+class ForbiddenError(ProblemError):
+    status = 403
+    title = "Forbidden"
+
+
+class NotFoundError(ProblemError):
+    status = 404
+    title = "Not found"
+
+
+class ConflictError(ProblemError):
+    status = 409
+    title = "Conflict"
+
+
+def field_problem(error: Any) -> FieldProblem:
+    """One pydantic error as a FieldProblem with a dotted path ('steps.0.length_m')."""
+    loc = ".".join(str(part) for part in error.get("loc", ())) or "body"
+    return FieldProblem(
+        loc=loc, msg=str(error.get("msg", "invalid")), type=str(error.get("type", "value_error"))
+    )

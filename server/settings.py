@@ -1,0 +1,37 @@
+"""All configuration, from the environment (``CROWDSLAM_*``) or ``.env``. Nothing else reads os.environ."""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from schemas.sensors import MAX_BATCH_BYTES
+
+
+class Settings(BaseSettings):
+    model_config = SettingsConfigDict(env_prefix="CROWDSLAM_", env_file=".env", extra="ignore")
+
+    data_dir: Path = Field(
+        default=Path("crowdslam-data"),
+        description="Where the embedded SQLite database, recordings and the numba cache live.",
+    )
+    database_url: str | None = Field(
+        default=None,
+        description="SQLAlchemy URL, e.g. postgresql+psycopg://user@host/db. Default: SQLite in data_dir.",
+    )
+    max_batch_bytes: int = Field(default=MAX_BATCH_BYTES, gt=0)
+    seed: int = Field(default=0, description="Root seed of every filter's random stream.")
+
+    @property
+    def resolved_database_url(self) -> str:
+        if self.database_url:
+            return self.database_url
+        return f"sqlite:///{(self.data_dir / 'crowdslam.sqlite3').resolve()}"
+
+
+@lru_cache(maxsize=1)
+def get_settings() -> Settings:
+    return Settings()

@@ -1,0 +1,1 @@
+"""SQL store: models, engine, migrations and repositories (all SQL of the project lives here)."""

@@ -1,0 +1,197 @@
+"""SQLAlchemy 2 models. Schema changes go through Alembic migrations only (a test checks they agree)."""
+
+from __future__ import annotations
+
+from datetime import datetime
+
+from sqlalchemy import (
+    BigInteger,
+    Boolean,
+    CheckConstraint,
+    DateTime,
+    Float,
+    ForeignKey,
+    ForeignKeyConstraint,
+    Index,
+    Integer,
+    LargeBinary,
+    MetaData,
+    String,
+    UniqueConstraint,
+    func,
+)
+from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
+
+# Deterministic constraint names so migrations agree on SQLite and PostgreSQL.
+NAMING_CONVENTION = {
+    "ix": "ix_%(column_0_label)s",
+    "uq": "uq_%(table_name)s_%(column_0_name)s",
+    "ck": "ck_%(table_name)s_%(constraint_name)s",
+    "fk": "fk_%(table_name)s_%(column_0_name)s_%(referred_table_name)s",
+    "pk": "pk_%(table_name)s",
+}
+
+# BigInteger primary keys autoincrement on PostgreSQL; SQLite only autoincrements INTEGER.
+BigIntPk = BigInteger().with_variant(Integer(), "sqlite")
+
+
+class Base(DeclarativeBase):
+    metadata = MetaData(naming_convention=NAMING_CONVENTION)
+
+
+class BuildingRow(Base):
+    __tablename__ = "buildings"
+
+    id: Mapped[str] = mapped_column(String(64), primary_key=True)
+    name: Mapped[str] = mapped_column(String(128))
+    origin_lat_deg: Mapped[float | None] = mapped_column(Float)
+    origin_lon_deg: Mapped[float | None] = mapped_column(Float)
+    rotation_rad: Mapped[float] = mapped_column(Float, default=0.0)
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), server_default=func.now())
+
+
+class FloorRow(Base):
+    __tablename__ = "floors"
+
+    building_id: Mapped[str] = mapped_column(ForeignKey("buildings.id", ondelete="CASCADE"), primary_key=True)
+    level: Mapped[int] = mapped_column(Integer, primary_key=True)
+    name: Mapped[str] = mapped_column(String(64))
+    elevation_m: Mapped[float | None] = mapped_column(Float)
+    width_m: Mapped[float | None] = mapped_column(Float)
+    height_m: Mapped[float | None] = mapped_column(Float)
+
+
+class DeviceRow(Base):
+    __tablename__ = "devices"
+
+    building_id: Mapped[str] = mapped_column(ForeignKey("buildings.id", ondelete="CASCADE"), primary_key=True)
+    id: Mapped[str] = mapped_column(String(64), primary_key=True)
+    user_id: Mapped[str] = mapped_column(String(64))
+    ble_advertised_id: Mapped[str | None] = mapped_column(String(64))
+    last_seq: Mapped[int | None] = mapped_column(BigInteger)
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), server_default=func.now())
+
+
+class ApiKeyRow(Base):
+    """Keys are stored as SHA-256 of the secret; only the short prefix is kept in clear to find them."""
+
+    __tablename__ = "api_keys"
+    __table_args__ = (
+        CheckConstraint("scope IN ('operator', 'device', 'dashboard')", name="scope"),
+        CheckConstraint(
+            "scope != 'device' OR (device_id IS NOT NULL AND building_id IS NOT NULL)", name="device"
+        ),
+    )
+
+    id: Mapped[int] = mapped_column(BigIntPk, primary_key=True, autoincrement=True)
+    prefix: Mapped[str] = mapped_column(String(16), index=True)
+    key_hash: Mapped[str] = mapped_column(String(64), unique=True)
+    scope: Mapped[str] = mapped_column(String(16))
+    building_id: Mapped[str | None] = mapped_column(ForeignKey("buildings.id", ondelete="CASCADE"))
+    device_id: Mapped[str | None] = mapped_column(String(64))
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), server_default=func.now())
+    revoked_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True))
+
+
+class BatchRow(Base):
+    """An accepted batch. The unique constraint on (building, device, batch id) is what detects retries."""
+
+    __tablename__ = "batches"
+    __table_args__ = (
+        ForeignKeyConstraint(["building_id"], ["buildings.id"], ondelete="CASCADE"),
+        UniqueConstraint("building_id", "device_id", "batch_id", name="uq_batches_device_batch"),
+        Index("ix_batches_device_seq", "building_id", "device_id", "seq"),
+    )
+
+    id: Mapped[int] = mapped_column(BigIntPk, primary_key=True, autoincrement=True)
+    building_id: Mapped[str] = mapped_column(String(64))
+    device_id: Mapped[str] = mapped_column(String(64))
+    batch_id: Mapped[str] = mapped_column(String(64))
+    seq: Mapped[int] = mapped_column(BigInteger)
+    t_first_ms: Mapped[int | None] = mapped_column(BigInteger)
+    t_last_ms: Mapped[int | None] = mapped_column(BigInteger)
+    n_bytes: Mapped[int] = mapped_column(Integer)
+    applied: Mapped[bool] = mapped_column(Boolean, default=False)
+    received_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), server_default=func.now())
+
+
+class AnchorRow(Base):
+    """A building anchor of the shared crowd map (mean, covariance, type, count, last seen)."""
+
+    __tablename__ = "anchors"
+    __table_args__ = (
+        ForeignKeyConstraint(["building_id"], ["buildings.id"], ondelete="CASCADE"),
+        Index("ix_anchors_building_floor", "building_id", "floor"),
+        UniqueConstraint("building_id", "public_id", name="uq_anchors_public_id"),
+    )
+
+    id: Mapped[int] = mapped_column(BigIntPk, primary_key=True, autoincrement=True)
+    building_id: Mapped[str] = mapped_column(String(64))
+    public_id: Mapped[str] = mapped_column(String(64))
+    floor: Mapped[int] = mapped_column(Integer, default=0)
+    type: Mapped[str] = mapped_column(String(32))
+    x_m: Mapped[float] = mapped_column(Float)
+    y_m: Mapped[float] = mapped_column(Float)
+    cov_xx: Mapped[float] = mapped_column(Float)
+    cov_xy: Mapped[float] = mapped_column(Float)
+    cov_yy: Mapped[float] = mapped_column(Float)
+    observation_count: Mapped[int] = mapped_column(Integer, default=0)
+    known: Mapped[bool] = mapped_column(Boolean, default=False)
+    label: Mapped[str | None] = mapped_column(String(128))
+    signature: Mapped[bytes | None] = mapped_column(LargeBinary)
+    last_seen_ms: Mapped[int | None] = mapped_column(BigInteger)
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), server_default=func.now())
+
+
+class AnchorObservationRow(Base):
+    __tablename__ = "anchor_observations"
+
+    id: Mapped[int] = mapped_column(BigIntPk, primary_key=True, autoincrement=True)
+    anchor_id: Mapped[int] = mapped_column(ForeignKey("anchors.id", ondelete="CASCADE"), index=True)
+    user_id: Mapped[str] = mapped_column(String(64))
+    t_ms: Mapped[int] = mapped_column(BigInteger)
+    detected_type: Mapped[str] = mapped_column(String(32))
+    x_m: Mapped[float] = mapped_column(Float)
+    y_m: Mapped[float] = mapped_column(Float)
+    cov_xx: Mapped[float] = mapped_column(Float)
+    cov_xy: Mapped[float] = mapped_column(Float)
+    cov_yy: Mapped[float] = mapped_column(Float)
+
+
+class PositionSnapshotRow(Base):
+    """Position history: one row per published estimate."""
+
+    __tablename__ = "position_snapshots"
+    __table_args__ = (
+        ForeignKeyConstraint(["building_id"], ["buildings.id"], ondelete="CASCADE"),
+        Index("ix_position_snapshots_user_time", "building_id", "user_id", "t_ms"),
+    )
+
+    id: Mapped[int] = mapped_column(BigIntPk, primary_key=True, autoincrement=True)
+    building_id: Mapped[str] = mapped_column(String(64))
+    user_id: Mapped[str] = mapped_column(String(64))
+    device_id: Mapped[str] = mapped_column(String(64))
+    t_ms: Mapped[int] = mapped_column(BigInteger)
+    x_m: Mapped[float] = mapped_column(Float)
+    y_m: Mapped[float] = mapped_column(Float)
+    cov_xx: Mapped[float] = mapped_column(Float)
+    cov_xy: Mapped[float] = mapped_column(Float)
+    cov_yy: Mapped[float] = mapped_column(Float)
+    heading_rad: Mapped[float] = mapped_column(Float)
+    floor: Mapped[int] = mapped_column(Integer, default=0)
+    source: Mapped[str] = mapped_column(String(16))
+
+
+class FilterSnapshotRow(Base):
+    """The latest serialised filter state of one user, to resume tracking after a restart."""
+
+    __tablename__ = "filter_snapshots"
+    __table_args__ = (ForeignKeyConstraint(["building_id"], ["buildings.id"], ondelete="CASCADE"),)
+
+    building_id: Mapped[str] = mapped_column(String(64), primary_key=True)
+    user_id: Mapped[str] = mapped_column(String(64), primary_key=True)
+    t_ms: Mapped[int] = mapped_column(BigInteger)
+    last_batch_pk: Mapped[int | None] = mapped_column(BigInteger)
+    format_version: Mapped[int] = mapped_column(Integer)
+    state: Mapped[bytes] = mapped_column(LargeBinary)
+    updated_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), server_default=func.now())

@@ -1,0 +1,113 @@
+"""A retried batch is detected by the unique constraint, on both databases."""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+from sqlalchemy import Engine, func, select
+from sqlalchemy.exc import IntegrityError
+
+from server.store.batches import AcceptedBatch, find_batch, insert_batch_once, mark_applied
+from server.store.db import make_session_factory
+from server.store.models import BatchRow, BuildingRow
+
+
+def _batch(batch_id: str = "b-1", device_id: str = "phone-1", seq: int = 1) -> AcceptedBatch:
+    return AcceptedBatch("hq", device_id, batch_id, seq, 1700000000000, 1700000000900, 1234)
+
+
+def _with_building(engine: Engine) -> None:
+    with make_session_factory(engine).begin() as session:
+        session.add(BuildingRow(id="hq", name="HQ", rotation_rad=0.0))
+
+
+def _count(engine: Engine) -> int:
+    with make_session_factory(engine)() as session:
+        return int(session.execute(select(func.count()).select_from(BatchRow)).scalar_one())
+
+
+def test_retry_is_detected_by_the_constraint(migrated_engine: Engine) -> None:
+    _with_building(migrated_engine)
+    sessions = make_session_factory(migrated_engine)
+    with sessions.begin() as session:
+        first = insert_batch_once(session, _batch())
+    with sessions.begin() as session:
+        again = insert_batch_once(session, _batch(seq=99))  # same batch id, whatever else differs
+    assert first is not None
+    assert again is None
+    assert _count(migrated_engine) == 1
+    with sessions() as session:
+        row = find_batch(session, "hq", "phone-1", "b-1")
+        assert row is not None
+        assert row.seq == 1
+        assert not row.applied
+
+
+def test_same_batch_id_on_another_device_is_a_different_batch(migrated_engine: Engine) -> None:
+    _with_building(migrated_engine)
+    with make_session_factory(migrated_engine).begin() as session:
+        assert insert_batch_once(session, _batch(device_id="phone-1")) is not None
+        assert insert_batch_once(session, _batch(device_id="phone-2")) is not None
+    assert _count(migrated_engine) == 2
+
+
+def test_concurrent_retries_accept_exactly_one(migrated_engine: Engine) -> None:
+    _with_building(migrated_engine)
+    sessions = make_session_factory(migrated_engine)
+    results: list[int | None] = []
+    errors: list[BaseException] = []
+    barrier = threading.Barrier(4)
+
+    def post() -> None:
+        try:
+            barrier.wait()
+            with sessions.begin() as session:
+                results.append(insert_batch_once(session, _batch()))
+        except BaseException as error:  # surfaced below
+            errors.append(error)
+
+    threads = [threading.Thread(target=post) for _ in range(4)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(timeout=30)
+    assert not errors, errors
+    assert sum(r is not None for r in results) == 1
+    assert _count(migrated_engine) == 1
+
+
+def test_rolled_back_batch_can_be_sent_again(migrated_engine: Engine) -> None:
+    """If applying a batch fails, its row goes with the transaction, so the phone's retry is accepted."""
+    _with_building(migrated_engine)
+    sessions = make_session_factory(migrated_engine)
+
+    def apply_and_fail() -> None:
+        with sessions.begin() as session:
+            assert insert_batch_once(session, _batch()) is not None
+            raise RuntimeError("filter update failed")
+
+    with pytest.raises(RuntimeError, match="filter update failed"):
+        apply_and_fail()
+    with sessions.begin() as session:
+        row_id = insert_batch_once(session, _batch())
+        assert row_id is not None
+        mark_applied(session, row_id)
+    with sessions() as session:
+        row = find_batch(session, "hq", "phone-1", "b-1")
+        assert row is not None
+        assert row.applied
+
+
+def test_batch_for_unknown_building_violates_the_foreign_key(migrated_engine: Engine) -> None:
+    with pytest.raises(IntegrityError), make_session_factory(migrated_engine).begin() as session:
+        insert_batch_once(session, _batch())
+    assert _count(migrated_engine) == 0
+
+
+def test_mark_applied_on_missing_row_is_an_error(migrated_engine: Engine) -> None:
+    with (
+        pytest.raises(LookupError, match="no accepted batch"),
+        make_session_factory(migrated_engine)() as session,
+    ):
+        mark_applied(session, 424242)
