@@ -1,0 +1,360 @@
+"""DynamicSLAM (Algorithm 2) for many users at once: a Python orchestrator over compiled batch kernels.
+
+Inputs are validated before any kernel runs, so a call either applies completely or raises without
+touching the state. Randomness comes from per-user counter streams keyed by (seed, admission number).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from slam_core.kernels.building import building_anchor_update
+from slam_core.kernels.human import human_anchor_update
+from slam_core.kernels.motion import MODEL_BIAS_SCALE, MODEL_PAPER, initialise_user, motion_update
+from slam_core.kernels.resampling import SCHEME_CODES, resample_users
+from slam_core.kernels.summary import summarise
+from slam_core.params import FilterParams
+from slam_core.state import FilterState, SlotAllocator, user_key
+
+SUMMARY_FIELDS = ("x", "y", "cov_xx", "cov_xy", "cov_yy", "best_x", "best_y", "heading")
+
+
+@dataclass(frozen=True)
+class CrowdMap:
+    """A shared anchor map to seed new users' particle maps (the server keeps it in SQL)."""
+
+    mean: np.ndarray  # (N, 2)
+    cov: np.ndarray  # (N, 3) xx, xy, yy
+    type: np.ndarray  # (N,) int
+    known: np.ndarray  # (N,) bool
+    crowd_id: np.ndarray  # (N,) int64
+
+    def __post_init__(self) -> None:
+        n = self.mean.shape[0]
+        if self.mean.shape != (n, 2) or self.cov.shape != (n, 3):
+            raise ValueError("crowd map: mean must be (N, 2) and cov (N, 3)")
+        if self.type.shape != (n,) or self.known.shape != (n,) or self.crowd_id.shape != (n,):
+            raise ValueError("crowd map: type, known and crowd_id must be (N,)")
+        if not (np.all(np.isfinite(self.mean)) and np.all(np.isfinite(self.cov))):
+            raise ValueError("crowd map: non-finite mean or covariance")
+        if np.any(self.cov[:, 0] <= 0) or np.any(self.cov[:, 0] * self.cov[:, 2] - self.cov[:, 1] ** 2 <= 0):
+            raise ValueError("crowd map: covariances must be positive definite")
+
+    @classmethod
+    def empty(cls) -> CrowdMap:
+        return cls(
+            np.zeros((0, 2)),
+            np.zeros((0, 3)),
+            np.zeros(0, np.int64),
+            np.zeros(0, bool),
+            np.zeros(0, np.int64),
+        )
+
+
+@dataclass(frozen=True)
+class EncounterOutcome:
+    applied: np.ndarray  # (E,) bool: passed the gate and was applied to at least one of the two users
+    mahalanobis: np.ndarray  # (E,) user-level normalised innovation |z - d| / sqrt(var)
+
+
+class DynamicSlam:
+    def __init__(self, params: FilterParams, seed: int = 0, initial_capacity: int = 16) -> None:
+        self.params = params
+        self.seed = seed
+        self.state = FilterState.empty(initial_capacity, params.n_particles, params.anchors.capacity)
+        self._slots = SlotAllocator(initial_capacity)
+        self._admitted = 0
+        self._type_posterior = params.anchors.type_posterior
+        self._n_types = self._type_posterior.shape[0]
+
+    # ----------------------------------------------------------------- users
+    def add_user(
+        self,
+        x: float,
+        y: float,
+        heading: float = 0.0,
+        position_sigma: float = 0.5,
+        crowd_map: CrowdMap | None = None,
+    ) -> int:
+        """Admit a user at a start fix; returns its slot. ``heading`` is used by the paper motion model."""
+        if not all(np.isfinite([x, y, heading, position_sigma])) or position_sigma < 0:
+            raise ValueError("start fix must be finite with a non-negative sigma")
+        slot, grow_to = self._slots.allocate()
+        if grow_to is not None:
+            self.state = self.state.grown(grow_to)
+        s = self.state
+        s.rng_key[slot] = user_key(self.seed, self._admitted)
+        s.rng_ctr[slot] = 0
+        self._admitted += 1
+        motion = self.params.motion
+        initialise_user(
+            s.x,
+            s.y,
+            s.heading,
+            s.bias,
+            s.scale,
+            s.walk,
+            s.logw,
+            s.rng_key,
+            s.rng_ctr,
+            slot,
+            float(x),
+            float(y),
+            float(position_sigma),
+            float(heading),
+            motion.start_heading_sigma_rad,
+            motion.heading_bias_sigma_rad if motion.model == "bias-scale" else 0.0,
+            motion.step_scale_sigma if motion.model == "bias-scale" else 0.0,
+        )
+        s.ctrl_cov[slot] = 0.0
+        s.last_obs_heading[slot] = np.nan
+        s.map_n[slot] = 0
+        s.n_resamples[slot] = 0
+        s.n_map_overflow[slot] = 0
+        s.n_degenerate[slot] = 0
+        if crowd_map is not None and crowd_map.mean.shape[0]:
+            self._seed_map(slot, crowd_map)
+        s.active[slot] = True
+        return slot
+
+    def _seed_map(self, slot: int, crowd: CrowdMap) -> None:
+        s = self.state
+        n = min(crowd.mean.shape[0], s.map_capacity)
+        if np.any((crowd.type[:n] < 0) | (crowd.type[:n] >= self._n_types)):
+            raise ValueError(f"crowd map anchor types must be in [0, {self._n_types})")
+        known_var = self.params.anchors.known_sigma_m**2
+        cov = crowd.cov[:n].copy()
+        cov[crowd.known[:n]] = (known_var, 0.0, known_var)
+        s.map_mu[slot, :, :n] = crowd.mean[:n]
+        s.map_cov[slot, :, :n] = cov
+        s.map_type[slot, :, :n] = crowd.type[:n]
+        s.map_count[slot, :, :n] = 0
+        s.map_known[slot, :, :n] = crowd.known[:n]
+        s.map_crowd_id[slot, :, :n] = crowd.crowd_id[:n]
+        s.map_n[slot] = n
+
+    def remove_user(self, slot: int) -> None:
+        self._check_users(np.array([slot]))
+        self.state.active[slot] = False
+        self._slots.release(slot)
+
+    @property
+    def active_users(self) -> np.ndarray:
+        return np.flatnonzero(self.state.active)
+
+    # ----------------------------------------------------------------- updates
+    def step(self, users: np.ndarray, offsets: np.ndarray, lengths: np.ndarray, headings: np.ndarray) -> None:
+        """Motion update (Eq. 4-8). ``users[i]`` takes steps ``offsets[i]:offsets[i+1]``; ``headings`` are the
+        observed step directions (rad, counter-clockwise from east)."""
+        users = np.ascontiguousarray(users, dtype=np.int64)
+        offsets = np.ascontiguousarray(offsets, dtype=np.int64)
+        lengths = np.ascontiguousarray(lengths, dtype=np.float64)
+        headings = np.ascontiguousarray(headings, dtype=np.float64)
+        self._check_users(users)
+        if offsets.shape != (users.shape[0] + 1,) or offsets[0] != 0 or np.any(np.diff(offsets) < 0):
+            raise ValueError("offsets must start at 0, be non-decreasing and have len(users) + 1 entries")
+        if lengths.shape != (offsets[-1],) or headings.shape != lengths.shape:
+            raise ValueError("lengths and headings must have offsets[-1] entries")
+        finite = np.all(np.isfinite(lengths)) and np.all(np.isfinite(headings))
+        if not finite or np.any(lengths < 0):
+            raise ValueError("step lengths must be finite and >= 0, headings finite")
+        s = self.state
+        motion = self.params.motion
+        motion_update(
+            s.x,
+            s.y,
+            s.heading,
+            s.bias,
+            s.scale,
+            s.walk,
+            s.ctrl_cov,
+            s.last_obs_heading,
+            s.rng_key,
+            s.rng_ctr,
+            users,
+            offsets,
+            lengths,
+            headings,
+            MODEL_PAPER if motion.model == "paper" else MODEL_BIAS_SCALE,
+            motion.step_length_sigma_m,
+            motion.heading_change_sigma_rad,
+            motion.heading_walk_sigma_rad,
+            self.params.human.control_covariance_cap_m2,
+        )
+
+    def observe_building_anchors(self, users: np.ndarray, detected_types: np.ndarray) -> None:
+        """Each user detected one building anchor of this type (Eq. 15-17, Algorithm 3); then resample."""
+        users = np.ascontiguousarray(users, dtype=np.int64)
+        detected_types = np.ascontiguousarray(detected_types, dtype=np.int64)
+        self._check_users(users)
+        if detected_types.shape != users.shape:
+            raise ValueError("one detected type per user")
+        if np.any((detected_types < 0) | (detected_types >= self._n_types)):
+            raise ValueError(f"detected types must be in [0, {self._n_types})")
+        if users.size == 0:
+            return
+        s = self.state
+        a = self.params.anchors
+        building_anchor_update(
+            s.x,
+            s.y,
+            s.logw,
+            s.map_mu,
+            s.map_cov,
+            s.map_type,
+            s.map_count,
+            s.map_known,
+            s.map_crowd_id,
+            s.map_n,
+            s.ctrl_cov,
+            s.rng_key,
+            s.rng_ctr,
+            users,
+            detected_types,
+            self._type_posterior,
+            a.detection_sigma_m,
+            a.new_anchor_likelihood,
+            s.n_map_overflow,
+            s.n_degenerate,
+        )
+        self._resample(users)
+
+    def observe_encounters(
+        self, user_a: np.ndarray, user_b: np.ndarray, distance: np.ndarray, distance_var: np.ndarray
+    ) -> EncounterOutcome:
+        """Human anchors (Algorithm 1). Both users of each encounter are updated from their pre-encounter
+        summaries. A user in several encounters uses the most confident peer (Section 5.1) or, with
+        ``peer_selection='all'``, each in turn. Encounters failing the Mahalanobis gate are not applied."""
+        user_a = np.ascontiguousarray(user_a, dtype=np.int64)
+        user_b = np.ascontiguousarray(user_b, dtype=np.int64)
+        distance = np.ascontiguousarray(distance, dtype=np.float64)
+        distance_var = np.ascontiguousarray(distance_var, dtype=np.float64)
+        n = user_a.shape[0]
+        if not (user_b.shape == distance.shape == distance_var.shape == (n,)):
+            raise ValueError("user_a, user_b, distance and distance_var must have the same length")
+        self._check_users(np.concatenate([user_a, user_b]), allow_repeats=True)
+        if np.any(user_a == user_b):
+            raise ValueError("a user cannot encounter itself")
+        if not (np.all(np.isfinite(distance)) and np.all(np.isfinite(distance_var))):
+            raise ValueError("distances and variances must be finite")
+        if np.any(distance < 0) or np.any(distance_var <= 0):
+            raise ValueError("distances must be >= 0 and variances > 0")
+        if n == 0:
+            return EncounterOutcome(np.zeros(0, bool), np.zeros(0))
+        involved = np.unique(np.concatenate([user_a, user_b]))
+        summary = self.summaries(involved)
+        row = {int(u): i for i, u in enumerate(involved)}
+        ia = np.array([row[int(u)] for u in user_a])
+        ib = np.array([row[int(u)] for u in user_b])
+        mean = summary[:, 0:2]
+        cov = summary[:, 2:5]
+        # user-level gate: |z - ||mu_a - mu_b||| against J (Sigma_a + Sigma_b) J^T + R
+        delta = mean[ia] - mean[ib]
+        d = np.hypot(delta[:, 0], delta[:, 1])
+        safe = np.where(d > 1e-9, d, 1.0)
+        jx = np.where(d > 1e-9, delta[:, 0] / safe, 1.0)
+        jy = np.where(d > 1e-9, delta[:, 1] / safe, 0.0)
+        cs = cov[ia] + cov[ib]
+        var = jx * jx * cs[:, 0] + 2 * jx * jy * cs[:, 1] + jy * jy * cs[:, 2] + distance_var
+        mahalanobis = np.abs(distance - d) / np.sqrt(var)
+        applied = mahalanobis <= self.params.human.gate_sigma
+        # directed updates (target, peer row) from pre-encounter summaries
+        targets = np.concatenate([user_a[applied], user_b[applied]])
+        peers = np.concatenate([ib[applied], ia[applied]])
+        z = np.concatenate([distance[applied], distance[applied]])
+        r = np.concatenate([distance_var[applied], distance_var[applied]])
+        confidence = cov[peers, 0] + cov[peers, 2]
+        for batch in self._peer_rounds(targets, confidence):
+            self._human_update(targets[batch], mean[peers[batch]], cov[peers[batch]], z[batch], r[batch])
+        self._resample(np.unique(targets))
+        return EncounterOutcome(applied, mahalanobis)
+
+    def _peer_rounds(self, targets: np.ndarray, confidence: np.ndarray) -> list[np.ndarray]:
+        """Index sets with distinct targets: one round with each user's most confident peer, or (``all``)
+        as many rounds as needed to apply every peer, most confident first."""
+        order = np.lexsort((confidence, targets))
+        rounds: list[list[int]] = []
+        seen: dict[int, int] = {}
+        for k in order:
+            t = int(targets[k])
+            r = seen.get(t, 0)
+            seen[t] = r + 1
+            if r > 0 and self.params.human.peer_selection == "most-confident":
+                continue
+            while len(rounds) <= r:
+                rounds.append([])
+            rounds[r].append(int(k))
+        return [np.array(r, dtype=np.int64) for r in rounds]
+
+    def _human_update(
+        self, users: np.ndarray, peer_mean: np.ndarray, peer_cov: np.ndarray, z: np.ndarray, r: np.ndarray
+    ) -> None:
+        s = self.state
+        h = self.params.human
+        human_anchor_update(
+            s.x,
+            s.y,
+            s.logw,
+            s.ctrl_cov,
+            s.rng_key,
+            s.rng_ctr,
+            users,
+            np.ascontiguousarray(peer_mean),
+            np.ascontiguousarray(peer_cov),
+            z,
+            r,
+            h.sampling == "iterative",
+            h.beta_m,
+            h.max_iterations,
+            h.outlier_probability,
+            h.max_range_m,
+            s.n_degenerate,
+        )
+
+    def _resample(self, users: np.ndarray) -> None:
+        s = self.state
+        rs = self.params.resampling
+        resample_users(
+            np.ascontiguousarray(users, dtype=np.int64),
+            rs.ess_threshold,
+            SCHEME_CODES[rs.scheme],
+            s.logw,
+            s.x,
+            s.y,
+            s.heading,
+            s.bias,
+            s.scale,
+            s.walk,
+            s.map_mu,
+            s.map_cov,
+            s.map_type,
+            s.map_count,
+            s.map_known,
+            s.map_crowd_id,
+            s.map_n,
+            s.rng_key,
+            s.rng_ctr,
+            s.n_resamples,
+        )
+
+    # ----------------------------------------------------------------- estimates
+    def summaries(self, users: np.ndarray) -> np.ndarray:
+        """(n, 8) rows of SUMMARY_FIELDS: weighted mean, its covariance, the max-weight particle, heading."""
+        users = np.ascontiguousarray(users, dtype=np.int64)
+        self._check_users(users, allow_repeats=True)
+        out = np.empty((users.shape[0], len(SUMMARY_FIELDS)))
+        s = self.state
+        summarise(s.x, s.y, s.heading, s.logw, users, out)
+        return out
+
+    def _check_users(self, users: np.ndarray, allow_repeats: bool = False) -> None:
+        if users.ndim != 1:
+            raise ValueError("users must be a 1-D array of slots")
+        if users.size == 0:
+            return
+        if users.min() < 0 or users.max() >= self.state.capacity or not np.all(self.state.active[users]):
+            raise ValueError(f"unknown user slot in {users.tolist()[:10]}")
+        if not allow_repeats and np.unique(users).size != users.size:
+            raise ValueError("a user may appear only once per call")

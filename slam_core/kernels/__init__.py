@@ -1,0 +1,1 @@
+"""Compiled kernels (numba ``@njit`` only) over struct-of-arrays state. No Python objects per particle."""

@@ -1,0 +1,38 @@
+"""Log-domain weights: normalisation and effective sample size."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True, nogil=True)
+def normalise_log_weights(logw: np.ndarray, u: int) -> bool:
+    """Normalise row ``u`` so that sum(exp(logw)) = 1. Returns False, leaving the row untouched, when every
+    weight is zero or not finite (the caller recovers explicitly and counts it)."""
+    n = logw.shape[1]
+    top = -np.inf
+    for m in range(n):
+        if logw[u, m] > top:
+            top = logw[u, m]
+    if not math.isfinite(top):
+        return False
+    total = 0.0
+    for m in range(n):
+        total += math.exp(logw[u, m] - top)
+    log_total = top + math.log(total)
+    for m in range(n):
+        logw[u, m] -= log_total
+    return True
+
+
+@njit(cache=True, nogil=True)
+def effective_sample_size(logw: np.ndarray, u: int) -> float:
+    """1 / sum(w^2) of the normalised row."""
+    s = 0.0
+    for m in range(logw.shape[1]):
+        w = math.exp(logw[u, m])
+        s += w * w
+    return 1.0 / s if s > 0.0 else 0.0
