@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slam_core.kernels.building import building_anchor_update
+from slam_core.kernels.building import building_anchor_update, merge_crowd_anchors
 from slam_core.kernels.human import human_anchor_update
 from slam_core.kernels.motion import MODEL_BIAS_SCALE, MODEL_PAPER, initialise_user, motion_update
 from slam_core.kernels.resampling import SCHEME_CODES, resample_users
@@ -184,8 +184,11 @@ class DynamicSlam:
             self.params.human.control_covariance_cap_m2,
         )
 
-    def observe_building_anchors(self, users: np.ndarray, detected_types: np.ndarray) -> None:
-        """Each user detected one building anchor of this type (Eq. 15-17, Algorithm 3); then resample."""
+    def observe_building_anchors(
+        self, users: np.ndarray, detected_types: np.ndarray, crowd_ids: np.ndarray | None = None
+    ) -> None:
+        """Each user detected one building anchor of this type (Eq. 15-17, Algorithm 3); then resample.
+        ``crowd_ids`` link the anchor each particle used or created to the shared map (-1: none)."""
         users = np.ascontiguousarray(users, dtype=np.int64)
         detected_types = np.ascontiguousarray(detected_types, dtype=np.int64)
         self._check_users(users)
@@ -193,33 +196,51 @@ class DynamicSlam:
             raise ValueError("one detected type per user")
         if np.any((detected_types < 0) | (detected_types >= self._n_types)):
             raise ValueError(f"detected types must be in [0, {self._n_types})")
+        if crowd_ids is not None:
+            crowd_ids = np.ascontiguousarray(crowd_ids, dtype=np.int64)
+            if crowd_ids.shape != users.shape:
+                raise ValueError("one crowd id (or -1) per user")
         if users.size == 0:
             return
         s = self.state
         a = self.params.anchors
+        used_slot = np.full((users.size, s.n_particles), -1, dtype=np.int64)
         building_anchor_update(
-            s.x,
-            s.y,
-            s.logw,
-            s.map_mu,
-            s.map_cov,
-            s.map_type,
-            s.map_count,
-            s.map_known,
-            s.map_crowd_id,
-            s.map_n,
-            s.ctrl_cov,
-            s.rng_key,
-            s.rng_ctr,
-            users,
-            detected_types,
-            self._type_posterior,
-            a.detection_sigma_m,
-            a.new_anchor_likelihood,
-            s.n_map_overflow,
-            s.n_degenerate,
-        )
+            s.x, s.y, s.logw, s.map_mu, s.map_cov, s.map_type, s.map_count, s.map_known, s.map_crowd_id,
+            s.map_n, s.ctrl_cov, s.rng_key, s.rng_ctr, users, detected_types, self._type_posterior,
+            a.detection_sigma_m, a.new_anchor_likelihood, s.n_map_overflow, s.n_degenerate, used_slot,
+        )  # fmt: skip
+        if crowd_ids is not None:
+            self.tag_crowd_ids(users, used_slot, crowd_ids)
         self._resample(users)
+
+    def tag_crowd_ids(self, users: np.ndarray, used_slot: np.ndarray, crowd_ids: np.ndarray) -> None:
+        """Link the anchors just used or created to the shared map's anchors (where not linked yet)."""
+        s = self.state
+        for i, u in enumerate(users):
+            if crowd_ids[i] < 0:
+                continue
+            m = np.flatnonzero(used_slot[i] >= 0)
+            k = used_slot[i, m]
+            untagged = s.map_crowd_id[u, m, k] < 0
+            s.map_crowd_id[u, m[untagged], k[untagged]] = crowd_ids[i]
+
+    def merge_crowd_map(self, users: np.ndarray, crowd: CrowdMap) -> None:
+        """Add the shared map's anchors that a particle does not hold yet (by crowd id) to its map, so a user
+        can recognise anchors that others learned after it started. Its own copies are left as they are."""
+        users = np.ascontiguousarray(users, dtype=np.int64)
+        self._check_users(users)
+        if crowd.mean.shape[0] == 0 or users.size == 0:
+            return
+        s = self.state
+        known_var = self.params.anchors.known_sigma_m**2
+        cov = crowd.cov.copy()
+        cov[crowd.known] = (known_var, 0.0, known_var)
+        merge_crowd_anchors(
+            s.map_mu, s.map_cov, s.map_type, s.map_count, s.map_known, s.map_crowd_id, s.map_n, users,
+            np.ascontiguousarray(crowd.mean), np.ascontiguousarray(cov), crowd.type.astype(np.int8),
+            crowd.known.astype(np.bool_), crowd.crowd_id.astype(np.int64), s.n_map_overflow,
+        )  # fmt: skip
 
     def observe_encounters(
         self, user_a: np.ndarray, user_b: np.ndarray, distance: np.ndarray, distance_var: np.ndarray

@@ -15,6 +15,10 @@ from collections.abc import Sequence
 COMMANDS: dict[str, tuple[str, str]] = {
     "schema": ("server.cli.schema_cmd", "write the JSON Schema of every public model, or print an example"),
     "migrate": ("server.cli.migrate_cmd", "upgrade the database (SQLite by default) to the latest schema"),
+    "evaluate": (
+        "server.cli.evaluate_cmd",
+        "run the simulated testbed (or a sweep) and write metrics as JSON",
+    ),
 }
 
 

@@ -80,8 +80,10 @@ def building_anchor_update(
     new_anchor_likelihood: float,
     overflow: np.ndarray,
     degenerate: np.ndarray,
+    used_slot: np.ndarray,
 ) -> None:
-    """Each i: user ``users[i]`` detected an anchor of type ``detected_type[i]``. Users distinct per call."""
+    """Each i: user ``users[i]`` detected an anchor of type ``detected_type[i]``. Users distinct per call.
+    ``used_slot[i, m]`` receives the map slot particle m associated with or created (-1: map full)."""
     n_particles = x.shape[1]
     capacity = map_mu.shape[2]
     r = detection_sigma * detection_sigma
@@ -127,8 +129,10 @@ def building_anchor_update(
                     map_known[u, m, n_anchors] = False
                     map_crowd_id[u, m, n_anchors] = -1
                     map_n[u, m] = n_anchors + 1
+                    used_slot[i, m] = n_anchors
                 else:
                     overflow[u] += 1
+                    used_slot[i, m] = -1
             else:
                 # Algorithm 1 with J_s = -I: Sigma_s = (Q^-1 + P^-1)^-1, mu_s = s + Sigma_s Q^-1 (mu_n - s)
                 q_xx = map_cov[u, m, best, 0] + r
@@ -152,6 +156,7 @@ def building_anchor_update(
                 gy = qi_xy * ex + qi_yy * ey
                 mx = sx + s_xx * gx + s_xy * gy
                 my = sy + s_xy * gx + s_yy * gy
+                used_slot[i, m] = best
                 nsx, nsy = sample2(mx, my, s_xx, s_xy, s_yy, n1, n2)
                 x[u, m] = nsx
                 y[u, m] = nsy
@@ -183,3 +188,50 @@ def building_anchor_update(
         ctrl_cov[u, 0] = 0.0
         ctrl_cov[u, 1] = 0.0
         ctrl_cov[u, 2] = 0.0
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def merge_crowd_anchors(
+    map_mu: np.ndarray,
+    map_cov: np.ndarray,
+    map_type: np.ndarray,
+    map_count: np.ndarray,
+    map_known: np.ndarray,
+    map_crowd_id: np.ndarray,
+    map_n: np.ndarray,
+    users: np.ndarray,
+    crowd_mean: np.ndarray,
+    crowd_cov: np.ndarray,
+    crowd_type: np.ndarray,
+    crowd_known: np.ndarray,
+    crowd_id: np.ndarray,
+    overflow: np.ndarray,
+) -> None:
+    """Append to every particle map of ``users`` each crowd anchor whose id it does not hold."""
+    n_particles = map_mu.shape[1]
+    capacity = map_mu.shape[2]
+    for i in prange(users.shape[0]):
+        u = users[i]
+        for m in range(n_particles):
+            for c in range(crowd_id.shape[0]):
+                present = False
+                for k in range(map_n[u, m]):
+                    if map_crowd_id[u, m, k] == crowd_id[c]:
+                        present = True
+                        break
+                if present:
+                    continue
+                n = map_n[u, m]
+                if n >= capacity:
+                    overflow[u] += 1
+                    continue
+                map_mu[u, m, n, 0] = crowd_mean[c, 0]
+                map_mu[u, m, n, 1] = crowd_mean[c, 1]
+                map_cov[u, m, n, 0] = crowd_cov[c, 0]
+                map_cov[u, m, n, 1] = crowd_cov[c, 1]
+                map_cov[u, m, n, 2] = crowd_cov[c, 2]
+                map_type[u, m, n] = crowd_type[c]
+                map_count[u, m, n] = 0
+                map_known[u, m, n] = crowd_known[c]
+                map_crowd_id[u, m, n] = crowd_id[c]
+                map_n[u, m] = n + 1

@@ -1,0 +1,129 @@
+"""``crowdslam evaluate``: run the simulated testbed (or a sweep) and write the metrics as JSON (+ PNG)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--scenario",
+        type=Path,
+        required=True,
+        help="scenario JSON, e.g. ../shared/scenarios/paper-testbed.json",
+    )
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--mode", choices=("pdr", "semanticslam", "dynamicslam"), default="dynamicslam")
+    parser.add_argument("--sampling", choices=("one-shot", "iterative"), default="iterative")
+    parser.add_argument("--particles", type=int, default=75)
+    parser.add_argument("--motion-model", choices=("paper", "bias-scale"), default="bias-scale")
+    parser.add_argument("--sweep", choices=("particles", "density", "anchor-density"))
+    parser.add_argument("--json", type=Path, required=True, metavar="OUT", help="where to write the metrics")
+    parser.add_argument(
+        "--plot", type=Path, metavar="PNG", help="CDF (or sweep) plot; default: beside --json"
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    from slam_core.simulate import Scenario
+
+    try:
+        scenario = Scenario.from_dict(json.loads(args.scenario.read_text()))
+    except (OSError, json.JSONDecodeError, ValueError, KeyError) as error:
+        print(f"crowdslam evaluate: cannot use scenario {args.scenario}: {error}")
+        return 2
+    plot = args.plot or args.json.with_suffix(".png")
+    result = _sweep(scenario, args, plot) if args.sweep else _single(scenario, args, plot)
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(json.dumps(result, indent=2) + "\n")
+    print(json.dumps(result, indent=2))
+    print(f"wrote {args.json} and {plot}")
+    return 0
+
+
+def _single(scenario: Any, args: argparse.Namespace, plot: Path) -> dict[str, Any]:
+    from slam_core.evaluation import run_scenario_with_errors
+    from slam_core.metrics import empirical_cdf
+
+    result, errors = run_scenario_with_errors(
+        scenario, args.seed, args.mode, args.sampling, args.particles, args.motion_model
+    )
+    x, p = empirical_cdf(errors)
+    _plot_lines(
+        plot, [(x, p, args.mode)], "position error (m)", "CDF", f"{scenario['name']} seed {args.seed}"
+    )
+    return result
+
+
+def _sweep(scenario: Any, args: argparse.Namespace, plot: Path) -> dict[str, Any]:
+    from tqdm import tqdm
+
+    from slam_core.evaluation import run_scenario, sweep_values, swept_scenario
+
+    rows = []
+    modes = ("semanticslam", "dynamicslam")
+    values = sweep_values(args.sweep)
+    with tqdm(total=len(values) * len(modes), desc=f"sweep {args.sweep}", unit="run") as bar:
+        for value in values:
+            world = swept_scenario(scenario, args.sweep, value)
+            particles = int(value) if args.sweep == "particles" else args.particles
+            for mode in modes:
+                r = run_scenario(world, args.seed, mode, args.sampling, particles, args.motion_model)
+                rows.append(
+                    {
+                        "value": value,
+                        "mode": mode,
+                        "median_m": r["median_m"],
+                        "p90_m": r["p90_m"],
+                        "seconds": r["seconds"],
+                    }
+                )
+                bar.update()
+    print(f"{args.sweep:>14} {'mode':>13} {'median_m':>9} {'p90_m':>7}")
+    for row in rows:
+        print(f"{row['value']:>14} {row['mode']:>13} {row['median_m']:>9.2f} {row['p90_m']:>7.2f}")
+    lines = [
+        ([r["value"] for r in rows if r["mode"] == m], [r["median_m"] for r in rows if r["mode"] == m], m)
+        for m in modes
+    ]
+    xlabel = {
+        "particles": "particles",
+        "density": "m^2 per user",
+        "anchor-density": "m^2 per building anchor",
+    }[args.sweep]
+    _plot_lines(
+        plot,
+        lines,
+        xlabel,
+        "median error (m)",
+        f"sweep of {args.sweep}, seed {args.seed}",
+        log_x=args.sweep != "particles",
+    )
+    return {"sweep": args.sweep, "seed": args.seed, "rows": rows}
+
+
+def _plot_lines(
+    path: Path, lines: list[Any], xlabel: str, ylabel: str, title: str, log_x: bool = False
+) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4), dpi=120)
+    for x, y, label in lines:
+        ax.plot(x, y, marker="o" if len(x) < 20 else None, label=label)
+    if log_x:
+        ax.set_xscale("log")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)

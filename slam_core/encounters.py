@@ -1,0 +1,205 @@
+"""Encounter models (DynamicSLAM Section 4.1.2) behind a name registry.
+
+- ``wifi-eq3``: Eq. 3, Sim = ||U1 - U2|| / n over the n APs common to both scans' strongest N (Table 2:
+  N = 5), an encounter when Sim < 8 dB; relative distance from the logarithmic fit d = a + b ln(Sim)
+  (Figure 3).
+- ``bluetooth``: RSS above the -90 dBm cut-off (Table 2) is an encounter; distance from the quadratic fit
+  d = c0 + c1 RSS + c2 RSS^2 (Figure 2).
+
+Each model's fit also gives R, the variance of the distance it reports (the residual variance of the fit).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class WifiEq3Params:
+    strongest_n: int = 5  # Table 2
+    threshold_db: float = 8.0  # Table 2
+    min_common: int = 1
+
+
+@dataclass(frozen=True)
+class BluetoothParams:
+    cutoff_dbm: float = -90.0  # Table 2
+
+
+@dataclass(frozen=True)
+class DistanceFit:
+    """distance = polynomial in the feature; ``variance`` is R (m^2)."""
+
+    coefficients: tuple[float, ...]  # lowest order first
+    variance: float
+    feature: str  # "log-sim" or "rss"
+    min_distance: float = 0.0
+    max_distance: float = 60.0
+    bin_edges: tuple[float, ...] = ()
+    bin_variance: tuple[float, ...] = ()
+    """Residual variance per feature bin: R depends on the feature (the paper's Fig. 4-5 show the error
+    falling with stronger RSS / smaller Sim); empty means the single ``variance``."""
+
+    def variance_at(self, value: np.ndarray) -> np.ndarray:
+        value = np.asarray(value, dtype=float)
+        if not self.bin_variance:
+            return np.full(value.shape, self.variance)
+        k = np.clip(
+            np.searchsorted(np.asarray(self.bin_edges), value, side="right") - 1,
+            0,
+            len(self.bin_variance) - 1,
+        )
+        return np.asarray(self.bin_variance)[k]
+
+    def distance(self, value: np.ndarray) -> np.ndarray:
+        x = np.log(np.maximum(value, 1e-3)) if self.feature == "log-sim" else np.asarray(value, dtype=float)
+        d = sum(c * x**k for k, c in enumerate(self.coefficients))
+        return np.clip(d, self.min_distance, self.max_distance)
+
+
+def strongest(rss: np.ndarray, n: int) -> np.ndarray:
+    """Indices of the ``n`` strongest heard entries (NaN = not heard)."""
+    heard = np.flatnonzero(~np.isnan(rss))
+    if heard.size <= n:
+        return heard
+    return heard[np.argsort(-rss[heard], kind="stable")[:n]]
+
+
+def wifi_eq3_similarity(rss_a: np.ndarray, rss_b: np.ndarray, params: WifiEq3Params) -> tuple[float, int]:
+    """Eq. 3 on two scans (dense RSS vectors over the same APs, NaN = not heard): (Sim in dB, n common).
+    Returns (inf, n) when fewer than ``min_common`` APs are common."""
+    common = np.intersect1d(strongest(rss_a, params.strongest_n), strongest(rss_b, params.strongest_n))
+    n = int(common.size)
+    if n < params.min_common or n == 0:
+        return float("inf"), n
+    return float(np.linalg.norm(rss_a[common] - rss_b[common]) / n), n
+
+
+@dataclass(frozen=True)
+class RangeModel:
+    """The paper's model families fitted as measurement models, feature = f(distance), then inverted:
+    ``wifi-log``: Sim = a + b ln d (Figure 3's logarithmic model); ``bt-quadratic``: RSS = c0 + c1 ln d +
+    c2 (ln d)^2 (Figure 2's quadratic fit, in log-distance).
+
+    Departure from the paper: fitting distance as a function of the feature regresses every reading to the
+    mean of the calibration distances, so a close pair with a middling reading is pushed apart. Inverting the
+    forward fit gives the maximum-likelihood range, and its variance R = (sigma_f / |f'(d)|)^2 grows where
+    the feature stops changing with distance, so far-away detections carry almost no weight.
+    """
+
+    kind: str
+    coefficients: tuple[float, ...]
+    sigma: float  # residual standard deviation of the feature (dB)
+    min_distance: float = 0.5
+    max_distance: float = 60.0
+    bin_edges: tuple[float, ...] = ()
+    bin_mse: tuple[float, ...] = ()
+    """Empirical mean squared range error per bin of the reported range, measured on labelled pairs; R is
+    never below it (the analytic variance alone is overconfident where the feature is ambiguous)."""
+
+    def with_empirical_variance(
+        self, feature: np.ndarray, distance: np.ndarray, n_bins: int = 8
+    ) -> RangeModel:
+        z, _ = self.range_and_variance(feature)
+        n_bins = max(1, min(n_bins, z.size // 30))
+        edges = np.quantile(z, np.linspace(0.0, 1.0, n_bins + 1))
+        k = np.clip(np.searchsorted(edges, z, side="right") - 1, 0, n_bins - 1)
+        err2 = (z - np.asarray(distance, dtype=float)) ** 2
+        mse = [
+            float(np.mean(err2[k == b])) if np.any(k == b) else float(np.mean(err2)) for b in range(n_bins)
+        ]
+        return replace(self, bin_edges=tuple(float(e) for e in edges[:-1]), bin_mse=tuple(mse))
+
+    def feature_at(self, distance: np.ndarray) -> np.ndarray:
+        x = np.log(np.maximum(np.asarray(distance, dtype=float), 1e-3))
+        values: np.ndarray = np.polynomial.polynomial.polyval(x, self.coefficients)
+        return values
+
+    def range_and_variance(self, feature: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        grid = np.geomspace(self.min_distance, self.max_distance, 400)
+        f = self.feature_at(grid)
+        # monotone envelope: Sim grows with distance, RSS falls with it
+        increasing = self.kind == "wifi-log"
+        mono = np.maximum.accumulate(f) if increasing else np.minimum.accumulate(f)
+        xs, ds = (mono, grid) if increasing else (mono[::-1], grid[::-1])
+        feature = np.asarray(feature, dtype=float)
+        d = np.interp(feature, xs, ds)
+        slope = np.abs(np.gradient(mono, grid))
+        s = np.maximum(np.interp(d, grid, slope), self.sigma / self.max_distance)
+        variance = np.minimum((self.sigma / s) ** 2, self.max_distance**2)
+        if self.bin_mse:
+            k = np.clip(
+                np.searchsorted(np.asarray(self.bin_edges), d, side="right") - 1, 0, len(self.bin_mse) - 1
+            )
+            variance = np.maximum(variance, np.asarray(self.bin_mse)[k])
+        return d, np.maximum(variance, 0.25)
+
+
+def fit_range_model(feature: np.ndarray, distance: np.ndarray, kind: str) -> RangeModel:
+    """Least-squares fit of feature = f(distance) on labelled pairs."""
+    feature = np.asarray(feature, dtype=float)
+    distance = np.asarray(distance, dtype=float)
+    ok = np.isfinite(feature) & np.isfinite(distance) & (distance > 0)
+    feature, distance = feature[ok], distance[ok]
+    if feature.size < 10:
+        raise ValueError(f"need at least 10 labelled pairs to fit the {kind} model, got {feature.size}")
+    x = np.log(np.maximum(distance, 0.1))
+    if kind == "wifi-log":
+        design = np.column_stack([np.ones_like(x), x])
+    elif kind == "bt-quadratic":
+        design = np.column_stack([np.ones_like(x), x, x * x])
+    else:
+        raise ValueError(f"unknown range model {kind!r}; valid: wifi-log, bt-quadratic")
+    coef, *_ = np.linalg.lstsq(design, feature, rcond=None)
+    sigma = float(np.sqrt(np.mean((feature - design @ coef) ** 2)))
+    return RangeModel(kind, tuple(float(c) for c in coef), max(sigma, 0.5))
+
+
+def fit_distance(feature: np.ndarray, distance: np.ndarray, kind: str) -> DistanceFit:
+    """Least-squares fit of the paper's model: logarithmic (WiFi) or quadratic (Bluetooth)."""
+    feature = np.asarray(feature, dtype=float)
+    distance = np.asarray(distance, dtype=float)
+    if feature.size < 10:
+        raise ValueError(f"need at least 10 labelled pairs to fit the {kind} model, got {feature.size}")
+    if kind == "log-sim":
+        x = np.log(np.maximum(feature, 1e-3))
+        design = np.column_stack([np.ones_like(x), x])
+    elif kind == "rss":
+        x = feature
+        design = np.column_stack([np.ones_like(x), x, x * x])
+    else:
+        raise ValueError(f"unknown fit kind {kind!r}; valid: log-sim, rss")
+    coef, *_ = np.linalg.lstsq(design, distance, rcond=None)
+    residual = distance - design @ coef
+    n_bins = max(1, min(8, feature.size // 25))
+    edges = np.quantile(feature, np.linspace(0.0, 1.0, n_bins + 1))
+    k = np.clip(np.searchsorted(edges, feature, side="right") - 1, 0, n_bins - 1)
+    bin_var = [
+        float(np.mean(residual[k == b] ** 2)) if np.any(k == b) else float(np.mean(residual**2))
+        for b in range(n_bins)
+    ]
+    return DistanceFit(
+        tuple(float(c) for c in coef),
+        float(np.mean(residual**2)),
+        kind,
+        bin_edges=tuple(float(e) for e in edges[:-1]),
+        bin_variance=tuple(max(v, 0.25) for v in bin_var),
+    )
+
+
+ENCOUNTER_MODELS: dict[str, Callable[..., object]] = {
+    "wifi-eq3": WifiEq3Params,
+    "bluetooth": BluetoothParams,
+}
+
+
+def encounter_model(name: str, **kwargs: float) -> object:
+    """Parameters of a named encounter model; an unknown name lists the valid ones."""
+    try:
+        factory = ENCOUNTER_MODELS[name]
+    except KeyError:
+        raise ValueError(f"unknown encounter model {name!r}; valid: {', '.join(ENCOUNTER_MODELS)}") from None
+    return factory(**kwargs)

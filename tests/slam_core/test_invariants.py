@@ -1,0 +1,211 @@
+"""Filter invariants under random operation sequences, error paths, and determinism across thread counts."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from slam_core.fastslam import CrowdMap, DynamicSlam
+from slam_core.params import FilterParams, HumanAnchorParams, MotionParams, ResamplingParams
+
+PARAMS = FilterParams(n_particles=20, anchors=replace(FilterParams().anchors, capacity=6))
+ROOT = Path(__file__).resolve().parents[2]
+
+operation = st.one_of(
+    st.tuples(st.just("step"), st.floats(0.0, 1.5), st.floats(-4.0, 4.0)),
+    st.tuples(st.just("anchor"), st.integers(0, 4), st.integers(0, 2)),
+    st.tuples(st.just("encounter"), st.floats(0.0, 40.0), st.floats(0.05, 100.0)),
+)
+
+
+def _check(engine: DynamicSlam) -> None:
+    s = engine.state
+    users = engine.active_users
+    w = np.exp(s.logw[users])
+    assert np.all(np.isfinite(s.logw[users]))
+    np.testing.assert_allclose(w.sum(axis=1), 1.0, atol=1e-9)
+    for name in ("x", "y", "heading", "bias", "scale"):
+        assert np.all(np.isfinite(getattr(s, name)[users])), name
+    summary = engine.summaries(users)
+    assert np.all(np.isfinite(summary))
+    cxx, cxy, cyy = summary[:, 2], summary[:, 3], summary[:, 4]
+    assert np.all(cxx > 0)
+    assert np.all(cxx * cyy - cxy * cxy > 0), "estimate covariance not positive definite"
+    for u in users:
+        for m in range(s.n_particles):
+            n = s.map_n[u, m]
+            assert 0 <= n <= s.map_capacity
+            cov = s.map_cov[u, m, :n]
+            assert np.all(np.isfinite(cov))
+            assert np.all(cov[:, 0] > 0)
+            assert np.all(cov[:, 0] * cov[:, 2] - cov[:, 1] ** 2 > 0), (
+                "anchor covariance not positive definite"
+            )
+    assert np.all(s.ctrl_cov[users, 0] * s.ctrl_cov[users, 2] - s.ctrl_cov[users, 1] ** 2 >= -1e-12)
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    ops=st.lists(operation, min_size=1, max_size=30),
+    model=st.sampled_from(["paper", "bias-scale"]),
+    sampling=st.sampled_from(["one-shot", "iterative"]),
+    scheme=st.sampled_from(["systematic", "stratified", "residual", "multinomial"]),
+    seed=st.integers(0, 2**31),
+)
+def test_invariants_hold_after_every_update(
+    ops: list[tuple[str, float, float]], model: str, sampling: str, scheme: str, seed: int
+) -> None:
+    params = replace(
+        PARAMS,
+        motion=MotionParams(model=model),
+        human=HumanAnchorParams(sampling=sampling, peer_selection="all"),
+        resampling=ResamplingParams(scheme=scheme),
+    )
+    engine = DynamicSlam(params, seed=seed)
+    users = np.array([engine.add_user(0.0, 0.0), engine.add_user(3.0, 4.0), engine.add_user(-5.0, 1.0)])
+    for kind, a, b in ops:
+        if kind == "step":
+            engine.step(users, np.arange(4), np.full(3, a), np.full(3, b))
+        elif kind == "anchor":
+            engine.observe_building_anchors(users[: int(b) + 1], np.full(int(b) + 1, int(a)))
+        else:
+            engine.observe_encounters(users[[0, 0]], users[[1, 2]], np.array([a, a]), np.array([b, b]))
+        _check(engine)
+
+
+def test_resampled_indices_keep_particles_from_the_cloud() -> None:
+    engine = DynamicSlam(replace(PARAMS, resampling=ResamplingParams(ess_threshold=1.0)), seed=1)
+    u = engine.add_user(0.0, 0.0, position_sigma=5.0)
+    before = set(engine.state.x[u].tolist())
+    engine.state.logw[u] = np.log(np.r_[0.9, np.full(19, 0.1 / 19)])
+    engine._resample(np.array([u]))
+    after = engine.state.x[u].tolist()
+    assert set(after) <= before
+    assert after.count(max(after, key=after.count)) >= 15  # the heavy particle dominates
+
+
+def test_map_overflow_is_counted_not_silent() -> None:
+    engine = DynamicSlam(replace(PARAMS, anchors=replace(PARAMS.anchors, capacity=2)), seed=0)
+    u = engine.add_user(0.0, 0.0)
+    for k in range(4):  # anchors 20 m apart: each is new
+        engine.step(np.array([u]), np.array([0, 1]), np.array([20.0]), np.array([0.0]))
+        engine.observe_building_anchors(np.array([u]), np.array([k % 5]))
+    assert np.all(engine.state.map_n[u] == 2)
+    assert engine.state.n_map_overflow[u] > 0
+
+
+@pytest.mark.parametrize(
+    ("call", "message"),
+    [
+        (lambda e, u: e.step(np.array([u]), np.array([0, 1]), np.array([np.nan]), np.array([0.0])), "finite"),
+        (lambda e, u: e.step(np.array([u]), np.array([0, 2]), np.array([0.7]), np.array([0.0])), "offsets"),
+        (lambda e, u: e.step(np.array([u, u]), np.array([0, 1, 2]), np.ones(2), np.zeros(2)), "only once"),
+        (lambda e, u: e.step(np.array([99]), np.array([0, 1]), np.ones(1), np.zeros(1)), "unknown user"),
+        (lambda e, u: e.observe_building_anchors(np.array([u]), np.array([7])), "detected types"),
+        (lambda e, u: e.observe_encounters(np.array([u]), np.array([u]), np.ones(1), np.ones(1)), "itself"),
+        (
+            lambda e, u: e.observe_encounters(np.array([u]), np.array([0]), np.ones(1), np.zeros(1)),
+            "variances",
+        ),
+        (
+            lambda e, u: e.observe_encounters(np.array([u]), np.array([0]), np.full(1, np.inf), np.ones(1)),
+            "finite",
+        ),
+        (lambda e, u: e.add_user(np.nan, 0.0), "finite"),
+    ],
+)
+def test_bad_input_raises_and_changes_nothing(call, message: str) -> None:  # type: ignore[no-untyped-def]
+    engine = DynamicSlam(PARAMS, seed=0)
+    engine.add_user(0.0, 0.0)
+    u = engine.add_user(1.0, 1.0)
+    before = {k: v.copy() for k, v in vars(engine.state).items()}
+    with pytest.raises(ValueError, match=message):
+        call(engine, u)
+    for k, v in vars(engine.state).items():
+        np.testing.assert_array_equal(v, before[k], err_msg=k)
+
+
+@pytest.mark.parametrize(
+    ("factory", "message"),
+    [
+        (lambda: MotionParams(model="kalman"), "valid: paper, bias-scale"),
+        (lambda: HumanAnchorParams(sampling="twice"), "valid: one-shot, iterative"),
+        (lambda: ResamplingParams(scheme="lottery"), "valid: systematic, stratified, residual, multinomial"),
+        (lambda: HumanAnchorParams(peer_selection="loudest"), "valid: most-confident, all"),
+    ],
+)
+def test_unknown_names_list_the_valid_ones(factory, message: str) -> None:  # type: ignore[no-untyped-def]
+    with pytest.raises(ValueError, match=message):
+        factory()
+
+
+def test_users_come_and_go_and_slots_grow() -> None:
+    engine = DynamicSlam(PARAMS, seed=0, initial_capacity=2)
+    slots = [engine.add_user(float(i), 0.0) for i in range(5)]
+    assert engine.state.capacity >= 5
+    engine.remove_user(slots[1])
+    assert slots[1] not in engine.active_users
+    again = engine.add_user(0.0, 0.0)
+    assert again == slots[1]
+    with pytest.raises(ValueError, match="unknown user"):
+        engine.summaries(np.array([engine.state.capacity + 3]))
+
+
+def test_crowd_map_seeds_every_particle() -> None:
+    crowd = CrowdMap(
+        np.array([[1.0, 2.0]]), np.array([[0.3, 0.0, 0.3]]), np.array([1]), np.array([True]), np.array([42])
+    )
+    engine = DynamicSlam(PARAMS, seed=0)
+    u = engine.add_user(0.0, 0.0, crowd_map=crowd)
+    assert np.all(engine.state.map_n[u] == 1)
+    assert np.all(engine.state.map_crowd_id[u, :, 0] == 42)
+    assert np.all(engine.state.map_known[u, :, 0])
+    with pytest.raises(ValueError, match="positive definite"):
+        CrowdMap(
+            np.array([[1.0, 2.0]]),
+            np.array([[0.0, 0.0, 0.3]]),
+            np.array([1]),
+            np.array([True]),
+            np.array([1]),
+        )
+
+
+_DETERMINISM_SCRIPT = """
+import numpy as np
+from slam_core.fastslam import DynamicSlam
+from slam_core.params import FilterParams
+e = DynamicSlam(FilterParams(n_particles=30), seed=123)
+users = np.array([e.add_user(float(i), float(-i)) for i in range(40)])
+rng = np.random.default_rng(0)
+for t in range(30):
+    e.step(users, np.arange(41), 0.7 + 0.05 * rng.standard_normal(40), rng.uniform(-3, 3, 40))
+    if t % 5 == 0:
+        e.observe_building_anchors(users[::3], rng.integers(0, 5, users[::3].size))
+        e.observe_encounters(users[0:10], users[10:20], rng.uniform(0, 5, 10), np.full(10, 4.0))
+print(e.summaries(users).tobytes().hex())
+"""
+
+
+def test_same_seed_same_estimates_on_one_and_two_threads() -> None:
+    outputs = []
+    for threads in ("1", "2"):
+        env = {**os.environ, "NUMBA_NUM_THREADS": threads}
+        run = subprocess.run(
+            [sys.executable, "-c", _DETERMINISM_SCRIPT],
+            capture_output=True,
+            text=True,
+            env=env,
+            cwd=ROOT,
+            check=True,
+        )
+        outputs.append(run.stdout.strip())
+    assert outputs[0] == outputs[1]
+    assert len(outputs[0]) > 100
