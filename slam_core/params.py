@@ -28,7 +28,8 @@ class MotionParams:
     particle carries a heading bias b ~ N(0, heading_bias_sigma) and a scale k ~ N(1, step_scale_sigma),
     drawn once; a step moves it by L = k l + N(0, sigma_l) along heading phi_obs + b + r, where r is a slow
     per-particle random walk. Anchors then select particles with the right bias and scale, correcting the
-    cause of the drift rather than only its effect.
+    cause of the drift rather than only its effect. (The per-step white heading noise sigma_phi is the
+    paper model's; here it is negligible against the walk and is left out.)
     """
 
     model: str = "bias-scale"

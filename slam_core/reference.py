@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from slam_core.params import FilterParams
+from slam_core.state import FilterState
 
 _MASK = (1 << 64) - 1
 
@@ -36,13 +37,39 @@ class CounterRng:
         return ((bits >> 11) + 0.5) / 9007199254740992.0
 
     def normal(self) -> float:
-        u1 = self.uniform()
-        u2 = self.uniform()
-        return math.sqrt(-2.0 * math.log(u1)) * math.cos(2.0 * math.pi * u2)
+        return inverse_normal_cdf(self.uniform())
+
+
+def inverse_normal_cdf(p: float) -> float:
+    """Acklam's approximation, term for term as in the kernel."""
+    a = (-3.969683028665376e01, 2.209460984245205e02, -2.759285104469687e02, 1.383577518672690e02,
+         -3.066479806614716e01, 2.506628277459239e00)  # fmt: skip
+    b = (-5.447609879822406e01, 1.615858368580409e02, -1.556989798598866e02, 6.680131188771972e01,
+         -1.328068155288572e01)  # fmt: skip
+    c = (-7.784894002430293e-03, -3.223964580411365e-01, -2.400758277161838e00, -2.549732539343734e00,
+         4.374664141464968e00, 2.938163982698783e00)  # fmt: skip
+    d = (7.784695709041462e-03, 3.224671290700398e-01, 2.445134137142996e00, 3.754408661907416e00)
+    if p < 0.02425 or p > 1.0 - 0.02425:
+        q = math.sqrt(-2.0 * math.log(p if p < 0.5 else 1.0 - p))
+        x = (((((c[0] * q + c[1]) * q + c[2]) * q + c[3]) * q + c[4]) * q + c[5]) / (
+            (((d[0] * q + d[1]) * q + d[2]) * q + d[3]) * q + 1.0
+        )
+        return x if p < 0.5 else -x
+    q = p - 0.5
+    r = q * q
+    return (
+        (((((a[0] * r + a[1]) * r + a[2]) * r + a[3]) * r + a[4]) * r + a[5])
+        * q
+        / (((((b[0] * r + b[1]) * r + b[2]) * r + b[3]) * r + b[4]) * r + 1.0)
+    )
 
 
 def wrap(a: float) -> float:
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
+    while a >= math.pi:
+        a -= 2.0 * math.pi
+    while a < -math.pi:
+        a += 2.0 * math.pi
+    return a
 
 
 @dataclass
@@ -93,14 +120,14 @@ def motion(user: ReferenceUser, length: float, obs_heading: float, params: Filte
     d_obs = 0.0 if math.isnan(user.last_obs_heading) else wrap(obs_heading - user.last_obs_heading)
     for p in user.particles:
         n_len = user.rng.normal()
-        n_phi = user.rng.normal()
+        n_h = user.rng.normal()
         if mp.model == "paper":
             step = length + mp.step_length_sigma_m * n_len  # Eq. 5
-            h = p.heading + d_obs + mp.heading_change_sigma_rad * n_phi  # Eq. 6
+            h = p.heading + d_obs + mp.heading_change_sigma_rad * n_h  # Eq. 6
         else:
-            p.walk += mp.heading_walk_sigma_rad * user.rng.normal()
+            p.walk += mp.heading_walk_sigma_rad * n_h
             step = p.scale * length + mp.step_length_sigma_m * n_len
-            h = obs_heading + p.bias + p.walk + mp.heading_change_sigma_rad * n_phi
+            h = obs_heading + p.bias + p.walk
         p.heading = wrap(h)
         p.x += step * math.cos(p.heading)  # Eq. 7
         p.y += step * math.sin(p.heading)  # Eq. 8
@@ -289,4 +316,45 @@ def summary(user: ReferenceUser) -> np.ndarray:
     )
     return np.array(
         [mean[0], mean[1], cov[0, 0] + 1e-6, cov[0, 1], cov[1, 1] + 1e-6, pts[best, 0], pts[best, 1], heading]
+    )
+
+
+def from_state(s: FilterState, u: int) -> ReferenceUser:
+    """User slot ``u`` of the engine's arrays as textbook objects (same random stream position)."""
+    particles = []
+    for m in range(s.n_particles):
+        anchors = [
+            Anchor(
+                mu=s.map_mu[u, m, k].copy(),
+                cov=np.array(
+                    [
+                        [s.map_cov[u, m, k, 0], s.map_cov[u, m, k, 1]],
+                        [s.map_cov[u, m, k, 1], s.map_cov[u, m, k, 2]],
+                    ]
+                ),
+                type=int(s.map_type[u, m, k]),
+                count=int(s.map_count[u, m, k]),
+                known=bool(s.map_known[u, m, k]),
+                crowd_id=int(s.map_crowd_id[u, m, k]),
+            )
+            for k in range(s.map_n[u, m])
+        ]
+        particles.append(
+            Particle(
+                float(s.x[u, m]),
+                float(s.y[u, m]),
+                float(s.heading[u, m]),
+                float(s.bias[u, m]),
+                float(s.scale[u, m]),
+                float(s.walk[u, m]),
+                float(s.logw[u, m]),
+                anchors,
+            )
+        )
+    c = s.ctrl_cov[u]
+    return ReferenceUser(
+        particles=particles,
+        rng=CounterRng(int(s.rng_key[u]), int(s.rng_ctr[u])),
+        ctrl_cov=np.array([[c[0], c[1]], [c[1], c[2]]]),
+        last_obs_heading=float(s.last_obs_heading[u]),
     )

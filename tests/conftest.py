@@ -10,6 +10,10 @@ from pathlib import Path
 import pytest
 from sqlalchemy import Engine, text
 
+from server.numba_cache import configure_numba_cache
+
+configure_numba_cache()  # before any test imports numba: caches keyed by the kernel sources
+
 from server.store.db import make_engine
 from server.store.migrate import upgrade
 

@@ -39,4 +39,9 @@ def sample2(mx: float, my: float, a: float, b: float, c: float, n1: float, n2: f
 
 @njit(cache=True, nogil=True, inline="always")
 def wrap_angle(a: float) -> float:
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
+    """Into [-pi, pi); the loops run at most once for the angles a step produces."""
+    while a >= math.pi:
+        a -= 2.0 * math.pi
+    while a < -math.pi:
+        a += 2.0 * math.pi
+    return a

@@ -1,52 +1,11 @@
-"""Move one user between the engine's arrays and the textbook reference's objects."""
+"""Compare one user of the engine with the textbook reference."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from slam_core.fastslam import DynamicSlam
-from slam_core.reference import Anchor, CounterRng, Particle, ReferenceUser
-
-
-def to_reference(engine: DynamicSlam, u: int) -> ReferenceUser:
-    s = engine.state
-    particles = []
-    for m in range(s.n_particles):
-        anchors = [
-            Anchor(
-                mu=s.map_mu[u, m, k].copy(),
-                cov=np.array(
-                    [
-                        [s.map_cov[u, m, k, 0], s.map_cov[u, m, k, 1]],
-                        [s.map_cov[u, m, k, 1], s.map_cov[u, m, k, 2]],
-                    ]
-                ),
-                type=int(s.map_type[u, m, k]),
-                count=int(s.map_count[u, m, k]),
-                known=bool(s.map_known[u, m, k]),
-                crowd_id=int(s.map_crowd_id[u, m, k]),
-            )
-            for k in range(s.map_n[u, m])
-        ]
-        particles.append(
-            Particle(
-                float(s.x[u, m]),
-                float(s.y[u, m]),
-                float(s.heading[u, m]),
-                float(s.bias[u, m]),
-                float(s.scale[u, m]),
-                float(s.walk[u, m]),
-                float(s.logw[u, m]),
-                anchors,
-            )
-        )
-    c = s.ctrl_cov[u]
-    return ReferenceUser(
-        particles=particles,
-        rng=CounterRng(int(s.rng_key[u]), int(s.rng_ctr[u])),
-        ctrl_cov=np.array([[c[0], c[1]], [c[1], c[2]]]),
-        last_obs_heading=float(s.last_obs_heading[u]),
-    )
+from slam_core.reference import ReferenceUser, from_state
 
 
 def assert_matches(engine: DynamicSlam, u: int, ref: ReferenceUser, atol: float = 1e-9) -> None:
@@ -67,3 +26,7 @@ def assert_matches(engine: DynamicSlam, u: int, ref: ReferenceUser, atol: float 
     assert int(s.rng_ctr[u]) == ref.rng.counter, (
         "the kernel and the reference drew different amounts of randomness"
     )
+
+
+def to_reference(engine: DynamicSlam, u: int) -> ReferenceUser:
+    return from_state(engine.state, u)

@@ -1,0 +1,156 @@
+"""Engine benchmark: motion update, a realistic tick, one human-anchor update, and the speed-up over the
+plain-NumPy textbook FastSLAM on identical inputs.
+
+    python bench/engine.py [--users 10000] [--json OUT]
+
+Prints one JSON object: motion_ms, step_ms, human_anchor_us, reference_ratio (and what they were measured on).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from server.numba_cache import configure_numba_cache
+
+configure_numba_cache()
+from slam_core import reference
+from slam_core.fastslam import DynamicSlam
+from slam_core.params import FilterParams
+
+
+def _engine(n_users: int, params: FilterParams, seed: int = 0) -> tuple[DynamicSlam, np.ndarray]:
+    engine = DynamicSlam(params, seed=seed, initial_capacity=n_users)
+    rng = np.random.default_rng(seed)
+    users = np.array([engine.add_user(*rng.uniform(0, 60, 2)) for _ in range(n_users)])
+    return engine, users
+
+
+def _median_ms(fn, repeats: int) -> float:  # type: ignore[no-untyped-def]
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append((time.perf_counter() - t0) * 1e3)
+    return statistics.median(times)
+
+
+def bench_motion(engine: DynamicSlam, users: np.ndarray, rng: np.random.Generator) -> float:
+    offsets = np.arange(users.size + 1)
+
+    def tick() -> None:
+        engine.step(
+            users, offsets, 0.7 + 0.05 * rng.standard_normal(users.size), rng.uniform(-3, 3, users.size)
+        )
+
+    tick()  # warm
+    return _median_ms(tick, 7)
+
+
+def bench_tick(engine: DynamicSlam, users: np.ndarray, rng: np.random.Generator) -> float:
+    """All users step; 5 % detect a building anchor; 2 % are in an encounter; every estimate is read."""
+    offsets = np.arange(users.size + 1)
+
+    def tick() -> None:
+        engine.step(
+            users, offsets, 0.7 + 0.05 * rng.standard_normal(users.size), rng.uniform(-3, 3, users.size)
+        )
+        seen = rng.choice(users, size=max(1, users.size // 20), replace=False)
+        engine.observe_building_anchors(seen, rng.integers(0, 5, seen.size))
+        pair = rng.choice(users, size=2 * max(1, users.size // 100), replace=False).reshape(2, -1)
+        engine.observe_encounters(
+            pair[0], pair[1], rng.uniform(0.5, 4.0, pair.shape[1]), np.full(pair.shape[1], 4.0)
+        )
+        engine.summaries(users)
+
+    tick()
+    return _median_ms(tick, 7)
+
+
+def bench_human_anchor(params: FilterParams) -> float:
+    engine, users = _engine(2, params)
+    u = users[:1]
+    peer_mean = np.array([[3.0, 4.0]])
+    peer_cov = np.array([[1.0, 0.1, 1.2]])
+    z = np.array([4.0])
+    r = np.array([4.0])
+    engine._human_update(u, peer_mean, peer_cov, z, r)  # warm
+    n = 2000
+    t0 = time.perf_counter()
+    for _ in range(n):
+        engine._human_update(u, peer_mean, peer_cov, z, r)
+    return (time.perf_counter() - t0) / n * 1e6
+
+
+def bench_reference_ratio(
+    params: FilterParams, n_users: int = 40, n_ticks: int = 5
+) -> tuple[float, float, float]:
+    """Same users, same inputs, same random streams: textbook objects vs compiled kernels."""
+    rng = np.random.default_rng(1)
+    lengths = 0.7 + 0.05 * rng.standard_normal((n_ticks, n_users))
+    headings = rng.uniform(-3, 3, (n_ticks, n_users))
+    detected = rng.integers(0, 5, (n_ticks, n_users))
+    engine, users = _engine(n_users, params, seed=3)
+    refs = [reference.from_state(engine.state, int(u)) for u in users]
+    offsets = np.arange(n_users + 1)
+    t0 = time.perf_counter()
+    for k in range(n_ticks):
+        for i, ref in enumerate(refs):
+            reference.motion(ref, float(lengths[k, i]), float(headings[k, i]), params)
+            reference.building_anchor(ref, int(detected[k, i]), params)
+            reference.resample(ref, params)
+            reference.summary(ref)
+    t_ref = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    for k in range(n_ticks):
+        engine.step(users, offsets, lengths[k], headings[k])
+        engine.observe_building_anchors(users, detected[k])
+        engine.summaries(users)
+    t_engine = time.perf_counter() - t0
+    return t_ref / t_engine, t_ref * 1e3, t_engine * 1e3
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--users", type=int, default=10_000)
+    parser.add_argument("--json", type=Path, metavar="OUT")
+    args = parser.parse_args()
+    params = FilterParams()
+    rng = np.random.default_rng(0)
+    engine, users = _engine(args.users, params)
+    motion_ms = bench_motion(engine, users, rng)
+    step_ms = bench_tick(engine, users, rng)
+    human_us = bench_human_anchor(params)
+    # warm the small-input path of every kernel before timing it against the reference
+    bench_reference_ratio(params, n_users=2, n_ticks=1)
+    ratio, ref_ms, eng_ms = bench_reference_ratio(params)
+    import numba
+
+    result = {
+        "users": args.users,
+        "particles": params.n_particles,
+        "threads": numba.get_num_threads(),
+        "motion_ms": round(motion_ms, 3),
+        "step_ms": round(step_ms, 3),
+        "human_anchor_us": round(human_us, 2),
+        "reference_ratio": round(ratio, 1),
+        "reference_ms": round(ref_ms, 1),
+        "engine_ms_same_inputs": round(eng_ms, 3),
+    }
+    text = json.dumps(result, indent=2)
+    print(text)
+    if args.json:
+        args.json.write_text(text + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
