@@ -8,7 +8,6 @@ calibrated its models by experiment before deployment.
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -197,7 +196,6 @@ def run_scenario_with_errors(
     motion_model: str = "bias-scale",
 ) -> tuple[dict[str, Any], np.ndarray]:
     """Run the scenario; returns the metrics and the error of every step of every user (metres)."""
-    started = time.perf_counter()
     params = filter_params(mode, sampling, particles, motion_model)
     sim = simulate(scenario, seed)
     encounters = detect_encounters(sim, calibrate(scenario, seed)) if mode == "dynamicslam" else None
@@ -225,7 +223,6 @@ def run_scenario_with_errors(
         "expected_encounters_per_user": scenario.raw.get("expected_statistics", {}).get(
             "encounters_per_user"
         ),
-        "seconds": time.perf_counter() - started,
     }
     if encounters is not None and len(encounters.t):
         result["encounter_true_distance_median_m"] = float(np.median(encounters.true_distance))

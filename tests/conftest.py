@@ -11,11 +11,10 @@ import pytest
 from sqlalchemy import Engine, text
 
 from server.numba_cache import configure_numba_cache
-
-configure_numba_cache()  # before any test imports numba: caches keyed by the kernel sources
-
 from server.store.db import make_engine
 from server.store.migrate import upgrade
+
+configure_numba_cache()  # before any test module imports numba: caches keyed by the kernel sources
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared"

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import time
 from pathlib import Path
 from typing import Any
 
@@ -48,9 +49,11 @@ def _single(scenario: Any, args: argparse.Namespace, plot: Path) -> dict[str, An
     from slam_core.evaluation import run_scenario_with_errors
     from slam_core.metrics import empirical_cdf
 
+    started = time.perf_counter()
     result, errors = run_scenario_with_errors(
         scenario, args.seed, args.mode, args.sampling, args.particles, args.motion_model
     )
+    result["seconds"] = time.perf_counter() - started
     x, p = empirical_cdf(errors)
     _plot_lines(
         plot, [(x, p, args.mode)], "position error (m)", "CDF", f"{scenario['name']} seed {args.seed}"

@@ -108,8 +108,9 @@ def motion_update(
     rad counter-clockwise from east). Users must be distinct within one call.
 
     Per particle and step, two normals are drawn in this order: length noise, then heading noise (paper
-    model) or the heading walk's increment (bias-scale model). ``slam_core.reference`` draws them identically. The ``prange`` body only
-    calls a plain ``@njit`` function: numba's parfor pass slowed the inlined loops 2.5x.
+    model) or the heading walk's increment (bias-scale model); ``slam_core.reference`` draws them
+    identically. The ``prange`` body only calls a plain ``@njit`` function: numba's parfor pass slowed the
+    inlined loops 2.5x.
     """
     for i in prange(users.shape[0]):
         _advance_user(
