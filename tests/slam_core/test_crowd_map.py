@@ -1,0 +1,38 @@
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from slam_core.crowd_map import CrowdMapBuilder
+from slam_core.params import BuildingAnchorParams
+
+POSTERIOR = BuildingAnchorParams().type_posterior
+
+
+def test_contributions_of_different_users_fuse_by_information() -> None:
+    crowd = CrowdMapBuilder(POSTERIOR, detection_sigma_m=1e-3)
+    a = crowd.contribute(0, np.array([10.0, 0.0]), np.eye(2) * 1.0, 0, 1.0)
+    b = crowd.contribute(1, np.array([11.0, 0.0]), np.eye(2) * 3.0, 0, 2.0)
+    assert a == b
+    snap = crowd.snapshot()
+    assert snap.mean[0, 0] == pytest.approx((10.0 / 1 + 11.0 / 3) / (1 / 1 + 1 / 3), abs=1e-3)
+    assert snap.cov[0, 0] == pytest.approx(1 / (1 / 1 + 1 / 3), abs=1e-3)
+
+
+def test_one_user_counts_once() -> None:
+    crowd = CrowdMapBuilder(POSTERIOR, detection_sigma_m=1e-3)
+    for _ in range(5):
+        crowd.contribute(7, np.array([5.0, 5.0]), np.eye(2), 1, 0.0)
+    assert crowd.snapshot().cov[0, 0] == pytest.approx(1.0, abs=1e-3)
+    assert crowd.observation_counts()[0] == 5
+
+
+def test_far_or_other_type_detections_start_new_anchors_and_known_ones_never_move() -> None:
+    crowd = CrowdMapBuilder(POSTERIOR, detection_sigma_m=1.0)
+    k = crowd.add_known(np.array([0.0, 0.0]), 0)
+    assert crowd.contribute(0, np.array([0.5, 0.0]), np.eye(2) * 0.5, 0, 0.0) == k
+    np.testing.assert_allclose(crowd.snapshot().mean[k], [0.0, 0.0])
+    assert crowd.contribute(0, np.array([30.0, 0.0]), np.eye(2) * 0.5, 0, 0.0) != k
+    assert len(crowd) == 2
+    with pytest.raises(ValueError, match="finite"):
+        crowd.contribute(0, np.array([np.nan, 0.0]), np.eye(2), 0, 0.0)
