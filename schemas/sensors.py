@@ -31,7 +31,8 @@ MAX_IMU_SAMPLES = 12_000
 """Per stream: one minute at 200 Hz."""
 MAX_STEPS = 300
 MAX_WIFI_SCANS = 60
-MAX_APS_PER_SCAN = 512
+MAX_APS_PER_SCAN = 1024
+"""Scans in dense buildings list over 500 APs (the msindoor mall: up to 522, mostly cached entries)."""
 MAX_BLUETOOTH_SIGHTINGS = 3_000
 MAX_LANDMARKS = 100
 MAX_LTE_MEASUREMENTS = 300

@@ -101,17 +101,25 @@ class RangeModel:
     never below it (the analytic variance alone is overconfident where the feature is ambiguous)."""
 
     def with_empirical_variance(
-        self, feature: np.ndarray, distance: np.ndarray, n_bins: int = 8
+        self, feature: np.ndarray, distance: np.ndarray, min_per_bin: int = 30
     ) -> RangeModel:
+        """Bins of reported range (finer where ranges are short), merged upwards until each holds
+        ``min_per_bin`` labelled pairs; each bin's R floor is its mean squared range error."""
         z, _ = self.range_and_variance(feature)
-        n_bins = max(1, min(n_bins, z.size // 30))
-        edges = np.quantile(z, np.linspace(0.0, 1.0, n_bins + 1))
-        k = np.clip(np.searchsorted(edges, z, side="right") - 1, 0, n_bins - 1)
         err2 = (z - np.asarray(distance, dtype=float)) ** 2
-        mse = [
-            float(np.mean(err2[k == b])) if np.any(k == b) else float(np.mean(err2)) for b in range(n_bins)
-        ]
-        return replace(self, bin_edges=tuple(float(e) for e in edges[:-1]), bin_mse=tuple(mse))
+        bounds = [0.0, 1.5, 3.0, 4.5, 6.0, 8.0, 11.0, 15.0, 20.0, 30.0, 45.0, np.inf]
+        edges: list[float] = []
+        mse: list[float] = []
+        lo = 0
+        for hi in range(1, len(bounds)):
+            in_bin = (z >= bounds[lo]) & (z < bounds[hi])
+            if in_bin.sum() >= min_per_bin or (hi == len(bounds) - 1 and in_bin.any()):
+                edges.append(bounds[lo])
+                mse.append(float(np.mean(err2[in_bin])))
+                lo = hi
+        if not mse:
+            edges, mse = [0.0], [float(np.mean(err2))]
+        return replace(self, bin_edges=tuple(edges), bin_mse=tuple(mse))
 
     def feature_at(self, distance: np.ndarray) -> np.ndarray:
         x = np.log(np.maximum(np.asarray(distance, dtype=float), 1e-3))

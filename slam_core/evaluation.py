@@ -37,6 +37,8 @@ MAX_ENCOUNTER_SIGMA_M = 5.0
 information and, repeated, mostly add double counting. With these two rules the testbed yields about 7
 encounters per user, the paper's figure."""
 TICK_S = 0.5
+last_errors_by_user: list[int] = []
+"""User index of each error of the last run (diagnostics)."""
 
 
 @dataclass(frozen=True)
@@ -80,13 +82,26 @@ def wifi_candidates(sim: Simulation, params: WifiEq3Params, threshold: float | N
     return _candidates(rows)
 
 
+BT_SMOOTHING_S = 4.0
+"""Bluetooth RSS is averaged per pair (both directions) over the last 4 s before it is used: single
+readings carry 4 dB of noise, and since far pairs vastly outnumber close ones, a lucky strong reading from
+far away is the commonest strong reading. The paper low-passes its sensor streams for the same reason."""
+
+
 def bluetooth_candidates(sim: Simulation, params: BluetoothParams, cutoff: float | None = None) -> Candidates:
+    """Sightings whose pair-averaged RSS is above the cut-off; the feature is that average (dBm)."""
     limit = params.cutoff_dbm if cutoff is None else cutoff
     rows = []
+    history: dict[tuple[int, int], list[tuple[float, float]]] = {}
     for t, (rx, tx), rss in zip(sim.bt_t, sim.bt_pair, sim.bt_rss, strict=True):
-        if rss >= limit:
+        pair = (int(min(rx, tx)), int(max(rx, tx)))
+        recent = [(ts, r) for ts, r in history.get(pair, []) if t - ts < BT_SMOOTHING_S]
+        recent.append((float(t), float(rss)))
+        history[pair] = recent
+        smoothed = float(np.mean([r for _, r in recent]))
+        if smoothed >= limit:
             d = float(np.linalg.norm(sim.true_position(int(rx), t) - sim.true_position(int(tx), t)))
-            rows.append((float(t), int(rx), int(tx), float(rss), d))
+            rows.append((float(t), int(rx), int(tx), smoothed, d))
     return _candidates(rows)
 
 
@@ -262,6 +277,7 @@ def _filter_errors(
     )
     errors: list[float] = []
     best_errors: list[float] = []
+    self_users: list[int] = []
     applied = 0
     for tick in np.unique(np.concatenate([step_tick, enc_tick])):
         sel = np.flatnonzero(step_tick == tick)
@@ -327,7 +343,10 @@ def _filter_errors(
             summary = engine.summaries(slots[us])
             truth = np.array([sim.users[u].xy[last_of_user[u]] for u in us])
             errors += np.linalg.norm(summary[:, 0:2] - truth, axis=1).tolist()
+            self_users += us.tolist()
             best_errors += np.linalg.norm(summary[:, 5:7] - truth, axis=1).tolist()
+    last_errors_by_user.clear()
+    last_errors_by_user.extend(self_users)
     return np.array(errors), np.array(best_errors), applied
 
 

@@ -337,6 +337,7 @@ class DynamicSlam:
     def _resample(self, users: np.ndarray) -> None:
         s = self.state
         rs = self.params.resampling
+        bias_scale = self.params.motion.model == "bias-scale"  # the paper model has no bias or scale
         resample_users(
             np.ascontiguousarray(users, dtype=np.int64),
             rs.ess_threshold,
@@ -358,6 +359,8 @@ class DynamicSlam:
             s.rng_key,
             s.rng_ctr,
             s.n_resamples,
+            rs.roughening_bias_rad if bias_scale else 0.0,
+            rs.roughening_scale if bias_scale else 0.0,
         )
 
     # ----------------------------------------------------------------- estimates

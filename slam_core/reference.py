@@ -300,6 +300,10 @@ def resample(user: ReferenceUser, params: FilterParams) -> bool:
         )
         for j in idx
     ]
+    if params.motion.model == "bias-scale" and (rp.roughening_bias_rad > 0 or rp.roughening_scale > 0):
+        for p in user.particles:  # roughening (Gordon et al. 1993)
+            p.bias += rp.roughening_bias_rad * user.rng.normal()
+            p.scale = max(0.2, p.scale + rp.roughening_scale * user.rng.normal())
     return True
 
 

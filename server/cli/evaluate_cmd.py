@@ -22,6 +22,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--particles", type=int, default=75)
     parser.add_argument("--motion-model", choices=("paper", "bias-scale"), default="bias-scale")
     parser.add_argument("--sweep", choices=("particles", "density", "anchor-density"))
+    parser.add_argument(
+        "--compare", action="store_true", help="run pdr, semanticslam and dynamicslam; one CDF (Figure 14)"
+    )
     parser.add_argument("--json", type=Path, required=True, metavar="OUT", help="where to write the metrics")
     parser.add_argument(
         "--plot", type=Path, metavar="PNG", help="CDF (or sweep) plot; default: beside --json"
@@ -37,7 +40,12 @@ def run(args: argparse.Namespace) -> int:
         print(f"crowdslam evaluate: cannot use scenario {args.scenario}: {error}")
         return 2
     plot = args.plot or args.json.with_suffix(".png")
-    result = _sweep(scenario, args, plot) if args.sweep else _single(scenario, args, plot)
+    if args.sweep:
+        result = _sweep(scenario, args, plot)
+    elif args.compare:
+        result = _compare(scenario, args, plot)
+    else:
+        result = _single(scenario, args, plot)
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(result, indent=2) + "\n")
     print(json.dumps(result, indent=2))
@@ -59,6 +67,24 @@ def _single(scenario: Any, args: argparse.Namespace, plot: Path) -> dict[str, An
         plot, [(x, p, args.mode)], "position error (m)", "CDF", f"{scenario['name']} seed {args.seed}"
     )
     return result
+
+
+def _compare(scenario: Any, args: argparse.Namespace, plot: Path) -> dict[str, Any]:
+    from slam_core.evaluation import MODES, run_scenario_with_errors
+    from slam_core.metrics import empirical_cdf
+
+    results, lines = {}, []
+    for mode in MODES:
+        started = time.perf_counter()
+        result, errors = run_scenario_with_errors(
+            scenario, args.seed, mode, args.sampling, args.particles, args.motion_model
+        )
+        result["seconds"] = time.perf_counter() - started
+        results[mode] = result
+        x, p = empirical_cdf(errors)
+        lines.append((x, p, f"{mode} (median {result['median_m']:.2f} m)"))
+    _plot_lines(plot, lines, "position error (m)", "CDF", f"{scenario['name']} seed {args.seed}")
+    return results
 
 
 def _sweep(scenario: Any, args: argparse.Namespace, plot: Path) -> dict[str, Any]:

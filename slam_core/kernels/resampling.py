@@ -11,7 +11,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from slam_core.kernels.rng import uniform
+from slam_core.kernels.rng import normal, uniform
 from slam_core.kernels.weights import effective_sample_size
 
 SYSTEMATIC = 0
@@ -101,6 +101,8 @@ def resample_users(
     rng_key: np.ndarray,
     rng_ctr: np.ndarray,
     n_resamples: np.ndarray,
+    roughening_bias: float,
+    roughening_scale: float,
 ) -> None:
     """Resample every listed user whose ESS < threshold * M (threshold 1.0: always, as Algorithm 2 does)."""
     n_particles = logw.shape[1]
@@ -124,6 +126,10 @@ def resample_users(
         map_known[u] = map_known[u][idx]
         map_crowd_id[u] = map_crowd_id[u][idx]
         map_n[u] = map_n[u][idx]
+        key = rng_key[u]
         for m in range(n_particles):
             logw[u, m] = -math.log(n_particles)
+            if roughening_bias > 0.0 or roughening_scale > 0.0:
+                bias[u, m] += roughening_bias * normal(key, rng_ctr, u)
+                scale[u, m] = max(0.2, scale[u, m] + roughening_scale * normal(key, rng_ctr, u))
         n_resamples[u] += 1

@@ -1,0 +1,237 @@
+"""Reader of the Microsoft Indoor Location Competition 2.0 trace format (``FORMAT.md`` beside the data).
+
+Every record type is parsed: the ten documented ones and those found in the files — ``TYPE_BLUE`` (a
+generic Bluetooth LE advertiser: name, MAC, RSSI), ``TYPE_BLU4`` (its companion row: two integers and the
+same RSSI), ``TYPE_DIST1``/``TYPE_DIST2`` (one row each per walk, three floats, meaning undocumented) and
+``TYPE_SENSOR_MAGNETIC_FIELD_ACCURACY_CHANGED``. Lines are not always in time order (the last waypoint is
+often repeated after later sensor rows): each stream is sorted by time and exact duplicate times dropped.
+A malformed or truncated line raises ``TraceFormatError`` naming the file and the line.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+VECTOR_TYPES = {
+    "TYPE_ACCELEROMETER": "accelerometer",
+    "TYPE_GYROSCOPE": "gyroscope",
+    "TYPE_MAGNETIC_FIELD": "magnetometer",
+    "TYPE_ROTATION_VECTOR": "rotation_vector",
+}
+UNCALIBRATED_TYPES = {
+    "TYPE_ACCELEROMETER_UNCALIBRATED": "accelerometer_uncalibrated",
+    "TYPE_GYROSCOPE_UNCALIBRATED": "gyroscope_uncalibrated",
+    "TYPE_MAGNETIC_FIELD_UNCALIBRATED": "magnetometer_uncalibrated",
+}
+COLUMNS = {
+    **dict.fromkeys(VECTOR_TYPES, 6),
+    **dict.fromkeys(UNCALIBRATED_TYPES, 9),
+    "TYPE_WIFI": 7,
+    "TYPE_BEACON": 10,
+    "TYPE_WAYPOINT": 4,
+    "TYPE_BLUE": 5,
+    "TYPE_BLU4": 5,
+    "TYPE_DIST1": 5,
+    "TYPE_DIST2": 5,
+    "TYPE_SENSOR_MAGNETIC_FIELD_ACCURACY_CHANGED": 3,
+}
+
+
+class TraceFormatError(ValueError):
+    def __init__(self, path: Path, line: int, message: str) -> None:
+        super().__init__(f"{path}:{line}: {message}")
+        self.path = path
+        self.line = line
+
+
+@dataclass(frozen=True)
+class WifiScan:
+    t_ms: int
+    ssid: list[str]
+    bssid: list[str]
+    rssi_dbm: np.ndarray
+    frequency_mhz: np.ndarray
+    last_seen_ms: np.ndarray
+
+
+@dataclass
+class Trace:
+    path: Path
+    header: dict[str, str]
+    streams: dict[str, np.ndarray] = field(default_factory=dict)
+    """name -> (N, 1 + values) arrays: t_ms then the values (accuracy dropped; see ``accuracy``)."""
+    accuracy: dict[str, np.ndarray] = field(default_factory=dict)
+    wifi: list[WifiScan] = field(default_factory=list)
+    beacons: list[tuple[int, str, int, int, int, int, float, str]] = field(default_factory=list)
+    """(t_ms, uuid, major, minor, tx_power, rssi, distance, mac)"""
+    ble: list[tuple[int, str, str, int]] = field(default_factory=list)
+    """TYPE_BLUE rows: (t_ms, name, mac, rssi)"""
+    blu4: list[tuple[int, int, int, int]] = field(default_factory=list)
+    """TYPE_BLU4 rows: (t_ms, a, b, rssi)"""
+    waypoints: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    """(K, 3): t_ms, x_m, y_m, sorted by time, duplicates removed"""
+    dist1: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
+    dist2: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
+    magnetic_accuracy_changes: list[tuple[int, int]] = field(default_factory=list)
+
+    @property
+    def start_ms(self) -> int:
+        return int(self.header.get("startTime", self.waypoints[0, 0] if len(self.waypoints) else 0))
+
+    @property
+    def end_ms(self) -> int:
+        return int(self.header.get("endTime", 0))
+
+
+def _sorted_unique(rows: list[list[float]], width: int) -> np.ndarray:
+    if not rows:
+        return np.zeros((0, width))
+    arr = np.asarray(rows, dtype=float)
+    arr = arr[np.argsort(arr[:, 0], kind="stable")]
+    keep = np.r_[True, np.diff(arr[:, 0]) > 0]
+    return arr[keep]
+
+
+def read_trace(path: Path) -> Trace:
+    path = Path(path)
+    header: dict[str, str] = {}
+    vectors: dict[str, list[list[float]]] = {}
+    accuracy: dict[str, list[list[float]]] = {}
+    wifi_rows: dict[int, list[tuple[str, str, int, int, int]]] = {}
+    trace = Trace(path=path, header=header)
+    waypoints: list[list[float]] = []
+    dist1: list[list[float]] = []
+    dist2: list[list[float]] = []
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as error:
+        raise TraceFormatError(path, 0, f"cannot read: {error}") from error
+    for number, line in enumerate(text.splitlines(), start=1):
+        if not line.strip():
+            continue
+        if line.startswith("#"):
+            for item in line[1:].strip().split("\t"):
+                key, sep, value = item.partition(":")
+                if sep:
+                    header[key.strip()] = value.strip()
+            continue
+        parts = line.split("\t")
+        kind = parts[1] if len(parts) > 1 else ""
+        expected = COLUMNS.get(kind)
+        if expected is None:
+            raise TraceFormatError(path, number, f"unknown record type {kind!r}")
+        if len(parts) != expected:
+            raise TraceFormatError(
+                path, number, f"{kind} needs {expected} columns, found {len(parts)} (truncated?)"
+            )
+        try:
+            t = int(parts[0])
+            if kind in VECTOR_TYPES:
+                name = VECTOR_TYPES[kind]
+                values = [float(v) for v in parts[2:5]]
+                vectors.setdefault(name, []).append([t, *values])
+                accuracy.setdefault(name, []).append([t, float(parts[5])])
+            elif kind in UNCALIBRATED_TYPES:
+                vectors.setdefault(UNCALIBRATED_TYPES[kind], []).append([t, *(float(v) for v in parts[2:8])])
+            elif kind == "TYPE_WIFI":
+                wifi_rows.setdefault(t, []).append(
+                    (parts[2], parts[3].lower(), int(parts[4]), int(parts[5]), int(parts[6]))
+                )
+            elif kind == "TYPE_BEACON":
+                trace.beacons.append(
+                    (
+                        t,
+                        parts[2],
+                        int(parts[3]),
+                        int(parts[4]),
+                        int(parts[5]),
+                        int(parts[6]),
+                        float(parts[7]),
+                        parts[8].upper(),
+                    )
+                )
+            elif kind == "TYPE_WAYPOINT":
+                waypoints.append([t, float(parts[2]), float(parts[3])])
+            elif kind == "TYPE_BLUE":
+                trace.ble.append((t, parts[2], parts[3].upper(), int(parts[4])))
+            elif kind == "TYPE_BLU4":
+                trace.blu4.append((t, int(parts[2]), int(parts[3]), int(parts[4])))
+            elif kind == "TYPE_DIST1":
+                dist1.append([t, *(float(v) for v in parts[2:5])])
+            elif kind == "TYPE_DIST2":
+                dist2.append([t, *(float(v) for v in parts[2:5])])
+            else:
+                trace.magnetic_accuracy_changes.append((t, int(parts[2])))
+        except ValueError as error:
+            raise TraceFormatError(path, number, f"bad {kind} value: {error}") from None
+    if "startTime" not in header and not vectors and not wifi_rows:
+        raise TraceFormatError(path, 0, "no header and no sensor rows: not an Indoor Location 2.0 trace")
+    trace.streams = {name: _sorted_unique(rows, len(rows[0])) for name, rows in vectors.items()}
+    trace.accuracy = {name: _sorted_unique(rows, 2) for name, rows in accuracy.items()}
+    trace.waypoints = _sorted_unique(waypoints, 3)
+    trace.dist1 = _sorted_unique(dist1, 4)
+    trace.dist2 = _sorted_unique(dist2, 4)
+    for t in sorted(wifi_rows):
+        strongest: dict[str, tuple[str, str, int, int, int]] = {}
+        for row in wifi_rows[t]:  # a BSSID listed twice in one scan: keep its strongest reading
+            if row[1] not in strongest or row[2] > strongest[row[1]][2]:
+                strongest[row[1]] = row
+        rows = list(strongest.values())
+        trace.wifi.append(
+            WifiScan(
+                t_ms=t,
+                ssid=[r[0] for r in rows],
+                bssid=[r[1] for r in rows],
+                rssi_dbm=np.array([r[2] for r in rows], dtype=float),
+                frequency_mhz=np.array([r[3] for r in rows], dtype=np.int64),
+                last_seen_ms=np.array([r[4] for r in rows], dtype=np.int64),
+            )
+        )
+    trace.beacons.sort(key=lambda b: b[0])
+    trace.ble.sort(key=lambda b: b[0])
+    return trace
+
+
+@dataclass(frozen=True)
+class FloorInfo:
+    width_m: float
+    height_m: float
+    geojson: dict[str, object]
+    image: Path | None
+    traces: list[Path]
+
+
+def read_floor(floor_dir: Path) -> FloorInfo:
+    """Floor metadata (``floor_info.json``, ``geojson_map.json``, ``floor_image.png``) and its walks."""
+    floor_dir = Path(floor_dir)
+    info_path = floor_dir / "floor_info.json"
+    try:
+        info = json.loads(info_path.read_text())
+        width, height = float(info["map_info"]["width"]), float(info["map_info"]["height"])
+    except (OSError, ValueError, KeyError, TypeError) as error:
+        raise TraceFormatError(info_path, 0, f"unreadable floor info: {error}") from error
+    geo_path = floor_dir / "geojson_map.json"
+    try:
+        geojson = json.loads(geo_path.read_text()) if geo_path.exists() else {}
+    except ValueError as error:
+        raise TraceFormatError(geo_path, 0, f"unreadable GeoJSON: {error}") from error
+    image = floor_dir / "floor_image.png"
+    traces = sorted((floor_dir / "path_data_files").glob("*.txt"))
+    return FloorInfo(width, height, geojson, image if image.exists() else None, traces)
+
+
+def iter_windows(trace: Trace, window_ms: int = 1000) -> Iterator[tuple[int, int]]:
+    """Consecutive [start, end) windows covering the trace's sensor data."""
+    times = [s[:, 0] for s in trace.streams.values() if len(s)]
+    times += [np.array([w.t_ms for w in trace.wifi], dtype=float)] if trace.wifi else []
+    if not times:
+        return
+    first = int(min(t.min() for t in times))
+    last = int(max(t.max() for t in times))
+    for start in range(first, last + 1, window_ms):
+        yield start, start + window_ms

@@ -1,0 +1,105 @@
+"""The Indoor Location 2.0 reader on real walks (read in place) and on broken files."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from server.datasets.msindoor import TraceFormatError, read_floor, read_trace
+from server.datasets.msindoor_batches import trace_batches
+
+FLOOR = Path(__file__).resolve().parents[3] / "shared" / "data" / "msindoor20" / "site1" / "F1"
+SMALL_WALK = FLOOR / "path_data_files" / "5dd9e7c59191710006b57065.txt"
+
+
+def _count(path: Path, kind: str) -> int:
+    return sum(
+        1 for line in path.read_text().splitlines() if not line.startswith("#") and f"\t{kind}\t" in line
+    )
+
+
+def test_floor_metadata() -> None:
+    floor = read_floor(FLOOR)
+    assert floor.width_m == pytest.approx(239.8175, abs=1e-3)
+    assert floor.height_m == pytest.approx(176.4412, abs=1e-3)
+    assert floor.image is not None
+    assert floor.geojson["type"] == "FeatureCollection"
+    assert len(floor.traces) > 90
+
+
+def test_every_record_type_of_a_real_walk_is_read() -> None:
+    trace = read_trace(SMALL_WALK)
+    assert trace.header["FloorName"] == "F1"
+    assert trace.header["Model"] == "PBCM10"
+    accel = trace.streams["accelerometer"]
+    assert len(accel) == _count(SMALL_WALK, "TYPE_ACCELEROMETER")
+    assert np.all(np.diff(accel[:, 0]) > 0)
+    assert trace.streams["gyroscope_uncalibrated"].shape[1] == 7
+    assert sum(len(s.bssid) for s in trace.wifi) <= _count(SMALL_WALK, "TYPE_WIFI")
+    assert len(trace.beacons) == _count(SMALL_WALK, "TYPE_BEACON")
+    assert len(trace.ble) == _count(SMALL_WALK, "TYPE_BLUE")
+    assert len(trace.blu4) == _count(SMALL_WALK, "TYPE_BLU4")
+    assert trace.dist1.shape == (1, 4)
+    assert trace.dist2.shape == (1, 4)
+    assert len(trace.magnetic_accuracy_changes) == 1
+    assert np.all(np.diff(trace.waypoints[:, 0]) > 0)  # the repeated last waypoint is dropped
+    assert trace.end_ms > trace.start_ms
+
+
+def test_batches_cover_every_sample_once_and_validate() -> None:
+    trace = read_trace(SMALL_WALK)
+    batches = list(trace_batches(trace, "site1", "walker"))
+    assert [b.seq for b in batches] == list(range(len(batches)))
+    assert len({b.batch_id for b in batches}) == len(batches)
+    accel_times = [t for b in batches if b.accelerometer for t in b.accelerometer.t_ms]
+    assert accel_times == trace.streams["accelerometer"][:, 0].astype(int).tolist()
+    spans = [b.time_span_ms() for b in batches]
+    assert all(span is not None and span[1] - span[0] < 1000 for span in spans)
+    assert sum(len(b.wifi_scans) for b in batches) == len(trace.wifi)
+
+
+def test_cached_wifi_entries_keep_their_last_seen_time() -> None:
+    trace = read_trace(SMALL_WALK)
+    ages = np.concatenate([s.t_ms - s.last_seen_ms for s in trace.wifi])
+    assert np.mean(ages > 3000) > 0.2  # re-reported cached APs are common (GUIDE: 50-60 %)
+
+
+def test_lines_out_of_time_order_are_sorted(tmp_path: Path) -> None:
+    path = tmp_path / "walk.txt"
+    path.write_text(
+        "#\tstartTime:1574559495255\n"
+        "1574559495421\tTYPE_ACCELEROMETER\t0.1\t0.2\t9.8\t3\n"
+        "1574559495401\tTYPE_ACCELEROMETER\t0.0\t0.1\t9.7\t3\n"
+        "1574559495401\tTYPE_ACCELEROMETER\t0.0\t0.1\t9.7\t3\n"
+        "1574559499000\tTYPE_WAYPOINT\t2.0\t3.0\n"
+        "1574559495300\tTYPE_WAYPOINT\t1.0\t1.0\n"
+        "#\tendTime:1574559499999\n"
+    )
+    trace = read_trace(path)
+    np.testing.assert_array_equal(trace.streams["accelerometer"][:, 0], [1574559495401, 1574559495421])
+    np.testing.assert_array_equal(trace.waypoints[:, 1], [1.0, 2.0])
+
+
+@pytest.mark.parametrize(
+    ("line", "message"),
+    [
+        ("1574559495401\tTYPE_ACCELEROMETER\t0.1\t0.2\n", "needs 6 columns, found 4"),
+        ("1574559495401\tTYPE_ACCELEROMETER\t0.1\tabc\t9.8\t3\n", "bad TYPE_ACCELEROMETER value"),
+        ("1574559495401\tTYPE_TELEPORT\t1\n", "unknown record type 'TYPE_TELEPORT'"),
+        ("not-a-time\tTYPE_WAYPOINT\t1.0\t2.0\n", "bad TYPE_WAYPOINT value"),
+    ],
+)
+def test_malformed_lines_name_the_file_and_line(tmp_path: Path, line: str, message: str) -> None:
+    path = tmp_path / "broken.txt"
+    path.write_text("#\tstartTime:1574559495255\n1574559495300\tTYPE_WAYPOINT\t1.0\t1.0\n" + line)
+    with pytest.raises(TraceFormatError, match=message) as caught:
+        read_trace(path)
+    assert caught.value.line == 3
+    assert str(path) in str(caught.value)
+
+
+def test_missing_floor_info_is_a_clear_error(tmp_path: Path) -> None:
+    with pytest.raises(TraceFormatError, match=r"floor_info\.json"):
+        read_floor(tmp_path)
