@@ -37,8 +37,6 @@ MAX_ENCOUNTER_SIGMA_M = 5.0
 information and, repeated, mostly add double counting. With these two rules the testbed yields about 7
 encounters per user, the paper's figure."""
 TICK_S = 0.5
-last_errors_by_user: list[int] = []
-"""User index of each error of the last run (diagnostics)."""
 
 
 @dataclass(frozen=True)
@@ -218,7 +216,7 @@ def run_scenario_with_errors(
         errors, best_errors = _dead_reckoning_errors(sim), None
         applied = 0
     else:
-        errors, best_errors, applied = _filter_errors(sim, params, seed, encounters)
+        errors, best_errors, _, applied = _filter_errors(sim, params, seed, encounters)
     n_users = len(sim.users)
     detected = 0 if encounters is None else 2 * len(encounters.t) / n_users
     result: dict[str, Any] = {
@@ -259,7 +257,9 @@ def _dead_reckoning_errors(sim: Simulation) -> np.ndarray:
 
 def _filter_errors(
     sim: Simulation, params: FilterParams, seed: int, encounters: Encounters | None
-) -> tuple[np.ndarray, np.ndarray, int]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """Errors of the weighted mean and of the max-weight particle at every step, the user of each error,
+    and how many encounters were applied."""
     engine = DynamicSlam(params, seed=seed, initial_capacity=len(sim.users))
     crowd = crowd_with_known_anchors(sim, params)
     crowd_size = len(crowd)
@@ -277,7 +277,7 @@ def _filter_errors(
     )
     errors: list[float] = []
     best_errors: list[float] = []
-    self_users: list[int] = []
+    error_users: list[int] = []
     applied = 0
     for tick in np.unique(np.concatenate([step_tick, enc_tick])):
         sel = np.flatnonzero(step_tick == tick)
@@ -343,11 +343,9 @@ def _filter_errors(
             summary = engine.summaries(slots[us])
             truth = np.array([sim.users[u].xy[last_of_user[u]] for u in us])
             errors += np.linalg.norm(summary[:, 0:2] - truth, axis=1).tolist()
-            self_users += us.tolist()
+            error_users += us.tolist()
             best_errors += np.linalg.norm(summary[:, 5:7] - truth, axis=1).tolist()
-    last_errors_by_user.clear()
-    last_errors_by_user.extend(self_users)
-    return np.array(errors), np.array(best_errors), applied
+    return np.array(errors), np.array(best_errors), np.array(error_users, dtype=np.int64), applied
 
 
 SWEEPS = ("particles", "density", "anchor-density")

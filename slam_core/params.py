@@ -105,9 +105,10 @@ def _default_confusion() -> np.ndarray:
 class BuildingAnchorParams:
     """Building anchors: data association (Eq. 15-16), Map_Update (Algorithm 3), weights (Eq. 17)."""
 
-    detection_sigma_m: float = 1.0
-    """R_t: a detection says the user is at the anchor, within about the detection radius."""
-    new_anchor_likelihood: float = 2e-3
+    detection_sigma_m: float = 0.5
+    """R_t = sigma^2 I: a detection says the user is within the detection radius r of the anchor; a point
+    uniform on a disc of radius r = 1 m has a per-axis standard deviation of r / 2."""
+    new_anchor_likelihood: float = 1e-3
     """p0 of Eq. 16 (per m^2, comparable with the Gaussian densities of Eq. 15)."""
     confusion: np.ndarray = field(default_factory=_default_confusion)
     """p(detected type | true type); Eq. 15 uses p(f | f_hat), its column-normalised posterior."""

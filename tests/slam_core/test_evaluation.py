@@ -1,39 +1,53 @@
-"""Accuracy on the simulated paper testbed (seed 0). Thresholds are what the engine reaches today, with a
-margin; the issue's targets are tracked by ``crowdslam evaluate``."""
+"""Accuracy on the simulated paper testbed. Thresholds are what the engine reaches today with a margin, so
+a regression fails; the issue's targets are tracked by ``crowdslam evaluate`` (see the README)."""
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
+import numpy as np
 import pytest
 
 from slam_core.evaluation import run_scenario
 from slam_core.simulate import Scenario
 
 TESTBED = Path(__file__).resolve().parents[3] / "shared" / "scenarios" / "paper-testbed.json"
+SEEDS = (0, 1, 2)
 
 
 @pytest.fixture(scope="module")
-def results() -> dict[str, dict[str, float]]:
+def results() -> dict[tuple[str, int], dict[str, Any]]:
     scenario = Scenario.from_dict(json.loads(TESTBED.read_text()))
-    return {mode: run_scenario(scenario, 0, mode) for mode in ("pdr", "semanticslam", "dynamicslam")}
+    out = {("pdr", 0): run_scenario(scenario, 0, "pdr")}
+    for seed in SEEDS:
+        for mode in ("semanticslam", "dynamicslam"):
+            out[(mode, seed)] = run_scenario(scenario, seed, mode)
+    return out
 
 
-def test_building_anchors_beat_dead_reckoning(results: dict[str, dict[str, float]]) -> None:
-    assert results["semanticslam"]["median_m"] < 0.6 * results["pdr"]["median_m"]
-    assert results["semanticslam"]["p90_m"] < 0.7 * results["pdr"]["p90_m"]
+def _mean(results: dict[tuple[str, int], dict[str, Any]], mode: str, key: str) -> float:
+    return float(np.mean([results[(mode, s)][key] for s in SEEDS]))
 
 
-def test_human_anchors_help(results: dict[str, dict[str, float]]) -> None:
-    dyn, sem = results["dynamicslam"], results["semanticslam"]
-    assert dyn["median_m"] <= 1.35
-    assert dyn["median_m"] < sem["median_m"]
-    assert dyn["p90_m"] < sem["p90_m"]
-    assert 3 <= dyn["encounters_per_user"] <= 15  # the paper's testbed: about 7
+def test_building_anchors_beat_dead_reckoning(results: dict[tuple[str, int], dict[str, Any]]) -> None:
+    pdr, sem = results[("pdr", 0)], results[("semanticslam", 0)]
+    assert sem["median_m"] < 0.5 * pdr["median_m"]
+    assert sem["p90_m"] < 0.6 * pdr["p90_m"]
+    assert sem["median_m"] < 1.3
 
 
-def test_every_step_is_scored(results: dict[str, dict[str, float]]) -> None:
+def test_human_anchors_help_across_seeds(results: dict[tuple[str, int], dict[str, Any]]) -> None:
+    assert _mean(results, "dynamicslam", "median_m") < 0.95 * _mean(results, "semanticslam", "median_m")
+    assert _mean(results, "dynamicslam", "p90_m") < 0.9 * _mean(results, "semanticslam", "p90_m")
+    assert _mean(results, "dynamicslam", "median_m") < 1.7
+    for seed in SEEDS:
+        assert 3 <= results[("dynamicslam", seed)]["encounters_per_user"] <= 40
+
+
+def test_every_step_is_scored(results: dict[tuple[str, int], dict[str, Any]]) -> None:
     for r in results.values():
         assert r["n_estimates"] > 23 * 340
-        assert r["max_m"] < 30.0
+        assert np.isfinite(r["max_m"])
+        assert r["max_m"] < 40.0
