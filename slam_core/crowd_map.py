@@ -34,8 +34,15 @@ class _CrowdAnchor:
 
 class CrowdMapBuilder:
     def __init__(
-        self, type_posterior: np.ndarray, detection_sigma_m: float, min_type_probability: float = 0.05
+        self,
+        type_posterior: np.ndarray,
+        detection_sigma_m: float,
+        min_type_probability: float = 0.05,
+        fuse: bool = True,
     ):
+        """``fuse=False``: contributions only associate (and create anchors); positions come from
+        ``set_estimate`` (the joint solve of ``slam_core.crowd_graph``)."""
+        self._fuse = fuse
         self._posterior = np.asarray(type_posterior, dtype=float)
         self._r = detection_sigma_m**2
         self._min_type = min_type_probability
@@ -76,8 +83,19 @@ class CrowdMapBuilder:
         anchor.last_seen = t
         if not anchor.known:
             anchor.contributions[user] = (mean, cov)
-            self._refuse(anchor)
+            if self._fuse:
+                self._refuse(anchor)
         return best
+
+    def set_estimate(self, index: int, mean: np.ndarray, cov: np.ndarray) -> None:
+        anchor = self._anchors[index]
+        if anchor.known:
+            raise ValueError(f"anchor {index} is operator-known; its position does not change")
+        anchor.mean = np.asarray(mean, dtype=float).copy()
+        anchor.cov = np.asarray(cov, dtype=float).copy()
+
+    def means(self) -> dict[int, np.ndarray]:
+        return {k: a.mean.copy() for k, a in enumerate(self._anchors)}
 
     @staticmethod
     def _refuse(anchor: _CrowdAnchor) -> None:

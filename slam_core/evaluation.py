@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from slam_core.crowd_graph import CrowdGraph, GraphParams
 from slam_core.crowd_map import CrowdMapBuilder
 from slam_core.encounters import (
     BluetoothParams,
@@ -37,6 +38,9 @@ MAX_ENCOUNTER_SIGMA_M = 5.0
 information and, repeated, mostly add double counting. With these two rules the testbed yields about 7
 encounters per user, the paper's figure."""
 TICK_S = 0.5
+CROWD_SOLVERS = ("fusion", "graph")
+GRAPH_SOLVE_PERIOD_S = 5.0
+"""The joint crowd-map solve runs at most every 5 s of walking time (it takes ~0.1 s)."""
 
 
 @dataclass(frozen=True)
@@ -181,8 +185,8 @@ def filter_params(mode: str, sampling: str, particles: int, motion_model: str) -
     )
 
 
-def crowd_with_known_anchors(sim: Simulation, params: FilterParams) -> CrowdMapBuilder:
-    crowd = CrowdMapBuilder(params.anchors.type_posterior, params.anchors.detection_sigma_m)
+def crowd_with_known_anchors(sim: Simulation, params: FilterParams, fuse: bool = True) -> CrowdMapBuilder:
+    crowd = CrowdMapBuilder(params.anchors.type_posterior, params.anchors.detection_sigma_m, fuse=fuse)
     for k in np.flatnonzero(sim.world.anchor_known):
         crowd.add_known(sim.world.anchor_xy[k], int(sim.world.anchor_type[k]))
     return crowd
@@ -195,9 +199,10 @@ def run_scenario(
     sampling: str = "iterative",
     particles: int = 75,
     motion_model: str = "bias-scale",
+    crowd_solver: str = "graph",
 ) -> dict[str, Any]:
     """Metrics of one run (see ``run_scenario_with_errors``)."""
-    return run_scenario_with_errors(scenario, seed, mode, sampling, particles, motion_model)[0]
+    return run_scenario_with_errors(scenario, seed, mode, sampling, particles, motion_model, crowd_solver)[0]
 
 
 def run_scenario_with_errors(
@@ -207,8 +212,13 @@ def run_scenario_with_errors(
     sampling: str = "iterative",
     particles: int = 75,
     motion_model: str = "bias-scale",
+    crowd_solver: str = "graph",
 ) -> tuple[dict[str, Any], np.ndarray]:
-    """Run the scenario; returns the metrics and the error of every step of every user (metres)."""
+    """Run the scenario; returns the metrics and the error of every step of every user (metres).
+    ``crowd_solver``: "graph" re-solves the shared anchor map jointly (``slam_core.crowd_graph``);
+    "fusion" fuses each detection's filtered estimate (``slam_core.crowd_map``)."""
+    if crowd_solver not in CROWD_SOLVERS:
+        raise ValueError(f"unknown crowd solver {crowd_solver!r}; valid: {', '.join(CROWD_SOLVERS)}")
     params = filter_params(mode, sampling, particles, motion_model)
     sim = simulate(scenario, seed)
     encounters = detect_encounters(sim, calibrate(scenario, seed)) if mode == "dynamicslam" else None
@@ -216,7 +226,7 @@ def run_scenario_with_errors(
         errors, best_errors = _dead_reckoning_errors(sim), None
         applied = 0
     else:
-        errors, best_errors, _, applied = _filter_errors(sim, params, seed, encounters)
+        errors, best_errors, _, applied = _filter_errors(sim, params, seed, encounters, crowd_solver)
     n_users = len(sim.users)
     detected = 0 if encounters is None else 2 * len(encounters.t) / n_users
     result: dict[str, Any] = {
@@ -225,6 +235,7 @@ def run_scenario_with_errors(
         "sampling": sampling,
         "particles": particles,
         "motion_model": motion_model,
+        "crowd_solver": crowd_solver,
         **error_summary(errors),
         "n_estimates": int(errors.size),
         "anchors_passed_per_user": sim.anchors_passed_per_user,
@@ -256,13 +267,23 @@ def _dead_reckoning_errors(sim: Simulation) -> np.ndarray:
 
 
 def _filter_errors(
-    sim: Simulation, params: FilterParams, seed: int, encounters: Encounters | None
+    sim: Simulation,
+    params: FilterParams,
+    seed: int,
+    encounters: Encounters | None,
+    crowd_solver: str = "graph",
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """Errors of the weighted mean and of the max-weight particle at every step, the user of each error,
     and how many encounters were applied."""
     engine = DynamicSlam(params, seed=seed, initial_capacity=len(sim.users))
-    crowd = crowd_with_known_anchors(sim, params)
+    crowd = crowd_with_known_anchors(sim, params, fuse=crowd_solver == "fusion")
     crowd_size = len(crowd)
+    graph = CrowdGraph(GraphParams(detection_sigma_m=params.anchors.detection_sigma_m))
+    for k in np.flatnonzero(sim.world.anchor_known):
+        graph.set_known(int(k), sim.world.anchor_xy[k])
+    displacement = np.zeros((len(sim.users), 2))
+    walked = np.zeros(len(sim.users))
+    last_solve_s = -np.inf
     slots = np.full(len(sim.users), -1, dtype=np.int64)
     # every step of every user as (tick, user, step index)
     step_user = np.concatenate([np.full(len(tr.t) - 1, u) for u, tr in enumerate(sim.users)])
@@ -287,6 +308,7 @@ def _filter_errors(
             slots[u] = engine.add_user(
                 tr.start_fix[0], tr.start_fix[1], tr.start_heading_fix, 0.5, crowd.snapshot()
             )
+            graph.add_user(int(u), tr.start_fix)
         if sel.size:
             order = np.lexsort((step_index[sel], users_now))
             sel = sel[order]
@@ -307,7 +329,9 @@ def _filter_errors(
             )
             engine.step(slots[uniq], offsets, lengths, headings)
             det_users, det_types = [], []
-            for u, k in zip(users_sorted, step_index[sel], strict=True):
+            for u, k, length, heading in zip(users_sorted, step_index[sel], lengths, headings, strict=True):
+                displacement[u] += length * np.array([np.cos(heading), np.sin(heading)])
+                walked[u] += length
                 if k in anchor_at[u]:
                     det_users.append(int(u))
                     det_types.append(anchor_at[u][k])
@@ -323,6 +347,15 @@ def _filter_errors(
                     ]
                 )
                 engine.observe_building_anchors(slots[det_users], np.array(det_types), ids)
+                if crowd_solver == "graph":
+                    for u, c in zip(det_users, ids, strict=True):
+                        graph.add_detection(u, int(c), displacement[u], float(walked[u]))
+                if crowd_solver == "graph" and tick * TICK_S - last_solve_s >= GRAPH_SOLVE_PERIOD_S:
+                    last_solve_s = tick * TICK_S
+                    means, covs = graph.solve(crowd.means())
+                    for c, mean in means.items():
+                        crowd.set_estimate(c, mean, covs[c])
+                    engine.refresh_crowd_anchors(engine.active_users, crowd.snapshot())
                 if len(crowd) != crowd_size:
                     crowd_size = len(crowd)
                     engine.merge_crowd_map(engine.active_users, crowd.snapshot())

@@ -225,6 +225,25 @@ class DynamicSlam:
             untagged = s.map_crowd_id[u, m, k] < 0
             s.map_crowd_id[u, m[untagged], k[untagged]] = crowd_ids[i]
 
+    def refresh_crowd_anchors(self, users: np.ndarray, crowd: CrowdMap) -> None:
+        """Overwrite every particle's copy of a shared, non-known anchor with the crowd's current estimate
+        (used when the shared map is re-solved jointly and supersedes the particles' own copies)."""
+        users = np.ascontiguousarray(users, dtype=np.int64)
+        self._check_users(users)
+        if crowd.mean.shape[0] == 0 or users.size == 0:
+            return
+        s = self.state
+        lookup = np.full(int(crowd.crowd_id.max()) + 1, -1, dtype=np.int64)
+        lookup[crowd.crowd_id] = np.arange(crowd.crowd_id.size)
+        ids = s.map_crowd_id[users]
+        slot = np.arange(s.map_capacity)[None, None, :]
+        row = np.where((ids >= 0) & (ids < lookup.size), lookup[np.clip(ids, 0, lookup.size - 1)], -1)
+        valid = (row >= 0) & (slot < s.map_n[users][:, :, None]) & ~s.map_known[users]
+        ui, mi, ki = np.nonzero(valid)
+        r = row[ui, mi, ki]
+        s.map_mu[users[ui], mi, ki] = crowd.mean[r]
+        s.map_cov[users[ui], mi, ki] = crowd.cov[r]
+
     def merge_crowd_map(self, users: np.ndarray, crowd: CrowdMap) -> None:
         """Add the shared map's anchors that a particle does not hold yet (by crowd id) to its map, so a user
         can recognise anchors that others learned after it started. Its own copies are left as they are."""

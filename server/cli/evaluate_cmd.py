@@ -21,6 +21,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sampling", choices=("one-shot", "iterative"), default="iterative")
     parser.add_argument("--particles", type=int, default=75)
     parser.add_argument("--motion-model", choices=("paper", "bias-scale"), default="bias-scale")
+    parser.add_argument(
+        "--crowd-solver",
+        choices=("graph", "fusion"),
+        default="graph",
+        help="shared anchor map: joint least squares (graph) or sequential fusion of estimates",
+    )
     parser.add_argument("--sweep", choices=("particles", "density", "anchor-density"))
     parser.add_argument(
         "--compare", action="store_true", help="run pdr, semanticslam and dynamicslam; one CDF (Figure 14)"
@@ -59,7 +65,7 @@ def _single(scenario: Any, args: argparse.Namespace, plot: Path) -> dict[str, An
 
     started = time.perf_counter()
     result, errors = run_scenario_with_errors(
-        scenario, args.seed, args.mode, args.sampling, args.particles, args.motion_model
+        scenario, args.seed, args.mode, args.sampling, args.particles, args.motion_model, args.crowd_solver
     )
     result["seconds"] = time.perf_counter() - started
     x, p = empirical_cdf(errors)
@@ -77,7 +83,7 @@ def _compare(scenario: Any, args: argparse.Namespace, plot: Path) -> dict[str, A
     for mode in MODES:
         started = time.perf_counter()
         result, errors = run_scenario_with_errors(
-            scenario, args.seed, mode, args.sampling, args.particles, args.motion_model
+            scenario, args.seed, mode, args.sampling, args.particles, args.motion_model, args.crowd_solver
         )
         result["seconds"] = time.perf_counter() - started
         results[mode] = result
@@ -100,7 +106,9 @@ def _sweep(scenario: Any, args: argparse.Namespace, plot: Path) -> dict[str, Any
             world = swept_scenario(scenario, args.sweep, value)
             particles = int(value) if args.sweep == "particles" else args.particles
             for mode in modes:
-                r = run_scenario(world, args.seed, mode, args.sampling, particles, args.motion_model)
+                r = run_scenario(
+                    world, args.seed, mode, args.sampling, particles, args.motion_model, args.crowd_solver
+                )
                 rows.append(
                     {
                         "value": value,

@@ -35,13 +35,14 @@ def test_building_anchors_beat_dead_reckoning(results: dict[tuple[str, int], dic
     pdr, sem = results[("pdr", 0)], results[("semanticslam", 0)]
     assert sem["median_m"] < 0.5 * pdr["median_m"]
     assert sem["p90_m"] < 0.6 * pdr["p90_m"]
-    assert sem["median_m"] < 1.3
+    assert sem["median_m"] < 1.2
 
 
-def test_human_anchors_help_across_seeds(results: dict[tuple[str, int], dict[str, Any]]) -> None:
-    assert _mean(results, "dynamicslam", "median_m") < 0.95 * _mean(results, "semanticslam", "median_m")
-    assert _mean(results, "dynamicslam", "p90_m") < 0.9 * _mean(results, "semanticslam", "p90_m")
-    assert _mean(results, "dynamicslam", "median_m") < 1.7
+def test_human_anchors_cut_the_tail_across_seeds(results: dict[tuple[str, int], dict[str, Any]]) -> None:
+    """Today encounters mostly rescue users who got lost: the p90 falls, the median stays about the same."""
+    assert _mean(results, "dynamicslam", "p90_m") < 0.85 * _mean(results, "semanticslam", "p90_m")
+    assert _mean(results, "dynamicslam", "median_m") < 1.05 * _mean(results, "semanticslam", "median_m")
+    assert _mean(results, "dynamicslam", "median_m") < 1.4
     for seed in SEEDS:
         assert 3 <= results[("dynamicslam", seed)]["encounters_per_user"] <= 40
 
