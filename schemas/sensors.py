@@ -9,6 +9,7 @@ objects. Axes and units follow Android's ``SensorEvent`` semantics in the phone'
 
 from __future__ import annotations
 
+import re
 from typing import Annotated, Any, Literal, Self
 
 from pydantic import Field, model_validator
@@ -185,14 +186,41 @@ class GpsFix(WireModel):
     accuracy_m: float = Field(gt=0.0, le=500.0)
 
 
+_TAG_POSITION = re.compile(
+    r"^#(?P<id>\S+)\s+(?P<lat>[-+]?\d+(?:\.\d+)?),\s*(?P<lon>[-+]?\d+(?:\.\d+)?)(?:\s+z(?P<z>[-+]?\d+))?\s*$"
+)
+
+
 class TagReading(WireModel):
     """A QR code or NFC tag. ``payload`` may encode its own position as in SignalSLAM, e.g.
-    ``#6e1ebc 40.684492,-74.401406 z0`` (id, latitude, longitude, floor)."""
+    ``#6e1ebc 40.684492,-74.401406 z0`` (id, latitude, longitude, floor); a payload starting with ``#`` must
+    follow that form."""
 
     kind: Literal["tag"] = "tag"
     t_ms: TimeMs
     tag_id: Identifier
-    payload: str | None = Field(default=None, max_length=256)
+    payload: str | None = Field(default=None, max_length=256, examples=["#6e1ebc 40.684492,-74.401406 z0"])
+
+    @model_validator(mode="after")
+    def _encoded_position(self) -> Self:
+        if self.payload is not None and self.payload.startswith("#"):
+            self.encoded_position()  # raises with a clear message when malformed
+        return self
+
+    def encoded_position(self) -> tuple[float, float, int] | None:
+        """(latitude, longitude, floor) encoded in the payload, or None when it encodes none."""
+        if self.payload is None or not self.payload.startswith("#"):
+            return None
+        match = _TAG_POSITION.match(self.payload)
+        if match is None:
+            raise ValueError(
+                "a tag payload starting with '#' must read '#<id> <lat>,<lon> [z<floor>]', "
+                f"e.g. '#6e1ebc 40.684492,-74.401406 z0'; got {self.payload!r}"
+            )
+        lat, lon = float(match["lat"]), float(match["lon"])
+        if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0):
+            raise ValueError(f"tag position {lat},{lon} is outside the WGS-84 range")
+        return lat, lon, int(match["z"] or 0)
 
 
 class AnchorReading(WireModel):

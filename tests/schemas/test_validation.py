@@ -141,6 +141,20 @@ CASES: list[tuple[str, Mutation, int, str, str]] = [
         "less than or equal to 90",
     ),
     ("rsrp out of range", _set("lte.0.rsrp_dbm", -20.0), 422, "lte.0.rsrp_dbm", "less than or equal to -44"),
+    (
+        "malformed tag position",
+        _set("landmarks.0.payload", "#6e1ebc forty,-74.4"),
+        422,
+        "landmarks.0.tag",
+        "must read '#<id> <lat>,<lon> [z<floor>]'",
+    ),
+    (
+        "tag position off the globe",
+        _set("landmarks.0.payload", "#6e1ebc 95.0,-74.4 z0"),
+        422,
+        "landmarks.0.tag",
+        "outside the WGS-84 range",
+    ),
     ("too many steps", _many_steps(301), 422, "steps", "at most 300 items"),
     (
         "too many imu samples",
@@ -249,3 +263,22 @@ def test_batch_with_only_steps_is_normal() -> None:
 def test_empty_batch_has_no_time_span() -> None:
     batch = SensorBatch(building_id="hq", device_id="d", batch_id="b", seq=0)
     assert batch.time_span_ms() is None
+
+
+@pytest.mark.parametrize(
+    ("payload", "expected"),
+    [
+        ("#6e1ebc 40.684492,-74.401406 z0", (40.684492, -74.401406, 0)),
+        ("#a1 -33.5,151.25 z-2", (-33.5, 151.25, -2)),
+        ("#a1 10,20", (10.0, 20.0, 0)),
+        ("meeting room 4", None),
+        (None, None),
+    ],
+)
+def test_tag_encoded_positions_are_parsed(
+    payload: str | None, expected: tuple[float, float, int] | None
+) -> None:
+    from schemas.sensors import TagReading
+
+    tag = TagReading(t_ms=1700000000000, tag_id="t1", payload=payload)
+    assert tag.encoded_position() == expected
