@@ -1,0 +1,61 @@
+"""``crowdslam evaluate`` on a small scenario: a single run, a comparison and a sweep write JSON and PNG."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from server.cli.main import main
+
+TESTBED = Path(__file__).resolve().parents[3] / "shared" / "scenarios" / "paper-testbed.json"
+
+
+@pytest.fixture
+def small_scenario(tmp_path: Path) -> Path:
+    raw = json.loads(TESTBED.read_text())
+    raw["users"]["count"] = 4
+    raw["users"]["walk_length_m"] = 40.0
+    path = tmp_path / "small.json"
+    path.write_text(json.dumps(raw))
+    return path
+
+
+def test_single_run_writes_metrics_and_a_cdf(small_scenario: Path, tmp_path: Path) -> None:
+    out = tmp_path / "out" / "dyn.json"
+    assert (
+        main(["evaluate", "--scenario", str(small_scenario), "--mode", "dynamicslam", "--json", str(out)])
+        == 0
+    )
+    result = json.loads(out.read_text())
+    for key in ("mode", "median_m", "p75_m", "p90_m", "mean_m", "max_m", "n_estimates", "anchors_passed_per_user",
+                "encounters_per_user", "seconds"):  # fmt: skip
+        assert key in result
+    assert out.with_suffix(".png").stat().st_size > 1000
+
+
+def test_compare_and_sweep(small_scenario: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    out = tmp_path / "all.json"
+    assert main(["evaluate", "--scenario", str(small_scenario), "--compare", "--json", str(out)]) == 0
+    assert set(json.loads(out.read_text())) == {"pdr", "semanticslam", "dynamicslam"}
+    import slam_core.evaluation as evaluation
+
+    monkeypatch.setattr(evaluation, "sweep_values", lambda kind: [5, 20])
+    sweep = tmp_path / "sweep.json"
+    assert (
+        main(["evaluate", "--scenario", str(small_scenario), "--sweep", "particles", "--json", str(sweep)])
+        == 0
+    )
+    rows = json.loads(sweep.read_text())["rows"]
+    assert [(r["value"], r["mode"]) for r in rows] == [
+        (5, "semanticslam"), (5, "dynamicslam"), (20, "semanticslam"), (20, "dynamicslam")
+    ]  # fmt: skip
+    assert sweep.with_suffix(".png").exists()
+
+
+def test_unreadable_scenario_is_a_clear_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    bad = tmp_path / "bad.json"
+    bad.write_text("{")
+    assert main(["evaluate", "--scenario", str(bad), "--json", str(tmp_path / "x.json")]) == 2
+    assert "cannot use scenario" in capsys.readouterr().out
