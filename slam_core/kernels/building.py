@@ -58,6 +58,136 @@ def associate(
     return best, best_log
 
 
+@njit(cache=True, nogil=True)
+def _update_user(
+    i: int,
+    x: np.ndarray,
+    y: np.ndarray,
+    logw: np.ndarray,
+    map_mu: np.ndarray,
+    map_cov: np.ndarray,
+    map_type: np.ndarray,
+    map_count: np.ndarray,
+    map_known: np.ndarray,
+    map_crowd_id: np.ndarray,
+    map_n: np.ndarray,
+    ctrl_cov: np.ndarray,
+    rng_key: np.ndarray,
+    rng_ctr: np.ndarray,
+    users: np.ndarray,
+    detected_type: np.ndarray,
+    type_posterior: np.ndarray,
+    detection_sigma: float,
+    new_anchor_likelihood: float,
+    overflow: np.ndarray,
+    degenerate: np.ndarray,
+    used_slot: np.ndarray,
+) -> None:
+    n_particles = x.shape[1]
+    capacity = map_mu.shape[2]
+    r = detection_sigma * detection_sigma
+    log_p0 = math.log(new_anchor_likelihood)
+    u = users[i]
+    key = rng_key[u]
+    det = detected_type[i]
+    p_xx = ctrl_cov[u, 0] + CTRL_FLOOR_M2
+    p_xy = ctrl_cov[u, 1]
+    p_yy = ctrl_cov[u, 2] + CTRL_FLOOR_M2
+    for m in range(n_particles):
+        sx = x[u, m]
+        sy = y[u, m]
+        n_anchors = map_n[u, m]
+        best, best_log = associate(
+            sx,
+            sy,
+            map_mu[u, m],
+            map_cov[u, m],
+            map_type[u, m],
+            n_anchors,
+            det,
+            type_posterior,
+            r,
+            p_xx,
+            p_xy,
+            p_yy,
+            log_p0,
+        )
+        n1 = normal(key, rng_ctr, u)
+        n2 = normal(key, rng_ctr, u)
+        if best == NEW_ANCHOR:
+            if n_anchors < capacity:
+                # Algorithm 3 lines 1-3: a new anchor at the particle's position with covariance R
+                map_mu[u, m, n_anchors, 0] = sx
+                map_mu[u, m, n_anchors, 1] = sy
+                map_cov[u, m, n_anchors, 0] = r
+                map_cov[u, m, n_anchors, 1] = 0.0
+                map_cov[u, m, n_anchors, 2] = r
+                map_type[u, m, n_anchors] = det
+                map_count[u, m, n_anchors] = 1
+                map_known[u, m, n_anchors] = False
+                map_crowd_id[u, m, n_anchors] = -1
+                map_n[u, m] = n_anchors + 1
+                used_slot[i, m] = n_anchors
+            else:
+                overflow[u] += 1
+                used_slot[i, m] = -1
+        else:
+            # Algorithm 1 with J_s = -I: Sigma_s = (Q^-1 + P^-1)^-1, mu_s = s + Sigma_s Q^-1 (mu_n - s)
+            q_xx = map_cov[u, m, best, 0] + r
+            q_xy = map_cov[u, m, best, 1]
+            q_yy = map_cov[u, m, best, 2] + r
+            dq = q_xx * q_yy - q_xy * q_xy
+            qi_xx = q_yy / dq
+            qi_xy = -q_xy / dq
+            qi_yy = q_xx / dq
+            dp = p_xx * p_yy - p_xy * p_xy
+            a_xx = qi_xx + p_yy / dp
+            a_xy = qi_xy - p_xy / dp
+            a_yy = qi_yy + p_xx / dp
+            da = a_xx * a_yy - a_xy * a_xy
+            s_xx = a_yy / da
+            s_xy = -a_xy / da
+            s_yy = a_xx / da
+            ex = map_mu[u, m, best, 0] - sx
+            ey = map_mu[u, m, best, 1] - sy
+            gx = qi_xx * ex + qi_xy * ey
+            gy = qi_xy * ex + qi_yy * ey
+            mx = sx + s_xx * gx + s_xy * gy
+            my = sy + s_xy * gx + s_yy * gy
+            used_slot[i, m] = best
+            nsx, nsy = sample2(mx, my, s_xx, s_xy, s_yy, n1, n2)
+            x[u, m] = nsx
+            y[u, m] = nsy
+            if not map_known[u, m, best]:
+                # Algorithm 3 lines 5-7: K = Sigma_n Q^-1; mu += K (s - mu); Sigma = (I - K) Sigma_n
+                c_xx = map_cov[u, m, best, 0]
+                c_xy = map_cov[u, m, best, 1]
+                c_yy = map_cov[u, m, best, 2]
+                k11 = c_xx * qi_xx + c_xy * qi_xy
+                k12 = c_xx * qi_xy + c_xy * qi_yy
+                k21 = c_xy * qi_xx + c_yy * qi_xy
+                k22 = c_xy * qi_xy + c_yy * qi_yy
+                dx = nsx - map_mu[u, m, best, 0]
+                dy = nsy - map_mu[u, m, best, 1]
+                map_mu[u, m, best, 0] += k11 * dx + k12 * dy
+                map_mu[u, m, best, 1] += k21 * dx + k22 * dy
+                n_xx = (1.0 - k11) * c_xx - k12 * c_xy
+                n_xy = (1.0 - k11) * c_xy - k12 * c_yy
+                n_yy = -k21 * c_xy + (1.0 - k22) * c_yy
+                map_cov[u, m, best, 0] = n_xx
+                map_cov[u, m, best, 1] = n_xy
+                map_cov[u, m, best, 2] = n_yy
+            map_count[u, m, best] += 1
+        logw[u, m] += best_log  # Eq. 17: w_t = w_{t-1} p_n_hat
+    if not normalise_log_weights(logw, u):
+        degenerate[u] += 1
+        for m in range(n_particles):
+            logw[u, m] = -math.log(n_particles)
+    ctrl_cov[u, 0] = 0.0
+    ctrl_cov[u, 1] = 0.0
+    ctrl_cov[u, 2] = 0.0
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def building_anchor_update(
     x: np.ndarray,
@@ -84,110 +214,12 @@ def building_anchor_update(
 ) -> None:
     """Each i: user ``users[i]`` detected an anchor of type ``detected_type[i]``. Users distinct per call.
     ``used_slot[i, m]`` receives the map slot particle m associated with or created (-1: map full)."""
-    n_particles = x.shape[1]
-    capacity = map_mu.shape[2]
-    r = detection_sigma * detection_sigma
-    log_p0 = math.log(new_anchor_likelihood)
     for i in prange(users.shape[0]):
-        u = users[i]
-        key = rng_key[u]
-        det = detected_type[i]
-        p_xx = ctrl_cov[u, 0] + CTRL_FLOOR_M2
-        p_xy = ctrl_cov[u, 1]
-        p_yy = ctrl_cov[u, 2] + CTRL_FLOOR_M2
-        for m in range(n_particles):
-            sx = x[u, m]
-            sy = y[u, m]
-            n_anchors = map_n[u, m]
-            best, best_log = associate(
-                sx,
-                sy,
-                map_mu[u, m],
-                map_cov[u, m],
-                map_type[u, m],
-                n_anchors,
-                det,
-                type_posterior,
-                r,
-                p_xx,
-                p_xy,
-                p_yy,
-                log_p0,
-            )
-            n1 = normal(key, rng_ctr, u)
-            n2 = normal(key, rng_ctr, u)
-            if best == NEW_ANCHOR:
-                if n_anchors < capacity:
-                    # Algorithm 3 lines 1-3: a new anchor at the particle's position with covariance R
-                    map_mu[u, m, n_anchors, 0] = sx
-                    map_mu[u, m, n_anchors, 1] = sy
-                    map_cov[u, m, n_anchors, 0] = r
-                    map_cov[u, m, n_anchors, 1] = 0.0
-                    map_cov[u, m, n_anchors, 2] = r
-                    map_type[u, m, n_anchors] = det
-                    map_count[u, m, n_anchors] = 1
-                    map_known[u, m, n_anchors] = False
-                    map_crowd_id[u, m, n_anchors] = -1
-                    map_n[u, m] = n_anchors + 1
-                    used_slot[i, m] = n_anchors
-                else:
-                    overflow[u] += 1
-                    used_slot[i, m] = -1
-            else:
-                # Algorithm 1 with J_s = -I: Sigma_s = (Q^-1 + P^-1)^-1, mu_s = s + Sigma_s Q^-1 (mu_n - s)
-                q_xx = map_cov[u, m, best, 0] + r
-                q_xy = map_cov[u, m, best, 1]
-                q_yy = map_cov[u, m, best, 2] + r
-                dq = q_xx * q_yy - q_xy * q_xy
-                qi_xx = q_yy / dq
-                qi_xy = -q_xy / dq
-                qi_yy = q_xx / dq
-                dp = p_xx * p_yy - p_xy * p_xy
-                a_xx = qi_xx + p_yy / dp
-                a_xy = qi_xy - p_xy / dp
-                a_yy = qi_yy + p_xx / dp
-                da = a_xx * a_yy - a_xy * a_xy
-                s_xx = a_yy / da
-                s_xy = -a_xy / da
-                s_yy = a_xx / da
-                ex = map_mu[u, m, best, 0] - sx
-                ey = map_mu[u, m, best, 1] - sy
-                gx = qi_xx * ex + qi_xy * ey
-                gy = qi_xy * ex + qi_yy * ey
-                mx = sx + s_xx * gx + s_xy * gy
-                my = sy + s_xy * gx + s_yy * gy
-                used_slot[i, m] = best
-                nsx, nsy = sample2(mx, my, s_xx, s_xy, s_yy, n1, n2)
-                x[u, m] = nsx
-                y[u, m] = nsy
-                if not map_known[u, m, best]:
-                    # Algorithm 3 lines 5-7: K = Sigma_n Q^-1; mu += K (s - mu); Sigma = (I - K) Sigma_n
-                    c_xx = map_cov[u, m, best, 0]
-                    c_xy = map_cov[u, m, best, 1]
-                    c_yy = map_cov[u, m, best, 2]
-                    k11 = c_xx * qi_xx + c_xy * qi_xy
-                    k12 = c_xx * qi_xy + c_xy * qi_yy
-                    k21 = c_xy * qi_xx + c_yy * qi_xy
-                    k22 = c_xy * qi_xy + c_yy * qi_yy
-                    dx = nsx - map_mu[u, m, best, 0]
-                    dy = nsy - map_mu[u, m, best, 1]
-                    map_mu[u, m, best, 0] += k11 * dx + k12 * dy
-                    map_mu[u, m, best, 1] += k21 * dx + k22 * dy
-                    n_xx = (1.0 - k11) * c_xx - k12 * c_xy
-                    n_xy = (1.0 - k11) * c_xy - k12 * c_yy
-                    n_yy = -k21 * c_xy + (1.0 - k22) * c_yy
-                    map_cov[u, m, best, 0] = n_xx
-                    map_cov[u, m, best, 1] = n_xy
-                    map_cov[u, m, best, 2] = n_yy
-                map_count[u, m, best] += 1
-            logw[u, m] += best_log  # Eq. 17: w_t = w_{t-1} p_n_hat
-        if not normalise_log_weights(logw, u):
-            degenerate[u] += 1
-            for m in range(n_particles):
-                logw[u, m] = -math.log(n_particles)
-        ctrl_cov[u, 0] = 0.0
-        ctrl_cov[u, 1] = 0.0
-        ctrl_cov[u, 2] = 0.0
+        _update_user(
+            i, x, y, logw, map_mu, map_cov, map_type, map_count, map_known, map_crowd_id, map_n, ctrl_cov,
+            rng_key, rng_ctr, users, detected_type, type_posterior, detection_sigma, new_anchor_likelihood,
+            overflow, degenerate, used_slot,
+        )  # fmt: skip
 
 
 @njit(cache=True, nogil=True, parallel=True)

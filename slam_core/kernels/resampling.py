@@ -79,6 +79,59 @@ def draw_ancestors(w: np.ndarray, scheme: int, key: np.uint64, counters: np.ndar
     return out
 
 
+@njit(cache=True, nogil=True)
+def _resample_user(
+    u: int,
+    threshold: float,
+    scheme: int,
+    logw: np.ndarray,
+    x: np.ndarray,
+    y: np.ndarray,
+    heading: np.ndarray,
+    bias: np.ndarray,
+    scale: np.ndarray,
+    walk: np.ndarray,
+    map_mu: np.ndarray,
+    map_cov: np.ndarray,
+    map_type: np.ndarray,
+    map_count: np.ndarray,
+    map_known: np.ndarray,
+    map_crowd_id: np.ndarray,
+    map_n: np.ndarray,
+    rng_key: np.ndarray,
+    rng_ctr: np.ndarray,
+    n_resamples: np.ndarray,
+    roughening_bias: float,
+    roughening_scale: float,
+) -> None:
+    n_particles = logw.shape[1]
+    if threshold < 1.0 and effective_sample_size(logw, u) >= threshold * n_particles:
+        return
+    w = np.exp(logw[u])
+    w /= w.sum()
+    idx = draw_ancestors(w, scheme, rng_key[u], rng_ctr, u)
+    x[u] = x[u][idx]
+    y[u] = y[u][idx]
+    heading[u] = heading[u][idx]
+    bias[u] = bias[u][idx]
+    scale[u] = scale[u][idx]
+    walk[u] = walk[u][idx]
+    map_mu[u] = map_mu[u][idx]
+    map_cov[u] = map_cov[u][idx]
+    map_type[u] = map_type[u][idx]
+    map_count[u] = map_count[u][idx]
+    map_known[u] = map_known[u][idx]
+    map_crowd_id[u] = map_crowd_id[u][idx]
+    map_n[u] = map_n[u][idx]
+    key = rng_key[u]
+    for m in range(n_particles):
+        logw[u, m] = -math.log(n_particles)
+        if roughening_bias > 0.0 or roughening_scale > 0.0:
+            bias[u, m] += roughening_bias * normal(key, rng_ctr, u)
+            scale[u, m] = max(0.2, scale[u, m] + roughening_scale * normal(key, rng_ctr, u))
+    n_resamples[u] += 1
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def resample_users(
     users: np.ndarray,
@@ -105,31 +158,9 @@ def resample_users(
     roughening_scale: float,
 ) -> None:
     """Resample every listed user whose ESS < threshold * M (threshold 1.0: always, as Algorithm 2 does)."""
-    n_particles = logw.shape[1]
     for i in prange(users.shape[0]):
-        u = users[i]
-        if threshold < 1.0 and effective_sample_size(logw, u) >= threshold * n_particles:
-            continue
-        w = np.exp(logw[u])
-        w /= w.sum()
-        idx = draw_ancestors(w, scheme, rng_key[u], rng_ctr, u)
-        x[u] = x[u][idx]
-        y[u] = y[u][idx]
-        heading[u] = heading[u][idx]
-        bias[u] = bias[u][idx]
-        scale[u] = scale[u][idx]
-        walk[u] = walk[u][idx]
-        map_mu[u] = map_mu[u][idx]
-        map_cov[u] = map_cov[u][idx]
-        map_type[u] = map_type[u][idx]
-        map_count[u] = map_count[u][idx]
-        map_known[u] = map_known[u][idx]
-        map_crowd_id[u] = map_crowd_id[u][idx]
-        map_n[u] = map_n[u][idx]
-        key = rng_key[u]
-        for m in range(n_particles):
-            logw[u, m] = -math.log(n_particles)
-            if roughening_bias > 0.0 or roughening_scale > 0.0:
-                bias[u, m] += roughening_bias * normal(key, rng_ctr, u)
-                scale[u, m] = max(0.2, scale[u, m] + roughening_scale * normal(key, rng_ctr, u))
-        n_resamples[u] += 1
+        _resample_user(
+            users[i], threshold, scheme, logw, x, y, heading, bias, scale, walk, map_mu, map_cov, map_type,
+            map_count, map_known, map_crowd_id, map_n, rng_key, rng_ctr, n_resamples, roughening_bias,
+            roughening_scale,
+        )  # fmt: skip
