@@ -15,6 +15,8 @@ from slam_core.simulate import Scenario
 
 TESTBED = Path(__file__).resolve().parents[3] / "shared" / "scenarios" / "paper-testbed.json"
 SEEDS = (0, 1, 2)
+# Seven full testbed runs (~1 min on an idle 2-core machine; several under load or with a cold numba cache).
+pytestmark = pytest.mark.timeout(1200)
 
 
 @pytest.fixture(scope="module")
