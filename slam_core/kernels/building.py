@@ -14,7 +14,7 @@ from numba import njit, prange
 
 from slam_core.kernels.linalg2 import gauss_logpdf2, sample2
 from slam_core.kernels.rng import normal
-from slam_core.kernels.weights import normalise_log_weights
+from slam_core.kernels.weights import finish_observation
 
 CTRL_FLOOR_M2 = 1e-4
 NEW_ANCHOR = -1
@@ -179,13 +179,7 @@ def _update_user(
                 map_cov[u, m, best, 2] = n_yy
             map_count[u, m, best] += 1
         logw[u, m] += best_log  # Eq. 17: w_t = w_{t-1} p_n_hat
-    if not normalise_log_weights(logw, u):
-        degenerate[u] += 1
-        for m in range(n_particles):
-            logw[u, m] = -math.log(n_particles)
-    ctrl_cov[u, 0] = 0.0
-    ctrl_cov[u, 1] = 0.0
-    ctrl_cov[u, 2] = 0.0
+    finish_observation(logw, ctrl_cov, degenerate, u)
 
 
 @njit(cache=True, nogil=True, parallel=True)

@@ -10,7 +10,7 @@ from numba import njit, prange
 
 from slam_core.kernels.linalg2 import sample2
 from slam_core.kernels.rng import normal
-from slam_core.kernels.weights import normalise_log_weights
+from slam_core.kernels.weights import finish_observation
 
 CTRL_FLOOR_M2 = 1e-4
 
@@ -148,10 +148,4 @@ def human_anchor_update(
             n1 = normal(key, rng_ctr, u)
             n2 = normal(key, rng_ctr, u)
             x[u, m], y[u, m] = sample2(mx, my, c_xx, c_xy, c_yy, n1, n2)  # Eq. 14
-        if not normalise_log_weights(logw, u):
-            degenerate[u] += 1
-            for m in range(n_particles):
-                logw[u, m] = -math.log(n_particles)
-        ctrl_cov[u, 0] = 0.0
-        ctrl_cov[u, 1] = 0.0
-        ctrl_cov[u, 2] = 0.0
+        finish_observation(logw, ctrl_cov, degenerate, u)

@@ -29,6 +29,21 @@ def normalise_log_weights(logw: np.ndarray, u: int) -> bool:
 
 
 @njit(cache=True, nogil=True)
+def finish_observation(logw: np.ndarray, ctrl_cov: np.ndarray, degenerate: np.ndarray, u: int) -> None:
+    """End of an observation update of user ``u``: normalise its weights, or, when every weight vanished,
+    restart them uniform and count it in ``degenerate`` (explicit recovery, never silent); the control
+    covariance since the last correction (P_t) starts again from zero."""
+    if not normalise_log_weights(logw, u):
+        degenerate[u] += 1
+        n_particles = logw.shape[1]
+        for m in range(n_particles):
+            logw[u, m] = -math.log(n_particles)
+    ctrl_cov[u, 0] = 0.0
+    ctrl_cov[u, 1] = 0.0
+    ctrl_cov[u, 2] = 0.0
+
+
+@njit(cache=True, nogil=True)
 def effective_sample_size(logw: np.ndarray, u: int) -> float:
     """1 / sum(w^2) of the normalised row."""
     s = 0.0
