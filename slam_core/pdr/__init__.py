@@ -1,0 +1,1 @@
+"""Pedestrian dead reckoning front-end: orientation, steps, step length and heading (pure numerics)."""
