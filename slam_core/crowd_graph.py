@@ -13,6 +13,7 @@ from the Gauss-Newton information) replaces the sequential fusion as the shared 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -38,12 +39,23 @@ class GraphParams:
     loss_scale: float = 2.0
 
 
+@dataclass(frozen=True)
+class GraphProblem:
+    anchors: list[int]
+    users: list[int]
+    residuals: Callable[[np.ndarray], np.ndarray]
+    jacobian: Callable[[np.ndarray], np.ndarray]
+    x0: np.ndarray
+
+
 class CrowdGraph:
     def __init__(self, params: GraphParams | None = None) -> None:
         self.params = params or GraphParams()
         self._users: dict[int, _UserTrack] = {}
         self._known: dict[int, np.ndarray] = {}
-        self._x0: dict[str, float] = {}
+        # the last solution's heading bias and step scale per user: warm starts of the next solve
+        self._bias: dict[int, float] = {}
+        self._scale: dict[int, float] = {}
 
     def set_known(self, anchor: int, position: np.ndarray) -> None:
         self._known[anchor] = np.asarray(position, dtype=float).copy()
@@ -59,11 +71,40 @@ class CrowdGraph:
 
     def solve(self, initial: dict[int, np.ndarray]) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray]]:
         """Anchor means and 2x2 covariances for every unknown anchor seen; ``initial`` seeds the means."""
+        problem = self.problem(initial)
+        if problem is None:
+            return {}, {}
+        result = least_squares(
+            problem.residuals,
+            problem.x0,
+            jac=problem.jacobian,
+            loss="soft_l1",
+            f_scale=self.params.loss_scale,
+            x_scale="jac",
+            max_nfev=100,
+        )
+        x = result.x
+        n_a, n_u = len(problem.anchors), len(problem.users)
+        for k, u in enumerate(problem.users):
+            self._bias[u] = float(x[2 * n_a + k])
+            self._scale[u] = float(x[2 * n_a + n_u + k])
+        jac = problem.jacobian(x)
+        cov = np.linalg.inv(jac.T @ jac + 1e-9 * np.eye(x.size))
+        means, covs = {}, {}
+        for j, a in enumerate(problem.anchors):
+            means[a] = x[2 * j : 2 * j + 2].copy()
+            block = cov[2 * j : 2 * j + 2, 2 * j : 2 * j + 2]
+            covs[a] = 0.5 * (block + block.T) + 1e-4 * np.eye(2)
+        return means, covs
+
+    def problem(self, initial: dict[int, np.ndarray]) -> GraphProblem | None:
+        """The weighted residuals, their analytic Jacobian and the starting point over the variables
+        (unknown anchors' x, y; each user's bias; each user's scale), or None when nothing is to solve."""
         p = self.params
         anchors = sorted({a for t in self._users.values() for a in t.anchor if a not in self._known})
         users = [u for u, t in self._users.items() if t.anchor]
         if not anchors or not users:
-            return {}, {}
+            return None
         a_index = {a: i for i, a in enumerate(anchors)}
         n_a, n_u = len(anchors), len(users)
         # one row per detection: this anchor, the previous anchor (or the start fix), the displacement
@@ -103,8 +144,8 @@ class CrowdGraph:
         x0 = np.concatenate(
             [
                 np.concatenate([initial.get(a, np.zeros(2)) for a in anchors]),
-                np.array([self._x0.get(f"b{u}", 0.0) for u in users]),
-                np.array([self._x0.get(f"s{u}", 1.0) for u in users]),
+                np.array([self._bias.get(u, 0.0) for u in users]),
+                np.array([self._scale.get(u, 1.0) for u in users]),
             ]
         )
 
@@ -147,19 +188,4 @@ class CrowdGraph:
             jac[2 * n_rows + n_u + np.arange(n_u), 2 * n_a + n_u + np.arange(n_u)] = 1.0 / p.scale_sigma
             return jac
 
-        self.last_problem = (residuals, jacobian, x0)  # kept for the Jacobian test and diagnostics
-        result = least_squares(
-            residuals, x0, jac=jacobian, loss="soft_l1", f_scale=p.loss_scale, x_scale="jac", max_nfev=100
-        )
-        x = result.x
-        for k, u in enumerate(users):
-            self._x0[f"b{u}"] = float(x[2 * n_a + k])
-            self._x0[f"s{u}"] = float(x[2 * n_a + n_u + k])
-        jac = jacobian(x)
-        cov = np.linalg.inv(jac.T @ jac + 1e-9 * np.eye(n_var))
-        means, covs = {}, {}
-        for a, j in a_index.items():
-            means[a] = x[2 * j : 2 * j + 2].copy()
-            block = cov[2 * j : 2 * j + 2, 2 * j : 2 * j + 2]
-            covs[a] = 0.5 * (block + block.T) + 1e-4 * np.eye(2)
-        return means, covs
+        return GraphProblem(anchors, users, residuals, jacobian, x0)

@@ -81,6 +81,8 @@ class DynamicSlam:
         """Admit a user at a start fix; returns its slot. ``heading`` is used by the paper motion model."""
         if not all(np.isfinite([x, y, heading, position_sigma])) or position_sigma < 0:
             raise ValueError("start fix must be finite with a non-negative sigma")
+        if crowd_map is not None:
+            self._check_crowd_map(crowd_map)
         slot, grow_to = self._slots.allocate()
         if grow_to is not None:
             self.state = self.state.grown(grow_to)
@@ -114,26 +116,14 @@ class DynamicSlam:
         s.n_resamples[slot] = 0
         s.n_map_overflow[slot] = 0
         s.n_degenerate[slot] = 0
-        if crowd_map is not None and crowd_map.mean.shape[0]:
-            self._seed_map(slot, crowd_map)
         s.active[slot] = True
+        if crowd_map is not None:
+            self.merge_crowd_map(np.array([slot]), crowd_map)  # seeding is a merge into an empty map
         return slot
 
-    def _seed_map(self, slot: int, crowd: CrowdMap) -> None:
-        s = self.state
-        n = min(crowd.mean.shape[0], s.map_capacity)
-        if np.any((crowd.type[:n] < 0) | (crowd.type[:n] >= self._n_types)):
+    def _check_crowd_map(self, crowd: CrowdMap) -> None:
+        if np.any((crowd.type < 0) | (crowd.type >= self._n_types)):
             raise ValueError(f"crowd map anchor types must be in [0, {self._n_types})")
-        known_var = self.params.anchors.known_sigma_m**2
-        cov = crowd.cov[:n].copy()
-        cov[crowd.known[:n]] = (known_var, 0.0, known_var)
-        s.map_mu[slot, :, :n] = crowd.mean[:n]
-        s.map_cov[slot, :, :n] = cov
-        s.map_type[slot, :, :n] = crowd.type[:n]
-        s.map_count[slot, :, :n] = 0
-        s.map_known[slot, :, :n] = crowd.known[:n]
-        s.map_crowd_id[slot, :, :n] = crowd.crowd_id[:n]
-        s.map_n[slot] = n
 
     def remove_user(self, slot: int) -> None:
         self._check_users(np.array([slot]))
@@ -249,6 +239,7 @@ class DynamicSlam:
         can recognise anchors that others learned after it started. Its own copies are left as they are."""
         users = np.ascontiguousarray(users, dtype=np.int64)
         self._check_users(users)
+        self._check_crowd_map(crowd)
         if crowd.mean.shape[0] == 0 or users.size == 0:
             return
         s = self.state

@@ -92,14 +92,6 @@ class FilterState:
             getattr(bigger, f.name)[:n] = getattr(self, f.name)
         return bigger
 
-    def copy_slots(self, slots: np.ndarray) -> dict[str, np.ndarray]:
-        """Every array's rows for ``slots`` (copies), e.g. to restore them if an update fails."""
-        return {f.name: getattr(self, f.name)[slots].copy() for f in fields(self)}
-
-    def restore_slots(self, slots: np.ndarray, saved: dict[str, np.ndarray]) -> None:
-        for name, rows in saved.items():
-            getattr(self, name)[slots] = rows
-
 
 def user_key(seed: int, user_number: int) -> np.uint64:
     """The RNG key of a user: a hash of the filter's seed and the user's admission number."""

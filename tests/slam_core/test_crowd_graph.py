@@ -40,8 +40,9 @@ def _synthetic(
 
 def test_analytic_jacobian_matches_a_numerical_one() -> None:
     graph, _, _ = _synthetic(np.random.default_rng(0), noise=0.3)
-    graph.solve({})
-    residuals, jacobian, x0 = graph.last_problem
+    problem = graph.problem({})
+    assert problem is not None
+    residuals, jacobian, x0 = problem.residuals, problem.jacobian, problem.x0
     x = x0 + np.random.default_rng(1).normal(0, 0.1, x0.size)
     numeric = np.array(
         [approx_fprime(x, lambda v, i=i: residuals(v)[i], 1e-7) for i in range(residuals(x).size)]
@@ -80,3 +81,4 @@ def test_nothing_to_solve_without_detections() -> None:
     graph = CrowdGraph()
     graph.add_user(0, np.zeros(2))
     assert graph.solve({}) == ({}, {})
+    assert graph.problem({}) is None
