@@ -7,6 +7,7 @@ from typing import Any
 from pydantic import BaseModel, TypeAdapter
 
 from schemas.anchors import ANCHOR_EXAMPLE, AnchorMergeIn, BuildingAnchor, KnownAnchorIn
+from schemas.api import BatchReceipt, KeyCreated, KeyCreateIn
 from schemas.buildings import BUILDING_EXAMPLE, Building
 from schemas.errors import PROBLEM_EXAMPLE, Problem
 from schemas.estimates import ESTIMATE_EXAMPLE, EncounterEvent, Estimate
@@ -23,6 +24,9 @@ PUBLIC_MODELS: dict[str, type[BaseModel] | TypeAdapter[Any]] = {
     "Building": Building,
     "LiveMessage": LIVE_MESSAGE_ADAPTER,
     "Problem": Problem,
+    "BatchReceipt": BatchReceipt,
+    "KeyCreateIn": KeyCreateIn,
+    "KeyCreated": KeyCreated,
 }
 
 EXAMPLES: dict[str, dict[str, Any]] = {

@@ -14,11 +14,13 @@ from typing import Annotated, Any, Literal, Self
 
 from pydantic import Field, model_validator
 
+from schemas.anchors import AnchorType
 from schemas.common import (
     MAX_TIME_MS,
     MIN_TIME_MS,
     Identifier,
     IncreasingTimes,
+    Position,
     RssiDbm,
     TimeMs,
     TxPowerDbm,
@@ -231,7 +233,34 @@ class AnchorReading(WireModel):
     anchor_id: Identifier
 
 
-Landmark = Annotated[GpsFix | TagReading | AnchorReading, Field(discriminator="kind")]
+class PositionFix(WireModel):
+    """A position in the building's local frame known from outside the filter: an entrance kiosk, an
+    operator's app, a surveyor click. A user's first fix (or tag with a position, or known-anchor reading)
+    starts its tracking; later fixes re-centre it."""
+
+    kind: Literal["fix"] = "fix"
+    t_ms: TimeMs
+    position: Position
+    sigma_m: float = Field(default=0.5, gt=0.0, le=100.0, description="Per-axis standard deviation (m).")
+    azimuth_rad: float | None = Field(
+        default=None,
+        ge=-7.0,
+        le=7.0,
+        description="Direction the user faces, clockwise from north; needed when steps carry only turns.",
+    )
+    floor: int = Field(default=0, ge=-20, le=200)
+
+
+Landmark = Annotated[GpsFix | TagReading | AnchorReading | PositionFix, Field(discriminator="kind")]
+
+
+class AnchorDetection(WireModel):
+    """A building anchor detected on the phone (an SDK with its own detectors), typed as DynamicSLAM's
+    building anchors are; the server associates it with the crowd map. Phones that send raw sensors instead
+    leave this empty and the server's detectors do the work."""
+
+    t_ms: TimeMs
+    type: AnchorType
 
 
 class LteMeasurement(WireModel):
@@ -329,6 +358,7 @@ class SensorBatch(WireModel):
     wifi_scans: list[WifiScan] = Field(default_factory=list, max_length=MAX_WIFI_SCANS)
     bluetooth: list[BluetoothSighting] = Field(default_factory=list, max_length=MAX_BLUETOOTH_SIGHTINGS)
     landmarks: list[Landmark] = Field(default_factory=list, max_length=MAX_LANDMARKS)
+    anchor_detections: list[AnchorDetection] = Field(default_factory=list, max_length=MAX_LANDMARKS)
     lte: list[LteMeasurement] = Field(default_factory=list, max_length=MAX_LTE_MEASUREMENTS)
 
     @property
@@ -348,13 +378,20 @@ class SensorBatch(WireModel):
         ):
             if stream is not None and stream.t_ms:
                 times += (stream.t_ms[0], stream.t_ms[-1])
-        for items in (self.steps, self.wifi_scans, self.bluetooth, self.landmarks, self.lte):
+        for items in (
+            self.steps,
+            self.wifi_scans,
+            self.bluetooth,
+            self.landmarks,
+            self.anchor_detections,
+            self.lte,
+        ):
             times += [item.t_ms for item in items]
         return (min(times), max(times)) if times else None
 
     @model_validator(mode="after")
     def _consistent(self) -> Self:
-        for name in ("steps", "wifi_scans"):
+        for name in ("steps", "wifi_scans", "anchor_detections"):
             items = getattr(self, name)
             for i in range(1, len(items)):
                 if items[i].t_ms <= items[i - 1].t_ms:
@@ -371,6 +408,7 @@ __all__ = [
     "MAX_BATCH_BYTES",
     "MAX_TIME_MS",
     "MIN_TIME_MS",
+    "AnchorDetection",
     "AnchorReading",
     "BeaconSighting",
     "BluetoothSighting",
@@ -378,6 +416,7 @@ __all__ = [
     "Landmark",
     "LteMeasurement",
     "PeerSighting",
+    "PositionFix",
     "RotationVectorStream",
     "ScalarStream",
     "SensorBatch",

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from functools import lru_cache
 from pathlib import Path
+from typing import Literal
 
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -24,6 +25,14 @@ class Settings(BaseSettings):
     )
     max_batch_bytes: int = Field(default=MAX_BATCH_BYTES, gt=0)
     seed: int = Field(default=0, description="Root seed of every filter's random stream.")
+    encounter_calibration: Path | None = Field(
+        default=None,
+        description="JSON of the encounter range models (crowdslam calibrate). Default: the bundled fit from "
+        "the simulated paper testbed; calibrate real buildings.",
+    )
+    mode: Literal["dynamicslam", "semanticslam"] = Field(
+        default="dynamicslam", description="semanticslam turns human anchors (encounters) off."
+    )
 
     @property
     def resolved_database_url(self) -> str:

@@ -63,6 +63,21 @@ class CrowdGraph:
     def add_user(self, user: int, start: np.ndarray) -> None:
         self._users[user] = _UserTrack(np.asarray(start, dtype=float).copy())
 
+    def relabel(self, old: int, new: int) -> None:
+        """Detections of anchor ``old`` now refer to ``new`` (two crowd anchors merged)."""
+        for track in self._users.values():
+            track.anchor = [new if a == old else a for a in track.anchor]
+
+    def forget_user(self, user: int) -> None:
+        """Drop a user's track (bounded memory on a long-running server); anchors keep their estimates."""
+        self._users.pop(user, None)
+        self._bias.pop(user, None)
+        self._scale.pop(user, None)
+
+    @property
+    def n_users(self) -> int:
+        return len(self._users)
+
     def add_detection(self, user: int, anchor: int, displacement: np.ndarray, walked_m: float) -> None:
         track = self._users[user]
         track.anchor.append(int(anchor))

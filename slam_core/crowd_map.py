@@ -30,6 +30,7 @@ class _CrowdAnchor:
     contributions: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     observations: int = 0
     last_seen: float = -math.inf
+    removed: bool = False
 
 
 class CrowdMapBuilder:
@@ -49,6 +50,7 @@ class CrowdMapBuilder:
         self._anchors: list[_CrowdAnchor] = []
 
     def __len__(self) -> int:
+        """Anchors ever created (removed ones keep their index so ids stay stable)."""
         return len(self._anchors)
 
     def add_known(self, mean: np.ndarray, anchor_type: int) -> int:
@@ -56,6 +58,60 @@ class CrowdMapBuilder:
             _CrowdAnchor(np.asarray(mean, float).copy(), np.eye(2) * 1e-4, int(anchor_type), True)
         )
         return len(self._anchors) - 1
+
+    def restore(
+        self, mean: np.ndarray, cov: np.ndarray, anchor_type: int, known: bool, observations: int, t: float
+    ) -> int:
+        """Re-create a stored anchor (after a restart): its estimate stands until new detections arrive."""
+        mean = np.asarray(mean, dtype=float)
+        cov = np.asarray(cov, dtype=float)
+        if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(cov))) or np.linalg.det(cov) <= 0:
+            raise ValueError("a stored anchor needs a finite mean and a positive definite covariance")
+        anchor = _CrowdAnchor(mean.copy(), np.eye(2) * 1e-4 if known else cov.copy(), int(anchor_type), known)
+        anchor.observations = int(observations)
+        anchor.last_seen = t
+        self._anchors.append(anchor)
+        return len(self._anchors) - 1
+
+    def pin(self, index: int, mean: np.ndarray, anchor_type: int) -> None:
+        """An operator fixes an anchor's exact position (it becomes known and never moves again)."""
+        anchor = self._live(index)
+        anchor.mean = np.asarray(mean, dtype=float).copy()
+        anchor.cov = np.eye(2) * 1e-4
+        anchor.type = int(anchor_type)
+        anchor.known = True
+        anchor.contributions.clear()
+
+    def remove(self, index: int) -> None:
+        """Drop an anchor from association and from snapshots; its index is never reused."""
+        self._live(index).removed = True
+
+    def merge(self, keep: int, drop: int) -> None:
+        """The crowd learned one anchor twice: ``drop``'s contributions join ``keep``, ``drop`` goes."""
+        if keep == drop:
+            raise ValueError("cannot merge an anchor into itself")
+        target, source = self._live(keep), self._live(drop)
+        target.observations += source.observations
+        target.last_seen = max(target.last_seen, source.last_seen)
+        if not target.known:
+            for user, contribution in source.contributions.items():
+                target.contributions.setdefault(user, contribution)
+            if self._fuse and target.contributions:
+                self._refuse(target)
+        source.removed = True
+
+    def is_live(self, index: int) -> bool:
+        return 0 <= index < len(self._anchors) and not self._anchors[index].removed
+
+    def _live(self, index: int) -> _CrowdAnchor:
+        if not self.is_live(index):
+            raise KeyError(f"no anchor {index} in the crowd map")
+        return self._anchors[index]
+
+    def anchor(self, index: int) -> tuple[np.ndarray, np.ndarray, int, bool, int, float]:
+        """(mean, 2x2 cov, type, known, observations, last seen) of a live anchor."""
+        a = self._live(index)
+        return a.mean.copy(), a.cov.copy(), a.type, a.known, a.observations, a.last_seen
 
     def contribute(self, user: int, mean: np.ndarray, cov: np.ndarray, detected_type: int, t: float) -> int:
         """Fuse one detection; returns the crowd anchor's index."""
@@ -65,6 +121,8 @@ class CrowdMapBuilder:
             raise ValueError("contribution must be finite")
         best, best_score = -1, math.inf
         for k, anchor in enumerate(self._anchors):
+            if anchor.removed:
+                continue
             type_p = self._posterior[anchor.type, detected_type]
             if type_p < self._min_type:
                 continue
@@ -89,13 +147,15 @@ class CrowdMapBuilder:
 
     def set_estimate(self, index: int, mean: np.ndarray, cov: np.ndarray) -> None:
         anchor = self._anchors[index]
+        if anchor.removed:
+            return
         if anchor.known:
             raise ValueError(f"anchor {index} is operator-known; its position does not change")
         anchor.mean = np.asarray(mean, dtype=float).copy()
         anchor.cov = np.asarray(cov, dtype=float).copy()
 
     def means(self) -> dict[int, np.ndarray]:
-        return {k: a.mean.copy() for k, a in enumerate(self._anchors)}
+        return {k: a.mean.copy() for k, a in enumerate(self._anchors) if not a.removed}
 
     @staticmethod
     def _refuse(anchor: _CrowdAnchor) -> None:
@@ -110,15 +170,16 @@ class CrowdMapBuilder:
         anchor.mean = anchor.cov @ vec
 
     def snapshot(self) -> CrowdMap:
-        n = len(self._anchors)
-        if n == 0:
+        live = [k for k, a in enumerate(self._anchors) if not a.removed]
+        if not live:
             return CrowdMap.empty()
+        anchors = [self._anchors[k] for k in live]
         return CrowdMap(
-            mean=np.array([a.mean for a in self._anchors]),
-            cov=np.array([[a.cov[0, 0], a.cov[0, 1], a.cov[1, 1]] for a in self._anchors]),
-            type=np.array([a.type for a in self._anchors], dtype=np.int64),
-            known=np.array([a.known for a in self._anchors], dtype=bool),
-            crowd_id=np.arange(n, dtype=np.int64),
+            mean=np.array([a.mean for a in anchors]),
+            cov=np.array([[a.cov[0, 0], a.cov[0, 1], a.cov[1, 1]] for a in anchors]),
+            type=np.array([a.type for a in anchors], dtype=np.int64),
+            known=np.array([a.known for a in anchors], dtype=bool),
+            crowd_id=np.array(live, dtype=np.int64),
         )
 
     def observation_counts(self) -> np.ndarray:

@@ -11,8 +11,11 @@ Each model's fit also gives R, the variance of the distance it reports (the resi
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
+from functools import cached_property
+from typing import Any
 
 import numpy as np
 
@@ -126,16 +129,21 @@ class RangeModel:
         values: np.ndarray = np.polynomial.polynomial.polyval(x, self.coefficients)
         return values
 
-    def range_and_variance(self, feature: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    @cached_property
+    def _inverse_table(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(feature, distance) of the monotone envelope, ready for interpolation, and |slope| on the grid."""
         grid = np.geomspace(self.min_distance, self.max_distance, 400)
         f = self.feature_at(grid)
         # monotone envelope: Sim grows with distance, RSS falls with it
         increasing = self.kind == "wifi-log"
         mono = np.maximum.accumulate(f) if increasing else np.minimum.accumulate(f)
         xs, ds = (mono, grid) if increasing else (mono[::-1], grid[::-1])
+        return xs, ds, grid, np.abs(np.gradient(mono, grid))
+
+    def range_and_variance(self, feature: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        xs, ds, grid, slope = self._inverse_table
         feature = np.asarray(feature, dtype=float)
         d = np.interp(feature, xs, ds)
-        slope = np.abs(np.gradient(mono, grid))
         s = np.maximum(np.interp(d, grid, slope), self.sigma / self.max_distance)
         variance = np.minimum((self.sigma / s) ** 2, self.max_distance**2)
         if self.bin_mse:
@@ -144,6 +152,42 @@ class RangeModel:
             )
             variance = np.maximum(variance, np.asarray(self.bin_mse)[k])
         return d, np.maximum(variance, 0.25)
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """The fitted range models of a building's radio environment (the paper's Figures 2-3)."""
+
+    wifi: RangeModel
+    bluetooth: RangeModel
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"wifi": asdict(self.wifi), "bluetooth": asdict(self.bluetooth)}
+
+    @classmethod
+    def from_dict(cls, raw: dict[str, Any]) -> Calibration:
+        """Inverse of ``to_dict``; a missing or malformed model raises ValueError naming it."""
+        models = []
+        for name, kind in (("wifi", "wifi-log"), ("bluetooth", "bt-quadratic")):
+            try:
+                entry = dict(raw[name])
+                model = RangeModel(
+                    kind=str(entry["kind"]),
+                    coefficients=tuple(float(c) for c in entry["coefficients"]),
+                    sigma=float(entry["sigma"]),
+                    min_distance=float(entry.get("min_distance", 0.5)),
+                    max_distance=float(entry.get("max_distance", 60.0)),
+                    bin_edges=tuple(float(e) for e in entry.get("bin_edges", ())),
+                    bin_mse=tuple(float(e) for e in entry.get("bin_mse", ())),
+                )
+            except (KeyError, TypeError, ValueError) as exc:
+                raise ValueError(f"calibration: the {name} model is missing or malformed ({exc})") from None
+            if model.kind != kind or len(model.bin_edges) != len(model.bin_mse) or model.sigma <= 0:
+                raise ValueError(f"calibration: the {name} model must be a valid {kind} range model")
+            if not all(math.isfinite(c) for c in (*model.coefficients, *model.bin_mse, *model.bin_edges)):
+                raise ValueError(f"calibration: the {name} model has non-finite numbers")
+            models.append(model)
+        return cls(models[0], models[1])
 
 
 def fit_range_model(feature: np.ndarray, distance: np.ndarray, kind: str) -> RangeModel:

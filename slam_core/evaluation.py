@@ -17,7 +17,7 @@ from slam_core.crowd_graph import CrowdGraph, GraphParams
 from slam_core.crowd_map import CrowdMapBuilder
 from slam_core.encounters import (
     BluetoothParams,
-    RangeModel,
+    Calibration,
     WifiEq3Params,
     fit_range_model,
     wifi_eq3_similarity,
@@ -115,12 +115,6 @@ def _candidates(rows: list[tuple[float, int, int, float, float]]) -> Candidates:
     order = np.argsort(arr[:, 0], kind="stable")
     arr = arr[order]
     return Candidates(arr[:, 0], arr[:, 1].astype(np.int64), arr[:, 2].astype(np.int64), arr[:, 3], arr[:, 4])
-
-
-@dataclass(frozen=True)
-class Calibration:
-    wifi: RangeModel
-    bluetooth: RangeModel
 
 
 def calibrate(scenario: Scenario, seed: int) -> Calibration:

@@ -204,6 +204,49 @@ class DynamicSlam:
             self.tag_crowd_ids(users, used_slot, crowd_ids)
         self._resample(users)
 
+    def observe_position(self, users: np.ndarray, xy: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+        """A position fix per user (a tag with an encoded position, a known-anchor reading, a kiosk): each
+        particle is weighted by N(fix; particle, sigma^2 I), then the user is resampled. Beyond the paper,
+        which has no absolute fixes after the start. A fix outside the cloud (no particle within 3 sigma of
+        the combined spread) means the cloud is lost: its particles are shifted onto the fix, keeping their
+        spread, bias, scale and maps, and the returned flag says so (the caller counts it).
+        Returns (n,) bool: re-centred."""
+        users = np.ascontiguousarray(users, dtype=np.int64)
+        xy = np.ascontiguousarray(xy, dtype=np.float64).reshape(-1, 2)
+        sigma = np.ascontiguousarray(sigma, dtype=np.float64)
+        self._check_users(users)
+        if xy.shape != (users.size, 2) or sigma.shape != users.shape:
+            raise ValueError("one fix (x, y) and one sigma per user")
+        if not (np.all(np.isfinite(xy)) and np.all(np.isfinite(sigma))) or np.any(sigma <= 0):
+            raise ValueError("fixes must be finite with sigma > 0")
+        s = self.state
+        recentred = np.zeros(users.size, dtype=bool)
+        for i, u in enumerate(users):
+            d2 = (s.x[u] - xy[i, 0]) ** 2 + (s.y[u] - xy[i, 1]) ** 2
+            var = sigma[i] ** 2
+            if np.min(d2) > (self.params.human.gate_sigma**2) * var + 1e-12 and not self._within_cloud(
+                u, xy[i]
+            ):
+                w = np.exp(s.logw[u] - np.max(s.logw[u]))
+                w /= w.sum()
+                s.x[u] += xy[i, 0] - float(w @ s.x[u])
+                s.y[u] += xy[i, 1] - float(w @ s.y[u])
+                recentred[i] = True
+                continue
+            logw = s.logw[u] - 0.5 * d2 / var
+            logw -= np.logaddexp.reduce(logw)
+            s.logw[u] = logw
+            s.ctrl_cov[u] = 0.0
+        self._resample(users[~recentred])
+        return recentred
+
+    def _within_cloud(self, u: int, fix: np.ndarray) -> bool:
+        """The fix lies within 3 sigma of the cloud's own spread (then weighting, not shifting, is right)."""
+        row = self.summaries(np.array([u]))[0]
+        cov = np.array([[row[2], row[3]], [row[3], row[4]]]) + 1e-6 * np.eye(2)
+        d = fix - row[0:2]
+        return float(d @ np.linalg.solve(cov, d)) <= self.params.human.gate_sigma**2
+
     def tag_crowd_ids(self, users: np.ndarray, used_slot: np.ndarray, crowd_ids: np.ndarray) -> None:
         """Link the anchors just used or created to the shared map's anchors (where not linked yet)."""
         s = self.state

@@ -101,6 +101,22 @@ def _default_confusion() -> np.ndarray:
     )
 
 
+def extended_confusion(n_types: int, other_correct: float = 0.9) -> np.ndarray:
+    """p(detected | true) over ``n_types`` types: the testbed's matrix for its five types, and for each
+    further type (escalator, beacon, WiFi, organic and tag signatures from the front-end) ``other_correct``
+    on the diagonal with the rest spread evenly over the other types. The paper gives no confusion for
+    these; 0.9 is about its testbed's diagonal."""
+    base = _default_confusion()
+    if n_types < base.shape[0]:
+        raise ValueError(f"need at least the {base.shape[0]} testbed types")
+    out = np.zeros((n_types, n_types))
+    out[: base.shape[0], : base.shape[0]] = base
+    for f in range(base.shape[0], n_types):
+        out[f, :] = (1.0 - other_correct) / (n_types - 1)
+        out[f, f] = other_correct
+    return out
+
+
 @dataclass(frozen=True)
 class BuildingAnchorParams:
     """Building anchors: data association (Eq. 15-16), Map_Update (Algorithm 3), weights (Eq. 17)."""

@@ -15,6 +15,10 @@ from collections.abc import Sequence
 COMMANDS: dict[str, tuple[str, str]] = {
     "schema": ("server.cli.schema_cmd", "write the JSON Schema of every public model, or print an example"),
     "migrate": ("server.cli.migrate_cmd", "upgrade the database (SQLite by default) to the latest schema"),
+    "keys": ("server.cli.keys_cmd", "mint API keys (the first operator key comes from here)"),
+    "serve": ("server.cli.serve_cmd", "run the HTTP and WebSocket server"),
+    "simulate": ("server.cli.simulate_cmd", "drive a simulated crowd of phones against a running server"),
+    "demo": ("server.cli.demo_cmd", "the server on SQLite with a simulated crowd posting over HTTP"),
     "evaluate": (
         "server.cli.evaluate_cmd",
         "run the simulated testbed (or a sweep) and write metrics as JSON",

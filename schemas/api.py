@@ -1,0 +1,61 @@
+"""Request and response bodies of the REST API that are not sensor data, estimates or anchors."""
+
+from __future__ import annotations
+
+from enum import StrEnum
+from typing import Literal, Self
+
+from pydantic import Field, model_validator
+
+from schemas.common import Identifier, WireModel
+from schemas.estimates import EncounterEvent, Estimate
+
+
+class KeyScope(StrEnum):
+    OPERATOR = "operator"
+    DEVICE = "device"
+    DASHBOARD = "dashboard"
+
+
+class KeyCreateIn(WireModel):
+    """An operator mints a key for its building: a device key posts as one device, a dashboard key reads."""
+
+    scope: KeyScope
+    device_id: Identifier | None = None
+
+    @model_validator(mode="after")
+    def _device(self) -> Self:
+        if (self.scope == KeyScope.DEVICE) != (self.device_id is not None):
+            raise ValueError("device_id is required for a device key and only allowed for one")
+        return self
+
+
+class KeyCreated(WireModel):
+    """The secret is shown once; the server keeps only its SHA-256."""
+
+    key: str
+    prefix: str
+    scope: KeyScope
+    building_id: Identifier | None = None
+    device_id: Identifier | None = None
+
+
+class BatchReceipt(WireModel):
+    """The answer to a posted batch. ``status``: applied; duplicate (this batch id was accepted before and
+    nothing changed); late (its ``seq`` is not after the last applied one: recorded, not applied, counted)."""
+
+    batch_id: Identifier
+    status: Literal["applied", "duplicate", "late"]
+    duplicate: bool
+    tracking: bool = Field(description="False until the user's first position fix starts its filter.")
+    estimate: Estimate | None = None
+    encounters: list[EncounterEvent] = Field(default_factory=list)
+    warnings: list[str] = Field(
+        default_factory=list, description="Parts of the batch that were skipped, and why."
+    )
+
+
+class Health(WireModel):
+    status: Literal["ok"] = "ok"
+    database: str
+    buildings_loaded: int

@@ -1,0 +1,112 @@
+"""Operators query and edit a building's anchor map; GeoJSON export of anchors and recent tracks."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Query, Response, status
+
+from schemas.anchors import AnchorMergeIn, BuildingAnchor, KnownAnchorIn
+from schemas.common import MAX_TIME_MS, MIN_TIME_MS, Identifier
+from server.deps import Caller, DbSession, State
+from server.errors import InvalidInputError, NotFoundError
+from server.ingestion import BuildingWorker
+from server.store import repositories as repo
+
+router = APIRouter(prefix="/v1/buildings/{building_id}", tags=["anchors"])
+
+
+async def _worker(state: State, building_id: str) -> BuildingWorker:
+    return await state.tracking.worker(building_id)
+
+
+@router.get("/anchors", response_model=list[BuildingAnchor])
+async def list_anchors(building_id: str, caller: Caller, state: State) -> list[BuildingAnchor]:
+    """The building's shared anchor map: learned by the crowd, or pinned by operators."""
+    caller.require_reader(building_id)
+    worker = await _worker(state, building_id)
+    return await worker.call(worker.session.anchors)
+
+
+@router.get("/anchors/{anchor_id}", response_model=BuildingAnchor)
+async def get_anchor(building_id: str, anchor_id: Identifier, caller: Caller, state: State) -> BuildingAnchor:
+    caller.require_reader(building_id)
+    worker = await _worker(state, building_id)
+    return await worker.call(lambda: worker.session.get_anchor(anchor_id))
+
+
+@router.put("/anchors/{anchor_id}", response_model=BuildingAnchor)
+async def put_known_anchor(
+    building_id: str, anchor_id: Identifier, body: KnownAnchorIn, caller: Caller, state: State
+) -> BuildingAnchor:
+    """Pin an anchor at an exact position (operator key): a new known anchor, or a learned one made exact."""
+    caller.require_operator(building_id)
+    worker = await _worker(state, building_id)
+    anchor, messages = await worker.call(lambda: worker.session.put_known_anchor(anchor_id, body))
+    worker.publish(messages)
+    return anchor
+
+
+@router.delete("/anchors/{anchor_id}", status_code=status.HTTP_204_NO_CONTENT, response_class=Response)
+async def delete_anchor(building_id: str, anchor_id: Identifier, caller: Caller, state: State) -> Response:
+    caller.require_operator(building_id)
+    worker = await _worker(state, building_id)
+    messages = await worker.call(lambda: worker.session.delete_anchor(anchor_id))
+    worker.publish(messages)
+    return Response(status_code=status.HTTP_204_NO_CONTENT)
+
+
+@router.post("/anchors/merge", response_model=BuildingAnchor)
+async def merge_anchors(
+    building_id: str, body: AnchorMergeIn, caller: Caller, state: State
+) -> BuildingAnchor:
+    """Merge anchors the crowd learned twice into the first one listed (operator key)."""
+    caller.require_operator(building_id)
+    worker = await _worker(state, building_id)
+    anchor, messages = await worker.call(lambda: worker.session.merge_anchors(list(body.anchor_ids)))
+    worker.publish(messages)
+    return anchor
+
+
+@router.get("/export.geojson")
+async def export_geojson(
+    building_id: str,
+    caller: Caller,
+    state: State,
+    session: DbSession,
+    since_ms: Annotated[int, Query(ge=MIN_TIME_MS, le=MAX_TIME_MS)] = MIN_TIME_MS,
+    limit: Annotated[int, Query(ge=1, le=100_000)] = 20_000,
+) -> dict[str, Any]:
+    """Anchors as points and recent tracks as lines, in WGS-84 (needs the building's geo-reference)."""
+    caller.require_reader(building_id)
+    worker = await _worker(state, building_id)
+    geo = worker.session.geo
+    if geo is None:
+        raise InvalidInputError(f"building {building_id!r} has no geo-reference; set one to export GeoJSON")
+    anchors = await worker.call(worker.session.anchors)
+    features: list[dict[str, Any]] = []
+    for a in anchors:
+        lat, lon = geo.to_wgs84(a.position.x_m, a.position.y_m)
+        features.append(
+            {
+                "type": "Feature",
+                "geometry": {"type": "Point", "coordinates": [lon, lat]},
+                "properties": {"kind": "anchor", **a.model_dump(mode="json", exclude={"position"})},
+            }
+        )
+    tracks: dict[str, list[list[float]]] = {}
+    for row in repo.recent_tracks(session, building_id, since_ms, limit):
+        lat, lon = geo.to_wgs84(row.x_m, row.y_m)
+        tracks.setdefault(row.user_id, []).append([lon, lat])
+    for user, coords in tracks.items():
+        if len(coords) >= 2:
+            features.append(
+                {
+                    "type": "Feature",
+                    "geometry": {"type": "LineString", "coordinates": coords},
+                    "properties": {"kind": "track", "user_id": user},
+                }
+            )
+    if repo.get_building(session, building_id) is None:
+        raise NotFoundError(f"no building {building_id!r}")
+    return {"type": "FeatureCollection", "features": features}

@@ -1,0 +1,95 @@
+"""Phones post sensor batches (REST or a WebSocket stream of the same schema)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from fastapi import APIRouter, Request, WebSocket, WebSocketDisconnect
+
+from schemas.api import BatchReceipt
+from schemas.errors import Problem
+from schemas.sensors import SensorBatch
+from server.app import AppState
+from server.auth import Principal, authenticate
+from server.batch_decoding import decode_batch
+from server.deps import Caller, State
+from server.errors import BodyTooLargeError, InvalidInputError, ProblemError
+from server.tracking import Submission
+
+router = APIRouter(prefix="/v1/buildings/{building_id}", tags=["batches"])
+
+_BATCH_BODY: dict[str, Any] = {
+    "requestBody": {
+        "required": True,
+        "content": {"application/json": {"schema": {"$ref": "#/components/schemas/SensorBatch"}}},
+    }
+}
+
+
+async def ingest(state: AppState, caller: Principal, building_id: str, body: bytes) -> BatchReceipt:
+    """Validate, authorise, then hand the batch to its building. Nothing is touched before all checks pass."""
+    caller.require_device(building_id, None)
+    batch = decode_batch(body, state.settings.max_batch_bytes)
+    if batch.building_id != building_id:
+        raise InvalidInputError(
+            f"the batch names building {batch.building_id!r} but was posted to building {building_id!r}"
+        )
+    caller.require_device(building_id, batch.device_id)
+    worker = await state.tracking.worker(building_id)
+    return await worker.submit(Submission(batch, len(body)))
+
+
+@router.post(
+    "/batches",
+    response_model=BatchReceipt,
+    openapi_extra=_BATCH_BODY,
+    responses={
+        400: {"model": Problem},
+        404: {"model": Problem},
+        413: {"model": Problem},
+        422: {"model": Problem},
+    },
+)
+async def post_batch(building_id: str, request: Request, caller: Caller, state: State) -> BatchReceipt:
+    """Post one sensor batch (device key). A retried batch (same ``batch_id``) answers ``duplicate`` and
+    changes nothing; a batch whose ``seq`` is not after the device's last applied one answers ``late``."""
+    length = request.headers.get("content-length")
+    limit = state.settings.max_batch_bytes
+    if length is not None and length.isdigit() and int(length) > limit:
+        raise BodyTooLargeError(int(length), limit)
+    body = bytearray()
+    async for chunk in request.stream():
+        body += chunk
+        if len(body) > limit:
+            raise BodyTooLargeError(len(body), limit)
+    return await ingest(state, caller, building_id, bytes(body))
+
+
+@router.websocket("/stream")
+async def stream_batches(websocket: WebSocket, building_id: str, token: str | None = None) -> None:
+    """Phones may stream batches: each text frame is a SensorBatch, each answer a BatchReceipt or Problem."""
+    state: AppState = websocket.app.state.crowdslam
+    with state.sessions() as session:
+        try:
+            caller = authenticate(session, token)
+        except ProblemError:
+            await websocket.close(code=4401, reason="unknown or missing key")
+            return
+    await websocket.accept()
+    try:
+        while True:
+            message = await websocket.receive()
+            if message["type"] == "websocket.disconnect":
+                return
+            raw = message.get("text")
+            data = raw.encode() if raw is not None else (message.get("bytes") or b"")
+            try:
+                receipt = await ingest(state, caller, building_id, data)
+                await websocket.send_text(receipt.model_dump_json())
+            except ProblemError as exc:
+                await websocket.send_text(exc.to_problem().model_dump_json())
+    except WebSocketDisconnect:
+        return
+
+
+__all__ = ["SensorBatch", "router"]

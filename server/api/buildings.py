@@ -1,0 +1,95 @@
+"""Buildings, their floors and geo-reference; keys minted for a building."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, status
+
+from schemas.api import KeyCreated, KeyCreateIn, KeyScope
+from schemas.buildings import Building, Floor, GeoReference
+from server.auth import mint_key
+from server.deps import Caller, DbSession
+from server.errors import ConflictError, InvalidInputError, NotFoundError
+from server.store import repositories as repo
+from server.store.models import BuildingRow, FloorRow
+
+router = APIRouter(prefix="/v1/buildings", tags=["buildings"])
+
+
+def _building(row: BuildingRow, floors: list[FloorRow]) -> Building:
+    geo = None
+    if row.origin_lat_deg is not None and row.origin_lon_deg is not None:
+        geo = GeoReference(
+            origin_lat_deg=row.origin_lat_deg,
+            origin_lon_deg=row.origin_lon_deg,
+            rotation_rad=row.rotation_rad,
+        )
+    return Building(
+        id=row.id,
+        name=row.name,
+        geo_reference=geo,
+        floors=[
+            Floor(
+                level=f.level, name=f.name, elevation_m=f.elevation_m, width_m=f.width_m, height_m=f.height_m
+            )
+            for f in floors
+        ],
+    )
+
+
+@router.post("", status_code=status.HTTP_201_CREATED, response_model=Building)
+def create_building(body: Building, caller: Caller, session: DbSession) -> Building:
+    """Create a building (operator key). Its id is permanent; a taken id is 409."""
+    caller.require_operator(body.id)
+    if len({f.level for f in body.floors}) != len(body.floors):
+        raise InvalidInputError("floor levels must be distinct")
+    geo = body.geo_reference
+    row = BuildingRow(
+        id=body.id,
+        name=body.name,
+        origin_lat_deg=geo.origin_lat_deg if geo else None,
+        origin_lon_deg=geo.origin_lon_deg if geo else None,
+        rotation_rad=geo.rotation_rad if geo else 0.0,
+    )
+    floors = [
+        FloorRow(
+            level=f.level, name=f.name, elevation_m=f.elevation_m, width_m=f.width_m, height_m=f.height_m
+        )
+        for f in body.floors
+    ]
+    if not repo.insert_building(session, row, floors):
+        raise ConflictError(f"building {body.id!r} already exists")
+    session.commit()
+    return body
+
+
+@router.get("", response_model=list[Building])
+def list_buildings(caller: Caller, session: DbSession) -> list[Building]:
+    """The buildings this key can see."""
+    ids = None if caller.building_id is None else [caller.building_id]
+    return [_building(b, repo.list_floors(session, b.id)) for b in repo.list_buildings(session, ids)]
+
+
+@router.get("/{building_id}", response_model=Building)
+def get_building(building_id: str, caller: Caller, session: DbSession) -> Building:
+    caller.require_reader(building_id)
+    row = repo.get_building(session, building_id)
+    if row is None:
+        raise NotFoundError(f"no building {building_id!r}")
+    return _building(row, repo.list_floors(session, building_id))
+
+
+@router.post("/{building_id}/keys", status_code=status.HTTP_201_CREATED, response_model=KeyCreated)
+def create_key(building_id: str, body: KeyCreateIn, caller: Caller, session: DbSession) -> KeyCreated:
+    """Mint a device, dashboard or building operator key (operator key). The secret is shown only here."""
+    caller.require_operator(building_id)
+    if repo.get_building(session, building_id) is None:
+        raise NotFoundError(f"no building {building_id!r}")
+    secret, prefix = mint_key(session, body.scope, building_id, body.device_id)
+    session.commit()
+    return KeyCreated(
+        key=secret,
+        prefix=prefix,
+        scope=body.scope,
+        building_id=building_id,
+        device_id=body.device_id if body.scope == KeyScope.DEVICE else None,
+    )

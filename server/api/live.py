@@ -1,0 +1,49 @@
+"""Dashboards subscribe to a building's live envelope: positions, encounters, anchor updates."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+from fastapi import APIRouter, WebSocket, WebSocketDisconnect
+
+from schemas.live import LIVE_MESSAGE_ADAPTER, HeartbeatMessage
+from server.app import AppState
+from server.auth import authenticate
+from server.errors import ProblemError
+from server.store import repositories as repo
+
+router = APIRouter(prefix="/v1/buildings/{building_id}", tags=["live"])
+HEARTBEAT_S = 10.0
+
+
+@router.websocket("/live")
+async def live(websocket: WebSocket, building_id: str, token: str | None = None) -> None:
+    """``?token=<dashboard or operator key>``. Each text frame is one LiveMessage (JSON, union on ``type``);
+    a heartbeat every 10 s reports messages dropped because this subscriber was slow."""
+    state: AppState = websocket.app.state.crowdslam
+    with state.sessions() as session:
+        try:
+            caller = authenticate(session, token)
+            caller.require_reader(building_id)
+        except ProblemError as exc:
+            await websocket.close(code=4401 if exc.status == 401 else 4403, reason=exc.detail[:120])
+            return
+        if repo.get_building(session, building_id) is None:
+            await websocket.close(code=4404, reason=f"no building {building_id!r}")
+            return
+    await websocket.accept()
+    sub = state.broadcaster.subscribe(building_id)
+    reported = 0
+    try:
+        while True:
+            try:
+                message = await asyncio.wait_for(sub.queue.get(), timeout=HEARTBEAT_S)
+            except TimeoutError:
+                message = HeartbeatMessage(t_ms=int(time.time() * 1000), dropped=sub.dropped - reported)
+                reported = sub.dropped
+            await websocket.send_text(LIVE_MESSAGE_ADAPTER.dump_json(message).decode())
+    except (WebSocketDisconnect, RuntimeError):
+        return
+    finally:
+        state.broadcaster.unsubscribe(sub)

@@ -1,0 +1,59 @@
+"""Dashboards read positions: every user's latest estimate, and one user's history."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Query
+
+from schemas.common import MAX_TIME_MS, MIN_TIME_MS, Position
+from schemas.estimates import Estimate, EstimateSource
+from server.deps import Caller, DbSession
+from server.errors import InvalidInputError, NotFoundError
+from server.store import repositories as repo
+from server.store.models import PositionSnapshotRow
+
+router = APIRouter(prefix="/v1/buildings/{building_id}", tags=["positions"])
+
+
+def estimate_from_row(row: PositionSnapshotRow) -> Estimate:
+    return Estimate(
+        building_id=row.building_id,
+        user_id=row.user_id,
+        device_id=row.device_id,
+        t_ms=row.t_ms,
+        position=Position(x_m=row.x_m, y_m=row.y_m),
+        covariance_m2=[[row.cov_xx, row.cov_xy], [row.cov_xy, row.cov_yy]],
+        heading_rad=row.heading_rad,
+        floor=row.floor,
+        source=EstimateSource(row.source),
+    )
+
+
+@router.get("/positions", response_model=list[Estimate])
+def latest_positions(building_id: str, caller: Caller, session: DbSession) -> list[Estimate]:
+    """Every user's latest estimate (dashboard or operator key)."""
+    caller.require_reader(building_id)
+    if repo.get_building(session, building_id) is None:
+        raise NotFoundError(f"no building {building_id!r}")
+    return [estimate_from_row(r) for r in repo.latest_positions(session, building_id)]
+
+
+@router.get("/users/{user_id}/positions", response_model=list[Estimate])
+def user_history(
+    building_id: str,
+    user_id: str,
+    caller: Caller,
+    session: DbSession,
+    since_ms: Annotated[int, Query(ge=MIN_TIME_MS, le=MAX_TIME_MS)] = MIN_TIME_MS,
+    until_ms: Annotated[int, Query(ge=MIN_TIME_MS, le=MAX_TIME_MS)] = MAX_TIME_MS,
+    limit: Annotated[int, Query(ge=1, le=10_000)] = 1_000,
+) -> list[Estimate]:
+    """One user's estimates in a time range, oldest first."""
+    caller.require_reader(building_id)
+    if since_ms > until_ms:
+        raise InvalidInputError("since_ms must not be after until_ms")
+    if repo.get_building(session, building_id) is None:
+        raise NotFoundError(f"no building {building_id!r}")
+    rows = repo.position_history(session, building_id, user_id, since_ms, until_ms, limit)
+    return [estimate_from_row(r) for r in rows]

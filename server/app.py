@@ -1,0 +1,204 @@
+"""The application factory and its typed lifespan: database, tracking, broadcaster, warmed kernels."""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from sqlalchemy import Engine
+from sqlalchemy.orm import Session, sessionmaker
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from schemas.errors import Problem
+from server.broadcast import Broadcaster
+from server.errors import InvalidInputError, ProblemError
+from server.ingestion import TrackingService
+from server.metrics import Metrics
+from server.settings import Settings
+from server.store.db import make_engine, make_session_factory
+from server.store.migrate import current_revision, head_revision
+from slam_core.encounters import Calibration
+from slam_core.params import BuildingAnchorParams, FilterParams, extended_confusion
+from slam_core.tracker import TrackerParams
+
+API_DESCRIPTION = """Indoor localization without a site survey. Phones post sensor batches
+(`POST /v1/buildings/{id}/batches`), dashboards read positions (`GET .../positions`, `WS .../live`),
+operators manage buildings, keys and anchor maps. Every error is an RFC 9457 problem body."""
+
+
+@dataclass
+class AppState:
+    settings: Settings
+    engine: Engine
+    sessions: sessionmaker[Session]
+    broadcaster: Broadcaster
+    tracking: TrackingService
+    metrics: Metrics
+    started: float
+
+
+class DatabaseNotMigratedError(RuntimeError):
+    pass
+
+
+def load_calibration(path: Path | None) -> Calibration:
+    if path is None:
+        text = resources.files("server.data").joinpath("testbed_calibration.json").read_text()
+    else:
+        text = path.read_text()
+    return Calibration.from_dict(json.loads(text))
+
+
+def tracker_params(settings: Settings) -> TrackerParams:
+    n_types = len(extended_confusion(10))
+    return TrackerParams(
+        filter=FilterParams(
+            anchors=BuildingAnchorParams(confusion=extended_confusion(n_types)),
+            use_human_anchors=settings.mode == "dynamicslam",
+        )
+    )
+
+
+def create_app(settings: Settings) -> FastAPI:
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        url = settings.resolved_database_url
+        engine = make_engine(url)
+        current, head = current_revision(engine), head_revision(engine)
+        if current != head:
+            engine.dispose()
+            raise DatabaseNotMigratedError(
+                f"the database is at revision {current!r}, the server needs {head!r}: run `crowdslam migrate`"
+            )
+        sessions = make_session_factory(engine)
+        broadcaster = Broadcaster()
+        params = tracker_params(settings)
+        calibration = load_calibration(settings.encounter_calibration)
+        _warm_kernels(params, calibration)
+        tracking = TrackingService(sessions, broadcaster, params, calibration, settings.seed)
+        app.state.crowdslam = AppState(
+            settings, engine, sessions, broadcaster, tracking, Metrics(), time.time()
+        )
+        try:
+            yield
+        finally:
+            await tracking.close()
+            engine.dispose()
+
+    app = FastAPI(
+        title="crowdslam",
+        version="1.0.0",
+        description=API_DESCRIPTION,
+        lifespan=lifespan,
+        responses={
+            401: {"model": Problem, "description": "Missing or unknown key"},
+            403: {"model": Problem, "description": "The key's scope does not allow this"},
+        },
+    )
+    _install_error_handlers(app)
+    from server.api import anchors, batches, buildings, health, live, positions
+
+    for module in (health, buildings, batches, positions, anchors, live):
+        app.include_router(module.router)
+    _document_raw_bodies(app)
+    return app
+
+
+def _document_raw_bodies(app: FastAPI) -> None:
+    """The batch endpoint reads its body itself (size before parsing); publish the SensorBatch schema."""
+    from fastapi.openapi.utils import get_openapi
+
+    from schemas.sensors import SensorBatch
+
+    def openapi() -> dict[str, object]:
+        if app.openapi_schema is None:
+            spec = get_openapi(
+                title=app.title, version=app.version, description=app.description, routes=app.routes
+            )
+            schema = SensorBatch.model_json_schema(ref_template="#/components/schemas/{model}")
+            components = spec.setdefault("components", {}).setdefault("schemas", {})
+            components.update(schema.pop("$defs", {}))
+            components["SensorBatch"] = schema
+            app.openapi_schema = spec
+        return app.openapi_schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
+
+
+def _warm_kernels(params: TrackerParams, calibration: Calibration) -> None:
+    """Compile (or load from cache) every kernel the batch path uses before the first request."""
+    import numpy as np
+
+    from slam_core.tracker import BuildingTracker, UserBatch
+
+    tracker = BuildingTracker(params, calibration, seed=0)
+    tracker.pin_anchor(np.array([1.0, 0.0]), 0)
+    for name in ("a", "b"):
+        tracker.apply(
+            [
+                UserBatch(
+                    user=name,
+                    fix_t=np.array([1_000], dtype=np.int64),
+                    fix_xy=np.zeros((1, 2)),
+                    fix_sigma=np.array([0.5]),
+                    fix_azimuth=np.array([np.pi / 2]),
+                    step_t=np.array([1_500, 2_000], dtype=np.int64),
+                    step_length=np.array([0.5, 0.5]),
+                    step_azimuth=np.array([np.pi / 2, np.nan]),
+                    step_turn=np.array([np.nan, 0.0]),
+                    detect_t=np.array([2_000], dtype=np.int64),
+                    detect_type=np.array([0], dtype=np.int64),
+                )
+            ]
+        )
+    tracker.engine.observe_encounters(np.array([0]), np.array([1]), np.array([1.0]), np.array([1.0]))
+    tracker.engine.observe_position(np.array([0]), np.array([[1.0, 0.0]]), np.array([0.5]))
+
+
+def _install_error_handlers(app: FastAPI) -> None:
+    def problem_response(problem: Problem, headers: dict[str, str] | None = None) -> JSONResponse:
+        return JSONResponse(
+            problem.model_dump(mode="json"),
+            status_code=problem.status,
+            media_type="application/problem+json",
+            headers=headers,
+        )
+
+    @app.exception_handler(ProblemError)
+    async def _problem(_: Request, exc: ProblemError) -> JSONResponse:
+        headers = {"WWW-Authenticate": "Bearer"} if exc.status == 401 else None
+        return problem_response(exc.to_problem(), headers)
+
+    @app.exception_handler(RequestValidationError)
+    async def _validation(_: Request, exc: RequestValidationError) -> JSONResponse:
+        from server.errors import field_problem
+
+        problems = [field_problem(e) for e in exc.errors()]
+        error = InvalidInputError(
+            f"{len(problems)} field(s) invalid: " + "; ".join(f"{p.loc}: {p.msg}" for p in problems[:5]),
+            problems,
+        )
+        return problem_response(error.to_problem())
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http(_: Request, exc: StarletteHTTPException) -> JSONResponse:
+        title = {404: "Not found", 405: "Method not allowed"}.get(exc.status_code, "HTTP error")
+        return problem_response(Problem(title=title, status=exc.status_code, detail=str(exc.detail)))
+
+    @app.exception_handler(Exception)
+    async def _unexpected(_: Request, exc: Exception) -> JSONResponse:
+        return problem_response(
+            Problem(
+                title="Internal server error",
+                status=500,
+                detail=f"{type(exc).__name__}: the error was logged",
+            )
+        )

@@ -1,0 +1,79 @@
+"""API keys: minting, hashing and scope rules. Keys read ``csk_<prefix>_<secret>``; only SHA-256 is kept."""
+
+from __future__ import annotations
+
+import secrets
+from dataclasses import dataclass
+
+from sqlalchemy.orm import Session
+
+from schemas.api import KeyScope
+from server.errors import ForbiddenError, UnauthorizedError
+from server.store import repositories as repo
+
+
+@dataclass(frozen=True)
+class Principal:
+    key_id: int
+    scope: KeyScope
+    building_id: str | None  # None: a site-wide operator key
+    device_id: str | None
+
+    def require_operator(self, building_id: str | None = None) -> None:
+        """Operators manage their building; a site-wide operator key (no building) manages every one."""
+        if self.scope != KeyScope.OPERATOR:
+            raise ForbiddenError(f"this needs an operator key; the key presented is a {self.scope.value} key")
+        if building_id is not None and self.building_id not in (None, building_id):
+            raise ForbiddenError(
+                f"this operator key manages building {self.building_id!r}, not {building_id!r}"
+            )
+
+    def require_reader(self, building_id: str) -> None:
+        """Dashboards read their building; operators read what they manage."""
+        if self.scope == KeyScope.DEVICE:
+            raise ForbiddenError(
+                "device keys post batches; reading positions needs a dashboard or operator key"
+            )
+        if self.building_id not in (None, building_id):
+            raise ForbiddenError(f"this key is for building {self.building_id!r}, not {building_id!r}")
+
+    def require_device(self, building_id: str, device_id: str | None) -> None:
+        """A device key posts only as its own device (None: not known yet) in its own building."""
+        if self.scope != KeyScope.DEVICE:
+            raise ForbiddenError(
+                f"posting batches needs a device key; the key presented is a {self.scope.value} key"
+            )
+        if self.building_id != building_id:
+            raise ForbiddenError(f"this device key is for building {self.building_id!r}, not {building_id!r}")
+        if device_id is not None and self.device_id != device_id:
+            raise ForbiddenError(f"this device key posts as device {self.device_id!r}, not {device_id!r}")
+
+
+def mint_key(
+    session: Session, scope: KeyScope, building_id: str | None = None, device_id: str | None = None
+) -> tuple[str, str]:
+    """Create a key; returns (secret, prefix). The caller commits."""
+    prefix = secrets.token_hex(4)
+    secret = f"csk_{prefix}_{secrets.token_urlsafe(24)}"
+    repo.insert_key(session, prefix, secret, scope.value, building_id, device_id)
+    return secret, prefix
+
+
+def authenticate(session: Session, secret: str | None) -> Principal:
+    if not secret:
+        raise UnauthorizedError(
+            "send an API key as 'Authorization: Bearer <key>' (or ?token=<key> on WebSockets)"
+        )
+    row = repo.find_key(session, secret)
+    if row is None:
+        raise UnauthorizedError("the API key is unknown or revoked")
+    return Principal(row.id, KeyScope(row.scope), row.building_id, row.device_id)
+
+
+def bearer_secret(authorization: str | None) -> str | None:
+    if authorization is None:
+        return None
+    scheme, _, value = authorization.partition(" ")
+    if scheme.lower() != "bearer" or not value.strip():
+        raise UnauthorizedError("the Authorization header must read 'Bearer <key>'")
+    return value.strip()

@@ -1,0 +1,61 @@
+"""Live fan-out of a building's events to its WebSocket subscribers. A slow subscriber never slows the
+building: its bounded queue drops the oldest message and the next heartbeat says how many it lost."""
+
+from __future__ import annotations
+
+import asyncio
+from collections import defaultdict
+from dataclasses import dataclass, field
+
+from schemas.live import LiveMessage
+
+QUEUE_SIZE = 2_000
+
+
+@dataclass(eq=False)
+class Subscription:
+    building_id: str
+    queue: asyncio.Queue[LiveMessage] = field(default_factory=lambda: asyncio.Queue(maxsize=QUEUE_SIZE))
+    dropped: int = 0
+
+    def offer(self, message: LiveMessage) -> None:
+        while True:
+            try:
+                self.queue.put_nowait(message)
+                return
+            except asyncio.QueueFull:
+                self.queue.get_nowait()
+                self.dropped += 1
+
+
+class Broadcaster:
+    """Call from the event loop only."""
+
+    def __init__(self) -> None:
+        self._subs: dict[str, set[Subscription]] = defaultdict(set)
+        self.published = 0
+
+    def subscribe(self, building_id: str) -> Subscription:
+        sub = Subscription(building_id)
+        self._subs[building_id].add(sub)
+        return sub
+
+    def unsubscribe(self, sub: Subscription) -> None:
+        self._subs[sub.building_id].discard(sub)
+
+    def publish(self, building_id: str, messages: list[LiveMessage]) -> None:
+        subs = self._subs.get(building_id)
+        if not subs:
+            return
+        for message in messages:
+            for sub in subs:
+                sub.offer(message)
+        self.published += len(messages)
+
+    def subscribers(self, building_id: str | None = None) -> int:
+        if building_id is None:
+            return sum(len(s) for s in self._subs.values())
+        return len(self._subs.get(building_id, ()))
+
+    def queue_depths(self) -> list[int]:
+        return [sub.queue.qsize() for subs in self._subs.values() for sub in subs]

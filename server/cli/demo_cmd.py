@@ -1,0 +1,106 @@
+"""``crowdslam demo``: migrate the embedded SQLite, start the server, and let a simulated crowd walk."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import threading
+import time
+from importlib import resources
+from pathlib import Path
+
+DEFAULT_SCENARIO = Path(__file__).resolve().parents[2].parent / "shared" / "scenarios" / "paper-testbed.json"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--host", default="127.0.0.1")
+    parser.add_argument("--port", type=int, default=8000)
+    parser.add_argument("--scenario", type=Path, default=None, help="default: the paper testbed")
+    parser.add_argument("--speed", type=float, default=5.0, help="crowd pace, x real time (0: flat out)")
+    parser.add_argument(
+        "--rounds", type=int, default=0, help="crowds to walk, one after another (0: forever)"
+    )
+    parser.add_argument("--building", default="demo")
+
+
+def _scenario_text(path: Path | None) -> str:
+    if path is not None:
+        return path.read_text()
+    if DEFAULT_SCENARIO.exists():
+        return DEFAULT_SCENARIO.read_text()
+    return resources.files("server.data").joinpath("paper-testbed.json").read_text()
+
+
+def run(args: argparse.Namespace) -> int:
+    import httpx
+    import uvicorn
+
+    from schemas.api import KeyScope
+    from server.app import create_app
+    from server.auth import mint_key
+    from server.crowd_client import device_keys, post_crowd, prepare_building
+    from server.settings import get_settings
+    from server.store.db import make_engine, make_session_factory
+    from server.store.migrate import upgrade
+    from slam_core.simulate import Scenario, simulate
+
+    settings = get_settings()
+    engine = make_engine(settings.resolved_database_url)
+    upgrade(engine)
+    with make_session_factory(engine).begin() as session:
+        operator_key, _ = mint_key(session, KeyScope.OPERATOR)
+    engine.dispose()
+    config = uvicorn.Config(
+        create_app(settings), host=args.host, port=args.port, log_level="warning", ws="websockets-sansio"
+    )
+    server = uvicorn.Server(config)
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    base = f"http://{args.host}:{args.port}"
+    deadline = time.monotonic() + 120
+    while not server.started:
+        if not thread.is_alive() or time.monotonic() > deadline:
+            print("error: the server did not start (is the port free?)")
+            return 1
+        time.sleep(0.1)
+    scenario = Scenario.from_dict(json.loads(_scenario_text(args.scenario)))
+    try:
+        with httpx.Client(base_url=base, timeout=60.0) as client:
+            sim = simulate(scenario, 0)
+            prepare_building(client, args.building, operator_key, sim)
+            dashboard = client.post(
+                f"/v1/buildings/{args.building}/keys",
+                json={"scope": "dashboard"},
+                headers={"Authorization": f"Bearer {operator_key}"},
+            ).json()["key"]
+            ws_base = base.replace("http", "ws", 1)
+            print(f"crowdslam demo: database {settings.resolved_database_url}", flush=True)
+            print(f"  API docs (OpenAPI):  {base}/docs")
+            print(f"  live positions (WS): {ws_base}/v1/buildings/{args.building}/live?token={dashboard}")
+            building_url = f"{base}/v1/buildings/{args.building}"
+            print(
+                f"  latest positions:    curl -H 'Authorization: Bearer {dashboard}' {building_url}/positions"
+            )
+            print(f"  anchor map:  curl -H 'Authorization: Bearer {operator_key}' {building_url}/anchors")
+            print(f"  operator key:        {operator_key}")
+            print("  Ctrl-C stops.", flush=True)
+            round_number = 0
+            while args.rounds == 0 or round_number < args.rounds:
+                sim = simulate(scenario, round_number)
+                prefix = f"r{round_number}-"
+                keys = device_keys(client, args.building, operator_key, len(sim.users), prefix)
+                report = post_crowd(client, sim, args.building, keys, args.speed, prefix)
+                s = report.summary()
+                print(
+                    f"  crowd {round_number}: {s['batches']} batches, {s['errors']} errors, "
+                    f"{s['encounters']} encounters, error median {s['median_m']:.2f} m, "
+                    f"p90 {s['p90_m']:.2f} m, {s['seconds']:.0f} s",
+                    flush=True,
+                )
+                round_number += 1
+    except KeyboardInterrupt:
+        pass
+    finally:
+        server.should_exit = True
+        thread.join(timeout=10)
+    return 0

@@ -1,0 +1,48 @@
+"""``crowdslam keys create``: mint a key from the command line (the first operator key comes from here)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(dest="action", required=True, metavar="ACTION")
+    create = sub.add_parser("create", help="mint a key and print it on the last line")
+    create.add_argument("--scope", required=True, choices=["operator", "device", "dashboard"])
+    create.add_argument("--building", help="the key's building (required for device and dashboard keys)")
+    create.add_argument("--device", help="the device id of a device key")
+
+
+def run(args: argparse.Namespace) -> int:
+    from schemas.api import KeyScope
+    from server.auth import mint_key
+    from server.settings import get_settings
+    from server.store import repositories as repo
+    from server.store.db import make_engine, make_session_factory
+    from server.store.migrate import current_revision, head_revision
+
+    scope = KeyScope(args.scope)
+    if scope != KeyScope.OPERATOR and args.building is None:
+        print(f"error: a {scope.value} key needs --building", file=sys.stderr)
+        return 2
+    if (scope == KeyScope.DEVICE) != (args.device is not None):
+        print("error: --device is required for a device key and only allowed for one", file=sys.stderr)
+        return 2
+    engine = make_engine(get_settings().resolved_database_url)
+    try:
+        if current_revision(engine) != head_revision(engine):
+            print("error: the database is not migrated; run `crowdslam migrate` first", file=sys.stderr)
+            return 1
+        sessions = make_session_factory(engine)
+        with sessions.begin() as session:
+            if args.building is not None and repo.get_building(session, args.building) is None:
+                print(f"error: no building {args.building!r}", file=sys.stderr)
+                return 1
+            secret, prefix = mint_key(session, scope, args.building, args.device)
+    finally:
+        engine.dispose()
+    where = f" for building {args.building}" if args.building else " (all buildings)"
+    print(f"{scope.value} key {prefix}{where}; it is shown only once:")
+    print(secret)
+    return 0

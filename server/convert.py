@@ -1,0 +1,191 @@
+"""The one module that sees both the wire models and the engine's arrays: batches in, estimates out."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+from schemas.anchors import AnchorType, BuildingAnchor
+from schemas.common import Position
+from schemas.estimates import EncounterEvent, EncounterModelName, Estimate, EstimateSource
+from schemas.sensors import AnchorReading, GpsFix, PeerSighting, PositionFix, SensorBatch, TagReading
+from slam_core.encounter_detection import MODEL_BLUETOOTH
+from slam_core.geo import GeoFrame
+from slam_core.tracker import EncounterResult, EstimateRow, UserBatch
+
+ENGINE_ANCHOR_TYPES: tuple[AnchorType, ...] = tuple(AnchorType)
+"""The engine's anchor type index of each wire type (the first five are the paper testbed's)."""
+_TYPE_INDEX = {t: i for i, t in enumerate(ENGINE_ANCHOR_TYPES)}
+TAG_SIGMA_M = 0.5
+"""A tag with an encoded position places the phone within about an arm's length of it."""
+
+
+@dataclass(frozen=True)
+class BuildingContext:
+    """What conversion needs to know about the building: its geo-reference and its known anchors."""
+
+    building_id: str
+    geo: GeoFrame | None
+    known_anchors: Mapping[str, tuple[float, float]]  # public id -> local position
+    detection_sigma_m: float = 0.5
+
+
+@dataclass(frozen=True)
+class Converted:
+    user_batch: UserBatch
+    warnings: list[str]
+
+
+def anchor_type_index(anchor_type: AnchorType) -> int:
+    return _TYPE_INDEX[anchor_type]
+
+
+def to_user_batch(batch: SensorBatch, ctx: BuildingContext) -> Converted:
+    """The batch as engine arrays. Landmarks that cannot be placed are skipped with a warning saying why."""
+    warnings: list[str] = []
+    fix_t: list[int] = []
+    fix_xy: list[tuple[float, float]] = []
+    fix_sigma: list[float] = []
+    fix_azimuth: list[float] = []
+    for i, mark in enumerate(batch.landmarks):
+        placed = _place(mark, ctx)
+        if isinstance(placed, str):
+            warnings.append(f"landmarks.{i}: {placed}")
+            continue
+        (x, y), sigma, azimuth = placed
+        fix_t.append(mark.t_ms)
+        fix_xy.append((x, y))
+        fix_sigma.append(sigma)
+        fix_azimuth.append(azimuth)
+    steps = batch.steps
+    nan = math.nan
+    scans = batch.wifi_scans
+    offsets = np.zeros(len(scans) + 1, dtype=np.int64)
+    offsets[1:] = np.cumsum([len(s.aps) for s in scans])
+    peers = [s for s in batch.bluetooth if isinstance(s, PeerSighting)]
+    user_batch = UserBatch(
+        user=batch.effective_user_id,
+        ble_id=batch.ble_advertised_id,
+        fix_t=np.array(fix_t, dtype=np.int64),
+        fix_xy=np.array(fix_xy, dtype=np.float64).reshape(-1, 2),
+        fix_sigma=np.array(fix_sigma, dtype=np.float64),
+        fix_azimuth=np.array(fix_azimuth, dtype=np.float64),
+        step_t=np.array([s.t_ms for s in steps], dtype=np.int64),
+        step_length=np.array([s.length_m for s in steps], dtype=np.float64),
+        step_azimuth=np.array(
+            [nan if s.azimuth_rad is None else s.azimuth_rad for s in steps], dtype=np.float64
+        ),
+        step_turn=np.array(
+            [nan if s.heading_change_rad is None else s.heading_change_rad for s in steps], dtype=np.float64
+        ),
+        detect_t=np.array([d.t_ms for d in batch.anchor_detections], dtype=np.int64),
+        detect_type=np.array([anchor_type_index(d.type) for d in batch.anchor_detections], dtype=np.int64),
+        scan_t=np.array([s.t_ms for s in scans], dtype=np.int64),
+        scan_offsets=offsets,
+        scan_bssid=tuple(ap.bssid for s in scans for ap in s.aps),
+        scan_rss=np.array([ap.rssi_dbm for s in scans for ap in s.aps], dtype=np.float64),
+        scan_last_seen=np.array(
+            [-1 if ap.last_seen_ms is None else ap.last_seen_ms for s in scans for ap in s.aps],
+            dtype=np.int64,
+        ),
+        peer_t=np.array([p.t_ms for p in peers], dtype=np.int64),
+        peer_id=tuple(p.peer_advertised_id for p in peers),
+        peer_rss=np.array([p.rssi_dbm for p in peers], dtype=np.float64),
+    )
+    return Converted(user_batch, warnings)
+
+
+def _place(
+    mark: GpsFix | TagReading | AnchorReading | PositionFix, ctx: BuildingContext
+) -> tuple[tuple[float, float], float, float] | str:
+    """((x, y), sigma, azimuth or NaN) of a landmark in local metres, or why it cannot be placed."""
+    if isinstance(mark, PositionFix):
+        azimuth = math.nan if mark.azimuth_rad is None else mark.azimuth_rad
+        return (mark.position.x_m, mark.position.y_m), mark.sigma_m, azimuth
+    if isinstance(mark, AnchorReading):
+        xy = ctx.known_anchors.get(mark.anchor_id)
+        if xy is None:
+            return f"anchor {mark.anchor_id!r} is not a known anchor of building {ctx.building_id!r}"
+        return xy, ctx.detection_sigma_m, math.nan
+    if isinstance(mark, GpsFix):
+        if ctx.geo is None:
+            return f"building {ctx.building_id!r} has no geo-reference, so a GPS fix cannot be placed"
+        return ctx.geo.to_local(mark.lat_deg, mark.lon_deg), mark.accuracy_m, math.nan
+    encoded = mark.encoded_position()
+    if encoded is None:
+        return "the tag encodes no position (tags without one are kept for SignalSLAM loop closures)"
+    if ctx.geo is None:
+        return f"building {ctx.building_id!r} has no geo-reference, so the tag's position cannot be placed"
+    lat, lon, _floor = encoded
+    return ctx.geo.to_local(lat, lon), TAG_SIGMA_M, math.nan
+
+
+def estimate(
+    row: EstimateRow,
+    building_id: str,
+    user_id: str,
+    device_id: str,
+    geo: GeoFrame | None,
+    source: EstimateSource,
+) -> Estimate:
+    lat = lon = None
+    if geo is not None:
+        lat, lon = geo.to_wgs84(row.x, row.y)
+    xx, xy, yy = row.cov
+    return Estimate(
+        building_id=building_id,
+        user_id=user_id,
+        device_id=device_id,
+        t_ms=row.t_ms,
+        position=Position(x_m=row.x, y_m=row.y),
+        covariance_m2=[[xx, xy], [xy, yy]],
+        best_particle=Position(x_m=row.best[0], y_m=row.best[1]),
+        heading_rad=(row.heading + math.pi) % (2 * math.pi) - math.pi,
+        source=source,
+        lat_deg=lat,
+        lon_deg=lon,
+    )
+
+
+def encounter_event(result: EncounterResult, building_id: str) -> EncounterEvent:
+    d = result.detection
+    return EncounterEvent(
+        building_id=building_id,
+        t_ms=d.t_ms,
+        user_a=d.user_a,
+        user_b=d.user_b,
+        model=EncounterModelName.BLUETOOTH if d.model == MODEL_BLUETOOTH else EncounterModelName.WIFI_EQ3,
+        distance_m=min(d.distance_m, 200.0),
+        distance_sigma_m=min(math.sqrt(d.variance_m2), 200.0),
+        applied=result.applied,
+    )
+
+
+def building_anchor(
+    public_id: str,
+    building_id: str,
+    mean: np.ndarray,
+    cov: np.ndarray,
+    type_index: int,
+    known: bool,
+    observations: int,
+    last_seen_ms: int | None,
+    label: str | None = None,
+    floor: int = 0,
+) -> BuildingAnchor:
+    sym = 0.5 * (cov[0, 1] + cov[1, 0])
+    return BuildingAnchor(
+        id=public_id,
+        building_id=building_id,
+        floor=floor,
+        type=ENGINE_ANCHOR_TYPES[type_index],
+        position=Position(x_m=float(mean[0]), y_m=float(mean[1])),
+        covariance_m2=[[float(cov[0, 0]), float(sym)], [float(sym), float(cov[1, 1])]],
+        observation_count=observations,
+        known=known,
+        label=label,
+        last_seen_ms=last_seen_ms,
+    )

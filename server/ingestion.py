@@ -1,0 +1,151 @@
+"""The asynchronous side of the batch path: one queue and one worker thread per building.
+
+Requests enqueue and await their receipt; the building's task drains the queue into a group, runs it in the
+building's thread (numba kernels release the GIL, SQL waits on I/O) and publishes the group's live messages.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import TypeVar
+
+from sqlalchemy.orm import Session, sessionmaker
+
+from schemas.api import BatchReceipt
+from schemas.live import LiveMessage
+from server.broadcast import Broadcaster
+from server.errors import ProblemError
+from server.tracking import BuildingSession, Submission
+from slam_core.encounters import Calibration
+from slam_core.tracker import TrackerParams
+
+MAX_GROUP = 256
+T = TypeVar("T")
+
+
+@dataclass
+class _Pending:
+    submission: Submission
+    future: asyncio.Future[BatchReceipt]
+
+
+@dataclass
+class LatencyWindow:
+    """The most recent processing latencies (seconds), for /metrics."""
+
+    values: list[float] = field(default_factory=list)
+    limit: int = 10_000
+
+    def add(self, value: float) -> None:
+        self.values.append(value)
+        if len(self.values) > self.limit:
+            del self.values[: len(self.values) - self.limit]
+
+
+class BuildingWorker:
+    def __init__(self, session: BuildingSession, broadcaster: Broadcaster) -> None:
+        self.session = session
+        self._broadcaster = broadcaster
+        self._queue: asyncio.Queue[_Pending] = asyncio.Queue()
+        self._executor = ThreadPoolExecutor(
+            max_workers=1, thread_name_prefix=f"building-{session.building_id}"
+        )
+        self._task = asyncio.get_running_loop().create_task(self._run())
+        self.latency = LatencyWindow()
+        self.group_sizes = LatencyWindow()
+
+    @property
+    def queue_depth(self) -> int:
+        return self._queue.qsize()
+
+    async def submit(self, submission: Submission) -> BatchReceipt:
+        future: asyncio.Future[BatchReceipt] = asyncio.get_running_loop().create_future()
+        await self._queue.put(_Pending(submission, future))
+        return await future
+
+    async def call(self, fn: Callable[[], T]) -> T:
+        """Run an operation on the building's thread (anchor edits stay ordered with batches)."""
+        return await asyncio.get_running_loop().run_in_executor(self._executor, fn)
+
+    def publish(self, messages: list[LiveMessage]) -> None:
+        self._broadcaster.publish(self.session.building_id, messages)
+
+    async def _run(self) -> None:
+        loop = asyncio.get_running_loop()
+        while True:
+            group = [await self._queue.get()]
+            while not self._queue.empty() and len(group) < MAX_GROUP:
+                group.append(self._queue.get_nowait())
+            started = time.perf_counter()
+            try:
+                result = await loop.run_in_executor(
+                    self._executor, self.session.process, [p.submission for p in group]
+                )
+            except Exception as exc:
+                for p in group:
+                    if not p.future.done():
+                        p.future.set_exception(exc)
+                continue
+            self.latency.add(time.perf_counter() - started)
+            self.group_sizes.add(len(group))
+            for p, receipt in zip(group, result.receipts, strict=True):
+                if p.future.done():
+                    continue
+                if isinstance(receipt, ProblemError):
+                    p.future.set_exception(receipt)
+                else:
+                    p.future.set_result(receipt)
+            self.publish(result.messages)
+
+    async def close(self) -> None:
+        self._task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await self._task
+        self._executor.shutdown(wait=True)
+
+
+class TrackingService:
+    """The registry of buildings being tracked; a building is loaded on first use."""
+
+    def __init__(
+        self,
+        sessions: sessionmaker[Session],
+        broadcaster: Broadcaster,
+        params: TrackerParams,
+        calibration: Calibration,
+        seed: int,
+    ) -> None:
+        self._sessions = sessions
+        self._broadcaster = broadcaster
+        self._params = params
+        self._calibration = calibration
+        self._seed = seed
+        self._workers: dict[str, BuildingWorker] = {}
+        self._loading = asyncio.Lock()
+
+    async def worker(self, building_id: str) -> BuildingWorker:
+        worker = self._workers.get(building_id)
+        if worker is not None:
+            return worker
+        async with self._loading:
+            worker = self._workers.get(building_id)
+            if worker is None:
+                session = await asyncio.to_thread(
+                    BuildingSession, building_id, self._sessions, self._params, self._calibration, self._seed
+                )
+                worker = self._workers[building_id] = BuildingWorker(session, self._broadcaster)
+        return worker
+
+    @property
+    def workers(self) -> dict[str, BuildingWorker]:
+        return dict(self._workers)
+
+    async def close(self) -> None:
+        for worker in self._workers.values():
+            await worker.close()
+        self._workers.clear()

@@ -1,0 +1,71 @@
+"""Prometheus metrics: counters from the buildings' sessions, gauges from queues, latency summaries."""
+
+from __future__ import annotations
+
+from dataclasses import fields
+from typing import TYPE_CHECKING
+
+import numpy as np
+from prometheus_client import CollectorRegistry, generate_latest
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
+from prometheus_client.registry import Collector
+
+if TYPE_CHECKING:
+    from collections.abc import Iterator
+
+    from server.broadcast import Broadcaster
+    from server.ingestion import TrackingService
+    from server.tracking import Counters
+
+
+class Metrics:
+    """Renders the current figures on each scrape (no global registry: one per app)."""
+
+    def render(self, tracking: TrackingService, broadcaster: Broadcaster) -> bytes:
+        registry = CollectorRegistry()
+        registry.register(_Collector(tracking, broadcaster))
+        return bytes(generate_latest(registry))
+
+
+class _Collector(Collector):
+    def __init__(self, tracking: TrackingService, broadcaster: Broadcaster) -> None:
+        self._tracking = tracking
+        self._broadcaster = broadcaster
+
+    def collect(self) -> Iterator[Metric]:
+        from server.tracking import Counters
+
+        workers = self._tracking.workers
+        for f in fields(Counters):
+            family = CounterMetricFamily(
+                f"crowdslam_{f.name}", f"{f.name.replace('_', ' ')} per building", labels=["building"]
+            )
+            for building, worker in workers.items():
+                counters: Counters = worker.session.counters
+                family.add_metric([building], float(getattr(counters, f.name)))
+            yield family
+        depth = GaugeMetricFamily(
+            "crowdslam_ingest_queue_depth", "batches waiting per building", labels=["building"]
+        )
+        latency = GaugeMetricFamily(
+            "crowdslam_group_latency_seconds",
+            "processing time of a group of batches (recent window)",
+            labels=["building", "quantile"],
+        )
+        for building, worker in workers.items():
+            depth.add_metric([building], float(worker.queue_depth))
+            values = worker.latency.values
+            if values:
+                for q in (0.5, 0.99):
+                    latency.add_metric([building, str(q)], float(np.quantile(values, q)))
+        yield depth
+        yield latency
+        subs = GaugeMetricFamily("crowdslam_live_subscribers", "open live WebSocket subscriptions")
+        subs.add_metric([], float(self._broadcaster.subscribers()))
+        yield subs
+        backlog = GaugeMetricFamily("crowdslam_live_queue_max", "longest live subscriber queue")
+        backlog.add_metric([], float(max(self._broadcaster.queue_depths(), default=0)))
+        yield backlog
+        published = CounterMetricFamily("crowdslam_live_messages", "live messages published")
+        published.add_metric([], float(self._broadcaster.published))
+        yield published

@@ -1,0 +1,221 @@
+"""All SQL of the server, one function per question. Services call these; they never commit (the caller
+owns the transaction)."""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Mapping, Sequence
+
+from sqlalchemy import delete, func, select, update
+from sqlalchemy.dialects import postgresql, sqlite
+from sqlalchemy.orm import Session
+
+from server.store.models import (
+    AnchorRow,
+    ApiKeyRow,
+    BuildingRow,
+    DeviceRow,
+    FloorRow,
+    PositionSnapshotRow,
+)
+
+# ----------------------------------------------------------------------------- buildings
+
+
+def get_building(session: Session, building_id: str) -> BuildingRow | None:
+    return session.get(BuildingRow, building_id)
+
+
+def list_buildings(session: Session, ids: Sequence[str] | None = None) -> list[BuildingRow]:
+    stmt = select(BuildingRow).order_by(BuildingRow.id)
+    if ids is not None:
+        stmt = stmt.where(BuildingRow.id.in_(list(ids)))
+    return list(session.execute(stmt).scalars())
+
+
+def insert_building(session: Session, row: BuildingRow, floors: Sequence[FloorRow]) -> bool:
+    """Insert a building and its floors; False when the id is taken (decided by the primary key)."""
+    values = {
+        "id": row.id,
+        "name": row.name,
+        "origin_lat_deg": row.origin_lat_deg,
+        "origin_lon_deg": row.origin_lon_deg,
+        "rotation_rad": row.rotation_rad,
+    }
+    inserted = _insert_building_once(session, values)
+    if inserted is None:
+        return False
+    for floor in floors:
+        floor.building_id = row.id
+        session.add(floor)
+    session.flush()
+    return True
+
+
+def list_floors(session: Session, building_id: str) -> list[FloorRow]:
+    stmt = select(FloorRow).where(FloorRow.building_id == building_id).order_by(FloorRow.level)
+    return list(session.execute(stmt).scalars())
+
+
+# ----------------------------------------------------------------------------- keys
+
+
+def hash_key(secret: str) -> str:
+    return hashlib.sha256(secret.encode()).hexdigest()
+
+
+def insert_key(
+    session: Session, prefix: str, secret: str, scope: str, building_id: str | None, device_id: str | None
+) -> ApiKeyRow:
+    row = ApiKeyRow(
+        prefix=prefix, key_hash=hash_key(secret), scope=scope, building_id=building_id, device_id=device_id
+    )
+    session.add(row)
+    session.flush()
+    return row
+
+
+def find_key(session: Session, secret: str) -> ApiKeyRow | None:
+    stmt = select(ApiKeyRow).where(ApiKeyRow.key_hash == hash_key(secret), ApiKeyRow.revoked_at.is_(None))
+    return session.execute(stmt).scalar_one_or_none()
+
+
+# ----------------------------------------------------------------------------- devices
+
+
+def device_last_seq(session: Session, building_id: str, device_id: str) -> int | None:
+    row = session.get(DeviceRow, (building_id, device_id))
+    return None if row is None else row.last_seq
+
+
+def upsert_device(
+    session: Session, building_id: str, device_id: str, user_id: str, ble_id: str | None, seq: int | None
+) -> None:
+    """Create the device or advance its last applied sequence number (never backwards)."""
+    row = session.get(DeviceRow, (building_id, device_id))
+    if row is None:
+        session.add(
+            DeviceRow(
+                building_id=building_id, id=device_id, user_id=user_id, ble_advertised_id=ble_id, last_seq=seq
+            )
+        )
+        return
+    row.user_id = user_id
+    if ble_id is not None:
+        row.ble_advertised_id = ble_id
+    if seq is not None and (row.last_seq is None or seq > row.last_seq):
+        row.last_seq = seq
+
+
+# ----------------------------------------------------------------------------- anchors
+
+
+def list_anchors(session: Session, building_id: str) -> list[AnchorRow]:
+    stmt = select(AnchorRow).where(AnchorRow.building_id == building_id).order_by(AnchorRow.id)
+    return list(session.execute(stmt).scalars())
+
+
+def get_anchor(session: Session, building_id: str, public_id: str) -> AnchorRow | None:
+    stmt = select(AnchorRow).where(AnchorRow.building_id == building_id, AnchorRow.public_id == public_id)
+    return session.execute(stmt).scalar_one_or_none()
+
+
+def save_anchor(session: Session, row: AnchorRow) -> None:
+    """Insert or update by (building, public id)."""
+    existing = get_anchor(session, row.building_id, row.public_id)
+    if existing is None:
+        session.add(row)
+        return
+    for name in (
+        "floor",
+        "type",
+        "x_m",
+        "y_m",
+        "cov_xx",
+        "cov_xy",
+        "cov_yy",
+        "observation_count",
+        "known",
+        "label",
+        "last_seen_ms",
+    ):
+        setattr(existing, name, getattr(row, name))
+
+
+def delete_anchor(session: Session, building_id: str, public_id: str) -> bool:
+    result = session.execute(
+        delete(AnchorRow).where(AnchorRow.building_id == building_id, AnchorRow.public_id == public_id)
+    )
+    return bool(getattr(result, "rowcount", 0))
+
+
+# ----------------------------------------------------------------------------- positions
+
+
+def add_positions(session: Session, rows: Sequence[PositionSnapshotRow]) -> None:
+    session.add_all(rows)
+
+
+def latest_positions(session: Session, building_id: str) -> list[PositionSnapshotRow]:
+    """Every user's latest snapshot in the building."""
+    latest = (
+        select(PositionSnapshotRow.user_id, func.max(PositionSnapshotRow.id).label("id"))
+        .where(PositionSnapshotRow.building_id == building_id)
+        .group_by(PositionSnapshotRow.user_id)
+        .subquery()
+    )
+    stmt = (
+        select(PositionSnapshotRow)
+        .join(latest, PositionSnapshotRow.id == latest.c.id)
+        .order_by(PositionSnapshotRow.user_id)
+    )
+    return list(session.execute(stmt).scalars())
+
+
+def position_history(
+    session: Session, building_id: str, user_id: str, since_ms: int, until_ms: int, limit: int
+) -> list[PositionSnapshotRow]:
+    stmt = (
+        select(PositionSnapshotRow)
+        .where(
+            PositionSnapshotRow.building_id == building_id,
+            PositionSnapshotRow.user_id == user_id,
+            PositionSnapshotRow.t_ms >= since_ms,
+            PositionSnapshotRow.t_ms <= until_ms,
+        )
+        .order_by(PositionSnapshotRow.t_ms, PositionSnapshotRow.id)
+        .limit(limit)
+    )
+    return list(session.execute(stmt).scalars())
+
+
+def recent_tracks(session: Session, building_id: str, since_ms: int, limit: int) -> list[PositionSnapshotRow]:
+    stmt = (
+        select(PositionSnapshotRow)
+        .where(PositionSnapshotRow.building_id == building_id, PositionSnapshotRow.t_ms >= since_ms)
+        .order_by(PositionSnapshotRow.user_id, PositionSnapshotRow.t_ms)
+        .limit(limit)
+    )
+    return list(session.execute(stmt).scalars())
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def mark_batches_applied(session: Session, row_ids: Sequence[int]) -> None:
+    from server.store.models import BatchRow
+
+    if row_ids:
+        session.execute(update(BatchRow).where(BatchRow.id.in_(list(row_ids))).values(applied=True))
+
+
+def _insert_building_once(session: Session, values: Mapping[str, object]) -> str | None:
+    """INSERT ... ON CONFLICT (id) DO NOTHING RETURNING id: the database decides whether the id is free."""
+    dialect = session.get_bind().dialect.name
+    if dialect == "postgresql":
+        pg = postgresql.insert(BuildingRow).values(values).on_conflict_do_nothing(index_elements=["id"])
+        return session.execute(pg.returning(BuildingRow.id)).scalar_one_or_none()
+    if dialect == "sqlite":
+        lite = sqlite.insert(BuildingRow).values(values).on_conflict_do_nothing(index_elements=["id"])
+        return session.execute(lite.returning(BuildingRow.id)).scalar_one_or_none()
+    raise NotImplementedError(f"unsupported database dialect {dialect!r}; use SQLite or PostgreSQL")

@@ -1,0 +1,355 @@
+"""One owner per building: its tracker, its anchor map in SQL, and the batch path of GUIDE.md.
+
+``BuildingSession`` is synchronous and used only from its building's single worker thread, so a building's
+batches and anchor edits are applied one group at a time, in arrival order. Batches that arrive while a
+group is being processed form the next group: under load, one engine call and one transaction serve many
+phones.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+from sqlalchemy.orm import Session, sessionmaker
+
+from schemas.anchors import AnchorType, BuildingAnchor, KnownAnchorIn
+from schemas.api import BatchReceipt
+from schemas.estimates import EncounterEvent, Estimate, EstimateSource
+from schemas.live import AnchorMessage, EncounterMessage, LiveMessage, PositionMessage
+from schemas.sensors import SensorBatch
+from server import convert
+from server.errors import ConflictError, InvalidInputError, NotFoundError, ProblemError
+from server.store import repositories as repo
+from server.store.batches import AcceptedBatch, insert_batch_once
+from server.store.models import AnchorRow, PositionSnapshotRow
+from slam_core.encounters import Calibration
+from slam_core.geo import GeoFrame
+from slam_core.tracker import BuildingTracker, EstimateRow, TrackerParams, UserBatch
+
+
+@dataclass
+class Counters:
+    batches: int = 0
+    duplicates: int = 0
+    late: int = 0
+    estimates: int = 0
+    encounters: int = 0
+    encounters_applied: int = 0
+    steps_dropped: int = 0
+    recentred: int = 0
+
+
+@dataclass(frozen=True)
+class Submission:
+    batch: SensorBatch
+    n_bytes: int
+
+
+@dataclass
+class GroupResult:
+    receipts: list[BatchReceipt | ProblemError]
+    messages: list[LiveMessage] = field(default_factory=list)
+
+
+class BuildingSession:
+    def __init__(
+        self,
+        building_id: str,
+        sessions: sessionmaker[Session],
+        params: TrackerParams,
+        calibration: Calibration,
+        seed: int,
+    ) -> None:
+        self.building_id = building_id
+        self._sessions = sessions
+        self.tracker = BuildingTracker(params, calibration, seed=seed)
+        self.counters = Counters()
+        self._public: dict[int, str] = {}  # crowd index -> public id
+        self._index: dict[str, int] = {}  # public id -> crowd index
+        self._labels: dict[int, str | None] = {}
+        self._last_seq: dict[str, int] = {}
+        self._device_of_user: dict[str, str] = {}
+        self._next_anchor = 0
+        with sessions() as session:
+            building = repo.get_building(session, building_id)
+            if building is None:
+                raise NotFoundError(f"no building {building_id!r}")
+            self.geo = (
+                GeoFrame(building.origin_lat_deg, building.origin_lon_deg, building.rotation_rad)
+                if building.origin_lat_deg is not None and building.origin_lon_deg is not None
+                else None
+            )
+            for row in repo.list_anchors(session, building_id):
+                cov = np.array([[row.cov_xx, row.cov_xy], [row.cov_xy, row.cov_yy]])
+                index = self.tracker.restore_anchor(
+                    np.array([row.x_m, row.y_m]),
+                    cov,
+                    convert.anchor_type_index(AnchorType(row.type)),
+                    row.known,
+                    row.observation_count,
+                    row.last_seen_ms or 0,
+                )
+                self._link(index, row.public_id, row.label)
+
+    # ------------------------------------------------------------------ anchors
+    def _link(self, index: int, public_id: str, label: str | None) -> None:
+        self._public[index] = public_id
+        self._index[public_id] = index
+        self._labels[index] = label
+        if public_id.startswith("a-") and public_id[2:].isdigit():
+            self._next_anchor = max(self._next_anchor, int(public_id[2:]) + 1)
+
+    def _public_id(self, index: int) -> str:
+        if index not in self._public:
+            while f"a-{self._next_anchor}" in self._index:
+                self._next_anchor += 1
+            self._link(index, f"a-{self._next_anchor}", None)
+        return self._public[index]
+
+    def context(self) -> convert.BuildingContext:
+        known = {}
+        for public_id, index in self._index.items():
+            if self.tracker.crowd.is_live(index):
+                mean, _, _, is_known, _, _ = self.tracker.crowd.anchor(index)
+                if is_known:
+                    known[public_id] = (float(mean[0]), float(mean[1]))
+        return convert.BuildingContext(self.building_id, self.geo, known)
+
+    def anchor(self, index: int) -> BuildingAnchor:
+        mean, cov, type_index, known, count, last = self.tracker.crowd.anchor(index)
+        return convert.building_anchor(
+            self._public_id(index),
+            self.building_id,
+            mean,
+            cov,
+            type_index,
+            known,
+            count,
+            int(last) if math.isfinite(last) and last > 0 else None,
+            self._labels.get(index),
+        )
+
+    def anchors(self) -> list[BuildingAnchor]:
+        return [self.anchor(i) for i in sorted(self._public) if self.tracker.crowd.is_live(i)]
+
+    def get_anchor(self, public_id: str) -> BuildingAnchor:
+        index = self._index.get(public_id)
+        if index is None or not self.tracker.crowd.is_live(index):
+            raise NotFoundError(f"no anchor {public_id!r} in building {self.building_id!r}")
+        return self.anchor(index)
+
+    def put_known_anchor(
+        self, public_id: str, body: KnownAnchorIn
+    ) -> tuple[BuildingAnchor, list[LiveMessage]]:
+        index = self._index.get(public_id)
+        if index is not None and not self.tracker.crowd.is_live(index):
+            raise ConflictError(f"anchor {public_id!r} was deleted or merged; pick a new id")
+        xy = np.array([body.position.x_m, body.position.y_m])
+        type_index = convert.anchor_type_index(body.type)
+        index = self.tracker.pin_anchor(xy, type_index, index)
+        self._link(index, public_id, body.label)
+        anchor = self.anchor(index)
+        with self._sessions.begin() as session:
+            repo.save_anchor(session, self._anchor_row(anchor))
+        return anchor, [AnchorMessage(anchor=anchor)]
+
+    def delete_anchor(self, public_id: str) -> list[LiveMessage]:
+        anchor = self.get_anchor(public_id)
+        self.tracker.remove_anchor(self._index[public_id])
+        with self._sessions.begin() as session:
+            repo.delete_anchor(session, self.building_id, public_id)
+        return [AnchorMessage(anchor=anchor, deleted=True)]
+
+    def merge_anchors(self, public_ids: list[str]) -> tuple[BuildingAnchor, list[LiveMessage]]:
+        if len(set(public_ids)) != len(public_ids):
+            raise InvalidInputError("anchor_ids must be distinct")
+        olds = [self.get_anchor(p) for p in public_ids]
+        keep = self._index[public_ids[0]]
+        for p in public_ids[1:]:
+            self.tracker.merge_anchors(keep, self._index[p])
+        merged = self.anchor(keep)
+        with self._sessions.begin() as session:
+            repo.save_anchor(session, self._anchor_row(merged))
+            for p in public_ids[1:]:
+                repo.delete_anchor(session, self.building_id, p)
+        messages: list[LiveMessage] = [AnchorMessage(anchor=merged)]
+        messages += [AnchorMessage(anchor=a, deleted=True) for a in olds[1:]]
+        return merged, messages
+
+    def _anchor_row(self, a: BuildingAnchor) -> AnchorRow:
+        return AnchorRow(
+            building_id=self.building_id,
+            public_id=a.id,
+            floor=a.floor,
+            type=a.type.value,
+            x_m=a.position.x_m,
+            y_m=a.position.y_m,
+            cov_xx=a.covariance_m2[0][0],
+            cov_xy=a.covariance_m2[0][1],
+            cov_yy=a.covariance_m2[1][1],
+            observation_count=a.observation_count,
+            known=a.known,
+            label=a.label,
+            last_seen_ms=a.last_seen_ms,
+        )
+
+    # ------------------------------------------------------------------ batches
+    def latest_estimate(self, user: str) -> Estimate | None:
+        row = self.tracker.estimate(user)
+        if row is None:
+            return None
+        return self._estimate(user, row)
+
+    def _estimate(self, user: str, row: EstimateRow) -> Estimate:
+        source = (
+            EstimateSource.DYNAMICSLAM
+            if self.tracker.params.filter.use_human_anchors
+            else EstimateSource.SEMANTICSLAM
+        )
+        return convert.estimate(
+            row, self.building_id, user, self._device_of_user.get(user, user), self.geo, source
+        )
+
+    def process(self, group: list[Submission]) -> GroupResult:
+        """Apply a group of batches: dedupe, order, convert, track, persist, in one transaction."""
+        ctx = self.context()
+        results: list[BatchReceipt | ProblemError | None] = [None] * len(group)
+        converted: dict[int, tuple[UserBatch, list[str]]] = {}
+        for i, sub in enumerate(group):
+            try:
+                c = convert.to_user_batch(sub.batch, ctx)
+            except ValueError as exc:
+                results[i] = InvalidInputError(str(exc))
+                continue
+            converted[i] = (c.user_batch, c.warnings)
+        messages: list[LiveMessage] = []
+        with self._sessions.begin() as session:
+            to_apply: list[int] = []
+            row_ids: dict[int, int] = {}
+            for i in converted:
+                b = group[i].batch
+                row_id = insert_batch_once(session, self._accepted(group[i]))
+                if row_id is None:
+                    self.counters.duplicates += 1
+                    results[i] = self._receipt(b, "duplicate", converted[i][1])
+                    continue
+                last = self._last_seq_of(session, b.device_id)
+                if last is not None and b.seq <= last:
+                    self.counters.late += 1
+                    results[i] = self._receipt(b, "late", converted[i][1])
+                    continue
+                self._last_seq[b.device_id] = b.seq
+                self._device_of_user[b.effective_user_id] = b.device_id
+                repo.upsert_device(
+                    session, self.building_id, b.device_id, b.effective_user_id, b.ble_advertised_id, b.seq
+                )
+                row_ids[i] = row_id
+                to_apply.append(i)
+            # a user may have several batches in one group: apply them in rounds, one per user per call
+            pending = list(to_apply)
+            while pending:
+                seen: set[str] = set()
+                now: list[int] = []
+                later: list[int] = []
+                for i in pending:
+                    user = converted[i][0].user
+                    (later if user in seen else now).append(i)
+                    seen.add(user)
+                pending = later
+                outcome = self.tracker.apply([converted[i][0] for i in now])
+                encounters = [convert.encounter_event(e, self.building_id) for e in outcome.encounters]
+                self.counters.encounters += len(encounters)
+                self.counters.encounters_applied += sum(e.applied for e in encounters)
+                estimates = {u: self._estimate(u, row) for u, row in outcome.estimates.items()}
+                self.counters.estimates += len(estimates)
+                repo.add_positions(session, [self._position_row(e) for e in estimates.values()])
+                for index in outcome.anchors_changed:
+                    if self.tracker.crowd.is_live(index):
+                        anchor = self.anchor(index)
+                        repo.save_anchor(session, self._anchor_row(anchor))
+                        messages.append(AnchorMessage(anchor=anchor))
+                messages += [PositionMessage(estimate=e) for e in estimates.values()]
+                messages += [EncounterMessage(encounter=e) for e in encounters]
+                for i in now:
+                    b = group[i].batch
+                    report = outcome.reports[converted[i][0].user]
+                    self.counters.steps_dropped += report.steps_dropped
+                    self.counters.recentred += report.recentred
+                    warnings = list(converted[i][1])
+                    if report.steps_dropped:
+                        warnings.append(_dropped_warning(report.steps_dropped, report.status))
+                    mine = [e for e in encounters if b.effective_user_id in (e.user_a, e.user_b)]
+                    results[i] = self._receipt(
+                        b, "applied", warnings, estimates.get(b.effective_user_id), mine
+                    )
+            repo.mark_batches_applied(session, list(row_ids.values()))
+        self.counters.batches += len(group)
+        return GroupResult([r if r is not None else ProblemError("not processed") for r in results], messages)
+
+    def _last_seq_of(self, session: Session, device_id: str) -> int | None:
+        if device_id not in self._last_seq:
+            last = repo.device_last_seq(session, self.building_id, device_id)
+            if last is None:
+                return None
+            self._last_seq[device_id] = last
+        return self._last_seq[device_id]
+
+    def _accepted(self, sub: Submission) -> AcceptedBatch:
+        span = sub.batch.time_span_ms()
+        return AcceptedBatch(
+            self.building_id,
+            sub.batch.device_id,
+            sub.batch.batch_id,
+            sub.batch.seq,
+            None if span is None else span[0],
+            None if span is None else span[1],
+            sub.n_bytes,
+        )
+
+    def _receipt(
+        self,
+        batch: SensorBatch,
+        status: Literal["applied", "duplicate", "late"],
+        warnings: list[str],
+        estimate: Estimate | None = None,
+        encounters: list[EncounterEvent] | None = None,
+    ) -> BatchReceipt:
+        user = batch.effective_user_id
+        if estimate is None:
+            estimate = self.latest_estimate(user)
+        return BatchReceipt(
+            batch_id=batch.batch_id,
+            status=status,
+            duplicate=status == "duplicate",
+            tracking=self.tracker.is_tracking(user),
+            estimate=estimate,
+            encounters=encounters or [],
+            warnings=warnings,
+        )
+
+    def _position_row(self, e: Estimate) -> PositionSnapshotRow:
+        return PositionSnapshotRow(
+            building_id=self.building_id,
+            user_id=e.user_id,
+            device_id=e.device_id,
+            t_ms=e.t_ms,
+            x_m=e.position.x_m,
+            y_m=e.position.y_m,
+            cov_xx=e.covariance_m2[0][0],
+            cov_xy=e.covariance_m2[0][1],
+            cov_yy=e.covariance_m2[1][1],
+            heading_rad=e.heading_rad,
+            floor=e.floor,
+            source=e.source.value,
+        )
+
+
+def _dropped_warning(n: int, status: str) -> str:
+    if status != "tracking":
+        return (
+            f"{n} steps skipped: the user has no position yet (send a fix, a tag or a known-anchor reading)"
+        )
+    return f"{n} steps skipped: out of time order, or turns without any azimuth to start from"

@@ -1,0 +1,175 @@
+"""Online encounter detection across one building's users (DynamicSLAM Section 4.1.2), as scans and
+sightings arrive.
+
+WiFi: each scan is compared, by Eq. 3, with the other users' scans within ``scan_pair_window_ms``. Eq. 3
+only compares APs common to both scans' strongest N, so a scan can only pass against scans sharing one of
+its strongest N APs: an inverted index from those APs to recent scans finds every candidate, and the cost
+of a scan does not grow with the number of users in the building.
+
+Bluetooth: a phone's sighting of another phone's advertised id, averaged per pair (both directions) over
+``bt_smoothing_ms``, is an encounter above the -90 dBm cut-off.
+
+Both: at most one encounter per pair and model every ``pair_cooldown_ms``, and only when the calibrated
+range's standard deviation is at most ``max_sigma_m`` (the same rules as the simulated evaluation).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import defaultdict, deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from slam_core.encounters import BluetoothParams, Calibration, WifiEq3Params
+
+MODEL_WIFI = 0
+MODEL_BLUETOOTH = 1
+
+
+@dataclass(frozen=True)
+class DetectionParams:
+    wifi: WifiEq3Params = field(default_factory=WifiEq3Params)
+    bluetooth: BluetoothParams = field(default_factory=BluetoothParams)
+    scan_pair_window_ms: int = 1_000
+    pair_cooldown_ms: int = 30_000
+    max_sigma_m: float = 5.0
+    bt_smoothing_ms: int = 4_000
+    stale_ap_ms: int = 3_000
+    """Beyond the paper: scans re-report cached APs (on real phones 50-60 % of entries are older than 3 s);
+    entries whose last-seen time is more than this before the scan are dropped before Eq. 3."""
+    retention_ms: int = 10_000
+    """Scans and sightings older than this (behind the newest time seen) are forgotten."""
+
+
+@dataclass(frozen=True)
+class Detection:
+    t_ms: int
+    user_a: str
+    user_b: str
+    model: int  # MODEL_WIFI or MODEL_BLUETOOTH
+    feature: float  # Sim (dB) or averaged RSS (dBm)
+    distance_m: float
+    variance_m2: float
+
+
+@dataclass
+class _Scan:
+    user: str
+    t_ms: int
+    top: dict[int, float]  # the strongest N APs: interned BSSID -> RSS
+
+
+def eq3_sparse(top_a: dict[int, float], top_b: dict[int, float]) -> tuple[float, int]:
+    """Eq. 3 over the APs common to both scans' strongest N: (||U1 - U2|| / n, n); (inf, 0) if none."""
+    common = top_a.keys() & top_b.keys()
+    n = len(common)
+    if n == 0:
+        return math.inf, 0
+    return math.sqrt(sum((top_a[k] - top_b[k]) ** 2 for k in common)) / n, n
+
+
+class EncounterDetector:
+    def __init__(self, params: DetectionParams, calibration: Calibration) -> None:
+        self.params = params
+        self.calibration = calibration
+        self._ap_ids: dict[str, int] = {}
+        self._scans: deque[_Scan] = deque()
+        self._by_ap: dict[int, list[_Scan]] = defaultdict(list)
+        self._bt: dict[tuple[str, str], deque[tuple[int, float]]] = {}
+        self._last_pair: dict[tuple[str, str, int], int] = {}
+        self._newest_ms = 0
+        self.n_candidates = 0
+
+    # ------------------------------------------------------------------ WiFi
+    def add_scan(
+        self, user: str, t_ms: int, bssids: list[str], rss: np.ndarray, last_seen_ms: np.ndarray
+    ) -> list[Detection]:
+        """Index one scan and return the encounters it completes with other users' scans.
+        ``last_seen_ms`` is -1 where the phone did not say."""
+        p = self.params
+        fresh = (last_seen_ms < 0) | (last_seen_ms >= t_ms - p.stale_ap_ms)
+        keep = np.flatnonzero(fresh)
+        if keep.size == 0:
+            return []
+        order = keep[np.argsort(-rss[keep], kind="stable")[: p.wifi.strongest_n]]
+        top = {self._intern(bssids[i]): float(rss[i]) for i in order}
+        self._advance(t_ms)
+        found: dict[int, _Scan] = {}
+        for ap in top:
+            for other in self._by_ap.get(ap, ()):
+                if other.user != user and abs(other.t_ms - t_ms) <= p.scan_pair_window_ms:
+                    found[id(other)] = other
+        out = []
+        for other in found.values():
+            self.n_candidates += 1
+            sim, n = eq3_sparse(top, other.top)
+            if n < p.wifi.min_common or not sim < p.wifi.threshold_db:
+                continue
+            det = self._detection(max(t_ms, other.t_ms), user, other.user, MODEL_WIFI, sim)
+            if det is not None:
+                out.append(det)
+        scan = _Scan(user, t_ms, top)
+        self._scans.append(scan)
+        for ap in top:
+            self._by_ap[ap].append(scan)
+        return out
+
+    def _intern(self, bssid: str) -> int:
+        key = bssid.lower()
+        ident = self._ap_ids.get(key)
+        if ident is None:
+            ident = self._ap_ids[key] = len(self._ap_ids)
+        return ident
+
+    # ------------------------------------------------------------------ Bluetooth
+    def add_sighting(self, receiver: str, sender: str, t_ms: int, rss_dbm: float) -> Detection | None:
+        """One phone heard another; returns an encounter when the pair-averaged RSS passes the cut-off."""
+        if receiver == sender:
+            return None
+        self._advance(t_ms)
+        pair = (min(receiver, sender), max(receiver, sender))
+        history = self._bt.setdefault(pair, deque())
+        history.append((t_ms, rss_dbm))
+        while history and t_ms - history[0][0] >= self.params.bt_smoothing_ms:
+            history.popleft()
+        smoothed = sum(r for _, r in history) / len(history)
+        if smoothed < self.params.bluetooth.cutoff_dbm:
+            return None
+        return self._detection(t_ms, receiver, sender, MODEL_BLUETOOTH, smoothed)
+
+    # ------------------------------------------------------------------ shared
+    def _detection(self, t_ms: int, a: str, b: str, model: int, feature: float) -> Detection | None:
+        key = (min(a, b), max(a, b), model)
+        last = self._last_pair.get(key)
+        if last is not None and abs(t_ms - last) < self.params.pair_cooldown_ms:
+            return None
+        fit = self.calibration.wifi if model == MODEL_WIFI else self.calibration.bluetooth
+        d, var = fit.range_and_variance(np.array([feature]))
+        if var[0] > self.params.max_sigma_m**2:
+            return None
+        self._last_pair[key] = t_ms
+        return Detection(t_ms, a, b, model, feature, float(d[0]), float(var[0]))
+
+    def _advance(self, t_ms: int) -> None:
+        """Forget scans and sightings that can no longer pair with anything new."""
+        if t_ms <= self._newest_ms:
+            return
+        self._newest_ms = t_ms
+        horizon = t_ms - self.params.retention_ms
+        while self._scans and self._scans[0].t_ms < horizon:
+            old = self._scans.popleft()
+            for ap in old.top:
+                bucket = self._by_ap[ap]
+                bucket.remove(old)
+                if not bucket:
+                    del self._by_ap[ap]
+        if len(self._bt) > 4 * len(self._last_pair) + 1024:
+            self._bt = {k: v for k, v in self._bt.items() if v and v[-1][0] >= horizon}
+        cooldown_horizon = t_ms - 2 * self.params.pair_cooldown_ms
+        if len(self._last_pair) > 100_000:
+            self._last_pair = {k: v for k, v in self._last_pair.items() if v >= cooldown_horizon}
+
+    @property
+    def n_indexed_scans(self) -> int:
+        return len(self._scans)

@@ -1,0 +1,474 @@
+"""One building's tracking: every user's DynamicSLAM filter, the crowd anchor map and online encounters.
+
+``BuildingTracker.apply`` takes the arrays of one or more users' batches (already validated and converted
+by the server) and advances everything they imply, in this order:
+
+1. each user's events in time order: a first position fix starts its filter (seeded from the crowd map);
+   steps move it (Eq. 4-8); a building-anchor detection feeds the crowd map with the user's pre-update
+   estimate and updates the filter (Eq. 15-17, Algorithm 3); a later fix reweights it. Users are advanced
+   together, one engine call per round of events, so a micro-batch of many phones costs one kernel call;
+2. the crowd map is re-solved jointly (every ``graph_solve_period_ms`` of phone time) and new anchors are
+   offered to every user;
+3. WiFi scans and Bluetooth sightings are matched against the building's other users (Eq. 3, the RSS
+   cut-off); encounters between tracked users become human anchors (Algorithm 1), both users updated from
+   their pre-encounter states;
+4. the estimate of every user touched.
+
+Pure numerics: no I/O, no clock. Times are the phones' epoch milliseconds.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from slam_core.crowd_graph import CrowdGraph, GraphParams
+from slam_core.crowd_map import CrowdMapBuilder
+from slam_core.encounter_detection import Detection, DetectionParams, EncounterDetector
+from slam_core.encounters import Calibration
+from slam_core.fastslam import DynamicSlam
+from slam_core.params import FilterParams
+
+CROWD_SOLVERS = ("fusion", "graph")
+
+
+@dataclass(frozen=True)
+class TrackerParams:
+    filter: FilterParams = field(default_factory=FilterParams)
+    detection: DetectionParams = field(default_factory=DetectionParams)
+    crowd_solver: str = "graph"
+    graph_solve_period_ms: int = 5_000
+    """The joint crowd-map solve runs at most every 5 s of phone time (it takes ~0.1 s)."""
+    max_graph_users: int = 500
+    """Users whose detections the joint solve keeps; older users' tracks are forgotten (their anchors keep
+    their estimates), so a long-running server's solve stays bounded."""
+    start_sigma_floor_m: float = 0.5
+
+    def __post_init__(self) -> None:
+        if self.crowd_solver not in CROWD_SOLVERS:
+            raise ValueError(f"unknown crowd solver {self.crowd_solver!r}; valid: {', '.join(CROWD_SOLVERS)}")
+
+
+def _i64(n: int = 0) -> np.ndarray:
+    return np.zeros(n, dtype=np.int64)
+
+
+def _f64(n: int = 0) -> np.ndarray:
+    return np.zeros(n, dtype=np.float64)
+
+
+@dataclass(frozen=True)
+class UserBatch:
+    """One user's share of a batch, as arrays. Times are epoch ms; headings are radians."""
+
+    user: str
+    ble_id: str | None = None
+    fix_t: np.ndarray = field(default_factory=_i64)
+    fix_xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    fix_sigma: np.ndarray = field(default_factory=_f64)
+    fix_azimuth: np.ndarray = field(default_factory=_f64)  # clockwise from north, NaN when unknown
+    step_t: np.ndarray = field(default_factory=_i64)
+    step_length: np.ndarray = field(default_factory=_f64)
+    step_azimuth: np.ndarray = field(default_factory=_f64)  # clockwise from north, NaN when not given
+    step_turn: np.ndarray = field(default_factory=_f64)  # counter-clockwise change, NaN when not given
+    detect_t: np.ndarray = field(default_factory=_i64)
+    detect_type: np.ndarray = field(default_factory=_i64)
+    scan_t: np.ndarray = field(default_factory=_i64)
+    scan_offsets: np.ndarray = field(default_factory=lambda: np.zeros(1, dtype=np.int64))
+    scan_bssid: tuple[str, ...] = ()
+    scan_rss: np.ndarray = field(default_factory=_f64)
+    scan_last_seen: np.ndarray = field(default_factory=_i64)  # -1 when the phone did not say
+    peer_t: np.ndarray = field(default_factory=_i64)
+    peer_id: tuple[str, ...] = ()  # the heard phones' advertised ids
+    peer_rss: np.ndarray = field(default_factory=_f64)
+
+    def __post_init__(self) -> None:
+        f, s, d, c, p = (
+            self.fix_t.size,
+            self.step_t.size,
+            self.detect_t.size,
+            self.scan_t.size,
+            self.peer_t.size,
+        )
+        shapes_ok = (
+            self.fix_xy.shape == (f, 2)
+            and self.fix_sigma.shape == (f,)
+            and self.fix_azimuth.shape == (f,)
+            and self.step_length.shape == self.step_azimuth.shape == self.step_turn.shape == (s,)
+            and self.detect_type.shape == (d,)
+            and self.scan_offsets.shape == (c + 1,)
+            and int(self.scan_offsets[0]) == 0
+            and len(self.scan_bssid)
+            == self.scan_rss.size
+            == self.scan_last_seen.size
+            == int(self.scan_offsets[-1])
+            and len(self.peer_id) == self.peer_rss.size == p
+        )
+        if not shapes_ok:
+            raise ValueError(f"user batch of {self.user!r}: inconsistent array shapes")
+        finite = all(
+            np.all(np.isfinite(a))
+            for a in (self.fix_xy, self.fix_sigma, self.step_length, self.scan_rss, self.peer_rss)
+        )
+        if not finite or np.any(self.fix_sigma <= 0) or np.any(self.step_length < 0):
+            raise ValueError(
+                f"user batch of {self.user!r}: non-finite values, sigma <= 0 or negative lengths"
+            )
+
+
+@dataclass
+class UserReport:
+    """What happened to one user's batch."""
+
+    status: str = "awaiting_fix"  # "tracking" once started
+    steps_applied: int = 0
+    steps_dropped: int = 0  # before the first fix, out of time order, or with no heading reference
+    detections_applied: int = 0
+    fixes_applied: int = 0
+    recentred: int = 0
+
+
+@dataclass(frozen=True)
+class EstimateRow:
+    t_ms: int
+    x: float
+    y: float
+    cov: tuple[float, float, float]  # xx, xy, yy
+    best: tuple[float, float]
+    heading: float  # counter-clockwise from east
+
+
+@dataclass(frozen=True)
+class EncounterResult:
+    detection: Detection
+    applied: bool
+
+
+@dataclass
+class TrackerOutcome:
+    reports: dict[str, UserReport]
+    estimates: dict[str, EstimateRow]
+    encounters: list[EncounterResult]
+    anchors_changed: list[int]  # crowd indices created or re-estimated
+
+
+@dataclass
+class _User:
+    number: int = -1  # start order: the crowd graph's user id
+    slot: int = -1
+    last_t_ms: int = -1
+    heading: float = math.nan  # counter-clockwise from east, of the last step
+    displacement: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    walked: float = 0.0
+
+
+@dataclass
+class _Round:
+    users: list[str] = field(default_factory=list)
+    step_len: list[np.ndarray] = field(default_factory=list)
+    step_head: list[np.ndarray] = field(default_factory=list)
+    det_users: list[str] = field(default_factory=list)
+    det_types: list[int] = field(default_factory=list)
+    det_t: list[int] = field(default_factory=list)
+    fix_users: list[str] = field(default_factory=list)
+    fix_xy: list[np.ndarray] = field(default_factory=list)
+    fix_sigma: list[float] = field(default_factory=list)
+
+
+class BuildingTracker:
+    def __init__(self, params: TrackerParams, calibration: Calibration, seed: int = 0) -> None:
+        self.params = params
+        fp = params.filter
+        self.engine = DynamicSlam(fp, seed=seed)
+        self.crowd = CrowdMapBuilder(
+            fp.anchors.type_posterior, fp.anchors.detection_sigma_m, fuse=params.crowd_solver == "fusion"
+        )
+        self.graph = CrowdGraph(GraphParams(detection_sigma_m=fp.anchors.detection_sigma_m))
+        self.detector = EncounterDetector(params.detection, calibration)
+        self._users: dict[str, _User] = {}
+        self._by_ble: dict[str, str] = {}
+        self._last_solve_ms = -(2**62)
+        self._graph_users: list[int] = []
+        self._started = 0
+        self.n_types = fp.anchors.type_posterior.shape[0]
+
+    # ------------------------------------------------------------------ users and anchors
+    @property
+    def users(self) -> list[str]:
+        return list(self._users)
+
+    def is_tracking(self, user: str) -> bool:
+        u = self._users.get(user)
+        return u is not None and u.slot >= 0
+
+    def last_time_ms(self, user: str) -> int:
+        u = self._users.get(user)
+        return -1 if u is None else u.last_t_ms
+
+    def remove_user(self, user: str) -> None:
+        """Forget a user (idle or gone); its filter slot is freed. Its crowd-map contributions stay."""
+        u = self._users.pop(user, None)
+        if u is None:
+            raise KeyError(f"unknown user {user!r}")
+        if u.slot >= 0:
+            self.engine.remove_user(u.slot)
+        self._by_ble = {k: v for k, v in self._by_ble.items() if v != user}
+
+    def pin_anchor(self, xy: np.ndarray, anchor_type: int, index: int | None = None) -> int:
+        """Add an operator-known anchor (or pin an existing one); returns its crowd index."""
+        self._check_type(anchor_type)
+        if index is None:
+            index = self.crowd.add_known(xy, anchor_type)
+        else:
+            self.crowd.pin(index, xy, anchor_type)
+        self.graph.set_known(index, np.asarray(xy, dtype=float))
+        self._offer_crowd_map()
+        return index
+
+    def restore_anchor(
+        self, xy: np.ndarray, cov: np.ndarray, anchor_type: int, known: bool, observations: int, t_ms: int
+    ) -> int:
+        self._check_type(anchor_type)
+        index = self.crowd.restore(xy, cov, anchor_type, known, observations, float(t_ms))
+        if known:
+            self.graph.set_known(index, np.asarray(xy, dtype=float))
+        return index
+
+    def remove_anchor(self, index: int) -> None:
+        self.crowd.remove(index)
+
+    def merge_anchors(self, keep: int, drop: int) -> None:
+        self.crowd.merge(keep, drop)
+        self.graph.relabel(drop, keep)
+
+    def _check_type(self, anchor_type: int) -> None:
+        if not 0 <= anchor_type < self.n_types:
+            raise ValueError(f"anchor type must be in [0, {self.n_types})")
+
+    def estimate(self, user: str) -> EstimateRow | None:
+        u = self._users.get(user)
+        if u is None or u.slot < 0:
+            return None
+        return self._rows([user])[user]
+
+    # ------------------------------------------------------------------ the batch path
+    def apply(self, batches: list[UserBatch]) -> TrackerOutcome:
+        """Advance the building by these users' batches (at most one per user)."""
+        names = [b.user for b in batches]
+        if len(set(names)) != len(names):
+            raise ValueError("at most one batch per user per call")
+        for b in batches:
+            if np.any((b.detect_type < 0) | (b.detect_type >= self.n_types)):
+                raise ValueError(f"user batch of {b.user!r}: anchor type outside [0, {self.n_types})")
+        reports = {b.user: UserReport() for b in batches}
+        for b in batches:
+            if b.user not in self._users:
+                self._users[b.user] = _User()
+            if b.ble_id is not None:
+                self._by_ble[b.ble_id] = b.user
+        changed: set[int] = set()
+        rounds = self._plan(batches, reports)
+        newest = max([self._users[b.user].last_t_ms for b in batches], default=-1)
+        crowd_size = len(self.crowd)
+        for rnd in rounds:
+            self._run_round(rnd, reports, changed)
+        if (
+            self.params.crowd_solver == "graph"
+            and changed
+            and newest - self._last_solve_ms >= self.params.graph_solve_period_ms
+        ):
+            self._last_solve_ms = newest
+            means, covs = self.graph.solve(self.crowd.means())
+            for c, mean in means.items():
+                if self.crowd.is_live(c):
+                    self.crowd.set_estimate(c, mean, covs[c])
+                    changed.add(c)
+            active = self.engine.active_users
+            if active.size:
+                self.engine.refresh_crowd_anchors(active, self.crowd.snapshot())
+        if len(self.crowd) != crowd_size:
+            self._offer_crowd_map()
+        encounters = self._encounters(batches)
+        touched = {b.user for b in batches if self.is_tracking(b.user)}
+        for e in encounters:
+            if e.applied:
+                touched.update((e.detection.user_a, e.detection.user_b))
+        for b in batches:
+            reports[b.user].status = "tracking" if self.is_tracking(b.user) else "awaiting_fix"
+        estimates = self._rows(sorted(touched))
+        return TrackerOutcome(reports, estimates, encounters, sorted(changed))
+
+    def _plan(self, batches: list[UserBatch], reports: dict[str, UserReport]) -> list[_Round]:
+        """Each user's events in time order, cut into rounds at every observation (detection or fix)."""
+        rounds: list[_Round] = []
+        for b in batches:
+            u = self._users[b.user]
+            report = reports[b.user]
+            # (time, kind order, index): fixes first at equal times, then steps, then detections
+            events = sorted(
+                [(int(t), 0, i) for i, t in enumerate(b.fix_t)]
+                + [(int(t), 1, i) for i, t in enumerate(b.step_t)]
+                + [(int(t), 2, i) for i, t in enumerate(b.detect_t)]
+            )
+            r = 0
+            lengths: list[float] = []
+            headings: list[float] = []
+            started = u.slot >= 0
+            for t, kind, i in events:
+                if t < u.last_t_ms or (t == u.last_t_ms and kind == 1):
+                    report.steps_dropped += kind == 1
+                    continue
+                if kind == 1:
+                    heading = self._step_heading(u, b, i)
+                    if not started or not math.isfinite(heading):
+                        report.steps_dropped += 1
+                        continue
+                    u.heading = heading
+                    u.last_t_ms = t
+                    lengths.append(float(b.step_length[i]))
+                    headings.append(heading)
+                    continue
+                while len(rounds) <= r:
+                    rounds.append(_Round())
+                rnd = rounds[r]
+                if lengths:
+                    rnd.users.append(b.user)
+                    rnd.step_len.append(np.array(lengths))
+                    rnd.step_head.append(np.array(headings))
+                    report.steps_applied += len(lengths)
+                    lengths, headings = [], []
+                if kind == 0:
+                    if not started:
+                        self._start(b.user, b.fix_xy[i], float(b.fix_sigma[i]), float(b.fix_azimuth[i]))
+                        started = True
+                    else:
+                        rnd.fix_users.append(b.user)
+                        rnd.fix_xy.append(b.fix_xy[i])
+                        rnd.fix_sigma.append(float(b.fix_sigma[i]))
+                    report.fixes_applied += 1
+                elif started:
+                    rnd.det_users.append(b.user)
+                    rnd.det_types.append(int(b.detect_type[i]))
+                    rnd.det_t.append(t)
+                    report.detections_applied += 1
+                u.last_t_ms = t
+                r += 1
+            if lengths:
+                while len(rounds) <= r:
+                    rounds.append(_Round())
+                rounds[r].users.append(b.user)
+                rounds[r].step_len.append(np.array(lengths))
+                rounds[r].step_head.append(np.array(headings))
+                report.steps_applied += len(lengths)
+        return rounds
+
+    def _step_heading(self, u: _User, b: UserBatch, i: int) -> float:
+        """The step's direction, counter-clockwise from east: from the azimuth when given, else the last
+        heading plus the turn (NaN when neither is known)."""
+        azimuth = float(b.step_azimuth[i])
+        if math.isfinite(azimuth):
+            return math.pi / 2 - azimuth
+        turn = float(b.step_turn[i])
+        if math.isfinite(turn) and math.isfinite(u.heading):
+            return u.heading + turn
+        return math.nan
+
+    def _start(self, user: str, xy: np.ndarray, sigma: float, azimuth: float) -> None:
+        u = self._users[user]
+        heading = math.pi / 2 - azimuth if math.isfinite(azimuth) else 0.0
+        if math.isfinite(azimuth):
+            u.heading = heading
+        sigma = max(sigma, self.params.start_sigma_floor_m)
+        u.slot = self.engine.add_user(float(xy[0]), float(xy[1]), heading, sigma, self.crowd.snapshot())
+        u.number = self._started
+        self._started += 1
+        self.graph.add_user(u.number, np.asarray(xy, dtype=float))
+        self._graph_users.append(u.number)
+        while len(self._graph_users) > self.params.max_graph_users:
+            self.graph.forget_user(self._graph_users.pop(0))
+
+    def _run_round(self, rnd: _Round, reports: dict[str, UserReport], changed: set[int]) -> None:
+        if rnd.users:
+            users = [self._users[n] for n in rnd.users]
+            counts = [len(x) for x in rnd.step_len]
+            offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+            lengths = np.concatenate(rnd.step_len)
+            headings = np.concatenate(rnd.step_head)
+            self.engine.step(np.array([u.slot for u in users], dtype=np.int64), offsets, lengths, headings)
+            for u, ls, hs in zip(users, rnd.step_len, rnd.step_head, strict=True):
+                u.displacement = u.displacement + np.array([ls @ np.cos(hs), ls @ np.sin(hs)])
+                u.walked += float(ls.sum())
+        if rnd.det_users:
+            slots = np.array([self._users[n].slot for n in rnd.det_users], dtype=np.int64)
+            before = self.engine.summaries(slots)
+            ids = []
+            for name, row, f, t in zip(rnd.det_users, before, rnd.det_types, rnd.det_t, strict=True):
+                cov = np.array([[row[2], row[3]], [row[3], row[4]]])
+                ids.append(self.crowd.contribute(self._users[name].number, row[0:2], cov, f, float(t)))
+            self.engine.observe_building_anchors(slots, np.array(rnd.det_types), np.array(ids))
+            changed.update(ids)
+            if self.params.crowd_solver == "graph":
+                for name, c in zip(rnd.det_users, ids, strict=True):
+                    u = self._users[name]
+                    self.graph.add_detection(u.number, int(c), u.displacement, u.walked)
+        if rnd.fix_users:
+            slots = np.array([self._users[n].slot for n in rnd.fix_users], dtype=np.int64)
+            recentred = self.engine.observe_position(slots, np.array(rnd.fix_xy), np.array(rnd.fix_sigma))
+            for name, flag in zip(rnd.fix_users, recentred, strict=True):
+                reports[name].recentred += int(flag)
+
+    def _offer_crowd_map(self) -> None:
+        active = self.engine.active_users
+        if active.size:
+            self.engine.merge_crowd_map(active, self.crowd.snapshot())
+
+    def _encounters(self, batches: list[UserBatch]) -> list[EncounterResult]:
+        found: list[Detection] = []
+        for b in batches:
+            for c in range(b.scan_t.size):
+                lo, hi = int(b.scan_offsets[c]), int(b.scan_offsets[c + 1])
+                found += self.detector.add_scan(
+                    b.user,
+                    int(b.scan_t[c]),
+                    list(b.scan_bssid[lo:hi]),
+                    b.scan_rss[lo:hi],
+                    b.scan_last_seen[lo:hi],
+                )
+            for k in range(b.peer_t.size):
+                peer = self._by_ble.get(b.peer_id[k])
+                if peer is None:
+                    continue
+                det = self.detector.add_sighting(b.user, peer, int(b.peer_t[k]), float(b.peer_rss[k]))
+                if det is not None:
+                    found.append(det)
+        if not self.params.filter.use_human_anchors:
+            return [EncounterResult(d, False) for d in found]
+        usable = [d for d in found if self.is_tracking(d.user_a) and self.is_tracking(d.user_b)]
+        if not usable:
+            return [EncounterResult(d, False) for d in found]
+        outcome = self.engine.observe_encounters(
+            np.array([self._users[d.user_a].slot for d in usable]),
+            np.array([self._users[d.user_b].slot for d in usable]),
+            np.array([d.distance_m for d in usable]),
+            np.array([d.variance_m2 for d in usable]),
+        )
+        applied = {id(d): bool(a) for d, a in zip(usable, outcome.applied, strict=True)}
+        return [EncounterResult(d, applied.get(id(d), False)) for d in found]
+
+    def _rows(self, users: list[str]) -> dict[str, EstimateRow]:
+        if not users:
+            return {}
+        summary = self.engine.summaries(np.array([self._users[n].slot for n in users], dtype=np.int64))
+        return {
+            n: EstimateRow(
+                self._users[n].last_t_ms,
+                float(row[0]),
+                float(row[1]),
+                (float(row[2]), float(row[3]), float(row[4])),
+                (float(row[5]), float(row[6])),
+                float(row[7]),
+            )
+            for n, row in zip(users, summary, strict=True)
+        }

@@ -1,0 +1,127 @@
+"""Over real HTTP and WebSocket: a simulated crowd posts to a running server; the estimates it gets back
+equal the offline engine's on the same batches with the same seed, and a dashboard sees them live."""
+
+from __future__ import annotations
+
+import json
+import socket
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+import uvicorn
+from websockets.sync.client import connect
+
+from schemas.api import KeyScope
+from server.app import create_app, load_calibration, tracker_params
+from server.auth import mint_key
+from server.convert import BuildingContext, anchor_type_index, to_user_batch
+from server.crowd_client import device_keys, post_crowd, prepare_building
+from server.settings import Settings
+from server.simulated_phones import known_anchors, simulated_batches
+from server.store.db import make_engine, make_session_factory
+from server.store.migrate import upgrade
+from slam_core.simulate import Scenario, simulate
+from slam_core.tracker import BuildingTracker
+from tests.conftest import SHARED
+
+
+def _small_testbed() -> Scenario:
+    raw = json.loads((SHARED / "scenarios" / "paper-testbed.json").read_text())
+    raw["users"]["count"] = 6
+    raw["users"]["walk_length_m"] = 60.0
+    return Scenario.from_dict(raw)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.fixture
+def live_server(tmp_path: Path) -> Iterator[tuple[str, str, Settings]]:
+    url = f"sqlite:///{tmp_path / 'db.sqlite3'}"
+    engine = make_engine(url)
+    upgrade(engine)
+    with make_session_factory(engine).begin() as session:
+        operator, _ = mint_key(session, KeyScope.OPERATOR)
+    engine.dispose()
+    settings = Settings(data_dir=tmp_path, database_url=url, seed=3)
+    port = _free_port()
+    server = uvicorn.Server(
+        uvicorn.Config(
+            create_app(settings), host="127.0.0.1", port=port, log_level="warning", ws="websockets-sansio"
+        )
+    )
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 120
+    while not server.started:
+        assert thread.is_alive(), "server did not start"
+        assert time.monotonic() < deadline, "server did not start in time"
+        time.sleep(0.05)
+    try:
+        yield f"http://127.0.0.1:{port}", operator, settings
+    finally:
+        server.should_exit = True
+        thread.join(timeout=10)
+
+
+def test_live_estimates_equal_the_offline_engine(live_server: tuple[str, str, Settings]) -> None:
+    base, operator, settings = live_server
+    sim = simulate(_small_testbed(), 1)
+    received: list[dict[str, object]] = []
+    with httpx.Client(base_url=base, timeout=60) as client:
+        prepare_building(client, "sim", operator, sim)
+        keys = device_keys(client, "sim", operator, len(sim.users))
+        dashboard = client.post(
+            "/v1/buildings/sim/keys",
+            json={"scope": "dashboard"},
+            headers={"Authorization": f"Bearer {operator}"},
+        ).json()["key"]
+        ws_url = base.replace("http", "ws", 1) + f"/v1/buildings/sim/live?token={dashboard}"
+        with connect(ws_url) as ws:
+            report = post_crowd(client, sim, "sim", keys)
+            deadline = time.monotonic() + 10
+            while time.monotonic() < deadline:
+                try:
+                    received.append(json.loads(ws.recv(timeout=1.0)))
+                except TimeoutError:
+                    break
+        with (
+            pytest.raises(Exception, match="403"),
+            connect(base.replace("http", "ws", 1) + "/v1/buildings/sim/live?token=wrong") as bad,
+        ):
+            bad.recv(timeout=5)
+    assert report.errors == 0
+    assert report.batches > 100
+    # offline: the same batches through the same conversion and tracker, same seed and parameters
+    tracker = BuildingTracker(tracker_params(settings), load_calibration(None), seed=settings.seed)
+    for anchor in known_anchors(sim):
+        tracker.pin_anchor(np.array(anchor.position), anchor_type_index(anchor.type))
+    ctx = BuildingContext("sim", None, {})
+    live = iter(report.receipts)
+    compared = 0
+    for batch in simulated_batches(sim, "sim"):
+        outcome = tracker.apply([to_user_batch(batch, ctx).user_batch])
+        receipt = next(live)
+        offline = outcome.estimates.get(batch.device_id)
+        if offline is None:
+            assert receipt.estimate is None or not batch.steps
+            continue
+        assert receipt.estimate is not None
+        assert receipt.estimate.position.x_m == pytest.approx(offline.x, abs=1e-9)
+        assert receipt.estimate.position.y_m == pytest.approx(offline.y, abs=1e-9)
+        compared += 1
+    assert compared > 100
+    assert float(np.median(report.error_m)) < 2.0
+    kinds = {m["type"] for m in received}
+    assert "position" in kinds
+    assert "anchor" in kinds
+    positions = [m for m in received if m["type"] == "position"]
+    assert len(positions) >= compared
