@@ -83,7 +83,8 @@ def create_app(settings: Settings) -> FastAPI:
         params = tracker_params(settings)
         calibration = load_calibration(settings.encounter_calibration)
         _warm_kernels(params, calibration)
-        tracking = TrackingService(sessions, broadcaster, params, calibration, settings.seed)
+        recordings = settings.recordings_dir if settings.record else None
+        tracking = TrackingService(sessions, broadcaster, params, calibration, settings.seed, recordings)
         app.state.crowdslam = AppState(
             settings, engine, sessions, broadcaster, tracking, Metrics(), time.time()
         )

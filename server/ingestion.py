@@ -12,6 +12,7 @@ import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TypeVar
 
 from sqlalchemy.orm import Session, sessionmaker
@@ -20,6 +21,7 @@ from schemas.api import BatchReceipt
 from schemas.live import LiveMessage
 from server.broadcast import Broadcaster
 from server.errors import ProblemError
+from server.recording import BuildingRecorder
 from server.tracking import BuildingSession, Submission
 from slam_core.encounters import Calibration
 from slam_core.tracker import TrackerParams
@@ -107,6 +109,8 @@ class BuildingWorker:
         with contextlib.suppress(asyncio.CancelledError):
             await self._task
         self._executor.shutdown(wait=True)
+        if self.session.recorder is not None:
+            self.session.recorder.close()
 
 
 class TrackingService:
@@ -119,7 +123,9 @@ class TrackingService:
         params: TrackerParams,
         calibration: Calibration,
         seed: int,
+        recordings: Path | None = None,
     ) -> None:
+        self._recordings = recordings
         self._sessions = sessions
         self._broadcaster = broadcaster
         self._params = params
@@ -135,8 +141,17 @@ class TrackingService:
         async with self._loading:
             worker = self._workers.get(building_id)
             if worker is None:
+                recorder = (
+                    None if self._recordings is None else BuildingRecorder(self._recordings, building_id)
+                )
                 session = await asyncio.to_thread(
-                    BuildingSession, building_id, self._sessions, self._params, self._calibration, self._seed
+                    BuildingSession,
+                    building_id,
+                    self._sessions,
+                    self._params,
+                    self._calibration,
+                    self._seed,
+                    recorder,
                 )
                 worker = self._workers[building_id] = BuildingWorker(session, self._broadcaster)
         return worker

@@ -30,9 +30,14 @@ class Settings(BaseSettings):
         description="JSON of the encounter range models (crowdslam calibrate). Default: the bundled fit from "
         "the simulated paper testbed; calibrate real buildings.",
     )
+    record: bool = Field(default=True, description="Record every accepted batch and estimate to MCAP.")
     mode: Literal["dynamicslam", "semanticslam"] = Field(
         default="dynamicslam", description="semanticslam turns human anchors (encounters) off."
     )
+
+    @property
+    def recordings_dir(self) -> Path:
+        return self.data_dir / "recordings"
 
     @property
     def resolved_database_url(self) -> str:

@@ -22,6 +22,7 @@ from schemas.live import AnchorMessage, EncounterMessage, LiveMessage, PositionM
 from schemas.sensors import SensorBatch
 from server import convert
 from server.errors import ConflictError, InvalidInputError, NotFoundError, ProblemError
+from server.recording import BuildingRecorder
 from server.store import repositories as repo
 from server.store.batches import AcceptedBatch, insert_batch_once
 from server.store.models import AnchorRow, PositionSnapshotRow
@@ -45,7 +46,8 @@ class Counters:
 @dataclass(frozen=True)
 class Submission:
     batch: SensorBatch
-    n_bytes: int
+    raw: bytes  # the body as posted, for the recording
+    received_ns: int
 
 
 @dataclass
@@ -62,8 +64,10 @@ class BuildingSession:
         params: TrackerParams,
         calibration: Calibration,
         seed: int,
+        recorder: BuildingRecorder | None = None,
     ) -> None:
         self.building_id = building_id
+        self.recorder = recorder
         self._sessions = sessions
         self.tracker = BuildingTracker(params, calibration, seed=seed)
         self.counters = Counters()
@@ -236,6 +240,8 @@ class BuildingSession:
                     self.counters.duplicates += 1
                     results[i] = self._receipt(b, "duplicate", converted[i][1])
                     continue
+                if self.recorder is not None:
+                    self.recorder.record_batch(group[i].raw, group[i].received_ns)
                 last = self._last_seq_of(session, b.device_id)
                 if last is not None and b.seq <= last:
                     self.counters.late += 1
@@ -265,6 +271,8 @@ class BuildingSession:
                 self.counters.encounters_applied += sum(e.applied for e in encounters)
                 estimates = {u: self._estimate(u, row) for u, row in outcome.estimates.items()}
                 self.counters.estimates += len(estimates)
+                if self.recorder is not None:
+                    self.recorder.record_estimates(list(estimates.values()), group[now[0]].received_ns)
                 repo.add_positions(session, [self._position_row(e) for e in estimates.values()])
                 for index in outcome.anchors_changed:
                     if self.tracker.crowd.is_live(index):
@@ -306,7 +314,7 @@ class BuildingSession:
             sub.batch.seq,
             None if span is None else span[0],
             None if span is None else span[1],
-            sub.n_bytes,
+            len(sub.raw),
         )
 
     def _receipt(

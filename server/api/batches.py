@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from typing import Any
 
 from fastapi import APIRouter, Request, WebSocket, WebSocketDisconnect
@@ -36,7 +37,7 @@ async def ingest(state: AppState, caller: Principal, building_id: str, body: byt
         )
     caller.require_device(building_id, batch.device_id)
     worker = await state.tracking.worker(building_id)
-    return await worker.submit(Submission(batch, len(body)))
+    return await worker.submit(Submission(batch, body, time.time_ns()))
 
 
 @router.post(

@@ -19,6 +19,14 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "serve": ("server.cli.serve_cmd", "run the HTTP and WebSocket server"),
     "simulate": ("server.cli.simulate_cmd", "drive a simulated crowd of phones against a running server"),
     "demo": ("server.cli.demo_cmd", "the server on SQLite with a simulated crowd posting over HTTP"),
+    "replay": (
+        "server.cli.replay_cmd",
+        "feed an MCAP recording through the ingestion path (offline or to a server)",
+    ),
+    "import-msindoor": (
+        "server.cli.import_msindoor_cmd",
+        "turn Indoor Location 2.0 walks into an MCAP recording",
+    ),
     "evaluate": (
         "server.cli.evaluate_cmd",
         "run the simulated testbed (or a sweep) and write metrics as JSON",

@@ -21,6 +21,7 @@ class Api:
     client: TestClient
     operator: str
     url: str
+    settings: Settings
 
     def auth(self, key: str) -> dict[str, str]:
         return {"Authorization": f"Bearer {key}"}
@@ -51,7 +52,7 @@ def make_api(url: str, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Api
     engine.dispose()
     settings = Settings(data_dir=tmp_path_factory.mktemp("data"), database_url=url)
     with TestClient(create_app(settings)) as client:
-        yield Api(client, operator, url)
+        yield Api(client, operator, url, settings)
 
 
 @pytest.fixture

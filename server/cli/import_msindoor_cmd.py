@@ -1,0 +1,47 @@
+"""``crowdslam import-msindoor DIR --out FILE.mcap``: public Indoor Location 2.0 walks as a recording."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "dir", type=Path, help="a floor folder (with path_data_files/) or a folder of .txt walks"
+    )
+    parser.add_argument("--out", type=Path, required=True, help="the MCAP file to write")
+    parser.add_argument("--building", default="msindoor", help="building id written into the batches")
+
+
+def run(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from server.datasets.msindoor import read_trace
+    from server.datasets.msindoor_batches import trace_batches
+    from server.recording import BuildingRecorder
+
+    folder = args.dir / "path_data_files" if (args.dir / "path_data_files").is_dir() else args.dir
+    walks = sorted(folder.glob("*.txt"))
+    if not walks:
+        print(f"error: no .txt walks in {folder}", file=sys.stderr)
+        return 2
+    staging = args.out.parent / f".{args.out.stem}-staging"
+    recorder = BuildingRecorder(staging, args.building)
+    t0 = time.time_ns()
+    n = 0
+    # walks are recorded one after another, each as its own device, batches in time order
+    for walk in tqdm(walks, desc="walks", unit="walk"):
+        for batch in trace_batches(read_trace(walk), args.building, f"walk-{walk.stem[:48]}"):
+            recorder.record_batch(batch.model_dump_json(exclude_none=True).encode(), t0 + n)
+            n += 1
+    recorder.close()
+    (produced,) = (staging / args.building).glob("*.mcap")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    produced.replace(args.out)
+    (staging / args.building).rmdir()
+    staging.rmdir()
+    print(f"{len(walks)} walks, {n} batches -> {args.out}")
+    return 0

@@ -1,0 +1,47 @@
+"""``crowdslam replay FILE``: feed a recording through the ingestion path, offline or to a server."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("file", type=Path, help="an MCAP recording (from the server or import-msindoor)")
+    target = parser.add_mutually_exclusive_group(required=True)
+    target.add_argument("--offline", action="store_true", help="in-process, on a fresh temporary SQLite")
+    target.add_argument("--server", metavar="URL", help="post to a running server")
+    parser.add_argument("--key", help="operator key (with --server)")
+    parser.add_argument("--json", type=Path, help="write the summary and each user's last estimate here")
+
+
+def run(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from server.recording import read_batches
+    from server.replay import replay_offline, replay_to_server
+    from server.settings import get_settings
+
+    if not args.file.exists():
+        print(f"error: no such recording {args.file}", file=sys.stderr)
+        return 2
+    if args.server and not args.key:
+        print("error: --server needs --key (an operator key)", file=sys.stderr)
+        return 2
+    with tqdm(desc="batches", unit="batch") as bar:
+        if args.offline:
+            report = replay_offline(read_batches(args.file), get_settings(), bar.update)
+        else:
+            import httpx
+
+            with httpx.Client(base_url=args.server, timeout=60.0) as client:
+                report = replay_to_server(read_batches(args.file), client, args.key, bar.update)
+    summary = report.summary()
+    counts = {k: v for k, v in summary.items() if k != "latest"}
+    print(json.dumps(counts, indent=2))
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(summary, indent=2))
+    return 0 if report.rejected == 0 else 1
