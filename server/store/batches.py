@@ -5,9 +5,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from sqlalchemy import select
-from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.orm import Session
 
+from server.store.db import insert_once
 from server.store.models import BatchRow
 
 
@@ -38,20 +38,7 @@ def insert_batch_once(session: Session, batch: AcceptedBatch) -> int | None:
         "n_bytes": batch.n_bytes,
         "applied": False,
     }
-    dialect = session.get_bind().dialect.name
-    conflict_columns = ["building_id", "device_id", "batch_id"]
-    if dialect == "postgresql":
-        pg_stmt = (
-            postgresql.insert(BatchRow).values(values).on_conflict_do_nothing(index_elements=conflict_columns)
-        )
-        row_id = session.execute(pg_stmt.returning(BatchRow.id)).scalar_one_or_none()
-    elif dialect == "sqlite":
-        lite_stmt = (
-            sqlite.insert(BatchRow).values(values).on_conflict_do_nothing(index_elements=conflict_columns)
-        )
-        row_id = session.execute(lite_stmt.returning(BatchRow.id)).scalar_one_or_none()
-    else:
-        raise NotImplementedError(f"unsupported database dialect {dialect!r}; use SQLite or PostgreSQL")
+    row_id = insert_once(session, BatchRow, values, ["building_id", "device_id", "batch_id"], BatchRow.id)
     return int(row_id) if row_id is not None else None
 
 

@@ -6,8 +6,9 @@ from pathlib import Path
 from typing import Any
 
 from sqlalchemy import Engine, create_engine, event
+from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.engine import make_url
-from sqlalchemy.orm import Session, sessionmaker
+from sqlalchemy.orm import InstrumentedAttribute, Session, sessionmaker
 
 
 def _sqlite_pragmas(dbapi_connection: Any, _record: Any) -> None:
@@ -34,3 +35,26 @@ def make_engine(url: str, **kwargs: Any) -> Engine:
 
 def make_session_factory(engine: Engine) -> sessionmaker[Session]:
     return sessionmaker(engine, expire_on_commit=False)
+
+
+def insert_once(
+    session: Session,
+    model: type[Any],
+    values: dict[str, Any],
+    conflict_columns: list[str],
+    returning: InstrumentedAttribute[Any],
+) -> Any | None:
+    """``INSERT ... ON CONFLICT DO NOTHING RETURNING <column>``: the value of the new row, or None when the
+    conflict columns already exist. The database decides atomically (never check-then-insert)."""
+    dialect = session.get_bind().dialect.name
+    if dialect == "postgresql":
+        pg_stmt = (
+            postgresql.insert(model).values(values).on_conflict_do_nothing(index_elements=conflict_columns)
+        )
+        return session.execute(pg_stmt.returning(returning)).scalar_one_or_none()
+    if dialect == "sqlite":
+        lite_stmt = (
+            sqlite.insert(model).values(values).on_conflict_do_nothing(index_elements=conflict_columns)
+        )
+        return session.execute(lite_stmt.returning(returning)).scalar_one_or_none()
+    raise NotImplementedError(f"unsupported database dialect {dialect!r}; use SQLite or PostgreSQL")

@@ -4,12 +4,12 @@ owns the transaction)."""
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 
 from sqlalchemy import delete, func, select, update
-from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.orm import Session
 
+from server.store.db import insert_once
 from server.store.models import (
     AnchorRow,
     ApiKeyRow,
@@ -42,7 +42,7 @@ def insert_building(session: Session, row: BuildingRow, floors: Sequence[FloorRo
         "origin_lon_deg": row.origin_lon_deg,
         "rotation_rad": row.rotation_rad,
     }
-    inserted = _insert_building_once(session, values)
+    inserted = insert_once(session, BuildingRow, values, ["id"], BuildingRow.id)
     if inserted is None:
         return False
     for floor in floors:
@@ -207,15 +207,3 @@ def mark_batches_applied(session: Session, row_ids: Sequence[int]) -> None:
 
     if row_ids:
         session.execute(update(BatchRow).where(BatchRow.id.in_(list(row_ids))).values(applied=True))
-
-
-def _insert_building_once(session: Session, values: Mapping[str, object]) -> str | None:
-    """INSERT ... ON CONFLICT (id) DO NOTHING RETURNING id: the database decides whether the id is free."""
-    dialect = session.get_bind().dialect.name
-    if dialect == "postgresql":
-        pg = postgresql.insert(BuildingRow).values(values).on_conflict_do_nothing(index_elements=["id"])
-        return session.execute(pg.returning(BuildingRow.id)).scalar_one_or_none()
-    if dialect == "sqlite":
-        lite = sqlite.insert(BuildingRow).values(values).on_conflict_do_nothing(index_elements=["id"])
-        return session.execute(lite.returning(BuildingRow.id)).scalar_one_or_none()
-    raise NotImplementedError(f"unsupported database dialect {dialect!r}; use SQLite or PostgreSQL")
