@@ -176,6 +176,17 @@ class _Round:
     fix_xy: list[np.ndarray] = field(default_factory=list)
     fix_sigma: list[float] = field(default_factory=list)
 
+    def add_steps(self, user: str, lengths: list[float], headings: list[float]) -> None:
+        self.users.append(user)
+        self.step_len.append(np.array(lengths))
+        self.step_head.append(np.array(headings))
+
+
+def _round_at(rounds: list[_Round], r: int) -> _Round:
+    while len(rounds) <= r:
+        rounds.append(_Round())
+    return rounds[r]
+
 
 class BuildingTracker:
     def __init__(self, params: TrackerParams, calibration: Calibration, seed: int = 0) -> None:
@@ -330,13 +341,9 @@ class BuildingTracker:
                     lengths.append(float(b.step_length[i]))
                     headings.append(heading)
                     continue
-                while len(rounds) <= r:
-                    rounds.append(_Round())
-                rnd = rounds[r]
+                rnd = _round_at(rounds, r)
                 if lengths:
-                    rnd.users.append(b.user)
-                    rnd.step_len.append(np.array(lengths))
-                    rnd.step_head.append(np.array(headings))
+                    rnd.add_steps(b.user, lengths, headings)
                     report.steps_applied += len(lengths)
                     lengths, headings = [], []
                 if kind == 0:
@@ -356,11 +363,7 @@ class BuildingTracker:
                 u.last_t_ms = t
                 r += 1
             if lengths:
-                while len(rounds) <= r:
-                    rounds.append(_Round())
-                rounds[r].users.append(b.user)
-                rounds[r].step_len.append(np.array(lengths))
-                rounds[r].step_head.append(np.array(headings))
+                _round_at(rounds, r).add_steps(b.user, lengths, headings)
                 report.steps_applied += len(lengths)
         return rounds
 

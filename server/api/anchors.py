@@ -9,7 +9,7 @@ from fastapi import APIRouter, Query, Response, status
 from schemas.anchors import AnchorMergeIn, BuildingAnchor, KnownAnchorIn
 from schemas.common import MAX_TIME_MS, MIN_TIME_MS, Identifier
 from server.deps import Caller, DbSession, State
-from server.errors import InvalidInputError, NotFoundError
+from server.errors import InvalidInputError
 from server.ingestion import BuildingWorker
 from server.store import repositories as repo
 
@@ -107,6 +107,4 @@ async def export_geojson(
                     "properties": {"kind": "track", "user_id": user},
                 }
             )
-    if repo.get_building(session, building_id) is None:
-        raise NotFoundError(f"no building {building_id!r}")
     return {"type": "FeatureCollection", "features": features}

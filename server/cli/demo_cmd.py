@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import threading
-import time
 from importlib import resources
 from pathlib import Path
 
@@ -33,11 +31,11 @@ def _scenario_text(path: Path | None) -> str:
 
 def run(args: argparse.Namespace) -> int:
     import httpx
-    import uvicorn
 
     from schemas.api import KeyScope
     from server.app import create_app
     from server.auth import mint_key
+    from server.background import ServerDidNotStartError, running_server
     from server.crowd_client import device_keys, post_crowd, prepare_building
     from server.settings import get_settings
     from server.store.db import make_engine, make_session_factory
@@ -50,22 +48,12 @@ def run(args: argparse.Namespace) -> int:
     with make_session_factory(engine).begin() as session:
         operator_key, _ = mint_key(session, KeyScope.OPERATOR)
     engine.dispose()
-    config = uvicorn.Config(
-        create_app(settings), host=args.host, port=args.port, log_level="warning", ws="websockets-sansio"
-    )
-    server = uvicorn.Server(config)
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
-    base = f"http://{args.host}:{args.port}"
-    deadline = time.monotonic() + 120
-    while not server.started:
-        if not thread.is_alive() or time.monotonic() > deadline:
-            print("error: the server did not start (is the port free?)")
-            return 1
-        time.sleep(0.1)
     scenario = Scenario.from_dict(json.loads(_scenario_text(args.scenario)))
     try:
-        with httpx.Client(base_url=base, timeout=60.0) as client:
+        with (
+            running_server(create_app(settings), args.host, args.port) as base,
+            httpx.Client(base_url=base, timeout=60.0) as client,
+        ):
             sim = simulate(scenario, 0)
             prepare_building(client, args.building, operator_key, sim)
             dashboard = client.post(
@@ -98,9 +86,9 @@ def run(args: argparse.Namespace) -> int:
                     flush=True,
                 )
                 round_number += 1
+    except ServerDidNotStartError as exc:
+        print(f"error: {exc}")
+        return 1
     except KeyboardInterrupt:
         pass
-    finally:
-        server.should_exit = True
-        thread.join(timeout=10)
     return 0

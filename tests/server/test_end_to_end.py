@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import socket
-import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -13,12 +12,12 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-import uvicorn
 from websockets.sync.client import connect
 
 from schemas.api import KeyScope
 from server.app import create_app, load_calibration, tracker_params
 from server.auth import mint_key
+from server.background import running_server
 from server.convert import BuildingContext, anchor_type_index, to_user_batch
 from server.crowd_client import device_keys, post_crowd, prepare_building
 from server.settings import Settings
@@ -52,24 +51,8 @@ def live_server(tmp_path: Path) -> Iterator[tuple[str, str, Settings]]:
         operator, _ = mint_key(session, KeyScope.OPERATOR)
     engine.dispose()
     settings = Settings(data_dir=tmp_path, database_url=url, seed=3)
-    port = _free_port()
-    server = uvicorn.Server(
-        uvicorn.Config(
-            create_app(settings), host="127.0.0.1", port=port, log_level="warning", ws="websockets-sansio"
-        )
-    )
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 120
-    while not server.started:
-        assert thread.is_alive(), "server did not start"
-        assert time.monotonic() < deadline, "server did not start in time"
-        time.sleep(0.05)
-    try:
-        yield f"http://127.0.0.1:{port}", operator, settings
-    finally:
-        server.should_exit = True
-        thread.join(timeout=10)
+    with running_server(create_app(settings), "127.0.0.1", _free_port()) as base:
+        yield base, operator, settings
 
 
 def test_live_estimates_equal_the_offline_engine(live_server: tuple[str, str, Settings]) -> None:
