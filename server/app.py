@@ -84,7 +84,9 @@ def create_app(settings: Settings) -> FastAPI:
         calibration = load_calibration(settings.encounter_calibration)
         _warm_kernels(params, calibration)
         recordings = settings.recordings_dir if settings.record else None
-        tracking = TrackingService(sessions, broadcaster, params, calibration, settings.seed, recordings)
+        tracking = TrackingService(
+            sessions, broadcaster, params, calibration, settings.seed, recordings, settings.snapshot_period_s
+        )
         app.state.crowdslam = AppState(
             settings, engine, sessions, broadcaster, tracking, Metrics(), time.time()
         )

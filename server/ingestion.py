@@ -108,6 +108,8 @@ class BuildingWorker:
         self._task.cancel()
         with contextlib.suppress(asyncio.CancelledError):
             await self._task
+        # a clean stop leaves nothing to replay: the next start loads this snapshot and an empty log
+        await asyncio.get_running_loop().run_in_executor(self._executor, self.session.snapshot)
         self._executor.shutdown(wait=True)
         if self.session.recorder is not None:
             self.session.recorder.close()
@@ -124,7 +126,9 @@ class TrackingService:
         calibration: Calibration,
         seed: int,
         recordings: Path | None = None,
+        snapshot_period_s: float = 60.0,
     ) -> None:
+        self._snapshot_period_s = snapshot_period_s
         self._recordings = recordings
         self._sessions = sessions
         self._broadcaster = broadcaster
@@ -152,6 +156,7 @@ class TrackingService:
                     self._calibration,
                     self._seed,
                     recorder,
+                    self._snapshot_period_s,
                 )
                 worker = self._workers[building_id] = BuildingWorker(session, self._broadcaster)
         return worker

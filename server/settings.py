@@ -31,6 +31,12 @@ class Settings(BaseSettings):
         "the simulated paper testbed; calibrate real buildings.",
     )
     record: bool = Field(default=True, description="Record every accepted batch and estimate to MCAP.")
+    snapshot_period_s: float = Field(
+        default=60.0,
+        ge=0.0,
+        description="How often each building's tracker is snapshotted to SQL. After a crash, the batches "
+        "acknowledged since the snapshot are replayed from the batch log, so this bounds restart time.",
+    )
     mode: Literal["dynamicslam", "semanticslam"] = Field(
         default="dynamicslam", description="semanticslam turns human anchors (encounters) off."
     )

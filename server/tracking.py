@@ -8,7 +8,9 @@ phones.
 
 from __future__ import annotations
 
+import itertools
 import math
+import time
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -20,11 +22,18 @@ from schemas.api import BatchReceipt
 from schemas.estimates import EncounterEvent, Estimate, EstimateSource
 from schemas.live import AnchorMessage, EncounterMessage, LiveMessage, PositionMessage
 from schemas.sensors import SensorBatch
-from server import convert
+from server import convert, tracker_snapshot
 from server.errors import ConflictError, InvalidInputError, NotFoundError, ProblemError
 from server.recording import BuildingRecorder
 from server.store import repositories as repo
-from server.store.batches import AcceptedBatch, insert_batch_once
+from server.store.batches import (
+    AcceptedBatch,
+    LoggedBatch,
+    drop_logged_bodies,
+    insert_batch_once,
+    logged_batches,
+    mark_applied_rounds,
+)
 from server.store.models import AnchorRow, PositionSnapshotRow
 from slam_core.encounters import Calibration
 from slam_core.geo import GeoFrame
@@ -41,6 +50,11 @@ class Counters:
     encounters_applied: int = 0
     steps_dropped: int = 0
     recentred: int = 0
+    snapshots: int = 0
+    replayed: int = 0
+    """Logged batches re-applied on load, after a crash."""
+    restore_failures: int = 0
+    """Snapshots refused on load (another format, other parameters): tracking restarted from the SQL map."""
 
 
 @dataclass(frozen=True)
@@ -65,18 +79,22 @@ class BuildingSession:
         calibration: Calibration,
         seed: int,
         recorder: BuildingRecorder | None = None,
+        snapshot_period_s: float = 60.0,
     ) -> None:
         self.building_id = building_id
         self.recorder = recorder
+        self.snapshot_period_s = snapshot_period_s
         self._sessions = sessions
-        self.tracker = BuildingTracker(params, calibration, seed=seed)
         self.counters = Counters()
+        self.restore_problem: str | None = None
         self._public: dict[int, str] = {}  # crowd index -> public id
         self._index: dict[str, int] = {}  # public id -> crowd index
         self._labels: dict[int, str | None] = {}
         self._last_seq: dict[str, int] = {}
         self._device_of_user: dict[str, str] = {}
         self._next_anchor = 0
+        self._round = 0  # engine calls so far: the order a restart replays the batch log in
+        self._last_snapshot = -math.inf
         with sessions() as session:
             building = repo.get_building(session, building_id)
             if building is None:
@@ -86,17 +104,79 @@ class BuildingSession:
                 if building.origin_lat_deg is not None and building.origin_lon_deg is not None
                 else None
             )
-            for row in repo.list_anchors(session, building_id):
-                cov = np.array([[row.cov_xx, row.cov_xy], [row.cov_xy, row.cov_yy]])
-                index = self.tracker.restore_anchor(
-                    np.array([row.x_m, row.y_m]),
-                    cov,
-                    convert.anchor_type_index(AnchorType(row.type)),
-                    row.known,
-                    row.observation_count,
-                    row.last_seen_ms or 0,
-                )
-                self._link(index, row.public_id, row.label)
+            restored = self._restore(session, params, calibration)
+            logged = logged_batches(session, building_id) if restored else []
+            if not restored:
+                self.tracker = BuildingTracker(params, calibration, seed=seed)
+                for row in repo.list_anchors(session, building_id):
+                    cov = np.array([[row.cov_xx, row.cov_xy], [row.cov_xy, row.cov_yy]])
+                    index = self.tracker.restore_anchor(
+                        np.array([row.x_m, row.y_m]),
+                        cov,
+                        convert.anchor_type_index(AnchorType(row.type)),
+                        row.known,
+                        row.observation_count,
+                        row.last_seen_ms or 0,
+                    )
+                    self._link(index, row.public_id, row.label)
+        self._replay(logged)
+        self.snapshot()
+
+    # ------------------------------------------------------------------ crash recovery
+    def _restore(self, session: Session, params: TrackerParams, calibration: Calibration) -> bool:
+        """Load the building's snapshot; False when there is none or it cannot be used."""
+        row = repo.load_tracker_snapshot(session, self.building_id)
+        if row is None:
+            return False
+        try:
+            state = tracker_snapshot.decode(row.state, row.format_version, params, calibration)
+        except tracker_snapshot.SnapshotMismatchError as exc:
+            self.restore_problem = str(exc)
+            self.counters.restore_failures += 1
+            return False
+        self.tracker = state.tracker
+        for index, public_id in state.public_ids.items():
+            self._link(index, public_id, state.labels.get(index))
+        self._device_of_user = dict(state.device_of_user)
+        self._round = state.applied_round
+        return True
+
+    def _replay(self, logged: list[LoggedBatch]) -> None:
+        """Re-apply the batches acknowledged after the snapshot, in their original engine calls. Their
+        positions and anchors are already in SQL; only the in-memory filters are rebuilt."""
+        for applied_round, items in itertools.groupby(logged, key=lambda b: b.applied_round):
+            ctx = self.context()
+            batches = []
+            for item in items:
+                batch = SensorBatch.model_validate_json(item.body)
+                self._device_of_user[batch.effective_user_id] = batch.device_id
+                batches.append(convert.to_user_batch(batch, ctx).user_batch)
+            outcome = self.tracker.apply(batches)
+            for index in outcome.anchors_changed:
+                if self.tracker.crowd.is_live(index):
+                    self._public_id(index)
+            self._round = applied_round
+            self.counters.replayed += len(batches)
+
+    def _save_snapshot(self, session: Session) -> None:
+        state = tracker_snapshot.SessionState(
+            self.tracker, dict(self._public), dict(self._labels), dict(self._device_of_user), self._round
+        )
+        repo.save_tracker_snapshot(
+            session,
+            self.building_id,
+            tracker_snapshot.FORMAT_VERSION,
+            self._round,
+            tracker_snapshot.encode(state),
+        )
+        drop_logged_bodies(session, self.building_id)
+        self._last_snapshot = time.monotonic()
+        self.counters.snapshots += 1
+
+    def snapshot(self) -> None:
+        """Snapshot now (on load, after operator edits, at shutdown)."""
+        with self._sessions.begin() as session:
+            self._save_snapshot(session)
 
     # ------------------------------------------------------------------ anchors
     def _link(self, index: int, public_id: str, label: str | None) -> None:
@@ -158,6 +238,7 @@ class BuildingSession:
         anchor = self.anchor(index)
         with self._sessions.begin() as session:
             repo.save_anchor(session, self._anchor_row(anchor))
+            self._save_snapshot(session)
         return anchor, [AnchorMessage(anchor=anchor)]
 
     def delete_anchor(self, public_id: str) -> list[LiveMessage]:
@@ -165,6 +246,7 @@ class BuildingSession:
         self.tracker.remove_anchor(self._index[public_id])
         with self._sessions.begin() as session:
             repo.delete_anchor(session, self.building_id, public_id)
+            self._save_snapshot(session)
         return [AnchorMessage(anchor=anchor, deleted=True)]
 
     def merge_anchors(self, public_ids: list[str]) -> tuple[BuildingAnchor, list[LiveMessage]]:
@@ -179,6 +261,7 @@ class BuildingSession:
             repo.save_anchor(session, self._anchor_row(merged))
             for p in public_ids[1:]:
                 repo.delete_anchor(session, self.building_id, p)
+            self._save_snapshot(session)
         messages: list[LiveMessage] = [AnchorMessage(anchor=merged)]
         messages += [AnchorMessage(anchor=a, deleted=True) for a in olds[1:]]
         return merged, messages
@@ -233,6 +316,7 @@ class BuildingSession:
         with self._sessions.begin() as session:
             to_apply: list[int] = []
             row_ids: dict[int, int] = {}
+            rounds: dict[int, int] = {}  # batch row id -> engine call
             for i in converted:
                 b = group[i].batch
                 row_id = insert_batch_once(session, self._accepted(group[i]))
@@ -265,6 +349,8 @@ class BuildingSession:
                     (later if user in seen else now).append(i)
                     seen.add(user)
                 pending = later
+                self._round += 1
+                rounds.update((row_ids[i], self._round) for i in now)
                 outcome = self.tracker.apply([converted[i][0] for i in now])
                 encounters = [convert.encounter_event(e, self.building_id) for e in outcome.encounters]
                 self.counters.encounters += len(encounters)
@@ -293,7 +379,9 @@ class BuildingSession:
                     results[i] = self._receipt(
                         b, "applied", warnings, estimates.get(b.effective_user_id), mine
                     )
-            repo.mark_batches_applied(session, list(row_ids.values()))
+            mark_applied_rounds(session, rounds)
+            if time.monotonic() - self._last_snapshot >= self.snapshot_period_s:
+                self._save_snapshot(session)
         self.counters.batches += len(group)
         return GroupResult([r if r is not None else ProblemError("not processed") for r in results], messages)
 
@@ -315,6 +403,7 @@ class BuildingSession:
             None if span is None else span[0],
             None if span is None else span[1],
             len(sub.raw),
+            sub.raw,
         )
 
     def _receipt(

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from sqlalchemy import select
+from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
 from server.store.db import insert_once
@@ -20,6 +20,15 @@ class AcceptedBatch:
     t_first_ms: int | None
     t_last_ms: int | None
     n_bytes: int
+    body: bytes | None = None
+    """The batch as posted, logged until a tracker snapshot covers it; None when nothing will apply it."""
+
+
+@dataclass(frozen=True)
+class LoggedBatch:
+    row_id: int
+    applied_round: int
+    body: bytes
 
 
 def insert_batch_once(session: Session, batch: AcceptedBatch) -> int | None:
@@ -37,16 +46,56 @@ def insert_batch_once(session: Session, batch: AcceptedBatch) -> int | None:
         "t_last_ms": batch.t_last_ms,
         "n_bytes": batch.n_bytes,
         "applied": False,
+        "body": batch.body,
     }
     row_id = insert_once(session, BatchRow, values, ["building_id", "device_id", "batch_id"], BatchRow.id)
     return int(row_id) if row_id is not None else None
 
 
-def mark_applied(session: Session, row_id: int) -> None:
+def mark_applied(session: Session, row_id: int, applied_round: int) -> None:
+    """Mark one accepted batch as applied by the building's engine call ``applied_round``."""
     row = session.get(BatchRow, row_id)
     if row is None:
         raise LookupError(f"no accepted batch with id {row_id}")
     row.applied = True
+    row.applied_round = applied_round
+
+
+def mark_applied_rounds(session: Session, rounds: dict[int, int]) -> None:
+    """Mark many batches applied: row id -> the engine call that applied it."""
+    if rounds:
+        session.execute(
+            update(BatchRow),
+            [{"id": row_id, "applied": True, "applied_round": r} for row_id, r in rounds.items()],
+        )
+
+
+def drop_logged_bodies(session: Session, building_id: str) -> None:
+    """Forget the bodies of a building's batches once a snapshot covers them (and of batches never
+    applied: late ones are not replayed)."""
+    session.execute(
+        update(BatchRow)
+        .where(BatchRow.building_id == building_id, BatchRow.body.is_not(None))
+        .values(body=None)
+    )
+
+
+def logged_batches(session: Session, building_id: str) -> list[LoggedBatch]:
+    """The applied batches not yet covered by the building's snapshot, in the order they were applied."""
+    stmt = (
+        select(BatchRow.id, BatchRow.applied_round, BatchRow.body)
+        .where(
+            BatchRow.building_id == building_id,
+            BatchRow.applied.is_(True),
+            BatchRow.body.is_not(None),
+        )
+        .order_by(BatchRow.applied_round, BatchRow.id)
+    )
+    return [
+        LoggedBatch(int(i), int(r if r is not None else 0), bytes(b))
+        for i, r, b in session.execute(stmt)
+        if b is not None
+    ]
 
 
 def find_batch(session: Session, building_id: str, device_id: str, batch_id: str) -> BatchRow | None:

@@ -112,6 +112,10 @@ class BatchRow(Base):
     t_last_ms: Mapped[int | None] = mapped_column(BigInteger)
     n_bytes: Mapped[int] = mapped_column(Integer)
     applied: Mapped[bool] = mapped_column(Boolean, default=False)
+    applied_round: Mapped[int | None] = mapped_column(BigInteger)
+    """The building's engine call that applied it: a restart replays the log in the same groups."""
+    body: Mapped[bytes | None] = mapped_column(LargeBinary)
+    """The batch as posted, kept only until a tracker snapshot covers it (the write-ahead log)."""
     received_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), server_default=func.now())
 
 
@@ -182,16 +186,15 @@ class PositionSnapshotRow(Base):
     source: Mapped[str] = mapped_column(String(16))
 
 
-class FilterSnapshotRow(Base):
-    """The latest serialised filter state of one user, to resume tracking after a restart."""
+class TrackerSnapshotRow(Base):
+    """The latest serialised tracker of one building (every user's filter, the crowd map, the encounter
+    detector). With the batch bodies logged since, it restores tracking after a crash."""
 
-    __tablename__ = "filter_snapshots"
+    __tablename__ = "tracker_snapshots"
     __table_args__ = (ForeignKeyConstraint(["building_id"], ["buildings.id"], ondelete="CASCADE"),)
 
     building_id: Mapped[str] = mapped_column(String(64), primary_key=True)
-    user_id: Mapped[str] = mapped_column(String(64), primary_key=True)
-    t_ms: Mapped[int] = mapped_column(BigInteger)
-    last_batch_pk: Mapped[int | None] = mapped_column(BigInteger)
     format_version: Mapped[int] = mapped_column(Integer)
+    applied_round: Mapped[int] = mapped_column(BigInteger)
     state: Mapped[bytes] = mapped_column(LargeBinary)
-    updated_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), server_default=func.now())
+    taken_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), server_default=func.now())

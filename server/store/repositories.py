@@ -5,8 +5,9 @@ from __future__ import annotations
 
 import hashlib
 from collections.abc import Sequence
+from datetime import UTC, datetime
 
-from sqlalchemy import delete, func, select, update
+from sqlalchemy import delete, func, select
 from sqlalchemy.orm import Session
 
 from server.store.db import insert_once
@@ -17,6 +18,7 @@ from server.store.models import (
     DeviceRow,
     FloorRow,
     PositionSnapshotRow,
+    TrackerSnapshotRow,
 )
 
 # ----------------------------------------------------------------------------- buildings
@@ -199,11 +201,29 @@ def recent_tracks(session: Session, building_id: str, since_ms: int, limit: int)
     return list(session.execute(stmt).scalars())
 
 
-# ----------------------------------------------------------------------------- helpers
+# ----------------------------------------------------------------------------- tracker snapshots
 
 
-def mark_batches_applied(session: Session, row_ids: Sequence[int]) -> None:
-    from server.store.models import BatchRow
+def load_tracker_snapshot(session: Session, building_id: str) -> TrackerSnapshotRow | None:
+    return session.get(TrackerSnapshotRow, building_id)
 
-    if row_ids:
-        session.execute(update(BatchRow).where(BatchRow.id.in_(list(row_ids))).values(applied=True))
+
+def save_tracker_snapshot(
+    session: Session, building_id: str, format_version: int, applied_round: int, state: bytes
+) -> None:
+    """Replace the building's snapshot (one row per building)."""
+    row = session.get(TrackerSnapshotRow, building_id)
+    if row is None:
+        session.add(
+            TrackerSnapshotRow(
+                building_id=building_id,
+                format_version=format_version,
+                applied_round=applied_round,
+                state=state,
+            )
+        )
+        return
+    row.format_version = format_version
+    row.applied_round = applied_round
+    row.state = state
+    row.taken_at = datetime.now(UTC)

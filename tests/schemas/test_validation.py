@@ -10,7 +10,7 @@ from typing import Any
 import pytest
 
 from schemas.catalog import EXAMPLES
-from schemas.sensors import MAX_BATCH_BYTES, MAX_IMU_SAMPLES, SensorBatch
+from schemas.sensors import MAX_BATCH_BYTES, MAX_IMU_SAMPLES, SensorBatch, Step
 from server.batch_decoding import decode_batch
 from server.errors import ProblemError
 
@@ -253,7 +253,7 @@ def test_batch_with_only_steps_is_normal() -> None:
         device_id="iphone-7",
         batch_id="b1",
         seq=0,
-        steps=[{"t_ms": 1700000000000, "length_m": 0.7, "heading_change_rad": 0.1}],  # type: ignore[list-item]
+        steps=[Step(t_ms=1700000000000, length_m=0.7, heading_change_rad=0.1)],
     )
     assert batch.wifi_scans == []
     assert batch.accelerometer is None

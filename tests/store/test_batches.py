@@ -92,7 +92,7 @@ def test_rolled_back_batch_can_be_sent_again(migrated_engine: Engine) -> None:
     with sessions.begin() as session:
         row_id = insert_batch_once(session, _batch())
         assert row_id is not None
-        mark_applied(session, row_id)
+        mark_applied(session, row_id, 1)
     with sessions() as session:
         row = find_batch(session, "hq", "phone-1", "b-1")
         assert row is not None
@@ -110,4 +110,4 @@ def test_mark_applied_on_missing_row_is_an_error(migrated_engine: Engine) -> Non
         pytest.raises(LookupError, match="no accepted batch"),
         make_session_factory(migrated_engine)() as session,
     ):
-        mark_applied(session, 424242)
+        mark_applied(session, 424242, 1)

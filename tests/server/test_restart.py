@@ -1,0 +1,161 @@
+"""Crash recovery: a building's session abandoned mid-walk (as by ``kill -9``) is rebuilt from its last
+snapshot plus the batch log, bit for bit, and tracking resumes; a snapshot that cannot be used is refused
+and the building falls back to its SQL anchor map."""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import replace
+
+import pytest
+from sqlalchemy import Engine, func, select
+
+from schemas.anchors import KnownAnchorIn
+from schemas.common import Position
+from server.app import load_calibration, tracker_params
+from server.settings import Settings
+from server.simulated_phones import KnownAnchor, known_anchors, simulated_batches
+from server.store.db import make_engine, make_session_factory
+from server.store.migrate import upgrade
+from server.store.models import BatchRow, BuildingRow
+from server.tracking import BuildingSession, Submission
+from slam_core.simulate import Scenario, simulate
+from tests.conftest import SHARED
+
+SETTINGS = Settings(seed=5)
+
+
+def _crowd() -> tuple[list[Submission], list[KnownAnchor]]:
+    raw = json.loads((SHARED / "scenarios" / "paper-testbed.json").read_text())
+    raw["users"]["count"] = 5
+    raw["users"]["walk_length_m"] = 50.0
+    sim = simulate(Scenario.from_dict(raw), 2)
+    batches = list(simulated_batches(sim, "hq"))
+    return [Submission(b, b.model_dump_json().encode(), 0) for b in batches], known_anchors(sim)
+
+
+CROWD, KNOWN = _crowd()
+
+
+def _groups(subs: list[Submission], size: int = 4) -> list[list[Submission]]:
+    return [subs[i : i + size] for i in range(0, len(subs), size)]
+
+
+def _session(
+    engine: Engine, snapshot_period_s: float = math.inf, n_particles: int | None = None
+) -> BuildingSession:
+    tp = tracker_params(SETTINGS)
+    if n_particles is not None:
+        tp = replace(tp, filter=replace(tp.filter, n_particles=n_particles))
+    return BuildingSession(
+        "hq",
+        make_session_factory(engine),
+        tp,
+        load_calibration(None),
+        SETTINGS.seed,
+        snapshot_period_s=snapshot_period_s,
+    )
+
+
+def _fresh_building(url: str) -> Engine:
+    engine = make_engine(url)
+    upgrade(engine)
+    with make_session_factory(engine).begin() as session:
+        session.add(BuildingRow(id="hq", name="HQ", rotation_rad=0.0))
+    return engine
+
+
+def _pin_known(session: BuildingSession) -> None:
+    for k, anchor in enumerate(KNOWN):
+        body = KnownAnchorIn(
+            type=anchor.type, position=Position(x_m=anchor.position[0], y_m=anchor.position[1])
+        )
+        session.put_known_anchor(f"known-{k}", body)
+
+
+def _estimates(session: BuildingSession) -> dict[str, object]:
+    return {u: session.latest_estimate(u) for u in session.tracker.users}
+
+
+def _logged(engine: Engine) -> int:
+    with make_session_factory(engine)() as s:
+        return int(s.execute(select(func.count()).where(BatchRow.body.is_not(None))).scalar_one())
+
+
+@pytest.mark.parametrize("snapshot_period_s", [math.inf, 0.0])
+def test_an_abandoned_session_is_rebuilt_exactly_and_tracking_resumes(
+    database_url: str, sqlite_url: str, snapshot_period_s: float
+) -> None:
+    groups = _groups(CROWD)
+    cut = len(groups) * 3 // 5
+    # the reference: one session that never stops, in its own database
+    reference_engine = _fresh_building(sqlite_url.replace(".sqlite3", "-ref.sqlite3"))
+    reference = _session(reference_engine)
+    _pin_known(reference)
+    for group in groups[:cut]:
+        reference.process(group)
+    at_crash = _estimates(reference)
+
+    engine = _fresh_building(database_url)
+    crashed = _session(engine, snapshot_period_s)
+    _pin_known(crashed)
+    for group in groups[:cut]:
+        crashed.process(group)
+    assert _estimates(crashed) == at_crash
+    applied_since_snapshot = _logged(engine)
+    if snapshot_period_s == 0.0:
+        assert applied_since_snapshot == 0  # every group snapshotted: nothing to replay
+    else:
+        assert applied_since_snapshot == sum(len(g) for g in groups[:cut])
+    anchors_at_crash = crashed.anchors()
+    del crashed  # no shutdown, no final snapshot: as after kill -9
+
+    restarted = _session(engine, snapshot_period_s)
+    assert restarted.restore_problem is None
+    assert restarted.counters.replayed == applied_since_snapshot
+    assert _estimates(restarted) == at_crash
+    assert restarted.anchors() == anchors_at_crash
+    assert _logged(engine) == 0  # the load snapshot covers the replayed log
+
+    for group in groups[cut:]:
+        reference.process(group)
+        receipts = restarted.process(group).receipts
+        assert all(getattr(r, "status", None) == "applied" for r in receipts)
+    assert _estimates(restarted) == _estimates(reference)
+    assert all(restarted.tracker.is_tracking(u) for u in restarted.tracker.users)
+    reference_engine.dispose()
+    engine.dispose()
+
+
+def test_a_retried_batch_after_restart_is_still_a_duplicate(sqlite_url: str) -> None:
+    engine = _fresh_building(sqlite_url)
+    session = _session(engine)
+    _pin_known(session)
+    first = _groups(CROWD)[0]
+    session.process(first)
+    restarted = _session(engine)
+    receipts = restarted.process(first).receipts
+    assert [getattr(r, "status", None) for r in receipts] == ["duplicate"] * len(first)
+    assert restarted.counters.replayed == len(first)
+    engine.dispose()
+
+
+def test_a_snapshot_taken_with_other_parameters_is_refused_and_the_sql_map_is_kept(sqlite_url: str) -> None:
+    engine = _fresh_building(sqlite_url)
+    session = _session(engine)
+    _pin_known(session)
+    for group in _groups(CROWD)[:20]:
+        session.process(group)
+    anchors = {a.id: a for a in session.anchors()}
+    other = _session(engine, n_particles=40)
+    assert other.restore_problem == "snapshot was taken with other tracker parameters"
+    assert other.counters.restore_failures == 1
+    assert other.counters.replayed == 0
+    assert other.tracker.users == []  # users start again from their next fix
+    restored = {a.id: a for a in other.anchors()}
+    assert restored.keys() == anchors.keys()
+    for public_id, anchor in anchors.items():
+        assert restored[public_id].position == anchor.position
+        assert restored[public_id].known == anchor.known
+    engine.dispose()
