@@ -11,7 +11,7 @@ from schemas.api import BatchReceipt, KeyCreated, KeyCreateIn
 from schemas.buildings import BUILDING_EXAMPLE, Building
 from schemas.errors import PROBLEM_EXAMPLE, Problem
 from schemas.estimates import ESTIMATE_EXAMPLE, EncounterEvent, Estimate
-from schemas.live import LIVE_MESSAGE_ADAPTER
+from schemas.live import LIVE_MESSAGE_ADAPTER, LiveBatch
 from schemas.sensors import BATCH_EXAMPLE, SensorBatch
 
 PUBLIC_MODELS: dict[str, type[BaseModel] | TypeAdapter[Any]] = {
@@ -23,6 +23,7 @@ PUBLIC_MODELS: dict[str, type[BaseModel] | TypeAdapter[Any]] = {
     "AnchorMergeIn": AnchorMergeIn,
     "Building": Building,
     "LiveMessage": LIVE_MESSAGE_ADAPTER,
+    "LiveBatch": LiveBatch,
     "Problem": Problem,
     "BatchReceipt": BatchReceipt,
     "KeyCreateIn": KeyCreateIn,

@@ -1,4 +1,5 @@
-"""The live WebSocket envelope: one message per event, a discriminated union on ``type``."""
+"""The live WebSocket envelope: one message per event, a discriminated union on ``type``; optionally many
+per frame (``LiveBatch``)."""
 
 from __future__ import annotations
 
@@ -39,3 +40,15 @@ LiveMessage = Annotated[
     PositionMessage | EncounterMessage | AnchorMessage | HeartbeatMessage, Field(discriminator="type")
 ]
 LIVE_MESSAGE_ADAPTER: TypeAdapter[LiveMessage] = TypeAdapter(LiveMessage)
+
+
+class LiveBatch(WireModel):
+    """With ``?batch=true`` each frame carries every message waiting for the subscriber (at most
+    ``MAX_LIVE_BATCH``), in order: a dashboard of a busy building gets a few frames a second, not one per
+    phone per second."""
+
+    type: Literal["batch"] = "batch"
+    messages: list[LiveMessage]
+
+
+MAX_LIVE_BATCH = 1_000

@@ -7,7 +7,7 @@ import asyncio
 from collections import defaultdict
 from dataclasses import dataclass, field
 
-from schemas.live import LiveMessage
+from schemas.live import LIVE_MESSAGE_ADAPTER, LiveMessage
 
 QUEUE_SIZE = 2_000
 
@@ -15,10 +15,11 @@ QUEUE_SIZE = 2_000
 @dataclass(eq=False)
 class Subscription:
     building_id: str
-    queue: asyncio.Queue[LiveMessage] = field(default_factory=lambda: asyncio.Queue(maxsize=QUEUE_SIZE))
+    queue: asyncio.Queue[str] = field(default_factory=lambda: asyncio.Queue(maxsize=QUEUE_SIZE))
+    """Messages as JSON text, serialised once for every subscriber."""
     dropped: int = 0
 
-    def offer(self, message: LiveMessage) -> None:
+    def offer(self, message: str) -> None:
         while True:
             try:
                 self.queue.put_nowait(message)
@@ -48,8 +49,9 @@ class Broadcaster:
         if not subs:
             return
         for message in messages:
+            text = LIVE_MESSAGE_ADAPTER.dump_json(message).decode()
             for sub in subs:
-                sub.offer(message)
+                sub.offer(text)
         self.published += len(messages)
 
     def subscribers(self, building_id: str | None = None) -> int:

@@ -30,11 +30,11 @@ from server.store.batches import (
     AcceptedBatch,
     LoggedBatch,
     drop_logged_bodies,
-    insert_batch_once,
+    insert_batches_once,
     logged_batches,
     mark_applied_rounds,
 )
-from server.store.models import AnchorRow, PositionSnapshotRow
+from server.store.models import AnchorRow
 from slam_core.encounters import Calibration
 from slam_core.geo import GeoFrame
 from slam_core.tracker import BuildingTracker, EstimateRow, TrackerParams, UserBatch
@@ -104,6 +104,7 @@ class BuildingSession:
                 if building.origin_lat_deg is not None and building.origin_lon_deg is not None
                 else None
             )
+            self._last_seq = repo.device_last_seqs(session, building_id)
             restored = self._restore(session, params, calibration)
             logged = logged_batches(session, building_id) if restored else []
             if not restored:
@@ -317,27 +318,34 @@ class BuildingSession:
             to_apply: list[int] = []
             row_ids: dict[int, int] = {}
             rounds: dict[int, int] = {}  # batch row id -> engine call
-            for i in converted:
+            devices: dict[str, dict[str, object]] = {}
+            order = list(converted)
+            inserted = insert_batches_once(session, [self._accepted(group[i]) for i in order])
+            for i, row_id in zip(order, inserted, strict=True):
                 b = group[i].batch
-                row_id = insert_batch_once(session, self._accepted(group[i]))
                 if row_id is None:
                     self.counters.duplicates += 1
                     results[i] = self._receipt(b, "duplicate", converted[i][1])
                     continue
                 if self.recorder is not None:
                     self.recorder.record_batch(group[i].raw, group[i].received_ns)
-                last = self._last_seq_of(session, b.device_id)
+                last = self._last_seq.get(b.device_id)
                 if last is not None and b.seq <= last:
                     self.counters.late += 1
                     results[i] = self._receipt(b, "late", converted[i][1])
                     continue
                 self._last_seq[b.device_id] = b.seq
                 self._device_of_user[b.effective_user_id] = b.device_id
-                repo.upsert_device(
-                    session, self.building_id, b.device_id, b.effective_user_id, b.ble_advertised_id, b.seq
-                )
+                devices[b.device_id] = {
+                    "building_id": self.building_id,
+                    "id": b.device_id,
+                    "user_id": b.effective_user_id,
+                    "ble_advertised_id": b.ble_advertised_id,
+                    "last_seq": b.seq,
+                }
                 row_ids[i] = row_id
                 to_apply.append(i)
+            repo.upsert_devices(session, list(devices.values()))
             # a user may have several batches in one group: apply them in rounds, one per user per call
             pending = list(to_apply)
             while pending:
@@ -385,14 +393,6 @@ class BuildingSession:
         self.counters.batches += len(group)
         return GroupResult([r if r is not None else ProblemError("not processed") for r in results], messages)
 
-    def _last_seq_of(self, session: Session, device_id: str) -> int | None:
-        if device_id not in self._last_seq:
-            last = repo.device_last_seq(session, self.building_id, device_id)
-            if last is None:
-                return None
-            self._last_seq[device_id] = last
-        return self._last_seq[device_id]
-
     def _accepted(self, sub: Submission) -> AcceptedBatch:
         span = sub.batch.time_span_ms()
         return AcceptedBatch(
@@ -427,21 +427,21 @@ class BuildingSession:
             warnings=warnings,
         )
 
-    def _position_row(self, e: Estimate) -> PositionSnapshotRow:
-        return PositionSnapshotRow(
-            building_id=self.building_id,
-            user_id=e.user_id,
-            device_id=e.device_id,
-            t_ms=e.t_ms,
-            x_m=e.position.x_m,
-            y_m=e.position.y_m,
-            cov_xx=e.covariance_m2[0][0],
-            cov_xy=e.covariance_m2[0][1],
-            cov_yy=e.covariance_m2[1][1],
-            heading_rad=e.heading_rad,
-            floor=e.floor,
-            source=e.source.value,
-        )
+    def _position_row(self, e: Estimate) -> dict[str, object]:
+        return {
+            "building_id": self.building_id,
+            "user_id": e.user_id,
+            "device_id": e.device_id,
+            "t_ms": e.t_ms,
+            "x_m": e.position.x_m,
+            "y_m": e.position.y_m,
+            "cov_xx": e.covariance_m2[0][0],
+            "cov_xy": e.covariance_m2[0][1],
+            "cov_yy": e.covariance_m2[1][1],
+            "heading_rad": e.heading_rad,
+            "floor": e.floor,
+            "source": e.source.value,
+        }
 
 
 def _dropped_warning(n: int, status: str) -> str:

@@ -100,15 +100,22 @@ class EncounterDetector:
             for other in self._by_ap.get(ap, ()):
                 if other.user != user and abs(other.t_ms - t_ms) <= p.scan_pair_window_ms:
                     found[id(other)] = other
-        out = []
+        passing: list[tuple[_Scan, float]] = []
         for other in found.values():
             self.n_candidates += 1
             sim, n = eq3_sparse(top, other.top)
-            if n < p.wifi.min_common or not sim < p.wifi.threshold_db:
-                continue
-            det = self._detection(max(t_ms, other.t_ms), user, other.user, MODEL_WIFI, sim)
-            if det is not None:
-                out.append(det)
+            if n >= p.wifi.min_common and sim < p.wifi.threshold_db:
+                passing.append((other, sim))
+        out = []
+        if passing:
+            # one vectorised range lookup for every pair the scan passes, then the pairs in order
+            ranges, variances = self.calibration.wifi.range_and_variance(np.array([s for _, s in passing]))
+            for (other, sim), d, var in zip(passing, ranges, variances, strict=True):
+                det = self._detection(
+                    max(t_ms, other.t_ms), user, other.user, MODEL_WIFI, sim, float(d), float(var)
+                )
+                if det is not None:
+                    out.append(det)
         scan = _Scan(user, t_ms, top)
         self._scans.append(scan)
         for ap in top:
@@ -136,20 +143,22 @@ class EncounterDetector:
         smoothed = sum(r for _, r in history) / len(history)
         if smoothed < self.params.bluetooth.cutoff_dbm:
             return None
-        return self._detection(t_ms, receiver, sender, MODEL_BLUETOOTH, smoothed)
+        d, var = self.calibration.bluetooth.range_and_variance(np.array([smoothed]))
+        return self._detection(t_ms, receiver, sender, MODEL_BLUETOOTH, smoothed, float(d[0]), float(var[0]))
 
     # ------------------------------------------------------------------ shared
-    def _detection(self, t_ms: int, a: str, b: str, model: int, feature: float) -> Detection | None:
+    def _detection(
+        self, t_ms: int, a: str, b: str, model: int, feature: float, distance: float, variance: float
+    ) -> Detection | None:
+        """The pair's encounter unless it is cooling down or too uncertain (R above max_sigma_m^2)."""
         key = (min(a, b), max(a, b), model)
         last = self._last_pair.get(key)
         if last is not None and abs(t_ms - last) < self.params.pair_cooldown_ms:
             return None
-        fit = self.calibration.wifi if model == MODEL_WIFI else self.calibration.bluetooth
-        d, var = fit.range_and_variance(np.array([feature]))
-        if var[0] > self.params.max_sigma_m**2:
+        if variance > self.params.max_sigma_m**2:
             return None
         self._last_pair[key] = t_ms
-        return Detection(t_ms, a, b, model, feature, float(d[0]), float(var[0]))
+        return Detection(t_ms, a, b, model, feature, distance, variance)
 
     def _advance(self, t_ms: int) -> None:
         """Forget scans and sightings that can no longer pair with anything new."""

@@ -7,7 +7,7 @@ import time
 
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
-from schemas.live import LIVE_MESSAGE_ADAPTER, HeartbeatMessage
+from schemas.live import LIVE_MESSAGE_ADAPTER, MAX_LIVE_BATCH, HeartbeatMessage
 from server.app import AppState
 from server.auth import authenticate
 from server.errors import ProblemError
@@ -18,9 +18,10 @@ HEARTBEAT_S = 10.0
 
 
 @router.websocket("/live")
-async def live(websocket: WebSocket, building_id: str, token: str | None = None) -> None:
+async def live(websocket: WebSocket, building_id: str, token: str | None = None, batch: bool = False) -> None:
     """``?token=<dashboard or operator key>``. Each text frame is one LiveMessage (JSON, union on ``type``);
-    a heartbeat every 10 s reports messages dropped because this subscriber was slow."""
+    a heartbeat every 10 s reports messages dropped because this subscriber was slow. With ``&batch=true``
+    each frame is a ``LiveBatch`` of every message waiting (for busy buildings)."""
     state: AppState = websocket.app.state.crowdslam
     with state.sessions() as session:
         try:
@@ -38,11 +39,17 @@ async def live(websocket: WebSocket, building_id: str, token: str | None = None)
     try:
         while True:
             try:
-                message = await asyncio.wait_for(sub.queue.get(), timeout=HEARTBEAT_S)
+                texts = [await asyncio.wait_for(sub.queue.get(), timeout=HEARTBEAT_S)]
             except TimeoutError:
-                message = HeartbeatMessage(t_ms=int(time.time() * 1000), dropped=sub.dropped - reported)
+                heartbeat = HeartbeatMessage(t_ms=int(time.time() * 1000), dropped=sub.dropped - reported)
                 reported = sub.dropped
-            await websocket.send_text(LIVE_MESSAGE_ADAPTER.dump_json(message).decode())
+                texts = [LIVE_MESSAGE_ADAPTER.dump_json(heartbeat).decode()]
+            if not batch:
+                await websocket.send_text(texts[0])
+                continue
+            while len(texts) < MAX_LIVE_BATCH and not sub.queue.empty():
+                texts.append(sub.queue.get_nowait())
+            await websocket.send_text('{"type":"batch","messages":[' + ",".join(texts) + "]}")
     except (WebSocketDisconnect, RuntimeError):
         return
     finally:

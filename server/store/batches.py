@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
-from server.store.db import insert_once
+from server.store.db import insert_many_once, insert_once
 from server.store.models import BatchRow
 
 
@@ -31,13 +31,27 @@ class LoggedBatch:
     body: bytes
 
 
-def insert_batch_once(session: Session, batch: AcceptedBatch) -> int | None:
-    """Insert the batch and return its row id, or None when (building, device, batch id) already exists.
+def insert_batches_once(session: Session, batches: list[AcceptedBatch]) -> list[int | None]:
+    """Insert many batches in one statement; each one's row id, or None for a retry (already stored, or
+    repeated earlier in ``batches``). Same atomic decision as ``insert_batch_once``."""
+    ids = {
+        (device, batch_id): int(row_id)
+        for row_id, device, batch_id in insert_many_once(
+            session,
+            BatchRow,
+            [_values(b) for b in batches],
+            ["building_id", "device_id", "batch_id"],
+            [BatchRow.id, BatchRow.device_id, BatchRow.batch_id],
+        )
+    }
+    out: list[int | None] = []
+    for b in batches:
+        out.append(ids.pop((b.device_id, b.batch_id), None))  # a repeat within the group gets None
+    return out
 
-    ``INSERT ... ON CONFLICT DO NOTHING`` makes the database decide atomically, so two concurrent retries
-    of one batch cannot both be accepted.
-    """
-    values = {
+
+def _values(batch: AcceptedBatch) -> dict[str, object]:
+    return {
         "building_id": batch.building_id,
         "device_id": batch.device_id,
         "batch_id": batch.batch_id,
@@ -48,7 +62,17 @@ def insert_batch_once(session: Session, batch: AcceptedBatch) -> int | None:
         "applied": False,
         "body": batch.body,
     }
-    row_id = insert_once(session, BatchRow, values, ["building_id", "device_id", "batch_id"], BatchRow.id)
+
+
+def insert_batch_once(session: Session, batch: AcceptedBatch) -> int | None:
+    """Insert the batch and return its row id, or None when (building, device, batch id) already exists.
+
+    ``INSERT ... ON CONFLICT DO NOTHING`` makes the database decide atomically, so two concurrent retries
+    of one batch cannot both be accepted.
+    """
+    row_id = insert_once(
+        session, BatchRow, _values(batch), ["building_id", "device_id", "batch_id"], BatchRow.id
+    )
     return int(row_id) if row_id is not None else None
 
 

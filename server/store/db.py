@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from sqlalchemy import Engine, create_engine, event
+from sqlalchemy import Engine, create_engine, event, func
 from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.engine import make_url
 from sqlalchemy.orm import InstrumentedAttribute, Session, sessionmaker
@@ -46,15 +46,53 @@ def insert_once(
 ) -> Any | None:
     """``INSERT ... ON CONFLICT DO NOTHING RETURNING <column>``: the value of the new row, or None when the
     conflict columns already exist. The database decides atomically (never check-then-insert)."""
+    rows = insert_many_once(session, model, [values], conflict_columns, [returning])
+    return rows[0][0] if rows else None
+
+
+def insert_many_once(
+    session: Session,
+    model: type[Any],
+    values: list[dict[str, Any]],
+    conflict_columns: list[str],
+    returning: list[InstrumentedAttribute[Any]],
+) -> list[tuple[Any, ...]]:
+    """One multi-row ``INSERT ... ON CONFLICT DO NOTHING RETURNING ...``: the returned columns of the rows
+    actually inserted, in no particular order (match them by key)."""
+    if not values:
+        return []
+    # executemany of one cached statement (SQLAlchemy batches it as "insertmanyvalues"), not a multi-VALUES
+    # statement: that one is compiled afresh for every group and costs more than the insert itself
+    stmt = _dialect(session).insert(model).on_conflict_do_nothing(index_elements=conflict_columns)
+    return [tuple(r) for r in session.connection().execute(stmt.returning(*returning), values)]
+
+
+def _dialect(session: Session) -> Any:
     dialect = session.get_bind().dialect.name
     if dialect == "postgresql":
-        pg_stmt = (
-            postgresql.insert(model).values(values).on_conflict_do_nothing(index_elements=conflict_columns)
-        )
-        return session.execute(pg_stmt.returning(returning)).scalar_one_or_none()
+        return postgresql
     if dialect == "sqlite":
-        lite_stmt = (
-            sqlite.insert(model).values(values).on_conflict_do_nothing(index_elements=conflict_columns)
-        )
-        return session.execute(lite_stmt.returning(returning)).scalar_one_or_none()
+        return sqlite
     raise NotImplementedError(f"unsupported database dialect {dialect!r}; use SQLite or PostgreSQL")
+
+
+def upsert(
+    session: Session,
+    model: type[Any],
+    values: list[dict[str, Any]],
+    conflict_columns: list[str],
+    keep_when_null: tuple[str, ...] = (),
+) -> None:
+    """One multi-row ``INSERT ... ON CONFLICT DO UPDATE``: every other given column takes the new value,
+    except that a NULL in a ``keep_when_null`` column keeps the stored one."""
+    if not values:
+        return
+    stmt = _dialect(session).insert(model)
+    updates = {
+        c: func.coalesce(stmt.excluded[c], getattr(model, c)) if c in keep_when_null else stmt.excluded[c]
+        for c in values[0]
+        if c not in conflict_columns
+    }
+    session.connection().execute(
+        stmt.on_conflict_do_update(index_elements=conflict_columns, set_=updates), values
+    )

@@ -7,10 +7,10 @@ import hashlib
 from collections.abc import Sequence
 from datetime import UTC, datetime
 
-from sqlalchemy import delete, func, select
+from sqlalchemy import delete, func, insert, select
 from sqlalchemy.orm import Session
 
-from server.store.db import insert_once
+from server.store.db import insert_once, upsert
 from server.store.models import (
     AnchorRow,
     ApiKeyRow,
@@ -85,28 +85,18 @@ def find_key(session: Session, secret: str) -> ApiKeyRow | None:
 # ----------------------------------------------------------------------------- devices
 
 
-def device_last_seq(session: Session, building_id: str, device_id: str) -> int | None:
-    row = session.get(DeviceRow, (building_id, device_id))
-    return None if row is None else row.last_seq
+def device_last_seqs(session: Session, building_id: str) -> dict[str, int]:
+    """Every device's last applied sequence number in the building."""
+    stmt = select(DeviceRow.id, DeviceRow.last_seq).where(
+        DeviceRow.building_id == building_id, DeviceRow.last_seq.is_not(None)
+    )
+    return {device: int(seq) for device, seq in session.execute(stmt) if seq is not None}
 
 
-def upsert_device(
-    session: Session, building_id: str, device_id: str, user_id: str, ble_id: str | None, seq: int | None
-) -> None:
-    """Create the device or advance its last applied sequence number (never backwards)."""
-    row = session.get(DeviceRow, (building_id, device_id))
-    if row is None:
-        session.add(
-            DeviceRow(
-                building_id=building_id, id=device_id, user_id=user_id, ble_advertised_id=ble_id, last_seq=seq
-            )
-        )
-        return
-    row.user_id = user_id
-    if ble_id is not None:
-        row.ble_advertised_id = ble_id
-    if seq is not None and (row.last_seq is None or seq > row.last_seq):
-        row.last_seq = seq
+def upsert_devices(session: Session, rows: Sequence[dict[str, object]]) -> None:
+    """Create or update many devices in one statement. Each row gives building_id, id, user_id,
+    ble_advertised_id and last_seq; the caller passes only sequence numbers that advance."""
+    upsert(session, DeviceRow, list(rows), ["building_id", "id"], keep_when_null=("ble_advertised_id",))
 
 
 # ----------------------------------------------------------------------------- anchors
@@ -154,8 +144,10 @@ def delete_anchor(session: Session, building_id: str, public_id: str) -> bool:
 # ----------------------------------------------------------------------------- positions
 
 
-def add_positions(session: Session, rows: Sequence[PositionSnapshotRow]) -> None:
-    session.add_all(rows)
+def add_positions(session: Session, rows: Sequence[dict[str, object]]) -> None:
+    """Many position snapshots in one executemany (column name -> value per row)."""
+    if rows:
+        session.execute(insert(PositionSnapshotRow), list(rows))
 
 
 def latest_positions(session: Session, building_id: str) -> list[PositionSnapshotRow]:

@@ -1,0 +1,381 @@
+"""Load benchmark: a real server on loopback, N virtual phones posting one batch per second each, and live
+dashboards on the WebSocket.
+
+    python bench/load.py [--phones 250,500,1000,2000] [--duration 30] [--dashboards 10] [--json OUT]
+
+For each N (ascending) a fresh server (``crowdslam serve``, SQLite, recording on: the defaults a newcomer
+gets) is started in its own process. Each phone starts with a position fix, then posts every second: two
+steps (1.4 m/s, azimuth given), a WiFi scan every 2 s (15 strongest of 60 access points, log-distance path
+loss with 4 dB noise) and Bluetooth sightings of the phones within 8 m. Phones are spread evenly over each
+second, so the offered load is N batches per second.
+
+Latency runs from the moment a post was due to its answer (a request queued behind a slow one counts its
+wait). ``ws_lag`` runs from a batch's last step to the dashboard receiving that position. The load generator
+shares the machine with the server: it speaks HTTP/1.1 over a pool of keep-alive sockets with pre-formatted
+bodies so that it costs little next to the server.
+
+Prints one JSON object: per-N rows (``phones, batches_per_s, p50_ms, p99_ms, ws_lag_p99_ms, errors``) and
+``sustained``: the largest N with p99 <= 100 ms, the offered rate met within 5 % and no errors.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import math
+import os
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from server.numba_cache import configure_numba_cache
+
+configure_numba_cache()
+
+import httpx
+from websockets.asyncio.client import connect
+
+from schemas.api import KeyScope
+from server.auth import mint_key
+from server.store.db import make_engine, make_session_factory
+from server.store.migrate import upgrade
+from server.store.models import BuildingRow
+
+FLOOR_M = (120.0, 80.0)
+N_APS = 60
+SCAN_TOP = 15
+BLUETOOTH_RANGE_M = 8.0
+P99_TARGET_MS = 100.0
+CLI = [sys.executable, "-c", "import sys; from server.cli.main import main; sys.exit(main(sys.argv[1:]))"]
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@dataclass
+class Crowd:
+    """The virtual phones' true state, advanced once per second."""
+
+    rng: np.random.Generator
+    xy: np.ndarray
+    azimuth: np.ndarray  # clockwise from north
+    aps: np.ndarray
+
+    @classmethod
+    def create(cls, n: int, seed: int) -> Crowd:
+        rng = np.random.default_rng(seed)
+        xy = rng.uniform((5.0, 5.0), (FLOOR_M[0] - 5.0, FLOOR_M[1] - 5.0), size=(n, 2))
+        aps = rng.uniform((0.0, 0.0), FLOOR_M, size=(N_APS, 2))
+        return cls(rng, xy, rng.uniform(-math.pi, math.pi, n), aps)
+
+    def walk(self) -> None:
+        self.azimuth += self.rng.normal(0.0, 0.2, self.azimuth.size)
+        step = 1.4 * np.column_stack([np.sin(self.azimuth), np.cos(self.azimuth)])
+        nxt = self.xy + step
+        out = (nxt < 1.0) | (nxt > np.array(FLOOR_M) - 1.0)
+        bounce: np.ndarray = np.asarray(out.any(axis=1), dtype=bool)
+        self.azimuth[bounce] += math.pi
+        self.xy = np.where(bounce[:, None], self.xy, nxt)
+
+    def scan(self, phone: int) -> tuple[np.ndarray, np.ndarray]:
+        d = np.hypot(*(self.aps - self.xy[phone]).T)
+        rss = -40.0 - 25.0 * np.log10(np.maximum(d, 1.0)) + self.rng.normal(0.0, 4.0, N_APS)
+        top = np.argsort(-rss)[:SCAN_TOP]
+        return top, np.clip(rss[top], -99.0, -20.0)
+
+    def neighbours(self) -> list[np.ndarray]:
+        """Phones within Bluetooth range of each phone (a grid, not an N x N matrix)."""
+        cells: dict[tuple[int, int], list[int]] = {}
+        keys = np.floor(self.xy / BLUETOOTH_RANGE_M).astype(int)
+        for i, (cx, cy) in enumerate(keys):
+            cells.setdefault((int(cx), int(cy)), []).append(i)
+        result = []
+        for i, (cx, cy) in enumerate(keys):
+            near = [
+                j
+                for dx in (-1, 0, 1)
+                for dy in (-1, 0, 1)
+                for j in cells.get((int(cx) + dx, int(cy) + dy), ())
+                if j != i
+            ]
+            arr = np.array(near, dtype=int)
+            if arr.size:
+                arr = arr[np.hypot(*(self.xy[arr] - self.xy[i]).T) <= BLUETOOTH_RANGE_M][:3]
+            result.append(arr)
+        return result
+
+
+def _body(crowd: Crowd, phone: int, seq: int, now_ms: int, near: np.ndarray) -> bytes:
+    device = f"load-{phone:05d}"
+    parts = [
+        f'{{"building_id":"load","device_id":"{device}","batch_id":"{device}-{seq}","seq":{seq},'
+        f'"ble_advertised_id":"ble-{phone:05d}"'
+    ]
+    x, y = crowd.xy[phone]
+    az = float(crowd.azimuth[phone])
+    az = (az + math.pi) % (2 * math.pi) - math.pi
+    if seq == 0:
+        parts.append(
+            f',"landmarks":[{{"kind":"fix","t_ms":{now_ms - 990},"position":{{"x_m":{x:.2f},"y_m":{y:.2f}}},'
+            f'"sigma_m":1.0,"azimuth_rad":{az:.4f}}}]'
+        )
+    parts.append(
+        f',"steps":[{{"t_ms":{now_ms - 500},"length_m":0.7,"azimuth_rad":{az:.4f}}},'
+        f'{{"t_ms":{now_ms},"length_m":0.7,"azimuth_rad":{az:.4f}}}]'
+    )
+    if seq % 2 == 0:
+        top, rss = crowd.scan(phone)
+        aps = ",".join(
+            f'{{"bssid":"02:00:00:00:00:{a:02x}","rssi_dbm":{r:.1f},"frequency_mhz":2437}}'
+            for a, r in zip(top, rss, strict=True)
+        )
+        parts.append(f',"wifi_scans":[{{"t_ms":{now_ms - 200},"aps":[{aps}]}}]')
+    if near.size:
+        sightings = ",".join(
+            f'{{"kind":"peer","t_ms":{now_ms - 100},"peer_advertised_id":"ble-{j:05d}",'
+            f'"rssi_dbm":{-60.0 - 3.0 * float(np.hypot(*(crowd.xy[j] - crowd.xy[phone]))):.1f}}}'
+            for j in near
+        )
+        parts.append(f',"bluetooth":[{sightings}]')
+    parts.append("}")
+    return "".join(parts).encode()
+
+
+class Connection:
+    """One keep-alive HTTP/1.1 connection; requests on it run one at a time."""
+
+    def __init__(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        self.reader, self.writer = reader, writer
+
+    async def post(self, path: str, key: str, body: bytes) -> int:
+        head = (
+            f"POST {path} HTTP/1.1\r\nHost: load\r\nAuthorization: Bearer {key}\r\n"
+            f"Content-Type: application/json\r\nContent-Length: {len(body)}\r\n\r\n"
+        ).encode()
+        self.writer.write(head + body)
+        status_line = await self.reader.readline()
+        length = 0
+        while True:
+            line = await self.reader.readline()
+            if line in (b"\r\n", b""):
+                break
+            name, _, value = line.partition(b":")
+            if name.strip().lower() == b"content-length":
+                length = int(value)
+        await self.reader.readexactly(length)
+        parts = status_line.split()
+        return int(parts[1]) if len(parts) > 1 else 0
+
+
+@dataclass
+class Results:
+    latencies_ms: list[float] = field(default_factory=list)
+    ws_lag_ms: list[float] = field(default_factory=list)
+    errors: int = 0
+    sent: int = 0
+    dashboard_errors: list[str] = field(default_factory=list)
+
+
+async def _dashboard(url: str, results: Results, stop: asyncio.Event) -> None:
+    async with connect(url, max_size=None) as ws:
+        while not stop.is_set():
+            try:
+                frame = await asyncio.wait_for(ws.recv(), timeout=0.5)
+            except TimeoutError:
+                continue
+            received = time.time() * 1000.0
+            for message in _positions(json.loads(frame)):
+                results.ws_lag_ms.append(received - message["estimate"]["t_ms"])
+
+
+def _positions(payload: dict[str, Any]) -> list[dict[str, Any]]:
+    if payload.get("type") == "position":
+        return [payload]
+    if payload.get("type") == "batch":
+        return [m for m in payload.get("messages", []) if m.get("type") == "position"]
+    return []
+
+
+async def _drive(
+    port: int, keys: list[str], dashboard_key: str, duration_s: float, n_dashboards: int, connections: int
+) -> Results:
+    n = len(keys)
+    crowd = Crowd.create(n, seed=0)
+    results = Results()
+    pool: asyncio.Queue[Connection] = asyncio.Queue()
+    for _ in range(min(connections, n)):
+        reader, writer = await asyncio.open_connection("127.0.0.1", port)
+        pool.put_nowait(Connection(reader, writer))
+    stop = asyncio.Event()
+    live = f"ws://127.0.0.1:{port}/v1/buildings/load/live?token={dashboard_key}&batch=true"
+    dashboards = [asyncio.create_task(_dashboard(live, results, stop)) for _ in range(n_dashboards)]
+    await asyncio.sleep(0.5)
+    phase = np.linspace(0.0, 1.0, n, endpoint=False)
+    tasks: set[asyncio.Task[None]] = set()
+    warmup_s = min(5.0, duration_s / 4)
+
+    async def send(phone: int, seq: int, due: float, body: bytes, measure: bool) -> None:
+        conn = await pool.get()
+        try:
+            status = await conn.post("/v1/buildings/load/batches", keys[phone], body)
+        except (ConnectionError, asyncio.IncompleteReadError):
+            results.errors += 1
+            reader, writer = await asyncio.open_connection("127.0.0.1", port)
+            conn = Connection(reader, writer)
+        else:
+            if status != 200:
+                results.errors += 1
+            elif measure:
+                results.latencies_ms.append((time.perf_counter() - due) * 1000.0)
+        finally:
+            pool.put_nowait(conn)
+
+    start = time.perf_counter()
+    second = 0
+    while second < duration_s:
+        crowd.walk()
+        near = crowd.neighbours()
+        base = start + second
+        measure = second >= warmup_s
+        for phone in np.argsort(phase):
+            due = base + phase[phone]
+            delay = due - time.perf_counter()
+            if delay > 0:
+                await asyncio.sleep(delay)
+            now_ms = int(time.time() * 1000)
+            task = asyncio.create_task(
+                send(int(phone), second, due, _body(crowd, int(phone), second, now_ms, near[phone]), measure)
+            )
+            tasks.add(task)
+            task.add_done_callback(tasks.discard)
+            results.sent += measure
+        second += 1
+    if tasks:
+        await asyncio.wait(tasks, timeout=30.0)
+    stop.set()
+    for outcome in await asyncio.gather(*dashboards, return_exceptions=True):
+        if isinstance(outcome, Exception):
+            results.dashboard_errors.append(repr(outcome))
+    while not pool.empty():
+        pool.get_nowait().writer.close()
+    return results
+
+
+def _prepare(data_dir: Path, n: int) -> tuple[list[str], str]:
+    engine = make_engine(f"sqlite:///{data_dir / 'crowdslam.sqlite3'}")
+    upgrade(engine)
+    with make_session_factory(engine).begin() as session:
+        session.add(BuildingRow(id="load", name="Load test", rotation_rad=0.0))
+        session.flush()
+        keys = [mint_key(session, KeyScope.DEVICE, "load", f"load-{i:05d}")[0] for i in range(n)]
+        dashboard, _ = mint_key(session, KeyScope.DASHBOARD, "load")
+    engine.dispose()
+    return keys, dashboard
+
+
+def run_one(n: int, duration_s: float, n_dashboards: int, connections: int) -> dict[str, Any]:
+    with tempfile.TemporaryDirectory() as tmp:
+        data_dir = Path(tmp)
+        keys, dashboard = _prepare(data_dir, n)
+        port = _free_port()
+        env = {**os.environ, "CROWDSLAM_DATA_DIR": str(data_dir)}
+        log = (data_dir / "server.log").open("wb")
+        server = subprocess.Popen(
+            [*CLI, "serve", "--host", "127.0.0.1", "--port", str(port), "--log-level", "warning"],
+            env=env,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+        )
+        try:
+            deadline = time.monotonic() + 120.0
+            while True:
+                try:
+                    if httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=1.0).status_code == 200:
+                        break
+                except httpx.TransportError:
+                    pass
+                if time.monotonic() > deadline or server.poll() is not None:
+                    raise RuntimeError(f"server did not start: {(data_dir / 'server.log').read_text()}")
+                time.sleep(0.2)
+            started = time.perf_counter()
+            results = asyncio.run(_drive(port, keys, dashboard, duration_s, n_dashboards, connections))
+            elapsed = time.perf_counter() - started
+        finally:
+            server.terminate()
+            server.wait(timeout=60)
+            log.close()
+    lat = np.array(results.latencies_ms) if results.latencies_ms else np.array([math.inf])
+    lag = np.array(results.ws_lag_ms) if results.ws_lag_ms else np.array([math.inf])
+    measured_s = duration_s - min(5.0, duration_s / 4)
+    return {
+        "phones": n,
+        "offered_per_s": n,
+        "batches_per_s": round(len(results.latencies_ms) / measured_s, 1),
+        "p50_ms": round(float(np.percentile(lat, 50)), 1),
+        "p99_ms": round(float(np.percentile(lat, 99)), 1),
+        "ws_lag_p99_ms": round(float(np.percentile(lag, 99)), 1),
+        "ws_positions": len(results.ws_lag_ms),
+        "errors": results.errors + len(results.dashboard_errors),
+        "dashboard_errors": results.dashboard_errors[:3],
+        "seconds": round(elapsed, 1),
+    }
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--phones", default="250,500,1000,2000", help="comma-separated phone counts")
+    parser.add_argument("--duration", type=float, default=30.0, help="seconds of load per phone count")
+    parser.add_argument("--dashboards", type=int, default=10)
+    parser.add_argument(
+        "--connections", type=int, default=256, help="keep-alive sockets shared by the phones"
+    )
+    parser.add_argument("--json", type=Path, help="also write the result here")
+    args = parser.parse_args()
+    rows = []
+    for n in sorted(int(p) for p in args.phones.split(",")):
+        row = run_one(n, args.duration, args.dashboards, args.connections)
+        print(json.dumps(row), file=sys.stderr)
+        rows.append(row)
+    ok = [
+        r["phones"]
+        for r in rows
+        if r["p99_ms"] <= P99_TARGET_MS
+        and r["errors"] == 0
+        and r["batches_per_s"] >= 0.95 * r["offered_per_s"]
+    ]
+    best = max(ok, default=0)
+    sustained = next((r for r in rows if r["phones"] == best), None)
+    result = {
+        "benchmark": "load",
+        "machine_cores": os.cpu_count(),
+        "duration_s": args.duration,
+        "dashboards": args.dashboards,
+        "p99_target_ms": P99_TARGET_MS,
+        "sustained": sustained,
+        "rows": rows,
+    }
+    text = json.dumps(result, indent=2)
+    print(text)
+    if args.json:
+        args.json.write_text(text + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
