@@ -18,6 +18,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from schemas.errors import Problem
+from server.auth import KeyCache
 from server.broadcast import Broadcaster
 from server.errors import InvalidInputError, ProblemError
 from server.ingestion import TrackingService
@@ -43,6 +44,7 @@ class AppState:
     tracking: TrackingService
     metrics: Metrics
     started: float
+    keys: KeyCache
 
 
 class DatabaseNotMigratedError(RuntimeError):
@@ -88,7 +90,14 @@ def create_app(settings: Settings) -> FastAPI:
             sessions, broadcaster, params, calibration, settings.seed, recordings, settings.snapshot_period_s
         )
         app.state.crowdslam = AppState(
-            settings, engine, sessions, broadcaster, tracking, Metrics(), time.time()
+            settings,
+            engine,
+            sessions,
+            broadcaster,
+            tracking,
+            Metrics(),
+            time.time(),
+            KeyCache(settings.key_cache_s),
         )
         try:
             yield

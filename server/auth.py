@@ -77,3 +77,28 @@ def bearer_secret(authorization: str | None) -> str | None:
     if scheme.lower() != "bearer" or not value.strip():
         raise UnauthorizedError("the Authorization header must read 'Bearer <key>'")
     return value.strip()
+
+
+class KeyCache:
+    """Recently authenticated keys, so a phone posting every second costs no database query. An entry
+    lives ``ttl_s`` seconds: a key revoked in the database stops working within that time."""
+
+    def __init__(self, ttl_s: float, max_entries: int = 100_000) -> None:
+        self.ttl_s = ttl_s
+        self.max_entries = max_entries
+        self._entries: dict[str, tuple[Principal, float]] = {}
+
+    def get(self, secret: str, now: float) -> Principal | None:
+        entry = self._entries.get(secret)
+        if entry is None or entry[1] < now:
+            return None
+        return entry[0]
+
+    def put(self, secret: str, principal: Principal, now: float) -> None:
+        if self.ttl_s <= 0:
+            return
+        if len(self._entries) >= self.max_entries:
+            self._entries = {k: v for k, v in self._entries.items() if v[1] >= now}
+            if len(self._entries) >= self.max_entries:
+                self._entries.clear()
+        self._entries[secret] = (principal, now + self.ttl_s)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import asyncio
+import time
 from collections.abc import Iterator
 from typing import Annotated
 
@@ -28,11 +30,22 @@ def get_session(state: State) -> Iterator[Session]:
 DbSession = Annotated[Session, Depends(get_session)]
 
 
-def get_principal(
+async def get_principal(
     state: State, authorization: Annotated[str | None, Header(description="Bearer <API key>")] = None
 ) -> Principal:
-    with state.sessions() as session:
-        return authenticate(session, bearer_secret(authorization))
+    secret = bearer_secret(authorization)
+    now = time.monotonic()
+    if secret is not None and (cached := state.keys.get(secret, now)) is not None:
+        return cached
+
+    def lookup() -> Principal:
+        with state.sessions() as session:
+            return authenticate(session, secret)
+
+    principal = await asyncio.to_thread(lookup)
+    if secret is not None:
+        state.keys.put(secret, principal, now)
+    return principal
 
 
 Caller = Annotated[Principal, Depends(get_principal)]

@@ -37,6 +37,12 @@ class Settings(BaseSettings):
         description="How often each building's tracker is snapshotted to SQL. After a crash, the batches "
         "acknowledged since the snapshot are replayed from the batch log, so this bounds restart time.",
     )
+    key_cache_s: float = Field(
+        default=30.0,
+        ge=0.0,
+        description="How long an authenticated key is remembered; a key revoked in the database stops "
+        "working within this time. 0 checks the database on every request.",
+    )
     mode: Literal["dynamicslam", "semanticslam"] = Field(
         default="dynamicslam", description="semanticslam turns human anchors (encounters) off."
     )

@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 from typing import Any
 
-from fastapi import APIRouter, Request, WebSocket, WebSocketDisconnect
+from fastapi import APIRouter, Request, Response, WebSocket, WebSocketDisconnect
 
 from schemas.api import BatchReceipt
 from schemas.errors import Problem
@@ -51,7 +51,7 @@ async def ingest(state: AppState, caller: Principal, building_id: str, body: byt
         422: {"model": Problem},
     },
 )
-async def post_batch(building_id: str, request: Request, caller: Caller, state: State) -> BatchReceipt:
+async def post_batch(building_id: str, request: Request, caller: Caller, state: State) -> Response:
     """Post one sensor batch (device key). A retried batch (same ``batch_id``) answers ``duplicate`` and
     changes nothing; a batch whose ``seq`` is not after the device's last applied one answers ``late``."""
     length = request.headers.get("content-length")
@@ -63,7 +63,9 @@ async def post_batch(building_id: str, request: Request, caller: Caller, state: 
         body += chunk
         if len(body) > limit:
             raise BodyTooLargeError(len(body), limit)
-    return await ingest(state, caller, building_id, bytes(body))
+    receipt = await ingest(state, caller, building_id, bytes(body))
+    # already a validated model: serialise it directly (response_model still documents it)
+    return Response(receipt.model_dump_json(), media_type="application/json")
 
 
 @router.websocket("/stream")

@@ -228,3 +228,46 @@ def test_health_metrics_and_openapi(sqlite_api: Api) -> None:
     api.client.post("/v1/buildings/hq/batches", json=_batch(0), headers=api.auth(device))
     text = api.client.get("/metrics").text
     assert 'crowdslam_batches_total{building="hq"} 1.0' in text
+
+
+def test_a_key_revoked_in_the_database_stops_working_when_its_cache_entry_expires(sqlite_api: Api) -> None:
+    from datetime import UTC, datetime
+
+    from sqlalchemy import update
+
+    from server.auth import KeyCache
+    from server.store.models import ApiKeyRow
+
+    api = sqlite_api
+    api.create_building()
+    dashboard = api.key("hq", "dashboard")
+    assert api.client.get("/v1/buildings/hq/positions", headers=api.auth(dashboard)).status_code == 200
+    engine = make_engine(api.url)
+    with make_session_factory(engine).begin() as session:
+        session.execute(
+            update(ApiKeyRow).where(ApiKeyRow.scope == "dashboard").values(revoked_at=datetime.now(UTC))
+        )
+    engine.dispose()
+    # still remembered: the cache saves a query per request for its time to live
+    assert api.client.get("/v1/buildings/hq/positions", headers=api.auth(dashboard)).status_code == 200
+    state = api.client.app.state.crowdslam  # type: ignore[attr-defined]
+    state.keys = KeyCache(ttl_s=0.0)
+    r = api.client.get("/v1/buildings/hq/positions", headers=api.auth(dashboard))
+    assert r.status_code == 401
+    assert "revoked" in r.json()["detail"]
+
+
+def test_key_cache_entries_expire_and_stay_bounded() -> None:
+    from schemas.api import KeyScope
+    from server.auth import KeyCache, Principal
+
+    cache = KeyCache(ttl_s=10.0, max_entries=3)
+    p = Principal(1, KeyScope.DEVICE, "hq", "phone-1")
+    cache.put("a", p, now=0.0)
+    assert cache.get("a", now=9.9) == p
+    assert cache.get("a", now=10.1) is None
+    assert cache.get("b", now=0.0) is None
+    for i, key in enumerate("bcdef"):
+        cache.put(key, p, now=20.0 + i)
+    assert len(cache._entries) <= 3
+    assert cache.get("f", now=25.0) == p
