@@ -191,6 +191,9 @@ class Results:
 
 
 async def _dashboard(url: str, results: Results, stop: asyncio.Event) -> None:
+    # an encounter re-publishes the peer's estimate with the peer's older time: count each (user, time) once,
+    # so the lag is from a batch's last step to the first position it produced
+    seen: set[tuple[str, int]] = set()
     async with connect(url, max_size=None) as ws:
         while not stop.is_set():
             try:
@@ -199,7 +202,11 @@ async def _dashboard(url: str, results: Results, stop: asyncio.Event) -> None:
                 continue
             received = time.time() * 1000.0
             for message in _positions(json.loads(frame)):
-                results.ws_lag_ms.append(received - message["estimate"]["t_ms"])
+                estimate = message["estimate"]
+                key = (estimate["user_id"], estimate["t_ms"])
+                if key not in seen:
+                    seen.add(key)
+                    results.ws_lag_ms.append(received - estimate["t_ms"])
 
 
 def _positions(payload: dict[str, Any]) -> list[dict[str, Any]]:
@@ -327,6 +334,7 @@ def run_one(n: int, duration_s: float, n_dashboards: int, connections: int) -> d
         "batches_per_s": round(len(results.latencies_ms) / measured_s, 1),
         "p50_ms": round(float(np.percentile(lat, 50)), 1),
         "p99_ms": round(float(np.percentile(lat, 99)), 1),
+        "ws_lag_p50_ms": round(float(np.percentile(lag, 50)), 1),
         "ws_lag_p99_ms": round(float(np.percentile(lag, 99)), 1),
         "ws_positions": len(results.ws_lag_ms),
         "errors": results.errors + len(results.dashboard_errors),
