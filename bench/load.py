@@ -25,8 +25,6 @@ import asyncio
 import json
 import math
 import os
-import socket
-import subprocess
 import sys
 import tempfile
 import time
@@ -43,11 +41,11 @@ from server.numba_cache import configure_numba_cache
 
 configure_numba_cache()
 
-import httpx
 from websockets.asyncio.client import connect
 
 from schemas.api import KeyScope
 from server.auth import mint_key
+from server.background import free_port, serve_process
 from server.store.db import make_engine, make_session_factory
 from server.store.migrate import upgrade
 from server.store.models import BuildingRow
@@ -57,13 +55,6 @@ N_APS = 60
 SCAN_TOP = 15
 BLUETOOTH_RANGE_M = 8.0
 P99_TARGET_MS = 100.0
-CLI = [sys.executable, "-c", "import sys; from server.cli.main import main; sys.exit(main(sys.argv[1:]))"]
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @dataclass
@@ -155,6 +146,11 @@ def _body(crowd: Crowd, phone: int, seq: int, now_ms: int, near: np.ndarray) -> 
     return "".join(parts).encode()
 
 
+def _warmup_s(duration_s: float) -> float:
+    """The first seconds of a run are not measured (connections open, the building loads)."""
+    return min(5.0, duration_s / 4)
+
+
 class Connection:
     """One keep-alive HTTP/1.1 connection; requests on it run one at a time."""
 
@@ -233,7 +229,7 @@ async def _drive(
     await asyncio.sleep(0.5)
     phase = np.linspace(0.0, 1.0, n, endpoint=False)
     tasks: set[asyncio.Task[None]] = set()
-    warmup_s = min(5.0, duration_s / 4)
+    warmup_s = _warmup_s(duration_s)
 
     async def send(phone: int, seq: int, due: float, body: bytes, measure: bool) -> None:
         conn = await pool.get()
@@ -298,36 +294,19 @@ def run_one(n: int, duration_s: float, n_dashboards: int, connections: int) -> d
     with tempfile.TemporaryDirectory() as tmp:
         data_dir = Path(tmp)
         keys, dashboard = _prepare(data_dir, n)
-        port = _free_port()
+        port = free_port()
         env = {**os.environ, "CROWDSLAM_DATA_DIR": str(data_dir)}
-        log = (data_dir / "server.log").open("wb")
-        server = subprocess.Popen(
-            [*CLI, "serve", "--host", "127.0.0.1", "--port", str(port), "--log-level", "warning"],
-            env=env,
-            stdout=log,
-            stderr=subprocess.STDOUT,
-        )
+        server = serve_process(env, port, data_dir / "server.log", log_level="warning")
         try:
-            deadline = time.monotonic() + 120.0
-            while True:
-                try:
-                    if httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=1.0).status_code == 200:
-                        break
-                except httpx.TransportError:
-                    pass
-                if time.monotonic() > deadline or server.poll() is not None:
-                    raise RuntimeError(f"server did not start: {(data_dir / 'server.log').read_text()}")
-                time.sleep(0.2)
             started = time.perf_counter()
             results = asyncio.run(_drive(port, keys, dashboard, duration_s, n_dashboards, connections))
             elapsed = time.perf_counter() - started
         finally:
             server.terminate()
             server.wait(timeout=60)
-            log.close()
     lat = np.array(results.latencies_ms) if results.latencies_ms else np.array([math.inf])
     lag = np.array(results.ws_lag_ms) if results.ws_lag_ms else np.array([math.inf])
-    measured_s = duration_s - min(5.0, duration_s / 4)
+    measured_s = duration_s - _warmup_s(duration_s)
     return {
         "phones": n,
         "offered_per_s": n,

@@ -1,14 +1,29 @@
-"""Run the app under uvicorn in a background thread (the demo, end-to-end tests, benchmarks)."""
+"""Run the app under uvicorn in a background thread, or ``crowdslam serve`` in its own process (the demo,
+end-to-end and crash tests, benchmarks)."""
 
 from __future__ import annotations
 
+import socket
+import subprocess
+import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
+from pathlib import Path
 
+import httpx
 import uvicorn
 from fastapi import FastAPI
+
+CLI = [sys.executable, "-c", "import sys; from server.cli.main import main; sys.exit(main(sys.argv[1:]))"]
+"""``crowdslam`` run by this interpreter, whether or not the console script is on PATH."""
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    with socket.socket() as s:
+        s.bind((host, 0))
+        return int(s.getsockname()[1])
 
 
 class ServerDidNotStartError(RuntimeError):
@@ -36,3 +51,36 @@ def running_server(app: FastAPI, host: str, port: int, start_timeout_s: float = 
     finally:
         server.should_exit = True
         thread.join(timeout=10)
+
+
+def serve_process(
+    env: Mapping[str, str],
+    port: int,
+    log: Path,
+    host: str = "127.0.0.1",
+    log_level: str = "info",
+    start_timeout_s: float = 120.0,
+) -> subprocess.Popen[bytes]:
+    """Start ``crowdslam serve`` in its own process (output appended to ``log``); returns once /healthz
+    answers. The caller stops it (terminate, or SIGKILL to test crash recovery)."""
+    with log.open("ab") as sink:
+        process = subprocess.Popen(
+            [*CLI, "serve", "--host", host, "--port", str(port), "--log-level", log_level],
+            env=dict(env),
+            stdout=sink,
+            stderr=subprocess.STDOUT,
+        )
+    deadline = time.monotonic() + start_timeout_s
+    while time.monotonic() < deadline:
+        if process.poll() is not None:
+            raise ServerDidNotStartError(
+                f"crowdslam serve exited with {process.returncode}:\n{log.read_text()}"
+            )
+        try:
+            if httpx.get(f"http://{host}:{port}/healthz", timeout=1.0).status_code == 200:
+                return process
+        except httpx.TransportError:
+            time.sleep(0.2)
+    process.kill()
+    process.wait()
+    raise ServerDidNotStartError(f"crowdslam serve did not answer within {start_timeout_s:.0f} s")

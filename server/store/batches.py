@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
-from server.store.db import insert_many_once, insert_once
+from server.store.db import insert_many_once
 from server.store.models import BatchRow
 
 
@@ -70,10 +70,7 @@ def insert_batch_once(session: Session, batch: AcceptedBatch) -> int | None:
     ``INSERT ... ON CONFLICT DO NOTHING`` makes the database decide atomically, so two concurrent retries
     of one batch cannot both be accepted.
     """
-    row_id = insert_once(
-        session, BatchRow, _values(batch), ["building_id", "device_id", "batch_id"], BatchRow.id
-    )
-    return int(row_id) if row_id is not None else None
+    return insert_batches_once(session, [batch])[0]
 
 
 def mark_applied(session: Session, row_id: int, applied_round: int) -> None:

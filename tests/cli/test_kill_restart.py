@@ -6,47 +6,17 @@ from __future__ import annotations
 import json
 import os
 import signal
-import socket
 import subprocess
-import sys
-import time
 from pathlib import Path
 
 import httpx
 
 from schemas.api import BatchReceipt
+from server.background import CLI, free_port, serve_process
 from server.crowd_client import device_keys, prepare_building
 from server.simulated_phones import simulated_batches
 from slam_core.simulate import Scenario, simulate
 from tests.conftest import SHARED
-
-CLI = [sys.executable, "-c", "import sys; from server.cli.main import main; sys.exit(main(sys.argv[1:]))"]
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def _serve(env: dict[str, str], port: int, log: Path) -> subprocess.Popen[bytes]:
-    with log.open("ab") as sink:
-        process = subprocess.Popen(
-            [*CLI, "serve", "--host", "127.0.0.1", "--port", str(port)],
-            env=env,
-            stdout=sink,
-            stderr=subprocess.STDOUT,
-        )
-    deadline = time.monotonic() + 120.0
-    while time.monotonic() < deadline:
-        assert process.poll() is None, log.read_text()
-        try:
-            if httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=1.0).status_code == 200:
-                return process
-        except httpx.TransportError:
-            time.sleep(0.2)
-    process.kill()
-    raise AssertionError("the server did not start within 120 s")
 
 
 def test_kill_9_loses_no_acknowledged_batch_and_tracking_resumes(tmp_path: Path) -> None:
@@ -63,7 +33,7 @@ def test_kill_9_loses_no_acknowledged_batch_and_tracking_resumes(tmp_path: Path)
     batches = list(simulated_batches(sim, "hq"))
     cut = len(batches) // 2
 
-    port = _free_port()
+    port = free_port()
 
     def post(client: httpx.Client, keys: dict[str, str], batch_index: int) -> BatchReceipt:
         batch = batches[batch_index]
@@ -75,7 +45,7 @@ def test_kill_9_loses_no_acknowledged_batch_and_tracking_resumes(tmp_path: Path)
         assert response.status_code == 200, response.text
         return BatchReceipt.model_validate_json(response.content)
 
-    server = _serve(env, port, tmp_path / "server.log")
+    server = serve_process(env, port, tmp_path / "server.log")
     try:
         with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=30.0) as client:
             prepare_building(client, "hq", operator, sim)
@@ -89,7 +59,7 @@ def test_kill_9_loses_no_acknowledged_batch_and_tracking_resumes(tmp_path: Path)
         server.wait()
     assert all(r.status == "applied" for r in before)
 
-    server = _serve(env, port, tmp_path / "server.log")
+    server = serve_process(env, port, tmp_path / "server.log")
     try:
         with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=30.0) as client:
             auth = {"Authorization": f"Bearer {operator}"}

@@ -4,7 +4,6 @@ equal the offline engine's on the same batches with the same seed, and a dashboa
 from __future__ import annotations
 
 import json
-import socket
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -16,7 +15,7 @@ from websockets.sync.client import connect
 from schemas.api import KeyScope
 from server.app import create_app, load_calibration, tracker_params
 from server.auth import mint_key
-from server.background import running_server
+from server.background import free_port, running_server
 from server.convert import BuildingContext, anchor_type_index, to_user_batch
 from server.crowd_client import device_keys, post_crowd, prepare_building
 from server.settings import Settings
@@ -35,12 +34,6 @@ def _small_testbed() -> Scenario:
     return Scenario.from_dict(raw)
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 @pytest.fixture
 def live_server(tmp_path: Path) -> Iterator[tuple[str, str, Settings]]:
     url = f"sqlite:///{tmp_path / 'db.sqlite3'}"
@@ -50,7 +43,7 @@ def live_server(tmp_path: Path) -> Iterator[tuple[str, str, Settings]]:
         operator, _ = mint_key(session, KeyScope.OPERATOR)
     engine.dispose()
     settings = Settings(data_dir=tmp_path, database_url=url, seed=3)
-    with running_server(create_app(settings), "127.0.0.1", _free_port()) as base:
+    with running_server(create_app(settings), "127.0.0.1", free_port()) as base:
         yield base, operator, settings
 
 

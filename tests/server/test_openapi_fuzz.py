@@ -3,7 +3,6 @@ a running server with valid keys for each scope: whatever it sends, the server n
 
 from __future__ import annotations
 
-import socket
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -16,17 +15,11 @@ from schemathesis.core.result import Err
 from schemas.api import KeyScope
 from server.app import create_app
 from server.auth import mint_key
-from server.background import running_server
+from server.background import free_port, running_server
 from server.settings import Settings
 from server.store.db import make_engine, make_session_factory
 from server.store.migrate import upgrade
 from server.store.models import BuildingRow
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @pytest.fixture(scope="module")
@@ -44,7 +37,7 @@ def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, dict
         }
     engine.dispose()
     app = create_app(Settings(data_dir=data, database_url=url, record=False))
-    with running_server(app, "127.0.0.1", _free_port()) as base:
+    with running_server(app, "127.0.0.1", free_port()) as base:
         yield base, keys, app.openapi()
 
 
