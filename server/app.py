@@ -173,6 +173,11 @@ def _warm_kernels(params: TrackerParams, calibration: Calibration) -> None:
         )
     tracker.engine.observe_encounters(np.array([0]), np.array([1]), np.array([1.0]), np.array([1.0]))
     tracker.engine.observe_position(np.array([0]), np.array([[1.0, 0.0]]), np.array([0.5]))
+    from slam_core.pdr.frontend import ImuSamples, PdrState, pdr_steps
+
+    t = np.arange(3_000.0, 4_000.0, 20.0)
+    gravity = np.column_stack([t, np.zeros(t.size), np.zeros(t.size), np.full(t.size, 9.81)])
+    pdr_steps(PdrState(), ImuSamples(acc=gravity, gyr=gravity * [1, 0, 0, 0], mag=gravity), params.pdr)
 
 
 def _install_error_handlers(app: FastAPI) -> None:

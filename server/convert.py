@@ -11,9 +11,19 @@ import numpy as np
 from schemas.anchors import AnchorType, BuildingAnchor
 from schemas.common import Position
 from schemas.estimates import EncounterEvent, EncounterModelName, Estimate, EstimateSource
-from schemas.sensors import AnchorReading, GpsFix, PeerSighting, PositionFix, SensorBatch, TagReading
+from schemas.sensors import (
+    AnchorReading,
+    GpsFix,
+    PeerSighting,
+    PositionFix,
+    RotationVectorStream,
+    SensorBatch,
+    TagReading,
+    Vector3Stream,
+)
 from slam_core.encounter_detection import MODEL_BLUETOOTH
 from slam_core.geo import GeoFrame
+from slam_core.pdr.frontend import ImuSamples
 from slam_core.tracker import EncounterResult, EstimateRow, UserBatch
 
 ENGINE_ANCHOR_TYPES: tuple[AnchorType, ...] = tuple(AnchorType)
@@ -94,8 +104,39 @@ def to_user_batch(batch: SensorBatch, ctx: BuildingContext) -> Converted:
         peer_t=np.array([p.t_ms for p in peers], dtype=np.int64),
         peer_id=tuple(p.peer_advertised_id for p in peers),
         peer_rss=np.array([p.rssi_dbm for p in peers], dtype=np.float64),
+        imu=_imu(batch),
     )
     return Converted(user_batch, warnings)
+
+
+def _vector(stream: Vector3Stream | None) -> np.ndarray:
+    if stream is None:
+        return np.zeros((0, 4))
+    return np.column_stack([stream.t_ms, stream.x, stream.y, stream.z]).astype(np.float64)
+
+
+def _rotation(stream: RotationVectorStream | None) -> np.ndarray:
+    if stream is None:
+        return np.zeros((0, 5))
+    w = np.full(len(stream.t_ms), np.nan) if stream.w is None else stream.w
+    return np.column_stack([stream.t_ms, stream.x, stream.y, stream.z, w]).astype(np.float64)
+
+
+def _imu(batch: SensorBatch) -> ImuSamples | None:
+    """Raw IMU for the PDR front-end; None when the phone counts its own steps or sent no accelerometer
+    (orientation streams alone are still kept so the next batch's samples have a held orientation)."""
+    if batch.steps:
+        return None
+    streams = (batch.accelerometer, batch.rotation_vector, batch.game_rotation_vector, batch.gyroscope)
+    if all(s is None for s in streams):
+        return None
+    return ImuSamples(
+        acc=_vector(batch.accelerometer),
+        gyr=_vector(batch.gyroscope),
+        mag=_vector(batch.magnetometer),
+        rv=_rotation(batch.rotation_vector),
+        grv=_rotation(batch.game_rotation_vector),
+    )
 
 
 def _place(

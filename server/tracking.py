@@ -49,6 +49,10 @@ class Counters:
     encounters: int = 0
     encounters_applied: int = 0
     steps_dropped: int = 0
+    steps_detected: int = 0
+    """Steps the PDR front-end found in raw IMU."""
+    imu_samples_dropped: int = 0
+    """IMU samples older than what a user's front-end had consumed (late or re-sent batches)."""
     recentred: int = 0
     snapshots: int = 0
     replayed: int = 0
@@ -379,8 +383,15 @@ class BuildingSession:
                     b = group[i].batch
                     report = outcome.reports[converted[i][0].user]
                     self.counters.steps_dropped += report.steps_dropped
+                    self.counters.steps_detected += report.steps_detected
+                    self.counters.imu_samples_dropped += report.imu_samples_dropped
                     self.counters.recentred += report.recentred
                     warnings = list(converted[i][1])
+                    if report.imu_samples_dropped:
+                        warnings.append(
+                            f"{report.imu_samples_dropped} IMU samples skipped: not newer than the samples "
+                            "already dead-reckoned for this user"
+                        )
                     if report.steps_dropped:
                         warnings.append(_dropped_warning(report.steps_dropped, report.status))
                     mine = [e for e in encounters if b.effective_user_id in (e.user_a, e.user_b)]

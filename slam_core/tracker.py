@@ -3,6 +3,8 @@
 ``BuildingTracker.apply`` takes the arrays of one or more users' batches (already validated and converted
 by the server) and advances everything they imply, in this order:
 
+0. raw IMU of users who do not count their own steps goes through the online PDR front-end
+   (``slam_core.pdr.frontend``, state carried per user between batches) and becomes steps;
 1. each user's events in time order: a first position fix starts its filter (seeded from the crowd map);
    steps move it (Eq. 4-8); a building-anchor detection feeds the crowd map with the user's pre-update
    estimate and updates the filter (Eq. 15-17, Algorithm 3); a later fix reweights it. Users are advanced
@@ -20,7 +22,7 @@ Pure numerics: no I/O, no clock. Times are the phones' epoch milliseconds.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -30,6 +32,7 @@ from slam_core.encounter_detection import Detection, DetectionParams, EncounterD
 from slam_core.encounters import Calibration
 from slam_core.fastslam import DynamicSlam
 from slam_core.params import FilterParams
+from slam_core.pdr.frontend import ImuSamples, PdrParams, PdrState, drop_stale, pdr_steps
 
 CROWD_SOLVERS = ("fusion", "graph")
 
@@ -45,6 +48,7 @@ class TrackerParams:
     """Users whose detections the joint solve keeps; older users' tracks are forgotten (their anchors keep
     their estimates), so a long-running server's solve stays bounded."""
     start_sigma_floor_m: float = 0.5
+    pdr: PdrParams = field(default_factory=PdrParams)
 
     def __post_init__(self) -> None:
         if self.crowd_solver not in CROWD_SOLVERS:
@@ -83,6 +87,8 @@ class UserBatch:
     peer_t: np.ndarray = field(default_factory=_i64)
     peer_id: tuple[str, ...] = ()  # the heard phones' advertised ids
     peer_rss: np.ndarray = field(default_factory=_f64)
+    imu: ImuSamples | None = None
+    """Raw IMU for the PDR front-end; ignored when the phone sent its own steps."""
 
     def __post_init__(self) -> None:
         f, s, d, c, p = (
@@ -123,6 +129,8 @@ class UserReport:
     """What happened to one user's batch."""
 
     status: str = "awaiting_fix"  # "tracking" once started
+    steps_detected: int = 0  # by the PDR front-end from raw IMU
+    imu_samples_dropped: int = 0  # older than what the front-end had consumed (late or re-sent)
     steps_applied: int = 0
     steps_dropped: int = 0  # before the first fix, out of time order, or with no heading reference
     detections_applied: int = 0
@@ -162,6 +170,7 @@ class _User:
     heading: float = math.nan  # counter-clockwise from east, of the last step
     displacement: np.ndarray = field(default_factory=lambda: np.zeros(2))
     walked: float = 0.0
+    origin: np.ndarray = field(default_factory=lambda: np.full(2, np.nan))  # the starting fix
 
 
 @dataclass
@@ -199,6 +208,7 @@ class BuildingTracker:
         self.graph = CrowdGraph(GraphParams(detection_sigma_m=fp.anchors.detection_sigma_m))
         self.detector = EncounterDetector(params.detection, calibration)
         self._users: dict[str, _User] = {}
+        self._pdr: dict[str, PdrState] = {}
         self._by_ble: dict[str, str] = {}
         self._last_solve_ms = -(2**62)
         self._graph_users: list[int] = []
@@ -223,6 +233,7 @@ class BuildingTracker:
         u = self._users.pop(user, None)
         if u is None:
             raise KeyError(f"unknown user {user!r}")
+        self._pdr.pop(user, None)
         if u.slot >= 0:
             self.engine.remove_user(u.slot)
         self._by_ble = {k: v for k, v in self._by_ble.items() if v != user}
@@ -258,6 +269,15 @@ class BuildingTracker:
         if not 0 <= anchor_type < self.n_types:
             raise ValueError(f"anchor type must be in [0, {self.n_types})")
 
+    def dead_reckoning(self, user: str) -> np.ndarray | None:
+        """Plain PDR: the user's starting fix plus every applied step, ignoring every observation (the
+        baseline the filter is measured against)."""
+        u = self._users.get(user)
+        if u is None or u.slot < 0:
+            return None
+        position: np.ndarray = u.origin + u.displacement
+        return position
+
     def estimate(self, user: str) -> EstimateRow | None:
         u = self._users.get(user)
         if u is None or u.slot < 0:
@@ -274,6 +294,7 @@ class BuildingTracker:
             if np.any((b.detect_type < 0) | (b.detect_type >= self.n_types)):
                 raise ValueError(f"user batch of {b.user!r}: anchor type outside [0, {self.n_types})")
         reports = {b.user: UserReport() for b in batches}
+        batches = [self._dead_reckon(b, reports[b.user]) for b in batches]
         for b in batches:
             if b.user not in self._users:
                 self._users[b.user] = _User()
@@ -310,6 +331,24 @@ class BuildingTracker:
             reports[b.user].status = "tracking" if self.is_tracking(b.user) else "awaiting_fix"
         estimates = self._rows(sorted(touched))
         return TrackerOutcome(reports, estimates, encounters, sorted(changed))
+
+    def _dead_reckon(self, b: UserBatch, report: UserReport) -> UserBatch:
+        """The batch with the steps the PDR front-end finds in its raw IMU (phones counting their own steps
+        and batches without IMU pass through)."""
+        if b.imu is None or b.step_t.size:
+            return b
+        state = self._pdr.setdefault(b.user, PdrState())
+        imu, report.imu_samples_dropped = drop_stale(state, b.imu)
+        steps = pdr_steps(state, imu, self.params.pdr)
+        report.steps_detected = steps.t_ms.size
+        return replace(
+            b,
+            step_t=steps.t_ms,
+            step_length=steps.length_m,
+            step_azimuth=steps.azimuth_rad,
+            step_turn=steps.turn_rad,
+            imu=None,
+        )
 
     def _plan(self, batches: list[UserBatch], reports: dict[str, UserReport]) -> list[_Round]:
         """Each user's events in time order, cut into rounds at every observation (detection or fix)."""
@@ -386,6 +425,7 @@ class BuildingTracker:
         sigma = max(sigma, self.params.start_sigma_floor_m)
         u.slot = self.engine.add_user(float(xy[0]), float(xy[1]), heading, sigma, self.crowd.snapshot())
         u.number = self._started
+        u.origin = np.asarray(xy, dtype=float).copy()
         self._started += 1
         self.graph.add_user(u.number, np.asarray(xy, dtype=float))
         self._graph_users.append(u.number)

@@ -1,4 +1,5 @@
-"""``crowdslam evaluate``: run the simulated testbed (or a sweep) and write the metrics as JSON (+ PNG)."""
+"""``crowdslam evaluate``: run the simulated testbed (or a sweep), or replay a floor of real Indoor Location
+2.0 walks as a crowd, and write the metrics as JSON (+ a CDF plot)."""
 
 from __future__ import annotations
 
@@ -10,11 +11,30 @@ from typing import Any
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
+    world = parser.add_mutually_exclusive_group(required=True)
+    world.add_argument(
         "--scenario",
         type=Path,
-        required=True,
         help="scenario JSON, e.g. ../shared/scenarios/paper-testbed.json",
+    )
+    world.add_argument(
+        "--msindoor",
+        type=Path,
+        metavar="FLOOR_DIR",
+        help="a floor of Indoor Location 2.0 walks (e.g. ../shared/data/msindoor20/site1/F1), replayed as "
+        "a crowd",
+    )
+    parser.add_argument(
+        "--warm-split",
+        type=float,
+        metavar="F",
+        help="with --msindoor: the earliest fraction F of the walks first builds the map; the rest is scored",
+    )
+    parser.add_argument(
+        "--calibration",
+        type=Path,
+        metavar="FILE",
+        help="with --msindoor: encounter range models from `crowdslam calibrate` (default: the server's)",
     )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--mode", choices=("pdr", "semanticslam", "dynamicslam"), default="dynamicslam")
@@ -40,6 +60,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from slam_core.simulate import Scenario
 
+    if args.msindoor is not None:
+        return _msindoor(args)
+    if args.warm_split is not None or args.calibration is not None:
+        print("crowdslam evaluate: --warm-split and --calibration apply to --msindoor only")
+        return 2
+
     try:
         scenario = Scenario.from_dict(json.loads(args.scenario.read_text()))
     except (OSError, json.JSONDecodeError, ValueError, KeyError) as error:
@@ -52,6 +78,56 @@ def run(args: argparse.Namespace) -> int:
         result = _compare(scenario, args, plot)
     else:
         result = _single(scenario, args, plot)
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(json.dumps(result, indent=2) + "\n")
+    print(json.dumps(result, indent=2))
+    print(f"wrote {args.json} and {plot}")
+    return 0
+
+
+def _msindoor(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from server.app import load_calibration, tracker_params
+    from server.datasets.msindoor import TraceFormatError
+    from server.datasets.msindoor_replay import ReplayOptions, replay_floor
+    from server.settings import Settings
+    from slam_core.metrics import empirical_cdf
+
+    if args.sweep or args.compare:
+        print("crowdslam evaluate: --sweep and --compare apply to --scenario only")
+        return 2
+    try:
+        options = ReplayOptions(
+            mode=args.mode,
+            warm_split=args.warm_split,
+            particles=args.particles,
+            sampling=args.sampling,
+            motion_model=args.motion_model,
+            crowd_solver=args.crowd_solver,
+            seed=args.seed,
+        )
+        calibration = load_calibration(args.calibration)
+    except (OSError, ValueError) as error:
+        print(f"crowdslam evaluate: {error}")
+        return 2
+    with tqdm(desc=f"replay {args.msindoor.name} ({args.mode})", unit="batch") as bar:
+
+        def progress(n: int, total: int) -> None:
+            bar.total = total
+            bar.update(n)
+
+        try:
+            params = tracker_params(Settings())
+            result, errors = replay_floor(args.msindoor, options, params, calibration, progress)
+        except (TraceFormatError, ValueError, OSError) as error:
+            print(f"crowdslam evaluate: {error}")
+            return 2
+    plot = args.plot or args.json.with_suffix(".png")
+    x, p = empirical_cdf(errors)
+    label = f"{args.mode} (median {result['median_m']:.2f} m, p90 {result['p90_m']:.2f} m)"
+    title = f"{args.msindoor} crowd replay" + (f", warm split {args.warm_split}" if args.warm_split else "")
+    _plot_lines(plot, [(x, p, label)], "waypoint error (m)", "CDF", title)
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(result, indent=2) + "\n")
     print(json.dumps(result, indent=2))

@@ -29,7 +29,11 @@ COMMANDS: dict[str, tuple[str, str]] = {
     ),
     "evaluate": (
         "server.cli.evaluate_cmd",
-        "run the simulated testbed (or a sweep) and write metrics as JSON",
+        "run the simulated testbed (or a sweep), or replay real walks as a crowd; metrics as JSON",
+    ),
+    "calibrate": (
+        "server.cli.calibrate_cmd",
+        "fit the encounter models on a floor of real walks; precision and recall of each WiFi feature",
     ),
 }
 

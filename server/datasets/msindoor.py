@@ -11,7 +11,7 @@ A malformed or truncated line raises ``TraceFormatError`` naming the file and th
 from __future__ import annotations
 
 import json
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -225,8 +225,9 @@ def read_floor(floor_dir: Path) -> FloorInfo:
     return FloorInfo(width, height, geojson, image if image.exists() else None, traces)
 
 
-def iter_windows(trace: Trace, window_ms: int = 1000) -> Iterator[tuple[int, int]]:
-    """Consecutive [start, end) windows covering the trace's sensor data."""
+def iter_windows(trace: Trace, window_ms: int = 1000, cuts: Sequence[int] = ()) -> Iterator[tuple[int, int]]:
+    """Consecutive [start, end) windows covering the trace's sensor data, also split at each time in
+    ``cuts`` (so a window ends exactly at, say, a waypoint)."""
     times = [s[:, 0] for s in trace.streams.values() if len(s)]
     times += [np.array([w.t_ms for w in trace.wifi], dtype=float)] if trace.wifi else []
     if not times:
@@ -234,4 +235,46 @@ def iter_windows(trace: Trace, window_ms: int = 1000) -> Iterator[tuple[int, int
     first = int(min(t.min() for t in times))
     last = int(max(t.max() for t in times))
     for start in range(first, last + 1, window_ms):
-        yield start, start + window_ms
+        end = start + window_ms
+        inner = sorted({int(c) for c in cuts if start < c < end})
+        yield from zip([start, *inner], [*inner, end], strict=True)
+
+
+def shifted(trace: Trace, offset_ms: int) -> Trace:
+    """The same walk with every time moved by ``offset_ms`` (replaying walks as if concurrent)."""
+
+    def move(rows: np.ndarray) -> np.ndarray:
+        out = rows.copy()
+        if len(out):
+            out[:, 0] += offset_ms
+        return out
+
+    scans = [
+        WifiScan(
+            s.t_ms + offset_ms,
+            s.ssid,
+            s.bssid,
+            s.rssi_dbm,
+            s.frequency_mhz,
+            np.where(s.last_seen_ms > 0, s.last_seen_ms + offset_ms, s.last_seen_ms),
+        )
+        for s in trace.wifi
+    ]
+    header = dict(trace.header)
+    for key in ("startTime", "endTime"):
+        if key in header:
+            header[key] = str(int(header[key]) + offset_ms)
+    return Trace(
+        path=trace.path,
+        header=header,
+        streams={k: move(v) for k, v in trace.streams.items()},
+        accuracy=trace.accuracy,
+        wifi=scans,
+        beacons=[(t + offset_ms, *rest) for t, *rest in trace.beacons],  # type: ignore[misc]
+        ble=[(t + offset_ms, *rest) for t, *rest in trace.ble],  # type: ignore[misc]
+        blu4=[(t + offset_ms, *rest) for t, *rest in trace.blu4],  # type: ignore[misc]
+        waypoints=move(trace.waypoints),
+        dist1=trace.dist1,
+        dist2=trace.dist2,
+        magnetic_accuracy_changes=[(t + offset_ms, a) for t, a in trace.magnetic_accuracy_changes],
+    )

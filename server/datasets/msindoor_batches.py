@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 
 import numpy as np
 
@@ -51,9 +51,22 @@ def trace_batches(
     trace: Trace, building_id: str, device_id: str, window_ms: int = 1000, first_seq: int = 0
 ) -> Iterator[SensorBatch]:
     """One batch per window with data, in time order; ``batch_id`` is ``<device>-<seq>``."""
+    for _end, batch in trace_windows(trace, building_id, device_id, window_ms, first_seq):
+        yield batch
+
+
+def trace_windows(
+    trace: Trace,
+    building_id: str,
+    device_id: str,
+    window_ms: int = 1000,
+    first_seq: int = 0,
+    cuts: Sequence[int] = (),
+) -> Iterator[tuple[int, SensorBatch]]:
+    """``trace_batches`` with each batch's window end, windows also split at the ``cuts`` times."""
     seq = first_seq
     walk = trace.path.stem
-    for start, end in iter_windows(trace, window_ms):
+    for start, end in iter_windows(trace, window_ms, cuts):
 
         def window(rows: np.ndarray, start: int = start, end: int = end) -> np.ndarray:
             return rows[(rows[:, 0] >= start) & (rows[:, 0] < end)] if len(rows) else rows
@@ -88,17 +101,20 @@ def trace_batches(
         ]
         if not any(len(r) for r in streams.values()) and not scans and not beacons:
             continue
-        yield SensorBatch(
-            building_id=building_id,
-            device_id=device_id,
-            user_id=walk,
-            batch_id=f"{device_id}-{seq}",
-            seq=seq,
-            accelerometer=_vector(streams.get("accelerometer", np.zeros((0, 4)))),
-            gyroscope=_vector(streams.get("gyroscope", np.zeros((0, 4)))),
-            magnetometer=_vector(streams.get("magnetometer", np.zeros((0, 4)))),
-            rotation_vector=_rotation(streams.get("rotation_vector", np.zeros((0, 4)))),
-            wifi_scans=[s for s in scans if s.aps],
-            bluetooth=beacons,
+        yield (
+            end,
+            SensorBatch(
+                building_id=building_id,
+                device_id=device_id,
+                user_id=walk,
+                batch_id=f"{device_id}-{seq}",
+                seq=seq,
+                accelerometer=_vector(streams.get("accelerometer", np.zeros((0, 4)))),
+                gyroscope=_vector(streams.get("gyroscope", np.zeros((0, 4)))),
+                magnetometer=_vector(streams.get("magnetometer", np.zeros((0, 4)))),
+                rotation_vector=_rotation(streams.get("rotation_vector", np.zeros((0, 4)))),
+                wifi_scans=[s for s in scans if s.aps],
+                bluetooth=beacons,
+            ),
         )
         seq += 1

@@ -36,7 +36,7 @@ def _gait(
 
 def test_one_step_per_gait_cycle_with_constant_length() -> None:
     t, vertical = _gait()
-    times, lengths = detect_steps(new_state(), t, vertical, PARAMS)
+    times, lengths, _ = detect_steps(new_state(), t, vertical, PARAMS)
     assert abs(times.size - 20.0 * 1.8) <= 2
     assert np.isnan(lengths[0])
     assert np.all(np.isfinite(lengths[1:]))
@@ -65,7 +65,7 @@ def test_a_walk_in_one_second_batches_gives_the_same_steps() -> None:
     parts_t, parts_len = [], []
     for start in np.arange(t[0], t[-1] + 1, 1000.0):
         sel = (t >= start) & (t < start + 1000.0)
-        bt, bl = detect_steps(state, t[sel], vertical[sel], PARAMS)
+        bt, bl, _ = detect_steps(state, t[sel], vertical[sel], PARAMS)
         parts_t.append(bt)
         parts_len.append(bl)
     np.testing.assert_array_equal(np.concatenate(parts_t), whole[0])
@@ -109,7 +109,7 @@ def test_real_walk_step_count_matches_its_length() -> None:
     q = quaternion_from_rotation_vector(
         np.column_stack([np.interp(acc[:, 0], rv[:, 0], rv[:, k]) for k in (1, 2, 3)])
     )
-    times, lengths = detect_steps(new_state(), acc[:, 0], vertical_acceleration(acc[:, 1:4], q), PARAMS)
+    times, lengths, _ = detect_steps(new_state(), acc[:, 0], vertical_acceleration(acc[:, 1:4], q), PARAMS)
     wp = trace.waypoints
     walked = float(np.sum(np.linalg.norm(np.diff(wp[:, 1:], axis=0), axis=1)))
     inside = (times >= wp[0, 0]) & (times <= wp[-1, 0])

@@ -1,0 +1,228 @@
+"""Crowd replay of a floor of Indoor Location 2.0 walks through the server's own batch path.
+
+Every walk becomes a concurrent user (all start at the same replay time): its trace is cut into the
+one-second sensor batches a phone would post (``msindoor_batches``), converted by ``server.convert`` and
+applied with ``BuildingTracker.apply``, one call per replay second for every walk that has data, as the
+server's per-building worker does. Each walk starts from its first waypoint as a position fix (heading from
+the phone); its position is scored at every later waypoint. Windows are also cut at waypoint times, so the
+scored estimate is the one the server held at the waypoint's time, never one informed by later sensor data.
+
+With ``warm_split`` the earlier walks (by recorded start time) are replayed first as a crowd of their own
+and build the building's shared map; only the later walks, replayed afterwards, are scored.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from schemas.common import Position
+from schemas.sensors import PositionFix
+from server.convert import BuildingContext, to_user_batch
+from server.datasets.msindoor import Trace, read_floor, read_trace, shifted
+from server.datasets.msindoor_batches import trace_windows
+from slam_core.encounters import Calibration
+from slam_core.evaluation import MODES
+from slam_core.metrics import error_summary
+from slam_core.params import HumanAnchorParams, MotionParams
+from slam_core.tracker import BuildingTracker, TrackerParams, UserBatch
+
+REPLAY_BASE_MS = 1_700_000_000_000
+"""Replay time of every walk's first sample (a valid wire timestamp)."""
+PHASE_GAP_MS = 60_000
+"""Between the warm-up crowd's last sample and the scored crowd's first."""
+START_SIGMA_M = 1.0
+"""The first waypoint is a surveyor's click: about a metre."""
+
+
+@dataclass
+class _Walk:
+    name: str
+    trace: Trace
+    waypoints: np.ndarray  # (K, 3) t, x, y in replay time
+    pending: int = 1  # the next waypoint to score
+    errors: list[float] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class ReplayOptions:
+    mode: str = "dynamicslam"
+    warm_split: float | None = None
+    particles: int = 75
+    sampling: str = "iterative"
+    motion_model: str = "bias-scale"
+    crowd_solver: str = "graph"
+    seed: int = 0
+    window_ms: int = 1000
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise ValueError(f"unknown mode {self.mode!r}; valid: {', '.join(MODES)}")
+        if self.warm_split is not None and not 0.0 < self.warm_split < 1.0:
+            raise ValueError("warm_split must be in (0, 1)")
+
+
+def replay_params(base: TrackerParams, options: ReplayOptions) -> TrackerParams:
+    """The server's tracker parameters (``base``) in the options' mode: ``pdr`` scores plain dead reckoning,
+    ``semanticslam`` uses building anchors only, ``dynamicslam`` also human anchors."""
+    return replace(
+        base,
+        filter=replace(
+            base.filter,
+            n_particles=options.particles,
+            motion=MotionParams(model=options.motion_model),
+            human=HumanAnchorParams(sampling=options.sampling),
+            use_human_anchors=options.mode == "dynamicslam",
+        ),
+        crowd_solver=options.crowd_solver,
+    )
+
+
+def replay_floor(
+    floor_dir: Path,
+    options: ReplayOptions,
+    base_params: TrackerParams,
+    calibration: Calibration,
+    progress: Callable[[int, int], None] | None = None,
+) -> tuple[dict[str, Any], np.ndarray]:
+    """Replay the floor's walks with the server's tracker (``base_params``, in the options' mode); returns
+    the metrics (the simulated evaluation's fields plus ``n_waypoints``) and every scored waypoint's error
+    in metres."""
+    started = time.perf_counter()
+    floor = read_floor(floor_dir)
+    traces = [read_trace(p) for p in floor.traces]
+    traces = [t for t in traces if len(t.waypoints) >= 2 and len(t.streams.get("accelerometer", ()))]
+    if not traces:
+        raise ValueError(f"{floor_dir}: no walk has an accelerometer stream and two waypoints")
+    traces.sort(key=lambda t: (t.start_ms, t.path.name))
+    n_warm = 0 if options.warm_split is None else int(len(traces) * options.warm_split)
+    phases = [traces[:n_warm], traces[n_warm:]] if n_warm else [traces]
+    tracker = BuildingTracker(replay_params(base_params, options), calibration, seed=options.seed)
+    ctx = BuildingContext(building_id=floor_dir.name, geo=None, known_anchors={})
+    base = REPLAY_BASE_MS
+    scored: list[_Walk] = []
+    counts = {"steps": 0, "encounters": 0, "encounters_applied": 0}
+    total_windows = sum(_seconds(t) for t in traces)
+    for phase, phase_traces in enumerate(phases):
+        walks = [_prepare(t, base) for t in phase_traces]
+        end = _replay_phase(tracker, walks, ctx, options, counts, lambda n: _tick(progress, n, total_windows))
+        if phase == len(phases) - 1:
+            scored = walks
+        base = end + PHASE_GAP_MS
+    errors = np.array([e for w in scored for e in w.errors])
+    result: dict[str, Any] = {
+        "mode": options.mode,
+        "floor": str(floor_dir),
+        "seed": options.seed,
+        "sampling": options.sampling,
+        "particles": options.particles,
+        "motion_model": options.motion_model,
+        "crowd_solver": options.crowd_solver,
+        "warm_split": options.warm_split,
+        **error_summary(errors),
+        "n_waypoints": int(errors.size),
+        "n_walks": len(traces),
+        "n_scored_walks": len(scored),
+        "steps_detected": counts["steps"],
+        "encounters_per_user": 2 * counts["encounters"] / len(traces),
+        "encounters_applied_per_user": 2 * counts["encounters_applied"] / len(traces),
+        "crowd_anchors": len(tracker.crowd),
+        "seconds": time.perf_counter() - started,
+    }
+    return result, errors
+
+
+def _seconds(trace: Trace) -> int:
+    acc = trace.streams["accelerometer"]
+    return int((acc[-1, 0] - acc[0, 0]) // 1000) + 1
+
+
+def _tick(progress: Callable[[int, int], None] | None, n: int, total: int) -> None:
+    if progress is not None:
+        progress(n, total)
+
+
+def _prepare(trace: Trace, base_ms: int) -> _Walk:
+    first = min(float(s[0, 0]) for s in trace.streams.values() if len(s))
+    moved = shifted(trace, base_ms - int(first))
+    return _Walk(trace.path.stem, moved, moved.waypoints)
+
+
+def _replay_phase(
+    tracker: BuildingTracker,
+    walks: list[_Walk],
+    ctx: BuildingContext,
+    options: ReplayOptions,
+    counts: dict[str, int],
+    advance: Callable[[int], None],
+) -> int:
+    """Replay these walks concurrently; returns the replay time of the last window's end."""
+    queue: list[tuple[int, int, UserBatch]] = []
+    for index, walk in enumerate(walks):
+        start_t = int(walk.waypoints[0, 0])
+        fixed = False
+        cuts = walk.waypoints[:, 0].astype(np.int64).tolist()
+        for end, batch in trace_windows(walk.trace, ctx.building_id, walk.name, options.window_ms, cuts=cuts):
+            if not fixed and end > start_t:
+                fix = PositionFix(
+                    t_ms=start_t,
+                    position=Position(x_m=float(walk.waypoints[0, 1]), y_m=float(walk.waypoints[0, 2])),
+                    sigma_m=START_SIGMA_M,
+                )
+                batch = batch.model_copy(update={"landmarks": [*batch.landmarks, fix]})
+                fixed = True
+            queue.append((end, index, to_user_batch(batch, ctx).user_batch))
+    queue.sort(key=lambda item: (item[0], item[1]))
+    last_end = REPLAY_BASE_MS
+    call: list[tuple[int, int, UserBatch]] = []
+    call_end = -1
+    for item in queue:
+        end, index, _ = item
+        if call and (end > call_end or any(i == index for _, i, _ in call)):
+            _apply(tracker, walks, call, options, counts)
+            advance(len(call))
+            call = []
+        if not call:
+            call_end = end + (-(end - REPLAY_BASE_MS) % options.window_ms)
+        call.append(item)
+        last_end = max(last_end, end)
+    if call:
+        _apply(tracker, walks, call, options, counts)
+        advance(len(call))
+    for walk in walks:  # waypoints after the walk's last sample: its final estimate
+        _score(tracker, walk, math.inf, options.mode)
+    return last_end
+
+
+def _apply(
+    tracker: BuildingTracker,
+    walks: list[_Walk],
+    call: list[tuple[int, int, UserBatch]],
+    options: ReplayOptions,
+    counts: dict[str, int],
+) -> None:
+    outcome = tracker.apply([b for _, _, b in call])
+    counts["steps"] += sum(r.steps_detected for r in outcome.reports.values())
+    counts["encounters"] += len(outcome.encounters)
+    counts["encounters_applied"] += sum(e.applied for e in outcome.encounters)
+    for end, index, _ in call:
+        _score(tracker, walks[index], end, options.mode)
+
+
+def _score(tracker: BuildingTracker, walk: _Walk, until_ms: float, mode: str) -> None:
+    """Score the walk's waypoints up to ``until_ms`` with the position the server holds now."""
+    while walk.pending < len(walk.waypoints) and walk.waypoints[walk.pending, 0] <= until_ms:
+        if mode == "pdr":
+            position = tracker.dead_reckoning(walk.name)
+        else:
+            row = tracker.estimate(walk.name)
+            position = None if row is None else np.array([row.x, row.y])
+        if position is not None:
+            walk.errors.append(float(np.linalg.norm(position - walk.waypoints[walk.pending, 1:])))
+        walk.pending += 1

@@ -1,0 +1,89 @@
+"""WiFi encounter features for every pair of scans at once, and how well each separates near from far pairs.
+
+Scans are rows of a dense RSS matrix (scans x APs, NaN = not heard). Two features:
+
+- ``eq3``: DynamicSLAM's Eq. 3, Sim = ||U1 - U2|| / n over the APs common to both scans' strongest N
+  (Table 2: N = 5); pairs with no common AP get +inf. Same numbers as ``encounters.wifi_eq3_similarity``
+  (tested), computed with three matrix products instead of a loop over pairs.
+- ``fingerprint`` (ours): the RMS difference in dB over the *union* of both scans' APs, an AP missing from
+  one scan counting as ``floor_dbm``. Eq. 3 looks at five APs and ignores every AP that only one phone hears;
+  on a mall's 100+ visible APs an AP heard strongly by one phone and not at all by the other is strong
+  evidence that they are apart, and the union keeps it.
+
+Pure numerics; the caller labels pairs (from surveyed positions) and picks thresholds.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+FEATURES = ("eq3", "fingerprint")
+
+
+def strongest_mask(rss: np.ndarray, n: int) -> np.ndarray:
+    """(S, A) mask of each scan's ``n`` strongest heard APs (ties broken by AP order)."""
+    filled = np.where(np.isnan(rss), -np.inf, rss)
+    order = np.argsort(-filled, axis=1, kind="stable")[:, :n]
+    mask = np.zeros(rss.shape, dtype=bool)
+    np.put_along_axis(mask, order, True, axis=1)
+    mask &= np.isfinite(filled)
+    return mask
+
+
+def eq3_matrix(rss: np.ndarray, strongest_n: int = 5, min_common: int = 1) -> np.ndarray:
+    """Eq. 3 between every pair of scans (S, S); +inf where fewer than ``min_common`` APs are common."""
+    top = strongest_mask(rss, strongest_n).astype(np.float64)
+    x = np.where(top > 0, rss, 0.0)
+    x2 = x * x
+    common = top @ top.T
+    squared = x2 @ top.T + top @ x2.T - 2.0 * (x @ x.T)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        sim = np.sqrt(np.maximum(squared, 0.0)) / common
+    sim[common < max(min_common, 1)] = np.inf
+    result: np.ndarray = sim
+    return result
+
+
+def fingerprint_matrix(rss: np.ndarray, floor_dbm: float = -100.0) -> np.ndarray:
+    """RMS dB difference over the union of both scans' APs, a missing AP counting as ``floor_dbm``; +inf
+    for two empty scans."""
+    heard = np.isfinite(rss).astype(np.float64)
+    g = np.where(heard > 0, np.maximum(rss, floor_dbm) - floor_dbm, 0.0)
+    norms = np.sum(g * g, axis=1)
+    squared = norms[:, None] + norms[None, :] - 2.0 * (g @ g.T)
+    counts = heard.sum(axis=1)
+    union = counts[:, None] + counts[None, :] - heard @ heard.T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rms = np.sqrt(np.maximum(squared, 0.0) / union)
+    rms[union == 0] = np.inf
+    result: np.ndarray = rms
+    return result
+
+
+def precision_recall(score: np.ndarray, positive: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Thresholds (ascending) and the precision and recall of ``score <= threshold`` at each; a lower
+    score means more similar. Pairs with an infinite score never pass."""
+    score = np.asarray(score, dtype=float)
+    positive = np.asarray(positive, dtype=bool)
+    if score.shape != positive.shape:
+        raise ValueError("score and positive must have the same shape")
+    total = int(positive.sum())
+    if total == 0:
+        raise ValueError("no positive pairs: precision and recall are undefined")
+    finite = np.isfinite(score)
+    order = np.argsort(score[finite], kind="stable")
+    s, p = score[finite][order], positive[finite][order]
+    hits = np.cumsum(p)
+    passed = np.arange(1, s.size + 1)
+    last = np.r_[s[1:] != s[:-1], True][: s.size]  # one point per distinct threshold
+    return s[last], (hits / passed)[last], (hits / total)[last]
+
+
+def precision_at_recall(score: np.ndarray, positive: np.ndarray, recall: float) -> tuple[float, float]:
+    """(precision, threshold) at the smallest threshold whose recall reaches ``recall``; (nan, inf) if no
+    threshold does."""
+    thresholds, precision, achieved = precision_recall(score, positive)
+    index = np.searchsorted(achieved, recall)
+    if index >= achieved.size:
+        return float("nan"), float("inf")
+    return float(precision[index]), float(thresholds[index])

@@ -1,0 +1,136 @@
+"""Crowd replay of real walks through the server's batch path (``crowdslam evaluate --msindoor``), on a small
+floor made of a few of the shared walks; and the tracker's PDR front-end path it relies on."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from server.app import load_calibration, tracker_params
+from server.cli.main import main
+from server.convert import BuildingContext, to_user_batch
+from server.datasets.msindoor import read_trace
+from server.datasets.msindoor_batches import trace_batches
+from server.datasets.msindoor_replay import ReplayOptions, replay_floor
+from server.settings import Settings
+from slam_core.tracker import BuildingTracker
+
+FLOOR = Path(__file__).resolve().parents[3] / "shared" / "data" / "msindoor20" / "site1" / "F1"
+WALKS = (
+    "5dd9fd499191710006b570de",
+    "5dd9efa5c5b77e0006b17365",
+    "5dd9efa29191710006b5708a",
+    "5dda0216c5b77e0006b17408",
+    "5ddb9632c5b77e0006b179b1",
+    "5dd9e7c79191710006b57067",
+)
+
+
+@pytest.fixture(scope="module")
+def small_floor(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    floor = tmp_path_factory.mktemp("floor") / "F1"
+    (floor / "path_data_files").mkdir(parents=True)
+    shutil.copy(FLOOR / "floor_info.json", floor / "floor_info.json")
+    for name in WALKS:
+        (floor / "path_data_files" / f"{name}.txt").symlink_to(FLOOR / "path_data_files" / f"{name}.txt")
+    return floor
+
+
+def _waypoints_after_the_first(names: tuple[str, ...]) -> int:
+    return sum(len(read_trace(FLOOR / "path_data_files" / f"{n}.txt").waypoints) - 1 for n in names)
+
+
+def test_pdr_replay_scores_every_waypoint_after_the_start(small_floor: Path) -> None:
+    result, errors = replay_floor(
+        small_floor, ReplayOptions(mode="pdr"), tracker_params(Settings()), load_calibration(None)
+    )
+    assert result["n_waypoints"] == errors.size == _waypoints_after_the_first(WALKS)
+    assert result["n_walks"] == result["n_scored_walks"] == len(WALKS)
+    assert np.all(np.isfinite(errors))
+    assert np.all(errors >= 0)
+    assert result["median_m"] < 5.0
+    assert result["p90_m"] < 12.0
+    assert result["steps_detected"] > 100
+
+
+def test_warm_split_scores_only_the_later_walks(small_floor: Path) -> None:
+    result, errors = replay_floor(
+        small_floor,
+        ReplayOptions(mode="dynamicslam", warm_split=0.5, particles=30),
+        tracker_params(Settings()),
+        load_calibration(None),
+    )
+    traces = sorted(
+        (read_trace(FLOOR / "path_data_files" / f"{n}.txt") for n in WALKS), key=lambda t: t.start_ms
+    )
+    later = tuple(t.path.stem for t in traces[len(traces) // 2 :])
+    assert result["n_scored_walks"] == len(later)
+    assert errors.size == _waypoints_after_the_first(later)
+    assert result["median_m"] < 8.0
+
+
+def test_replay_options_are_checked() -> None:
+    with pytest.raises(ValueError, match="unknown mode"):
+        ReplayOptions(mode="magic")
+    with pytest.raises(ValueError, match="warm_split"):
+        ReplayOptions(warm_split=1.0)
+
+
+def test_tracker_dead_reckons_raw_imu_and_skips_resent_samples() -> None:
+    trace = read_trace(FLOOR / "path_data_files" / f"{WALKS[4]}.txt")
+    ctx = BuildingContext("b", None, {})
+    batches = [to_user_batch(b, ctx).user_batch for b in trace_batches(trace, "b", "phone")]
+    tracker = BuildingTracker(tracker_params(Settings()), load_calibration(None))
+    detected = 0
+    for batch in batches[:10]:
+        outcome = tracker.apply([batch])
+        detected += outcome.reports[batch.user].steps_detected
+        assert outcome.reports[batch.user].imu_samples_dropped == 0
+    assert detected > 5
+    resent = tracker.apply([batches[9]]).reports[batches[9].user]
+    assert resent.steps_detected == 0
+    assert resent.imu_samples_dropped > 50
+
+
+def test_evaluate_cli_on_a_floor(small_floor: Path, tmp_path: Path) -> None:
+    out = tmp_path / "pdr.json"
+    assert main(["evaluate", "--msindoor", str(small_floor), "--mode", "pdr", "--json", str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert {"mode", "median_m", "p75_m", "p90_m", "mean_m", "max_m", "n_waypoints", "seconds"} <= set(result)
+    assert out.with_suffix(".png").stat().st_size > 1000
+
+
+def test_evaluate_cli_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "x.json"
+    assert main(["evaluate", "--msindoor", str(tmp_path), "--json", str(out)]) == 2
+    assert "floor_info.json" in capsys.readouterr().out
+    scenario = FLOOR.parents[2].parent / "scenarios" / "paper-testbed.json"
+    assert main(["evaluate", "--scenario", str(scenario), "--warm-split", "0.5", "--json", str(out)]) == 2
+    assert "--msindoor only" in capsys.readouterr().out
+    assert not out.exists()
+
+
+def test_calibrate_cli_writes_a_loadable_calibration(small_floor: Path, tmp_path: Path) -> None:
+    out = tmp_path / "cal.json"
+    assert main(["calibrate", "--msindoor", str(small_floor), "--out", str(out)]) == 0
+    written = json.loads(out.read_text())
+    calibration = load_calibration(out)
+    assert calibration.wifi.kind == "wifi-log"
+    assert calibration.wifi.sigma > 0
+    assert calibration.bluetooth == load_calibration(None).bluetooth  # no phone-to-phone Bluetooth here
+    report = written["report"]
+    assert report["near_pairs"] > 0
+    assert report["cross_walk_pairs"] > report["near_pairs"]
+    for feature in ("eq3", "fingerprint"):
+        assert 0.0 < report[f"{feature}_precision_at_recall_0.5"] <= 1.0
+    assert out.with_suffix(".png").stat().st_size > 1000
+
+
+def test_calibrate_cli_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["calibrate", "--msindoor", str(tmp_path), "--out", str(tmp_path / "c.json")]) == 2
+    assert "floor_info.json" in capsys.readouterr().out
+    assert not (tmp_path / "c.json").exists()
