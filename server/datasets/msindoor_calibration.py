@@ -3,8 +3,9 @@
 Every WiFi scan taken between a walk's first and last waypoint is placed by interpolating the surveyed
 waypoints at the scan's time; cross-walk scan pairs are the labelled data (a pair is *near* within 5 m).
 Entries whose last-seen time is more than ``stale_ap_ms`` before the scan are cached re-reports and are
-dropped, as the live detector drops them. For each WiFi feature (``slam_core.wifi_pairs``) the report gives
-precision and recall for near pairs; the paper's logarithmic Sim-distance model (Figure 3) is fitted on the
+dropped, as the live detector drops them. The report also gives the Weinberg constant that fits the floor's
+surveyed walk lengths (``StepParams.weinberg_k``; a report, not applied). For each WiFi feature
+(``slam_core.wifi_pairs``) the report gives precision and recall for near pairs; the paper's logarithmic Sim-distance model (Figure 3) is fitted on the
 pairs Eq. 3 passes, with its empirical range variance, and written as a calibration the server and
 ``crowdslam evaluate --calibration`` load. The walks carry no phone-to-phone Bluetooth, so the Bluetooth
 model is kept from the base calibration (said in the report).
@@ -21,6 +22,7 @@ import numpy as np
 
 from server.datasets.msindoor import read_floor, read_trace
 from slam_core.encounters import Calibration, WifiEq3Params, fit_range_model
+from slam_core.pdr.frontend import ImuSamples, PdrParams, PdrState, pdr_steps
 from slam_core.wifi_pairs import eq3_matrix, fingerprint_matrix, precision_at_recall, precision_recall
 
 NEAR_M = 5.0
@@ -69,6 +71,38 @@ def labelled_scans(floor_dir: Path, stale_ap_ms: int = STALE_AP_MS) -> LabelledS
     return LabelledScans(rss, np.array(xy).reshape(-1, 2), np.array(walk, dtype=np.int64))
 
 
+def weinberg_fit(floor_dir: Path, params: PdrParams | None = None) -> dict[str, float]:
+    """The Weinberg constant that makes the median walk's step sum equal its surveyed length (between its
+    first and last waypoints), and the spread of that ratio across walks (what the bias-scale filter
+    absorbs)."""
+    params = params or PdrParams()
+    ratios = []
+    for path in read_floor(floor_dir).traces:
+        trace = read_trace(path)
+        acc, rv, wp = (
+            trace.streams.get("accelerometer"),
+            trace.streams.get("rotation_vector"),
+            trace.waypoints,
+        )
+        if acc is None or rv is None or len(acc) == 0 or len(rv) == 0 or len(wp) < 2:
+            continue
+        steps = pdr_steps(
+            PdrState(), ImuSamples(acc, rv=np.column_stack([rv, np.full(len(rv), np.nan)])), params
+        )
+        inside = (steps.t_ms > wp[0, 0]) & (steps.t_ms <= wp[-1, 0])
+        walked = float(np.sum(np.linalg.norm(np.diff(wp[:, 1:], axis=0), axis=1)))
+        if walked > 5.0 and inside.sum() >= 5:
+            ratios.append(walked / float(steps.length_m[inside].sum()))
+    if not ratios:
+        raise ValueError(f"{floor_dir}: no walk to fit the step length on")
+    return {
+        "weinberg_k": params.steps.weinberg_k * float(np.median(ratios)),
+        "current_weinberg_k": params.steps.weinberg_k,
+        "walk_scale_log_sd": float(np.std(np.log(ratios))),
+        "walks": len(ratios),
+    }
+
+
 def cross_walk_pairs(scans: LabelledScans, eq3: WifiEq3Params) -> Pairs:
     """Every pair of scans from different walks, with its surveyed distance and both features."""
     if scans.rss.shape[0] < 2:
@@ -115,6 +149,7 @@ def calibrate_floor(
     model = fit_range_model(pairs.features["eq3"][finite], pairs.distance[finite], "wifi-log")
     model = model.with_empirical_variance(pairs.features["eq3"][passing], pairs.distance[passing])
     report["wifi_model"] = {"coefficients": list(model.coefficients), "sigma_db": model.sigma}
+    report["step_length"] = weinberg_fit(floor_dir)
     return replace(base, wifi=model), report, pairs
 
 

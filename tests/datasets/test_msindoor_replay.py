@@ -128,6 +128,10 @@ def test_calibrate_cli_writes_a_loadable_calibration(small_floor: Path, tmp_path
     for feature in ("eq3", "fingerprint"):
         assert 0.0 < report[f"{feature}_precision_at_recall_0.5"] <= 1.0
     assert out.with_suffix(".png").stat().st_size > 1000
+    step = report["step_length"]
+    assert step["walks"] == len(WALKS)
+    assert 0.3 < step["weinberg_k"] < 0.55
+    assert step["walk_scale_log_sd"] > 0
 
 
 def test_calibrate_cli_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
