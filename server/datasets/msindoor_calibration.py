@@ -5,9 +5,9 @@ waypoints at the scan's time; cross-walk scan pairs are the labelled data (a pai
 Entries whose last-seen time is more than ``stale_ap_ms`` before the scan are cached re-reports and are
 dropped, as the live detector drops them. The report also gives the Weinberg constant that fits the floor's
 surveyed walk lengths (``StepParams.weinberg_k``; a report, not applied). For each WiFi feature
-(``slam_core.wifi_pairs``) the report gives precision and recall for near pairs; the paper's logarithmic Sim-distance model (Figure 3) is fitted on the
-pairs Eq. 3 passes, with its empirical range variance, and written as a calibration the server and
-``crowdslam evaluate --calibration`` load. The walks carry no phone-to-phone Bluetooth, so the Bluetooth
+(``slam_core.wifi_pairs``) the report gives precision and recall for near pairs; the paper's logarithmic
+Sim-distance model (Figure 3) is fitted on the pairs Eq. 3 passes, with its empirical range variance, and
+written as a calibration the server and ``crowdslam evaluate --calibration`` load. The walks carry no phone-to-phone Bluetooth, so the Bluetooth
 model is kept from the base calibration (said in the report).
 """
 
