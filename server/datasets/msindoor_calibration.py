@@ -7,8 +7,8 @@ dropped, as the live detector drops them. The report also gives the Weinberg con
 surveyed walk lengths (``StepParams.weinberg_k``; a report, not applied). For each WiFi feature
 (``slam_core.wifi_pairs``) the report gives precision and recall for near pairs; the paper's logarithmic
 Sim-distance model (Figure 3) is fitted on the pairs Eq. 3 passes, with its empirical range variance, and
-written as a calibration the server and ``crowdslam evaluate --calibration`` load. The walks carry no phone-to-phone Bluetooth, so the Bluetooth
-model is kept from the base calibration (said in the report).
+written as a calibration the server and ``crowdslam evaluate --calibration`` load. The walks carry no
+phone-to-phone Bluetooth, so the Bluetooth model is kept from the base calibration (said in the report).
 """
 
 from __future__ import annotations
