@@ -54,6 +54,13 @@ class BuildingAnchor(WireModel):
     known: bool = Field(description="True when an operator entered its exact position.")
     label: str | None = Field(default=None, max_length=128)
     last_seen_ms: TimeMs | None = None
+    signature: str | None = Field(
+        default=None,
+        max_length=128,
+        description="The transmitter a radio-signature anchor stands for (`beacon:<mac>`, `wifi:<bssid>`); "
+        "such anchors are matched by identity, not by position.",
+        examples=["beacon:c4:4f:33:12:34:56"],
+    )
 
 
 class KnownAnchorIn(WireModel):

@@ -13,6 +13,7 @@ from schemas.common import Position
 from schemas.estimates import EncounterEvent, EncounterModelName, Estimate, EstimateSource
 from schemas.sensors import (
     AnchorReading,
+    BeaconSighting,
     GpsFix,
     PeerSighting,
     PositionFix,
@@ -76,6 +77,7 @@ def to_user_batch(batch: SensorBatch, ctx: BuildingContext) -> Converted:
     offsets = np.zeros(len(scans) + 1, dtype=np.int64)
     offsets[1:] = np.cumsum([len(s.aps) for s in scans])
     peers = [s for s in batch.bluetooth if isinstance(s, PeerSighting)]
+    beacons = [s for s in batch.bluetooth if isinstance(s, BeaconSighting)]
     user_batch = UserBatch(
         user=batch.effective_user_id,
         ble_id=batch.ble_advertised_id,
@@ -104,6 +106,9 @@ def to_user_batch(batch: SensorBatch, ctx: BuildingContext) -> Converted:
         peer_t=np.array([p.t_ms for p in peers], dtype=np.int64),
         peer_id=tuple(p.peer_advertised_id for p in peers),
         peer_rss=np.array([p.rssi_dbm for p in peers], dtype=np.float64),
+        beacon_t=np.array([s.t_ms for s in beacons], dtype=np.int64),
+        beacon_mac=tuple(s.mac for s in beacons),
+        beacon_rss=np.array([s.rssi_dbm for s in beacons], dtype=np.float64),
         imu=_imu(batch),
     )
     return Converted(user_batch, warnings)
@@ -216,6 +221,7 @@ def building_anchor(
     last_seen_ms: int | None,
     label: str | None = None,
     floor: int = 0,
+    signature: str | None = None,
 ) -> BuildingAnchor:
     sym = 0.5 * (cov[0, 1] + cov[1, 0])
     return BuildingAnchor(
@@ -229,4 +235,5 @@ def building_anchor(
         known=known,
         label=label,
         last_seen_ms=last_seen_ms,
+        signature=signature,
     )

@@ -122,6 +122,7 @@ class BuildingSession:
                         row.known,
                         row.observation_count,
                         row.last_seen_ms or 0,
+                        row.signature.decode() if row.signature else "",
                     )
                     self._link(index, row.public_id, row.label)
         self._replay(logged)
@@ -219,6 +220,7 @@ class BuildingSession:
             count,
             int(last) if math.isfinite(last) and last > 0 else None,
             self._labels.get(index),
+            signature=self.tracker.crowd.signature(index) or None,
         )
 
     def anchors(self) -> list[BuildingAnchor]:
@@ -286,6 +288,7 @@ class BuildingSession:
             known=a.known,
             label=a.label,
             last_seen_ms=a.last_seen_ms,
+            signature=a.signature.encode() if a.signature else None,
         )
 
     # ------------------------------------------------------------------ batches

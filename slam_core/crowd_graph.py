@@ -26,6 +26,7 @@ class _UserTrack:
     anchor: list[int] = field(default_factory=list)
     displacement: list[np.ndarray] = field(default_factory=list)
     walked: list[float] = field(default_factory=list)
+    sigma: list[float] = field(default_factory=list)  # each detection's own sigma (m)
 
 
 @dataclass(frozen=True)
@@ -78,8 +79,13 @@ class CrowdGraph:
     def n_users(self) -> int:
         return len(self._users)
 
-    def add_detection(self, user: int, anchor: int, displacement: np.ndarray, walked_m: float) -> None:
+    def add_detection(
+        self, user: int, anchor: int, displacement: np.ndarray, walked_m: float, sigma_m: float | None = None
+    ) -> None:
+        """``sigma_m``: how far from the anchor the detection may be (default ``detection_sigma_m``; a radio
+        signature's range is metres, a stair's is an arm's length)."""
         track = self._users[user]
+        track.sigma.append(self.params.detection_sigma_m if sigma_m is None else float(sigma_m))
         track.anchor.append(int(anchor))
         track.displacement.append(np.asarray(displacement, dtype=float).copy())
         track.walked.append(float(walked_m))
@@ -131,7 +137,7 @@ class CrowdGraph:
                 if i == 0:
                     d, var, pa, fp = (
                         t.displacement[0],
-                        p.start_sigma_m**2 + p.detection_sigma_m**2,
+                        p.start_sigma_m**2 + t.sigma[0] ** 2,
                         -1,
                         t.start,
                     )
@@ -139,7 +145,9 @@ class CrowdGraph:
                 else:
                     d = t.displacement[i] - t.displacement[i - 1]
                     var = (
-                        2 * p.detection_sigma_m**2 + (p.drift_fraction * (t.walked[i] - t.walked[i - 1])) ** 2
+                        t.sigma[i] ** 2
+                        + t.sigma[i - 1] ** 2
+                        + (p.drift_fraction * (t.walked[i] - t.walked[i - 1])) ** 2
                     )
                     b = t.anchor[i - 1]
                     pa = a_index.get(b, -1)

@@ -7,6 +7,10 @@ minus twice the log type posterior p(f | f_hat), inside a 99 % chi-square gate; 
 anchor. An anchor's estimate is the information-weighted fusion of its contributors, each user counted once
 (its latest contribution), because one user's repeated passes share that user's drift and are not
 independent. Operator-known anchors never move.
+
+Beyond the paper: *signature anchors* (a fixed beacon or WiFi AP heard strongly, ``slam_core.detectors``)
+carry an identity, so a contribution joins the anchor with its signature whatever its position, and these
+anchors stay out of the particles' maps (the tracker observes them as position measurements instead).
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ class _CrowdAnchor:
     observations: int = 0
     last_seen: float = -math.inf
     removed: bool = False
+    signature: str = ""
 
 
 class CrowdMapBuilder:
@@ -48,6 +53,7 @@ class CrowdMapBuilder:
         self._r = detection_sigma_m**2
         self._min_type = min_type_probability
         self._anchors: list[_CrowdAnchor] = []
+        self._by_signature: dict[str, int] = {}
 
     def __len__(self) -> int:
         """Anchors ever created (removed ones keep their index so ids stay stable)."""
@@ -60,7 +66,14 @@ class CrowdMapBuilder:
         return len(self._anchors) - 1
 
     def restore(
-        self, mean: np.ndarray, cov: np.ndarray, anchor_type: int, known: bool, observations: int, t: float
+        self,
+        mean: np.ndarray,
+        cov: np.ndarray,
+        anchor_type: int,
+        known: bool,
+        observations: int,
+        t: float,
+        signature: str = "",
     ) -> int:
         """Re-create a stored anchor (after a restart): its estimate stands until new detections arrive."""
         mean = np.asarray(mean, dtype=float)
@@ -70,7 +83,10 @@ class CrowdMapBuilder:
         anchor = _CrowdAnchor(mean.copy(), np.eye(2) * 1e-4 if known else cov.copy(), int(anchor_type), known)
         anchor.observations = int(observations)
         anchor.last_seen = t
+        anchor.signature = signature
         self._anchors.append(anchor)
+        if signature:
+            self._by_signature[signature] = len(self._anchors) - 1
         return len(self._anchors) - 1
 
     def pin(self, index: int, mean: np.ndarray, anchor_type: int) -> None:
@@ -84,7 +100,9 @@ class CrowdMapBuilder:
 
     def remove(self, index: int) -> None:
         """Drop an anchor from association and from snapshots; its index is never reused."""
-        self._live(index).removed = True
+        anchor = self._live(index)
+        anchor.removed = True
+        self._by_signature.pop(anchor.signature, None)
 
     def merge(self, keep: int, drop: int) -> None:
         """The crowd learned one anchor twice: ``drop``'s contributions join ``keep``, ``drop`` goes."""
@@ -99,6 +117,11 @@ class CrowdMapBuilder:
             if self._fuse and target.contributions:
                 self._refuse(target)
         source.removed = True
+        if source.signature:
+            self._by_signature.pop(source.signature, None)
+            if not target.signature:
+                target.signature = source.signature
+                self._by_signature[target.signature] = keep
 
     def is_live(self, index: int) -> bool:
         return 0 <= index < len(self._anchors) and not self._anchors[index].removed
@@ -121,7 +144,7 @@ class CrowdMapBuilder:
             raise ValueError("contribution must be finite")
         best, best_score = -1, math.inf
         for k, anchor in enumerate(self._anchors):
-            if anchor.removed:
+            if anchor.removed or anchor.signature:
                 continue
             type_p = self._posterior[anchor.type, detected_type]
             if type_p < self._min_type:
@@ -144,6 +167,50 @@ class CrowdMapBuilder:
             if self._fuse:
                 self._refuse(anchor)
         return best
+
+    def find_signature(self, signature: str) -> int | None:
+        return self._by_signature.get(signature)
+
+    def signature(self, index: int) -> str:
+        return self._live(index).signature
+
+    def informed_by_others(self, index: int, user: int) -> bool:
+        """Known, or learned from at least one other user (a user's own past passes share its drift)."""
+        anchor = self._live(index)
+        return anchor.known or any(u != user for u in anchor.contributions)
+
+    def contribute_signed(
+        self,
+        user: int,
+        mean: np.ndarray,
+        cov: np.ndarray,
+        detected_type: int,
+        signature: str,
+        t: float,
+        range_sigma_m: float,
+    ) -> int:
+        """Fuse one detection of an identified transmitter (``range_sigma_m``: how far from it a strong
+        reading may be); returns its anchor's index, creating it on first sight."""
+        if not signature:
+            raise ValueError("a signed contribution needs a signature")
+        mean = np.asarray(mean, dtype=float)
+        cov = np.asarray(cov, dtype=float) + range_sigma_m**2 * np.eye(2)
+        if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(cov))):
+            raise ValueError("contribution must be finite")
+        index = self._by_signature.get(signature)
+        if index is None:
+            self._anchors.append(_CrowdAnchor(mean.copy(), cov.copy(), int(detected_type), False))
+            index = len(self._anchors) - 1
+            self._anchors[index].signature = signature
+            self._by_signature[signature] = index
+        anchor = self._anchors[index]
+        anchor.observations += 1
+        anchor.last_seen = t
+        if not anchor.known:
+            anchor.contributions[user] = (mean, cov)
+            if self._fuse:
+                self._refuse(anchor)
+        return index
 
     def set_estimate(self, index: int, mean: np.ndarray, cov: np.ndarray) -> None:
         anchor = self._anchors[index]
@@ -170,7 +237,8 @@ class CrowdMapBuilder:
         anchor.mean = anchor.cov @ vec
 
     def snapshot(self) -> CrowdMap:
-        live = [k for k, a in enumerate(self._anchors) if not a.removed]
+        """The anchors the particles' own maps may hold (signature anchors are observed by identity)."""
+        live = [k for k, a in enumerate(self._anchors) if not a.removed and not a.signature]
         if not live:
             return CrowdMap.empty()
         anchors = [self._anchors[k] for k in live]

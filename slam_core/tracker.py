@@ -3,11 +3,14 @@
 ``BuildingTracker.apply`` takes the arrays of one or more users' batches (already validated and converted
 by the server) and advances everything they imply, in this order:
 
-0. raw IMU of users who do not count their own steps goes through the online PDR front-end
-   (``slam_core.pdr.frontend``, state carried per user between batches) and becomes steps;
+0. raw IMU of users who do not count their own steps goes through the sensor front-end
+   (``slam_core.front_end``: online PDR and the building-anchor detectors, state carried per user between
+   batches) and becomes steps and anchor detections;
 1. each user's events in time order: a first position fix starts its filter (seeded from the crowd map);
    steps move it (Eq. 4-8); a building-anchor detection feeds the crowd map with the user's pre-update
-   estimate and updates the filter (Eq. 15-17, Algorithm 3); a later fix reweights it. Users are advanced
+   estimate and updates the filter (Eq. 15-17, Algorithm 3); a detection of an identified transmitter
+   (a signature anchor) joins its crowd anchor by identity and, once other users have placed that anchor,
+   is a gated position measurement of the user; a later fix reweights it. Users are advanced
    together, one engine call per round of events, so a micro-batch of many phones costs one kernel call;
 2. the crowd map is re-solved jointly (every ``graph_solve_period_ms`` of phone time) and new anchors are
    offered to every user;
@@ -22,179 +25,37 @@ Pure numerics: no I/O, no clock. Times are the phones' epoch milliseconds.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 
 import numpy as np
 
 from slam_core.crowd_graph import CrowdGraph, GraphParams
 from slam_core.crowd_map import CrowdMapBuilder
-from slam_core.encounter_detection import Detection, DetectionParams, EncounterDetector
+from slam_core.encounter_detection import Detection, EncounterDetector
 from slam_core.encounters import Calibration
 from slam_core.fastslam import DynamicSlam
-from slam_core.params import FilterParams
-from slam_core.pdr.frontend import ImuSamples, PdrParams, PdrState, drop_stale, pdr_steps
+from slam_core.front_end import FrontEnd, RadioArrays
+from slam_core.tracker_rounds import TRAIL_MS, Round, UserTrack, round_at
+from slam_core.tracker_types import (
+    CROWD_SOLVERS,
+    EncounterResult,
+    EstimateRow,
+    TrackerOutcome,
+    TrackerParams,
+    UserBatch,
+    UserReport,
+)
 
-CROWD_SOLVERS = ("fusion", "graph")
-
-
-@dataclass(frozen=True)
-class TrackerParams:
-    filter: FilterParams = field(default_factory=FilterParams)
-    detection: DetectionParams = field(default_factory=DetectionParams)
-    crowd_solver: str = "graph"
-    graph_solve_period_ms: int = 5_000
-    """The joint crowd-map solve runs at most every 5 s of phone time (it takes ~0.1 s)."""
-    max_graph_users: int = 500
-    """Users whose detections the joint solve keeps; older users' tracks are forgotten (their anchors keep
-    their estimates), so a long-running server's solve stays bounded."""
-    start_sigma_floor_m: float = 0.5
-    pdr: PdrParams = field(default_factory=PdrParams)
-
-    def __post_init__(self) -> None:
-        if self.crowd_solver not in CROWD_SOLVERS:
-            raise ValueError(f"unknown crowd solver {self.crowd_solver!r}; valid: {', '.join(CROWD_SOLVERS)}")
-
-
-def _i64(n: int = 0) -> np.ndarray:
-    return np.zeros(n, dtype=np.int64)
-
-
-def _f64(n: int = 0) -> np.ndarray:
-    return np.zeros(n, dtype=np.float64)
-
-
-@dataclass(frozen=True)
-class UserBatch:
-    """One user's share of a batch, as arrays. Times are epoch ms; headings are radians."""
-
-    user: str
-    ble_id: str | None = None
-    fix_t: np.ndarray = field(default_factory=_i64)
-    fix_xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
-    fix_sigma: np.ndarray = field(default_factory=_f64)
-    fix_azimuth: np.ndarray = field(default_factory=_f64)  # clockwise from north, NaN when unknown
-    step_t: np.ndarray = field(default_factory=_i64)
-    step_length: np.ndarray = field(default_factory=_f64)
-    step_azimuth: np.ndarray = field(default_factory=_f64)  # clockwise from north, NaN when not given
-    step_turn: np.ndarray = field(default_factory=_f64)  # counter-clockwise change, NaN when not given
-    detect_t: np.ndarray = field(default_factory=_i64)
-    detect_type: np.ndarray = field(default_factory=_i64)
-    scan_t: np.ndarray = field(default_factory=_i64)
-    scan_offsets: np.ndarray = field(default_factory=lambda: np.zeros(1, dtype=np.int64))
-    scan_bssid: tuple[str, ...] = ()
-    scan_rss: np.ndarray = field(default_factory=_f64)
-    scan_last_seen: np.ndarray = field(default_factory=_i64)  # -1 when the phone did not say
-    peer_t: np.ndarray = field(default_factory=_i64)
-    peer_id: tuple[str, ...] = ()  # the heard phones' advertised ids
-    peer_rss: np.ndarray = field(default_factory=_f64)
-    imu: ImuSamples | None = None
-    """Raw IMU for the PDR front-end; ignored when the phone sent its own steps."""
-
-    def __post_init__(self) -> None:
-        f, s, d, c, p = (
-            self.fix_t.size,
-            self.step_t.size,
-            self.detect_t.size,
-            self.scan_t.size,
-            self.peer_t.size,
-        )
-        shapes_ok = (
-            self.fix_xy.shape == (f, 2)
-            and self.fix_sigma.shape == (f,)
-            and self.fix_azimuth.shape == (f,)
-            and self.step_length.shape == self.step_azimuth.shape == self.step_turn.shape == (s,)
-            and self.detect_type.shape == (d,)
-            and self.scan_offsets.shape == (c + 1,)
-            and int(self.scan_offsets[0]) == 0
-            and len(self.scan_bssid)
-            == self.scan_rss.size
-            == self.scan_last_seen.size
-            == int(self.scan_offsets[-1])
-            and len(self.peer_id) == self.peer_rss.size == p
-        )
-        if not shapes_ok:
-            raise ValueError(f"user batch of {self.user!r}: inconsistent array shapes")
-        finite = all(
-            np.all(np.isfinite(a))
-            for a in (self.fix_xy, self.fix_sigma, self.step_length, self.scan_rss, self.peer_rss)
-        )
-        if not finite or np.any(self.fix_sigma <= 0) or np.any(self.step_length < 0):
-            raise ValueError(
-                f"user batch of {self.user!r}: non-finite values, sigma <= 0 or negative lengths"
-            )
-
-
-@dataclass
-class UserReport:
-    """What happened to one user's batch."""
-
-    status: str = "awaiting_fix"  # "tracking" once started
-    steps_detected: int = 0  # by the PDR front-end from raw IMU
-    imu_samples_dropped: int = 0  # older than what the front-end had consumed (late or re-sent)
-    steps_applied: int = 0
-    steps_dropped: int = 0  # before the first fix, out of time order, or with no heading reference
-    detections_applied: int = 0
-    fixes_applied: int = 0
-    recentred: int = 0
-
-
-@dataclass(frozen=True)
-class EstimateRow:
-    t_ms: int
-    x: float
-    y: float
-    cov: tuple[float, float, float]  # xx, xy, yy
-    best: tuple[float, float]
-    heading: float  # counter-clockwise from east
-
-
-@dataclass(frozen=True)
-class EncounterResult:
-    detection: Detection
-    applied: bool
-
-
-@dataclass
-class TrackerOutcome:
-    reports: dict[str, UserReport]
-    estimates: dict[str, EstimateRow]
-    encounters: list[EncounterResult]
-    anchors_changed: list[int]  # crowd indices created or re-estimated
-
-
-@dataclass
-class _User:
-    number: int = -1  # start order: the crowd graph's user id
-    slot: int = -1
-    last_t_ms: int = -1
-    heading: float = math.nan  # counter-clockwise from east, of the last step
-    displacement: np.ndarray = field(default_factory=lambda: np.zeros(2))
-    walked: float = 0.0
-    origin: np.ndarray = field(default_factory=lambda: np.full(2, np.nan))  # the starting fix
-
-
-@dataclass
-class _Round:
-    users: list[str] = field(default_factory=list)
-    step_len: list[np.ndarray] = field(default_factory=list)
-    step_head: list[np.ndarray] = field(default_factory=list)
-    det_users: list[str] = field(default_factory=list)
-    det_types: list[int] = field(default_factory=list)
-    det_t: list[int] = field(default_factory=list)
-    fix_users: list[str] = field(default_factory=list)
-    fix_xy: list[np.ndarray] = field(default_factory=list)
-    fix_sigma: list[float] = field(default_factory=list)
-
-    def add_steps(self, user: str, lengths: list[float], headings: list[float]) -> None:
-        self.users.append(user)
-        self.step_len.append(np.array(lengths))
-        self.step_head.append(np.array(headings))
-
-
-def _round_at(rounds: list[_Round], r: int) -> _Round:
-    while len(rounds) <= r:
-        rounds.append(_Round())
-    return rounds[r]
+__all__ = [
+    "CROWD_SOLVERS",
+    "BuildingTracker",
+    "EncounterResult",
+    "EstimateRow",
+    "TrackerOutcome",
+    "TrackerParams",
+    "UserBatch",
+    "UserReport",
+]
 
 
 class BuildingTracker:
@@ -207,8 +68,8 @@ class BuildingTracker:
         )
         self.graph = CrowdGraph(GraphParams(detection_sigma_m=fp.anchors.detection_sigma_m))
         self.detector = EncounterDetector(params.detection, calibration)
-        self._users: dict[str, _User] = {}
-        self._pdr: dict[str, PdrState] = {}
+        self._users: dict[str, UserTrack] = {}
+        self.front_end = FrontEnd(params.pdr, params.detectors)
         self._by_ble: dict[str, str] = {}
         self._last_solve_ms = -(2**62)
         self._graph_users: list[int] = []
@@ -233,7 +94,7 @@ class BuildingTracker:
         u = self._users.pop(user, None)
         if u is None:
             raise KeyError(f"unknown user {user!r}")
-        self._pdr.pop(user, None)
+        self.front_end.forget(user)
         if u.slot >= 0:
             self.engine.remove_user(u.slot)
         self._by_ble = {k: v for k, v in self._by_ble.items() if v != user}
@@ -250,10 +111,17 @@ class BuildingTracker:
         return index
 
     def restore_anchor(
-        self, xy: np.ndarray, cov: np.ndarray, anchor_type: int, known: bool, observations: int, t_ms: int
+        self,
+        xy: np.ndarray,
+        cov: np.ndarray,
+        anchor_type: int,
+        known: bool,
+        observations: int,
+        t_ms: int,
+        signature: str = "",
     ) -> int:
         self._check_type(anchor_type)
-        index = self.crowd.restore(xy, cov, anchor_type, known, observations, float(t_ms))
+        index = self.crowd.restore(xy, cov, anchor_type, known, observations, float(t_ms), signature)
         if known:
             self.graph.set_known(index, np.asarray(xy, dtype=float))
         return index
@@ -297,7 +165,7 @@ class BuildingTracker:
         batches = [self._dead_reckon(b, reports[b.user]) for b in batches]
         for b in batches:
             if b.user not in self._users:
-                self._users[b.user] = _User()
+                self._users[b.user] = UserTrack()
             if b.ble_id is not None:
                 self._by_ble[b.ble_id] = b.user
         changed: set[int] = set()
@@ -337,22 +205,32 @@ class BuildingTracker:
         and batches without IMU pass through)."""
         if b.imu is None or b.step_t.size:
             return b
-        state = self._pdr.setdefault(b.user, PdrState())
-        imu, report.imu_samples_dropped = drop_stale(state, b.imu)
-        steps = pdr_steps(state, imu, self.params.pdr)
-        report.steps_detected = steps.t_ms.size
+        radio = RadioArrays(
+            b.scan_t, b.scan_offsets, b.scan_bssid, b.scan_rss, b.scan_last_seen,
+            b.beacon_t, b.beacon_mac, b.beacon_rss,
+        )  # fmt: skip
+        out = self.front_end.process(b.user, b.imu, radio)
+        report.imu_samples_dropped = out.imu_samples_dropped
+        report.steps_detected = out.steps.t_ms.size
+        report.anchors_detected = out.anchors.t_ms.size
+        signatures = b.detect_signature or ("",) * b.detect_t.size
+        observed = b.detect_observed_t if b.detect_observed_t.size else b.detect_t
         return replace(
             b,
-            step_t=steps.t_ms,
-            step_length=steps.length_m,
-            step_azimuth=steps.azimuth_rad,
-            step_turn=steps.turn_rad,
+            step_t=out.steps.t_ms,
+            step_length=out.steps.length_m,
+            step_azimuth=out.steps.azimuth_rad,
+            step_turn=out.steps.turn_rad,
+            detect_t=np.concatenate([b.detect_t, out.anchors.t_ms]),
+            detect_type=np.concatenate([b.detect_type, out.anchors.type_index]),
+            detect_signature=signatures + out.anchors.signature,
+            detect_observed_t=np.concatenate([observed, out.anchors.observed_t_ms]),
             imu=None,
         )
 
-    def _plan(self, batches: list[UserBatch], reports: dict[str, UserReport]) -> list[_Round]:
+    def _plan(self, batches: list[UserBatch], reports: dict[str, UserReport]) -> list[Round]:
         """Each user's events in time order, cut into rounds at every observation (detection or fix)."""
-        rounds: list[_Round] = []
+        rounds: list[Round] = []
         for b in batches:
             u = self._users[b.user]
             report = reports[b.user]
@@ -365,6 +243,7 @@ class BuildingTracker:
             r = 0
             lengths: list[float] = []
             headings: list[float] = []
+            times: list[int] = []
             started = u.slot >= 0
             for t, kind, i in events:
                 if t < u.last_t_ms or (t == u.last_t_ms and kind == 1):
@@ -379,12 +258,13 @@ class BuildingTracker:
                     u.last_t_ms = t
                     lengths.append(float(b.step_length[i]))
                     headings.append(heading)
+                    times.append(t)
                     continue
-                rnd = _round_at(rounds, r)
+                rnd = round_at(rounds, r)
                 if lengths:
-                    rnd.add_steps(b.user, lengths, headings)
+                    rnd.add_steps(b.user, lengths, headings, times)
                     report.steps_applied += len(lengths)
-                    lengths, headings = [], []
+                    lengths, headings, times = [], [], []
                 if kind == 0:
                     if not started:
                         self._start(b.user, b.fix_xy[i], float(b.fix_sigma[i]), float(b.fix_azimuth[i]))
@@ -398,15 +278,17 @@ class BuildingTracker:
                     rnd.det_users.append(b.user)
                     rnd.det_types.append(int(b.detect_type[i]))
                     rnd.det_t.append(t)
+                    rnd.det_signature.append(b.detect_signature[i] if b.detect_signature else "")
+                    rnd.det_observed_t.append(int(b.detect_observed_t[i]) if b.detect_observed_t.size else t)
                     report.detections_applied += 1
                 u.last_t_ms = t
                 r += 1
             if lengths:
-                _round_at(rounds, r).add_steps(b.user, lengths, headings)
+                round_at(rounds, r).add_steps(b.user, lengths, headings, times)
                 report.steps_applied += len(lengths)
         return rounds
 
-    def _step_heading(self, u: _User, b: UserBatch, i: int) -> float:
+    def _step_heading(self, u: UserTrack, b: UserBatch, i: int) -> float:
         """The step's direction, counter-clockwise from east: from the azimuth when given, else the last
         heading plus the turn (NaN when neither is known)."""
         azimuth = float(b.step_azimuth[i])
@@ -432,7 +314,7 @@ class BuildingTracker:
         while len(self._graph_users) > self.params.max_graph_users:
             self.graph.forget_user(self._graph_users.pop(0))
 
-    def _run_round(self, rnd: _Round, reports: dict[str, UserReport], changed: set[int]) -> None:
+    def _run_round(self, rnd: Round, reports: dict[str, UserReport], changed: set[int]) -> None:
         if rnd.users:
             users = [self._users[n] for n in rnd.users]
             counts = [len(x) for x in rnd.step_len]
@@ -440,27 +322,98 @@ class BuildingTracker:
             lengths = np.concatenate(rnd.step_len)
             headings = np.concatenate(rnd.step_head)
             self.engine.step(np.array([u.slot for u in users], dtype=np.int64), offsets, lengths, headings)
-            for u, ls, hs in zip(users, rnd.step_len, rnd.step_head, strict=True):
-                u.displacement = u.displacement + np.array([ls @ np.cos(hs), ls @ np.sin(hs)])
-                u.walked += float(ls.sum())
-        if rnd.det_users:
-            slots = np.array([self._users[n].slot for n in rnd.det_users], dtype=np.int64)
+            for u, ls, hs, ts in zip(users, rnd.step_len, rnd.step_head, rnd.step_t, strict=True):
+                path = u.displacement + np.cumsum(np.column_stack([ls * np.cos(hs), ls * np.sin(hs)]), axis=0)
+                walked = u.walked + np.cumsum(ls)
+                u.trail.extend(zip(ts.tolist(), path.tolist(), walked.tolist(), strict=True))
+                while u.trail and u.trail[0][0] < int(ts[-1]) - TRAIL_MS:
+                    u.trail.pop(0)
+                u.displacement = path[-1].copy()
+                u.walked = float(walked[-1])
+        plain = [k for k, s in enumerate(rnd.det_signature) if not s]
+        signed = [k for k, s in enumerate(rnd.det_signature) if s]
+        if plain:
+            names = [rnd.det_users[k] for k in plain]
+            types = [rnd.det_types[k] for k in plain]
+            slots = np.array([self._users[n].slot for n in names], dtype=np.int64)
             before = self.engine.summaries(slots)
             ids = []
-            for name, row, f, t in zip(rnd.det_users, before, rnd.det_types, rnd.det_t, strict=True):
+            for name, row, f, k in zip(names, before, types, plain, strict=True):
                 cov = np.array([[row[2], row[3]], [row[3], row[4]]])
-                ids.append(self.crowd.contribute(self._users[name].number, row[0:2], cov, f, float(t)))
-            self.engine.observe_building_anchors(slots, np.array(rnd.det_types), np.array(ids))
-            changed.update(ids)
-            if self.params.crowd_solver == "graph":
-                for name, c in zip(rnd.det_users, ids, strict=True):
-                    u = self._users[name]
-                    self.graph.add_detection(u.number, int(c), u.displacement, u.walked)
+                ids.append(
+                    self.crowd.contribute(self._users[name].number, row[0:2], cov, f, float(rnd.det_t[k]))
+                )
+            self.engine.observe_building_anchors(slots, np.array(types), np.array(ids))
+            self._add_to_graph(names, ids, changed)
+        if signed:
+            self._observe_signatures(rnd, signed, reports, changed)
         if rnd.fix_users:
             slots = np.array([self._users[n].slot for n in rnd.fix_users], dtype=np.int64)
             recentred = self.engine.observe_position(slots, np.array(rnd.fix_xy), np.array(rnd.fix_sigma))
             for name, flag in zip(rnd.fix_users, recentred, strict=True):
                 reports[name].recentred += int(flag)
+
+    def _add_to_graph(self, names: list[str], ids: list[int], changed: set[int]) -> None:
+        changed.update(ids)
+        if self.params.crowd_solver == "graph":
+            for name, c in zip(names, ids, strict=True):
+                u = self._users[name]
+                self.graph.add_detection(u.number, int(c), u.displacement, u.walked)
+
+    def _observe_signatures(
+        self, rnd: Round, signed: list[int], reports: dict[str, UserReport], changed: set[int]
+    ) -> None:
+        """Signature anchors (beyond the paper): the crowd anchor with that identity, once placed by other
+        users, is a position measurement N(anchor; user, anchor cov + signature_sigma^2), gated at
+        ``signature_gate_chi2`` against the user's cloud; then the user's pre-update estimate joins the
+        anchor. The detection is reported after the closest approach it describes, so the user is placed
+        at that moment through its own dead reckoning since (plus 10 % of the distance walked as variance).
+        Each user appears at most once per round, so the engine call is one batch."""
+        names = [rnd.det_users[k] for k in signed]
+        slots = np.array([self._users[n].slot for n in names], dtype=np.int64)
+        before = self.engine.summaries(slots)
+        fix_slots, fix_xy, fix_sigma = [], [], []
+        ids = []
+        r2 = self.params.signature_sigma_m**2
+        for name, row, k in zip(names, before, signed, strict=True):
+            u = self._users[name]
+            then, walked_then = u.at(rnd.det_observed_t[k])
+            shift = u.displacement - then
+            drift = (0.1 * (u.walked - walked_then)) ** 2
+            cov = np.array([[row[2], row[3]], [row[3], row[4]]]) + drift * np.eye(2)
+            existing = self.crowd.find_signature(rnd.det_signature[k])
+            if existing is not None and self.crowd.informed_by_others(existing, u.number):
+                anchor_mean, anchor_cov, *_ = self.crowd.anchor(existing)
+                mean = anchor_mean + shift  # where the anchor says the user is now
+                variance = float(np.max(np.linalg.eigvalsh(anchor_cov))) + r2 + drift
+                d = mean - row[0:2]
+                if (
+                    float(d @ np.linalg.solve(cov + variance * np.eye(2), d))
+                    <= self.params.signature_gate_chi2
+                ):
+                    fix_slots.append(u.slot)
+                    fix_xy.append(mean)
+                    fix_sigma.append(math.sqrt(variance))
+                    reports[name].signatures_applied += 1
+                else:
+                    reports[name].signatures_gated += 1
+            index = self.crowd.contribute_signed(
+                u.number,
+                row[0:2] - shift,
+                cov,
+                rnd.det_types[k],
+                rnd.det_signature[k],
+                float(rnd.det_observed_t[k]),
+                self.params.signature_sigma_m,
+            )
+            ids.append(index)
+            if self.params.crowd_solver == "graph":
+                self.graph.add_detection(u.number, index, then, walked_then, self.params.signature_sigma_m)
+        if fix_slots:
+            self.engine.observe_position(
+                np.array(fix_slots, dtype=np.int64), np.array(fix_xy), np.array(fix_sigma)
+            )
+        changed.update(ids)
 
     def _offer_crowd_map(self) -> None:
         active = self.engine.active_users

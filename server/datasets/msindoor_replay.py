@@ -107,7 +107,9 @@ def replay_floor(
     ctx = BuildingContext(building_id=floor_dir.name, geo=None, known_anchors={})
     base = REPLAY_BASE_MS
     scored: list[_Walk] = []
-    counts = {"steps": 0, "encounters": 0, "encounters_applied": 0}
+    counts = dict.fromkeys(
+        ("steps", "encounters", "encounters_applied", "signatures_applied", "signatures_gated"), 0
+    )
     total_windows = sum(_seconds(t) for t in traces)
     for phase, phase_traces in enumerate(phases):
         walks = [_prepare(t, base) for t in phase_traces]
@@ -133,6 +135,9 @@ def replay_floor(
         "encounters_per_user": 2 * counts["encounters"] / len(traces),
         "encounters_applied_per_user": 2 * counts["encounters_applied"] / len(traces),
         "crowd_anchors": len(tracker.crowd),
+        "detections_per_walk": {k: v / len(traces) for k, v in tracker.front_end.fired.items()},
+        "signature_observations_applied": counts["signatures_applied"],
+        "signature_observations_gated": counts["signatures_gated"],
         "seconds": time.perf_counter() - started,
     }
     return result, errors
@@ -209,6 +214,8 @@ def _apply(
 ) -> None:
     outcome = tracker.apply([b for _, _, b in call])
     counts["steps"] += sum(r.steps_detected for r in outcome.reports.values())
+    counts["signatures_applied"] += sum(r.signatures_applied for r in outcome.reports.values())
+    counts["signatures_gated"] += sum(r.signatures_gated for r in outcome.reports.values())
     counts["encounters"] += len(outcome.encounters)
     counts["encounters_applied"] += sum(e.applied for e in outcome.encounters)
     for end, index, _ in call:

@@ -130,6 +130,7 @@ def save_anchor(session: Session, row: AnchorRow) -> None:
         "known",
         "label",
         "last_seen_ms",
+        "signature",
     ):
         setattr(existing, name, getattr(row, name))
 

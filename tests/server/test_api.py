@@ -271,3 +271,36 @@ def test_key_cache_entries_expire_and_stay_bounded() -> None:
         cache.put(key, p, now=20.0 + i)
     assert len(cache._entries) <= 3
     assert cache.get("f", now=25.0) == p
+
+
+def test_raw_imu_and_a_strong_beacon_make_a_signature_anchor(sqlite_api: Api) -> None:
+    api = sqlite_api
+    api.create_building()
+    device = api.key("hq", "device", "phone-raw")
+    t = [T0 + 20 * i for i in range(200)]
+    body = {
+        "building_id": "hq",
+        "device_id": "phone-raw",
+        "batch_id": "raw-0",
+        "seq": 0,
+        "accelerometer": {"t_ms": t, "x": [0.0] * 200, "y": [0.0] * 200, "z": [9.81] * 200},
+        "rotation_vector": {"t_ms": t, "x": [0.0] * 200, "y": [0.0] * 200, "z": [0.0] * 200},
+        "landmarks": [{"kind": "fix", "t_ms": T0, "position": {"x_m": 5.0, "y_m": 5.0}, "sigma_m": 0.5}],
+        "bluetooth": [
+            {"kind": "beacon", "t_ms": T0 + 500 + 1000 * k, "mac": "C4:4F:33:12:34:56", "rssi_dbm": rssi}
+            for k, rssi in enumerate([-60.0, -52.0, -58.0])
+        ],
+    }
+    r = api.client.post("/v1/buildings/hq/batches", json=body, headers=api.auth(device))
+    assert r.status_code == 200, r.text
+    assert r.json()["tracking"]
+    anchors = api.client.get("/v1/buildings/hq/anchors", headers=api.auth(api.operator)).json()
+    assert [(a["type"], a["signature"]) for a in anchors] == [("beacon", "beacon:c4:4f:33:12:34:56")]
+    assert abs(anchors[0]["position"]["x_m"] - 5.0) < 1.0
+    engine = make_engine(api.url)
+    try:
+        with make_session_factory(engine)() as session:
+            row = session.execute(select(AnchorRow)).scalar_one()
+            assert row.signature == b"beacon:c4:4f:33:12:34:56"
+    finally:
+        engine.dispose()

@@ -36,3 +36,38 @@ def test_far_or_other_type_detections_start_new_anchors_and_known_ones_never_mov
     assert len(crowd) == 2
     with pytest.raises(ValueError, match="finite"):
         crowd.contribute(0, np.array([np.nan, 0.0]), np.eye(2), 0, 0.0)
+
+
+def test_signature_anchors_associate_by_identity_and_stay_out_of_particle_maps() -> None:
+    crowd = CrowdMapBuilder(POSTERIOR, detection_sigma_m=0.5)
+    plain = crowd.contribute(0, np.array([0.0, 0.0]), np.eye(2), 0, 1.0)
+    a = crowd.contribute_signed(0, np.array([1.0, 0.0]), np.eye(2), 2, "beacon:aa", 2.0, 4.0)
+    b = crowd.contribute_signed(1, np.array([30.0, 0.0]), np.eye(2), 2, "beacon:aa", 3.0, 4.0)
+    assert a == b != plain  # identity, not position
+    assert crowd.find_signature("beacon:aa") == a
+    assert crowd.signature(a) == "beacon:aa"
+    mean, cov, *_ = crowd.anchor(a)
+    assert mean[0] == pytest.approx(15.5)  # equal information: the midpoint
+    assert cov[0, 0] == pytest.approx((1.0 + 16.0) / 2)
+    # a plain detection next to the signature anchor never joins it
+    assert crowd.contribute(2, np.array([15.5, 0.0]), np.eye(2), 2, 4.0) not in (a, plain)
+    assert a not in crowd.snapshot().crowd_id.tolist()
+    assert crowd.informed_by_others(a, 0)
+    lone = crowd.contribute_signed(5, np.zeros(2), np.eye(2), 3, "wifi:bb", 1.0, 4.0)
+    assert not crowd.informed_by_others(lone, 5)
+    assert crowd.informed_by_others(lone, 6)
+    with pytest.raises(ValueError, match="signature"):
+        crowd.contribute_signed(0, np.zeros(2), np.eye(2), 2, "", 1.0, 4.0)
+
+
+def test_signature_survives_merge_restore_and_remove() -> None:
+    crowd = CrowdMapBuilder(POSTERIOR, detection_sigma_m=0.5)
+    plain = crowd.contribute(0, np.array([0.0, 0.0]), np.eye(2), 2, 1.0)
+    signed = crowd.contribute_signed(1, np.array([1.0, 0.0]), np.eye(2), 2, "beacon:aa", 2.0, 4.0)
+    crowd.merge(plain, signed)
+    assert crowd.find_signature("beacon:aa") == plain
+    assert crowd.signature(plain) == "beacon:aa"
+    crowd.remove(plain)
+    assert crowd.find_signature("beacon:aa") is None
+    restored = crowd.restore(np.zeros(2), np.eye(2), 2, False, 3, 5.0, signature="wifi:cc")
+    assert crowd.find_signature("wifi:cc") == restored

@@ -1,0 +1,67 @@
+"""The tracker's bookkeeping per user (its dead-reckoned trail) and per round of engine calls."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+TRAIL_MS = 30_000
+"""How far back each user's dead-reckoned path is kept (a detection reported after its peak looks back)."""
+
+
+@dataclass
+class UserTrack:
+    number: int = -1  # start order: the crowd graph's user id
+    slot: int = -1
+    last_t_ms: int = -1
+    heading: float = math.nan  # counter-clockwise from east, of the last step
+    displacement: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    walked: float = 0.0
+    origin: np.ndarray = field(default_factory=lambda: np.full(2, np.nan))  # the starting fix
+    trail: list[tuple[int, list[float], float]] = field(default_factory=list)
+    """Recent steps: (t, displacement after it, distance walked after it)."""
+
+    def at(self, t_ms: int) -> tuple[np.ndarray, float]:
+        """Dead-reckoned displacement and distance walked at ``t_ms`` (its last step then; the oldest kept
+        when older than the trail)."""
+        chosen = None
+        for t, displacement, walked in self.trail:
+            if t > t_ms:
+                break
+            chosen = (displacement, walked)
+        if chosen is None:
+            if not self.trail or t_ms >= self.last_t_ms:
+                return self.displacement.copy(), self.walked
+            return np.array(self.trail[0][1]), self.trail[0][2]
+        return np.array(chosen[0]), chosen[1]
+
+
+@dataclass
+class Round:
+    users: list[str] = field(default_factory=list)
+    step_len: list[np.ndarray] = field(default_factory=list)
+    step_head: list[np.ndarray] = field(default_factory=list)
+    det_users: list[str] = field(default_factory=list)
+    det_types: list[int] = field(default_factory=list)
+    det_t: list[int] = field(default_factory=list)
+    det_signature: list[str] = field(default_factory=list)
+    fix_users: list[str] = field(default_factory=list)
+    fix_xy: list[np.ndarray] = field(default_factory=list)
+    fix_sigma: list[float] = field(default_factory=list)
+
+    step_t: list[np.ndarray] = field(default_factory=list)
+    det_observed_t: list[int] = field(default_factory=list)
+
+    def add_steps(self, user: str, lengths: list[float], headings: list[float], times: list[int]) -> None:
+        self.users.append(user)
+        self.step_len.append(np.array(lengths))
+        self.step_head.append(np.array(headings))
+        self.step_t.append(np.array(times, dtype=np.int64))
+
+
+def round_at(rounds: list[Round], r: int) -> Round:
+    while len(rounds) <= r:
+        rounds.append(Round())
+    return rounds[r]

@@ -1,0 +1,159 @@
+"""The tracker's parameters and the arrays that go in and out of ``BuildingTracker.apply``."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from slam_core.detectors import DetectorParams
+from slam_core.encounter_detection import Detection, DetectionParams
+from slam_core.params import FilterParams
+from slam_core.pdr.frontend import ImuSamples, PdrParams
+
+CROWD_SOLVERS = ("fusion", "graph")
+
+
+@dataclass(frozen=True)
+class TrackerParams:
+    filter: FilterParams = field(default_factory=FilterParams)
+    detection: DetectionParams = field(default_factory=DetectionParams)
+    crowd_solver: str = "graph"
+    graph_solve_period_ms: int = 5_000
+    """The joint crowd-map solve runs at most every 5 s of phone time (it takes ~0.1 s)."""
+    max_graph_users: int = 500
+    """Users whose detections the joint solve keeps; older users' tracks are forgotten (their anchors keep
+    their estimates), so a long-running server's solve stays bounded."""
+    start_sigma_floor_m: float = 0.5
+    pdr: PdrParams = field(default_factory=PdrParams)
+    detectors: DetectorParams | None = field(default_factory=DetectorParams)
+    """Building-anchor detectors for raw-IMU phones; None: steps only."""
+    signature_sigma_m: float = 6.0
+    """How far from a transmitter its visit's strongest reading may be (one sigma). On the msindoor floor the
+    peak of a visit lies from the median position of that transmitter's strong readings 2.9 / 5.1 / 7.4 m
+    (p50 / p75 / p90) for beacons and 3.7 / 6.8 / 9.8 m for WiFi APs: one sigma near the p75, the tail
+    left to the gate."""
+    signature_gate_chi2: float = 9.21
+    """A signature observation more than this (99 %, 2 dof) from the user's cloud is skipped and counted."""
+
+    def __post_init__(self) -> None:
+        if self.crowd_solver not in CROWD_SOLVERS:
+            raise ValueError(f"unknown crowd solver {self.crowd_solver!r}; valid: {', '.join(CROWD_SOLVERS)}")
+
+
+def _i64(n: int = 0) -> np.ndarray:
+    return np.zeros(n, dtype=np.int64)
+
+
+def _f64(n: int = 0) -> np.ndarray:
+    return np.zeros(n, dtype=np.float64)
+
+
+@dataclass(frozen=True)
+class UserBatch:
+    """One user's share of a batch, as arrays. Times are epoch ms; headings are radians."""
+
+    user: str
+    ble_id: str | None = None
+    fix_t: np.ndarray = field(default_factory=_i64)
+    fix_xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    fix_sigma: np.ndarray = field(default_factory=_f64)
+    fix_azimuth: np.ndarray = field(default_factory=_f64)  # clockwise from north, NaN when unknown
+    step_t: np.ndarray = field(default_factory=_i64)
+    step_length: np.ndarray = field(default_factory=_f64)
+    step_azimuth: np.ndarray = field(default_factory=_f64)  # clockwise from north, NaN when not given
+    step_turn: np.ndarray = field(default_factory=_f64)  # counter-clockwise change, NaN when not given
+    detect_t: np.ndarray = field(default_factory=_i64)
+    detect_type: np.ndarray = field(default_factory=_i64)
+    scan_t: np.ndarray = field(default_factory=_i64)
+    scan_offsets: np.ndarray = field(default_factory=lambda: np.zeros(1, dtype=np.int64))
+    scan_bssid: tuple[str, ...] = ()
+    scan_rss: np.ndarray = field(default_factory=_f64)
+    scan_last_seen: np.ndarray = field(default_factory=_i64)  # -1 when the phone did not say
+    peer_t: np.ndarray = field(default_factory=_i64)
+    peer_id: tuple[str, ...] = ()  # the heard phones' advertised ids
+    peer_rss: np.ndarray = field(default_factory=_f64)
+    beacon_t: np.ndarray = field(default_factory=_i64)
+    beacon_mac: tuple[str, ...] = ()  # fixed Bluetooth beacons heard (not phones)
+    beacon_rss: np.ndarray = field(default_factory=_f64)
+    detect_signature: tuple[str, ...] = ()  # per detection: the transmitter's identity, "" for none
+    detect_observed_t: np.ndarray = field(default_factory=_i64)  # per detection: when at the anchor
+    imu: ImuSamples | None = None
+    """Raw IMU for the PDR front-end; ignored when the phone sent its own steps."""
+
+    def __post_init__(self) -> None:
+        f, s, d, c, p = (
+            self.fix_t.size,
+            self.step_t.size,
+            self.detect_t.size,
+            self.scan_t.size,
+            self.peer_t.size,
+        )
+        shapes_ok = (
+            self.fix_xy.shape == (f, 2)
+            and self.fix_sigma.shape == (f,)
+            and self.fix_azimuth.shape == (f,)
+            and self.step_length.shape == self.step_azimuth.shape == self.step_turn.shape == (s,)
+            and self.detect_type.shape == (d,)
+            and self.scan_offsets.shape == (c + 1,)
+            and int(self.scan_offsets[0]) == 0
+            and len(self.scan_bssid)
+            == self.scan_rss.size
+            == self.scan_last_seen.size
+            == int(self.scan_offsets[-1])
+            and len(self.peer_id) == self.peer_rss.size == p
+            and len(self.beacon_mac) == self.beacon_rss.size == self.beacon_t.size
+            and len(self.detect_signature) in (0, d)
+            and self.detect_observed_t.size in (0, d)
+        )
+        if not shapes_ok:
+            raise ValueError(f"user batch of {self.user!r}: inconsistent array shapes")
+        finite = all(
+            np.all(np.isfinite(a))
+            for a in (self.fix_xy, self.fix_sigma, self.step_length, self.scan_rss, self.peer_rss)
+        )
+        if not finite or np.any(self.fix_sigma <= 0) or np.any(self.step_length < 0):
+            raise ValueError(
+                f"user batch of {self.user!r}: non-finite values, sigma <= 0 or negative lengths"
+            )
+
+
+@dataclass
+class UserReport:
+    """What happened to one user's batch."""
+
+    status: str = "awaiting_fix"  # "tracking" once started
+    steps_detected: int = 0  # by the PDR front-end from raw IMU
+    imu_samples_dropped: int = 0  # older than what the front-end had consumed (late or re-sent)
+    anchors_detected: int = 0  # by the front-end's detectors
+    signatures_applied: int = 0  # signature anchors observed as position measurements
+    signatures_gated: int = 0  # ... skipped as inconsistent with the user's cloud
+    steps_applied: int = 0
+    steps_dropped: int = 0  # before the first fix, out of time order, or with no heading reference
+    detections_applied: int = 0
+    fixes_applied: int = 0
+    recentred: int = 0
+
+
+@dataclass(frozen=True)
+class EstimateRow:
+    t_ms: int
+    x: float
+    y: float
+    cov: tuple[float, float, float]  # xx, xy, yy
+    best: tuple[float, float]
+    heading: float  # counter-clockwise from east
+
+
+@dataclass(frozen=True)
+class EncounterResult:
+    detection: Detection
+    applied: bool
+
+
+@dataclass
+class TrackerOutcome:
+    reports: dict[str, UserReport]
+    estimates: dict[str, EstimateRow]
+    encounters: list[EncounterResult]
+    anchors_changed: list[int]  # crowd indices created or re-estimated
