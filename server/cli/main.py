@@ -31,6 +31,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "server.cli.evaluate_cmd",
         "run the simulated testbed (or a sweep), or replay real walks as a crowd; metrics as JSON",
     ),
+    "signalslam": (
+        "server.cli.signalslam_cmd",
+        "SignalSLAM on a floor of real walks: PDR, recalibrated PDR, GraphSLAM, SignalSLAM, fingerprints",
+    ),
     "calibrate": (
         "server.cli.calibrate_cmd",
         "fit the encounter models on a floor of real walks; precision and recall of each WiFi feature",

@@ -4,7 +4,6 @@ floor made of a few of the shared walks; and the tracker's PDR front-end path it
 from __future__ import annotations
 
 import json
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -18,26 +17,7 @@ from server.datasets.msindoor_batches import trace_batches
 from server.datasets.msindoor_replay import ReplayOptions, replay_floor
 from server.settings import Settings
 from slam_core.tracker import BuildingTracker
-
-FLOOR = Path(__file__).resolve().parents[3] / "shared" / "data" / "msindoor20" / "site1" / "F1"
-WALKS = (
-    "5dd9fd499191710006b570de",
-    "5dd9efa5c5b77e0006b17365",
-    "5dd9efa29191710006b5708a",
-    "5dda0216c5b77e0006b17408",
-    "5ddb9632c5b77e0006b179b1",
-    "5dd9e7c79191710006b57067",
-)
-
-
-@pytest.fixture(scope="module")
-def small_floor(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    floor = tmp_path_factory.mktemp("floor") / "F1"
-    (floor / "path_data_files").mkdir(parents=True)
-    shutil.copy(FLOOR / "floor_info.json", floor / "floor_info.json")
-    for name in WALKS:
-        (floor / "path_data_files" / f"{name}.txt").symlink_to(FLOOR / "path_data_files" / f"{name}.txt")
-    return floor
+from tests.datasets.conftest import FLOOR, WALKS
 
 
 def _waypoints_after_the_first(names: tuple[str, ...]) -> int:
@@ -138,3 +118,28 @@ def test_calibrate_cli_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]
     assert main(["calibrate", "--msindoor", str(tmp_path), "--out", str(tmp_path / "c.json")]) == 2
     assert "floor_info.json" in capsys.readouterr().out
     assert not (tmp_path / "c.json").exists()
+
+
+def test_signalslam_cli_on_a_floor(small_floor: Path, tmp_path: Path) -> None:
+    out = tmp_path / "ss.json"
+    plots = tmp_path / "plots"
+    assert (
+        main(["signalslam", "--msindoor", str(small_floor), "--json", str(out), "--plots", str(plots)]) == 0
+    )
+    result = json.loads(out.read_text())
+    for method in ("pdr", "calibrated", "graphslam", "signalslam", "fingerprint"):
+        assert result[f"{method}_p50_m"] <= result[f"{method}_p90_m"]
+        assert np.isfinite(result[f"{method}_p50_m"])
+    assert result["walks"] == len(WALKS)
+    assert result["n_checkpoints"] >= 5
+    assert result["fingerprint_surveyed_p50_m"] > 0
+    assert {Path(p).name for p in result["plots"]} >= {"trajectories.png", "signal_map_ap1.png"}
+    assert all(Path(p).stat().st_size > 1000 for p in result["plots"])
+
+
+def test_signalslam_cli_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "ss.json"
+    assert main(["signalslam", "--msindoor", str(tmp_path), "--json", str(out)]) == 2
+    assert "floor_info.json" in capsys.readouterr().out
+    assert main(["signalslam", "--msindoor", str(tmp_path), "--json", str(out), "--folds", "1"]) == 2
+    assert not out.exists()

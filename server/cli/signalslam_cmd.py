@@ -1,0 +1,58 @@
+"""``crowdslam signalslam --msindoor FLOOR_DIR --json OUT [--plots DIR]``: the SignalSLAM protocol on a floor
+of real walks (landmarks at each walk's ends, error at the intermediate waypoints, leave-walks-out
+fingerprint localisation)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--msindoor",
+        type=Path,
+        required=True,
+        metavar="FLOOR_DIR",
+        help="a floor of Indoor Location 2.0 walks",
+    )
+    parser.add_argument("--json", type=Path, required=True, metavar="OUT", help="where to write the metrics")
+    parser.add_argument("--plots", type=Path, metavar="DIR", help="trajectories and signal maps as PNG")
+    parser.add_argument("--folds", type=int, default=5, help="leave-walks-out folds of the fingerprint test")
+
+
+def run(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from server.datasets.msindoor import TraceFormatError
+    from server.datasets.msindoor_signalslam import run_signalslam
+
+    if args.folds < 2:
+        print("crowdslam signalslam: --folds must be at least 2")
+        return 2
+    with tqdm(total=3, desc="signalslam", unit="stage", bar_format="{desc}: {n}/{total} {postfix}") as bar:
+
+        def progress(stage: str) -> None:
+            bar.set_postfix_str(stage)
+            bar.update(1)
+
+        try:
+            result, prepared, trajectories = run_signalslam(
+                args.msindoor, folds=args.folds, progress=progress
+            )
+        except (TraceFormatError, ValueError, OSError) as error:
+            print(f"crowdslam signalslam: {error}")
+            return 2
+    if args.plots is not None:
+        from server.datasets.signalslam_plots import plot_signal_maps, plot_trajectories
+
+        written = plot_trajectories(args.plots, prepared, trajectories) + plot_signal_maps(
+            args.plots, prepared, trajectories
+        )
+        result["plots"] = [str(p) for p in written]
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(json.dumps(result, indent=2) + "\n")
+    print(json.dumps(result, indent=2))
+    print(f"wrote {args.json}")
+    return 0

@@ -1,0 +1,208 @@
+"""GraphSLAM and SignalSLAM over many walks at once, on gtsam (SignalSLAM Sections II-C to II-E).
+
+Each walk is a chain of ``Pose2`` vertices, one per PDR step between its first and last landmark. Edges:
+
+- **motion** (Eq. 5 terms): ``BetweenFactorPose2`` from each step (length, change of heading);
+- **landmark**: ``PoseTranslationPrior2D`` at a landmark with a known position (position only: the paper's
+  omega_33 = 0; gtsam's factor is exact for it, where a ``BetweenFactorPose2`` with zero heading information
+  mis-weights the translation);
+- **signal** (Eq. 7): for each 10 s signal window, the kernel-weighted mean of the current positions of its
+  ``n`` most similar windows on other walks is a temporary absolute landmark, re-evaluated after every
+  optimisation while the neighbour sets stay fixed; these edges get a Huber kernel because a fraction of
+  signal neighbours are far away (wrong similarity).
+
+Departures from the paper, said here: the paper sets every information matrix to identity (omega_33 = 4) on
+stride edges; our vertices are single steps, so the motion noise is per step (``GraphParams``), and the
+signal-edge sigma is the regression's measured accuracy (metres, not the paper's unit information).
+Optimisation is Levenberg-Marquardt from the recalibrated dead reckoning (Eq. 4), which starts close to the
+solution on walks with landmarks at both ends.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from slam_core.signal_map.calibration import CalibrationGrid, calibrate_segment, dead_reckon
+
+
+@dataclass(frozen=True)
+class GraphParams:
+    step_sigma_along_m: float = 0.10
+    """Per step: the measured step-scale error (sigma 0.14 per walk) is ~0.1 m of a 0.7 m step."""
+    step_sigma_across_m: float = 0.05
+    step_sigma_heading_rad: float = np.radians(1.0)
+    """Per step: the phone's heading error is mostly a constant bias per walk, which the free start heading
+    absorbs; what varies step to step is about a degree."""
+    landmark_sigma_m: float = 0.5
+    signal_sigma_m: float = 5.0
+    """A WiFi kernel regression is good to about 5 m on a mall floor (weighted kNN on surveyed positions:
+    4.6 m p50 on msindoor site1 F1), so a signal edge is a 5 m landmark, made robust by the Huber kernel."""
+    signal_huber_k: float = 1.345
+    neighbours: int = 10  # n of Eq. 7
+    kernel_alpha: float = 1.0
+    same_walk_gap_ms: int = 20_000
+    """Windows of the same walk closer in time than this are not signal neighbours (they overlap)."""
+    iterations: int = 5
+
+
+@dataclass(frozen=True)
+class Walk:
+    """One walk's dead reckoning between its landmarks, and its signal windows."""
+
+    t_ms: np.ndarray  # (N + 1,) the start landmark's time, then each step's
+    lengths: np.ndarray  # (N,)
+    headings: np.ndarray  # (N,) rad, counter-clockwise from east
+    start: np.ndarray  # (2,) the first landmark
+    end: np.ndarray  # (2,) the last landmark (reached at t_ms[-1])
+    window_t: np.ndarray  # (W,) signal window centres
+    window_counts: np.ndarray  # (W, A) AP sightings per window (global AP columns)
+
+
+@dataclass(frozen=True)
+class Trajectories:
+    raw: list[np.ndarray]  # per walk (N + 1, 2)
+    calibrated: list[np.ndarray]
+    graphslam: list[np.ndarray]
+    signalslam: list[np.ndarray]
+
+
+def _key(index: int) -> int:
+    return int(gtsam.symbol("x", index))
+
+
+def _relative(h0: float, h1: float, length: float) -> gtsam.Pose2:
+    """Step of ``length`` along ``h1`` seen from a pose heading ``h0``, ending heading ``h1``."""
+    turn = h1 - h0
+    return gtsam.Pose2(length * np.cos(turn), length * np.sin(turn), turn)
+
+
+class WalkGraph:
+    """The joint graph of all walks: motion and landmark edges; signal edges added per iteration."""
+
+    def __init__(self, walks: list[Walk], params: GraphParams) -> None:
+        self.walks = walks
+        self.params = params
+        self.offsets = np.concatenate([[0], np.cumsum([w.lengths.size + 1 for w in walks])]).astype(int)
+        self.base = gtsam.NonlinearFactorGraph()
+        p = params
+        motion = gtsam.noiseModel.Diagonal.Sigmas(
+            np.array([p.step_sigma_along_m, p.step_sigma_across_m, p.step_sigma_heading_rad])
+        )
+        landmark = gtsam.noiseModel.Isotropic.Sigma(2, p.landmark_sigma_m)
+        for w, walk in enumerate(walks):
+            o = self.offsets[w]
+            heads = np.concatenate([[walk.headings[0]], walk.headings])  # the start pose faces the first step
+            for k in range(walk.lengths.size):
+                rel = _relative(heads[k], heads[k + 1], float(walk.lengths[k]))
+                self.base.add(gtsam.BetweenFactorPose2(_key(o + k), _key(o + k + 1), rel, motion))
+            self.base.add(
+                gtsam.PoseTranslationPrior2D(_key(o), np.asarray(walk.start, dtype=float), landmark)
+            )
+            last = o + walk.lengths.size
+            self.base.add(
+                gtsam.PoseTranslationPrior2D(_key(last), np.asarray(walk.end, dtype=float), landmark)
+            )
+
+    def values(self, positions: list[np.ndarray]) -> gtsam.Values:
+        values = gtsam.Values()
+        for w, (walk, xy) in enumerate(zip(self.walks, positions, strict=True)):
+            heads = np.concatenate([[walk.headings[0]], walk.headings])
+            for k in range(xy.shape[0]):
+                values.insert(
+                    _key(self.offsets[w] + k), gtsam.Pose2(float(xy[k, 0]), float(xy[k, 1]), heads[k])
+                )
+        return values
+
+    def positions(self, values: gtsam.Values) -> list[np.ndarray]:
+        out = []
+        for w, walk in enumerate(self.walks):
+            o = self.offsets[w]
+            out.append(
+                np.array([[values.atPose2(_key(o + k)).x(), values.atPose2(_key(o + k)).y()]
+                          for k in range(walk.lengths.size + 1)])
+            )  # fmt: skip
+        return out
+
+    def optimise(self, graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values) -> gtsam.Values:
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(100)
+        return gtsam.LevenbergMarquardtOptimizer(graph, initial, params).optimize()
+
+
+def calibrated_positions(walks: list[Walk], grid: CalibrationGrid | None = None) -> list[np.ndarray]:
+    """Eq. 4 per walk (its landmarks at both ends), applied to the whole walk."""
+    grid = grid or CalibrationGrid()
+    out = []
+    for walk in walks:
+        scale, offset, _ = calibrate_segment(walk.lengths, walk.headings, walk.start, walk.end, grid)
+        out.append(
+            np.vstack([walk.start, dead_reckon(walk.lengths, walk.headings, walk.start, scale, offset)])
+        )
+    return out
+
+
+def signal_neighbours(walks: list[Walk], params: GraphParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For every window: its walk, the indices of its ``n`` most similar windows on other walks (or far in
+    time on its own), and their kernel values. The kernel is the KL kernel on AP visibility (Section II-D)."""
+    from slam_core.signal_map.kernels import kl_kernel, visibility_multinomials
+
+    counts = np.vstack([w.window_counts for w in walks])
+    walk_of = np.concatenate([np.full(w.window_t.size, i) for i, w in enumerate(walks)])
+    times = np.concatenate([w.window_t for w in walks])
+    kernel = kl_kernel(visibility_multinomials(counts), alpha=params.kernel_alpha)
+    excluded = (walk_of[:, None] == walk_of[None, :]) & (
+        np.abs(times[:, None] - times[None, :]) < params.same_walk_gap_ms
+    )
+    kernel[excluded] = -1.0
+    n = min(params.neighbours, max(kernel.shape[1] - 1, 1))
+    index = np.argsort(-kernel, axis=1, kind="stable")[:, :n]
+    weights = np.take_along_axis(kernel, index, axis=1)
+    weights = np.where(weights > 0, weights, 0.0)
+    return walk_of, index, weights
+
+
+def solve(walks: list[Walk], params: GraphParams | None = None) -> Trajectories:
+    """Raw PDR, recalibrated PDR (Eq. 4), GraphSLAM (motion + landmark edges) and SignalSLAM (plus signal
+    edges, Eq. 7, iterated) positions of every walk's poses."""
+    params = params or GraphParams()
+    raw = [np.vstack([w.start, dead_reckon(w.lengths, w.headings, w.start)]) for w in walks]
+    calibrated = calibrated_positions(walks)
+    graph = WalkGraph(walks, params)
+    values = graph.optimise(graph.base, graph.values(calibrated))
+    graphslam = graph.positions(values)
+    if sum(w.window_t.size for w in walks) < 2:
+        return Trajectories(raw, calibrated, graphslam, graphslam)
+    _, index, weights = signal_neighbours(walks, params)
+    pose_of_window = np.concatenate(
+        [graph.offsets[i] + _nearest_pose(w.t_ms, w.window_t) for i, w in enumerate(walks)]
+    )
+    noise = gtsam.noiseModel.Robust.Create(
+        gtsam.noiseModel.mEstimator.Huber.Create(params.signal_huber_k),
+        gtsam.noiseModel.Isotropic.Sigma(2, params.signal_sigma_m),
+    )
+    for _ in range(params.iterations):
+        xy = np.vstack([values.atPose2(_key(int(k))).translation() for k in pose_of_window])
+        graph_s = gtsam.NonlinearFactorGraph(graph.base)
+        for t in range(pose_of_window.size):
+            total = weights[t].sum()
+            if total <= 0:
+                continue
+            predicted = weights[t] @ xy[index[t]] / total  # Eq. 7
+            graph_s.add(gtsam.PoseTranslationPrior2D(_key(int(pose_of_window[t])), predicted, noise))
+        values = graph.optimise(graph_s, values)
+    return Trajectories(raw, calibrated, graphslam, graph.positions(values))
+
+
+def _nearest_pose(pose_t: np.ndarray, window_t: np.ndarray) -> np.ndarray:
+    i = np.clip(np.searchsorted(pose_t, window_t), 1, pose_t.size - 1)
+    left_closer = (window_t - pose_t[i - 1]) <= (pose_t[i] - window_t)
+    nearest: np.ndarray = np.where(left_closer, i - 1, i)
+    return nearest
+
+
+def position_at(t_ms: np.ndarray, positions: np.ndarray, query_t: np.ndarray) -> np.ndarray:
+    """Linear interpolation of a walk's poses at the query times."""
+    return np.column_stack([np.interp(query_t, t_ms, positions[:, k]) for k in (0, 1)])

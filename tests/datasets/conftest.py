@@ -1,0 +1,28 @@
+"""A small floor made of a few of the shared walks (symlinked in place), for the replay and CLI tests."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+
+FLOOR = Path(__file__).resolve().parents[3] / "shared" / "data" / "msindoor20" / "site1" / "F1"
+WALKS = (
+    "5dd9fd499191710006b570de",
+    "5dd9efa5c5b77e0006b17365",
+    "5dd9efa29191710006b5708a",
+    "5dda0216c5b77e0006b17408",
+    "5ddb9632c5b77e0006b179b1",
+    "5dd9e7c79191710006b57067",
+)
+
+
+@pytest.fixture(scope="module")
+def small_floor(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    floor = tmp_path_factory.mktemp("floor") / "F1"
+    (floor / "path_data_files").mkdir(parents=True)
+    shutil.copy(FLOOR / "floor_info.json", floor / "floor_info.json")
+    for name in WALKS:
+        (floor / "path_data_files" / f"{name}.txt").symlink_to(FLOOR / "path_data_files" / f"{name}.txt")
+    return floor

@@ -1,0 +1,157 @@
+"""SignalSLAM pieces: kernels against direct computations, Eq. 4 on a walk with known errors, every edge's
+Jacobian against a numerical one, and small synthetic floors where the optimum is known."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import gtsam
+import numpy as np
+import pytest
+
+from slam_core.signal_map.calibration import CalibrationGrid, calibrate_segment, dead_reckon
+from slam_core.signal_map.graph import GraphParams, Walk, position_at, solve
+from slam_core.signal_map.kernels import gaussian_kernel, kl_kernel, symmetric_kl, visibility_multinomials
+
+
+def test_kl_kernel_matches_a_direct_computation() -> None:
+    rng = np.random.default_rng(0)
+    counts = rng.poisson(1.0, (6, 9)).astype(float)
+    counts[2] = 0.0  # a window that heard nothing
+    p = visibility_multinomials(counts, epsilon=1e-3)
+    assert np.allclose(p.sum(axis=1), 1.0)
+    kernel = kl_kernel(p, alpha=0.7)
+    for i in range(6):
+        for j in range(6):
+            direct = np.sum(p[i] * np.log(p[i] / p[j])) + np.sum(p[j] * np.log(p[j] / p[i]))
+            assert symmetric_kl(p)[i, j] == pytest.approx(direct, abs=1e-9)
+            assert kernel[i, j] == pytest.approx(math.exp(-0.7 * direct), rel=1e-9)
+    assert np.allclose(np.diag(kernel), 1.0)
+    assert np.allclose(kernel, kernel.T)
+    with pytest.raises(ValueError, match="non-negative"):
+        visibility_multinomials(-np.ones((2, 2)))
+
+
+def test_gaussian_kernel_matches_a_direct_computation() -> None:
+    a = np.array([40.0, 45.0, 52.0])  # magnetic magnitude per window (uT)
+    b = np.array([41.0, 60.0])
+    kernel = gaussian_kernel(a, b, alpha=0.1)
+    for i in range(3):
+        for j in range(2):
+            assert kernel[i, j] == pytest.approx(math.exp(-0.1 * (a[i] - b[j]) ** 2))
+
+
+def test_eq4_recovers_stride_scale_and_offset() -> None:
+    rng = np.random.default_rng(1)
+    headings = np.cumsum(rng.normal(0, 0.05, 60)) + 0.3
+    lengths = rng.uniform(0.6, 0.8, 60)
+    start = np.array([3.0, 4.0])
+    truth_end = dead_reckon(lengths, headings, start, scale=1.12, offset=math.radians(-9.0))[-1]
+    scale, offset, residual = calibrate_segment(lengths, headings, start, truth_end, CalibrationGrid())
+    assert scale == pytest.approx(1.12, abs=0.011)
+    assert math.degrees(offset) == pytest.approx(-9.0, abs=1.01)
+    assert residual < 0.5
+    with pytest.raises(ValueError, match="non-empty"):
+        calibrate_segment(np.zeros(0), np.zeros(0), start, start, CalibrationGrid())
+
+
+def _numerical_jacobian(factor: Any, values: gtsam.Values, key: int) -> np.ndarray:
+    base = values.atPose2(key)
+    columns = []
+    for k in range(3):
+        delta = np.zeros(3)
+        delta[k] = 1e-6
+        plus, minus = gtsam.Values(values), gtsam.Values(values)
+        plus.update(key, base.retract(delta))
+        minus.update(key, base.retract(-delta))
+        columns.append((factor.unwhitenedError(plus) - factor.unwhitenedError(minus)) / 2e-6)
+    return np.column_stack(columns)
+
+
+@pytest.mark.parametrize("edge", ["motion", "landmark", "signal"])
+def test_edge_jacobians_match_numerical_ones(edge: str) -> None:
+    k0, k1 = gtsam.symbol("x", 0), gtsam.symbol("x", 1)
+    values = gtsam.Values()
+    values.insert(k0, gtsam.Pose2(1.0, 2.0, 0.4))
+    values.insert(k1, gtsam.Pose2(1.5, 2.9, 0.9))
+    sigmas = gtsam.noiseModel.Diagonal.Sigmas(np.array([0.1, 0.05, 0.02]))
+    factor: Any
+    if edge == "motion":
+        factor = gtsam.BetweenFactorPose2(k0, k1, gtsam.Pose2(0.7, 0.1, 0.3), sigmas)
+        keys = [k0, k1]
+    else:
+        noise = gtsam.noiseModel.Isotropic.Sigma(2, 0.5 if edge == "landmark" else 5.0)
+        factor = gtsam.PoseTranslationPrior2D(k1, np.array([2.0, 3.0]), noise)
+        keys = [k1]
+    linear = factor.linearize(values)
+    jacobian, _ = linear.jacobian()
+    whitening = np.linalg.cholesky(np.linalg.inv(factor.noiseModel().covariance())).T
+    for i, key in enumerate(keys):
+        analytic = jacobian[:, 3 * i : 3 * i + 3]
+        numerical = whitening @ _numerical_jacobian(factor, values, key)
+        np.testing.assert_allclose(analytic, numerical, atol=1e-6)
+
+
+def _corridor_walk(bulge: float, n: int = 40, t0: int = 0, aps: int = 20) -> tuple[Walk, np.ndarray]:
+    """Walk east along y = 0 for n steps of 1 m; the dead reckoning's heading wanders by ``bulge`` rad in
+    the middle (zero at both ends, so landmarks at the ends cannot see it). AP visibility depends on x."""
+    k = np.arange(1, n + 1)
+    truth = np.column_stack([k.astype(float), np.zeros(n)])
+    headings = bulge * np.sin(2 * np.pi * k / n)  # deviates and comes back: both ends stay right
+    t = t0 + 1000 * np.arange(n + 1)
+    window_t = t[1:]
+    ap_x = np.linspace(0, n, aps)
+    counts = np.round(6 * np.exp(-((truth[:, 0:1] - ap_x[None, :]) ** 2) / 8.0))
+    walk = Walk(
+        t_ms=t.astype(np.int64),
+        lengths=np.ones(n),
+        headings=headings,
+        start=np.zeros(2),
+        end=truth[-1],
+        window_t=window_t.astype(np.int64),
+        window_counts=counts,
+    )
+    return walk, truth
+
+
+def test_graphslam_closes_a_walk_between_its_landmarks() -> None:
+    walk, truth = _corridor_walk(bulge=0.0)
+    rotated = Walk(**{**walk.__dict__, "headings": walk.headings + math.radians(8.0)})
+    result = solve([rotated], GraphParams(iterations=0))
+    assert np.linalg.norm(result.raw[0][1:] - truth, axis=1).max() > 5.0
+    # a constant heading bias costs the chain nothing: its start heading is free
+    assert np.linalg.norm(result.graphslam[0][1:] - truth, axis=1).max() < 0.1
+    scaled = Walk(**{**rotated.__dict__, "lengths": walk.lengths * 1.1})
+    result = solve([scaled], GraphParams(iterations=0))
+    raw_error = np.linalg.norm(result.raw[0][1:] - truth, axis=1).mean()
+    # a scale error is spread over the steps' length noise (no scale variable in the pose graph) ...
+    assert np.linalg.norm(result.graphslam[0][1:] - truth, axis=1).mean() < 0.2 * raw_error
+    # ... while Eq. 4 models it exactly
+    assert np.linalg.norm(result.calibrated[0][1:] - truth, axis=1).max() < 0.3
+
+
+def test_signal_edges_pull_a_walk_onto_similar_places_of_another() -> None:
+    """Three walks agree on a straight corridor; a fourth's dead reckoning bulges in the middle. Signal edges
+    say the fourth passed the same places: the majority pulls it onto the corridor."""
+    walks = [_corridor_walk(bulge=0.0, t0=100_000 * i)[0] for i in range(3)]
+    wandering, truth = _corridor_walk(bulge=0.25, t0=400_000)
+    result = solve([*walks, wandering], GraphParams(signal_sigma_m=1.0))
+    middle = slice(10, 30)
+
+    def error(xy: np.ndarray) -> float:
+        return float(np.linalg.norm(xy[1:][middle] - truth[middle], axis=1).mean())
+
+    graph_error = error(result.graphslam[3])
+    assert graph_error > 2.0
+    assert error(result.signalslam[3]) < 0.6 * graph_error
+    for i in range(3):  # the majority moves much less than the outlier is corrected
+        assert error(result.signalslam[i]) < 0.5 * graph_error
+    for xy in result.signalslam:
+        assert np.all(np.isfinite(xy))
+
+
+def test_position_at_interpolates_between_poses() -> None:
+    xy = np.array([[0.0, 0.0], [2.0, 0.0], [2.0, 4.0]])
+    t = np.array([0, 1000, 2000])
+    np.testing.assert_allclose(position_at(t, xy, np.array([500.0, 1500.0])), [[1.0, 0.0], [2.0, 2.0]])
