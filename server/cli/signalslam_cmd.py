@@ -20,6 +20,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", type=Path, required=True, metavar="OUT", help="where to write the metrics")
     parser.add_argument("--plots", type=Path, metavar="DIR", help="trajectories and signal maps as PNG")
     parser.add_argument("--folds", type=int, default=5, help="leave-walks-out folds of the fingerprint test")
+    parser.add_argument(
+        "--modalities",
+        default="wifi",
+        help="signal kernels to multiply, comma-separated from wifi, bluetooth, magnetic (default: wifi)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -27,9 +32,15 @@ def run(args: argparse.Namespace) -> int:
 
     from server.datasets.msindoor import TraceFormatError
     from server.datasets.msindoor_signalslam import run_signalslam
+    from slam_core.signal_map.graph import MODALITIES, GraphParams
 
     if args.folds < 2:
         print("crowdslam signalslam: --folds must be at least 2")
+        return 2
+    modalities = tuple(m.strip() for m in args.modalities.split(",") if m.strip())
+    unknown = [m for m in modalities if m not in MODALITIES]
+    if unknown or not modalities:
+        print(f"crowdslam signalslam: unknown modalities {unknown}; valid: {', '.join(MODALITIES)}")
         return 2
     with tqdm(total=3, desc="signalslam", unit="stage", bar_format="{desc}: {n}/{total} {postfix}") as bar:
 
@@ -39,7 +50,7 @@ def run(args: argparse.Namespace) -> int:
 
         try:
             result, prepared, trajectories = run_signalslam(
-                args.msindoor, folds=args.folds, progress=progress
+                args.msindoor, GraphParams(modalities=modalities), folds=args.folds, progress=progress
             )
         except (TraceFormatError, ValueError, OSError) as error:
             print(f"crowdslam signalslam: {error}")

@@ -40,6 +40,8 @@ class _Prepared:
     checkpoints: np.ndarray  # (K, 3) intermediate waypoints t, x, y
     waypoints: np.ndarray
     scans: _Scans
+    beacons: tuple[np.ndarray, np.ndarray]  # sighting times, beacon columns
+    magnetic: np.ndarray  # (M, 2) t, magnitude (uT)
 
 
 def _fresh_scans(trace: Trace, ap_index: dict[str, int]) -> _Scans:
@@ -56,7 +58,9 @@ def _fresh_scans(trace: Trace, ap_index: dict[str, int]) -> _Scans:
     return _Scans(np.array(times, dtype=np.int64), rows)
 
 
-def _prepare(trace: Trace, ap_index: dict[str, int], pdr: PdrParams) -> _Prepared | None:
+def _prepare(
+    trace: Trace, ap_index: dict[str, int], beacon_index: dict[str, int], pdr: PdrParams
+) -> _Prepared | None:
     wp = trace.waypoints
     acc, rv = trace.streams.get("accelerometer"), trace.streams.get("rotation_vector")
     if len(wp) < 2 or acc is None or rv is None or len(acc) == 0 or len(rv) == 0:
@@ -77,18 +81,47 @@ def _prepare(trace: Trace, ap_index: dict[str, int], pdr: PdrParams) -> _Prepare
         window_t=centres.astype(np.int64),
         window_counts=np.zeros((centres.size, 0)),  # filled once every AP of the floor is indexed
     )
-    return _Prepared(walk, wp[1:-1], wp, scans)
+    beacon_t = np.array([b[0] for b in trace.beacons], dtype=np.int64)
+    beacon_col = np.array(
+        [beacon_index.setdefault(b[7].lower(), len(beacon_index)) for b in trace.beacons], dtype=np.int64
+    )
+    mag = trace.streams.get("magnetometer", np.zeros((0, 4)))
+    magnetic = (
+        np.column_stack([mag[:, 0], np.linalg.norm(mag[:, 1:4], axis=1)]) if len(mag) else np.zeros((0, 2))
+    )
+    return _Prepared(walk, wp[1:-1], wp, scans, (beacon_t, beacon_col), magnetic)
 
 
-def _with_windows(p: _Prepared, n_aps: int) -> _Prepared:
-    counts = np.zeros((p.walk.window_t.size, n_aps))
+def _with_windows(p: _Prepared, n_aps: int, n_beacons: int) -> _Prepared:
+    half = WINDOW_MS // 2
+    centres = p.walk.window_t
+    counts = np.zeros((centres.size, n_aps))
     for t, entry in zip(p.scans.t_ms, p.scans.rss, strict=True):
-        rows = np.flatnonzero(np.abs(p.walk.window_t - t) <= WINDOW_MS // 2)
+        rows = np.flatnonzero(np.abs(centres - t) <= half)
         cols = np.array(list(entry), dtype=np.int64)
         counts[np.ix_(rows, cols)] += 1.0
+    beacons = np.zeros((centres.size, n_beacons))
+    beacon_t, beacon_col = p.beacons
+    for t, col in zip(beacon_t, beacon_col, strict=True):
+        beacons[np.abs(centres - t) <= half, col] += 1.0
+    magnetic = np.full(centres.size, np.nan)
+    if len(p.magnetic):
+        lo = np.searchsorted(p.magnetic[:, 0], centres - half)
+        hi = np.searchsorted(p.magnetic[:, 0], centres + half, side="right")
+        sums = np.concatenate([[0.0], np.cumsum(p.magnetic[:, 1])])
+        n = hi - lo
+        magnetic = np.where(n > 0, (sums[hi] - sums[lo]) / np.maximum(n, 1), np.nan)
     keep = counts.sum(axis=1) > 0
-    walk = Walk(**{**p.walk.__dict__, "window_t": p.walk.window_t[keep], "window_counts": counts[keep]})
-    return _Prepared(walk, p.checkpoints, p.waypoints, p.scans)
+    walk = Walk(
+        **{
+            **p.walk.__dict__,
+            "window_t": centres[keep],
+            "window_counts": counts[keep],
+            "window_beacons": beacons[keep],
+            "window_magnetic": magnetic[keep],
+        }
+    )
+    return _Prepared(walk, p.checkpoints, p.waypoints, p.scans, p.beacons, p.magnetic)
 
 
 def run_signalslam(
@@ -100,13 +133,16 @@ def run_signalslam(
     started = time.perf_counter()
     say = progress or (lambda _: None)
     ap_index: dict[str, int] = {}
+    beacon_index: dict[str, int] = {}
     say("reading walks and dead reckoning")
     prepared = [
-        p for path in read_floor(floor_dir).traces if (p := _prepare(read_trace(path), ap_index, PdrParams()))
+        p
+        for path in read_floor(floor_dir).traces
+        if (p := _prepare(read_trace(path), ap_index, beacon_index, PdrParams()))
     ]
     if not prepared:
         raise ValueError(f"{floor_dir}: no walk has an accelerometer, a rotation vector and two waypoints")
-    prepared = [_with_windows(p, len(ap_index)) for p in prepared]
+    prepared = [_with_windows(p, len(ap_index), len(beacon_index)) for p in prepared]
     say(f"optimising {len(prepared)} walks jointly (gtsam)")
     trajectories = solve([p.walk for p in prepared], params or GraphParams())
     result: dict[str, Any] = {"floor": str(floor_dir), "walks": len(prepared)}

@@ -142,4 +142,6 @@ def test_signalslam_cli_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str
     assert main(["signalslam", "--msindoor", str(tmp_path), "--json", str(out)]) == 2
     assert "floor_info.json" in capsys.readouterr().out
     assert main(["signalslam", "--msindoor", str(tmp_path), "--json", str(out), "--folds", "1"]) == 2
+    assert main(["signalslam", "--msindoor", str(tmp_path), "--json", str(out), "--modalities", "lte"]) == 2
+    assert "unknown modalities" in capsys.readouterr().out
     assert not out.exists()

@@ -155,3 +155,31 @@ def test_position_at_interpolates_between_poses() -> None:
     xy = np.array([[0.0, 0.0], [2.0, 0.0], [2.0, 4.0]])
     t = np.array([0, 1000, 2000])
     np.testing.assert_allclose(position_at(t, xy, np.array([500.0, 1500.0])), [[1.0, 0.0], [2.0, 2.0]])
+
+
+def test_modalities_multiply_and_a_missing_one_is_neutral() -> None:
+    from slam_core.signal_map.graph import signal_neighbours
+
+    rng = np.random.default_rng(4)
+    wifi = rng.poisson(2.0, (6, 5)).astype(float)
+    beacons = rng.poisson(1.0, (6, 3)).astype(float)
+    beacons[0] = 0.0  # window 0 heard no beacon
+    magnetic = np.array([40.0, np.nan, 45.0, 41.0, 60.0, 42.0])
+    t, one, zero = np.array([0, 1000]), np.ones(1), np.zeros(1)
+    windows = np.array([0, 1, 2]) * 1000
+    walks = [
+        Walk(t, one, zero, np.zeros(2), np.ones(2), windows, wifi[:3], beacons[:3], magnetic[:3]),
+        Walk(t, one, zero, np.zeros(2), np.ones(2), windows, wifi[3:], beacons[3:], magnetic[3:]),
+    ]
+    only_wifi = signal_neighbours(walks, GraphParams(neighbours=3))
+    both = signal_neighbours(walks, GraphParams(neighbours=3, modalities=("wifi", "bluetooth", "magnetic")))
+    # window 0 has no beacons: its weights change only through the magnetic kernel
+    for col in range(3):
+        j = int(both[1][0, col])
+        assert j >= 3  # neighbours come from the other walk
+    kernel_wifi = dict(zip(only_wifi[1][0], only_wifi[2][0], strict=True))
+    for j, w in zip(both[1][0], both[2][0], strict=True):
+        expected = kernel_wifi[j] * math.exp(-GraphParams().magnetic_alpha * (magnetic[0] - magnetic[j]) ** 2)
+        assert w == pytest.approx(expected, rel=1e-9)
+    with pytest.raises(ValueError, match="unknown modalities"):
+        GraphParams(modalities=("lte-in-a-mall",))
