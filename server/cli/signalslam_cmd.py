@@ -18,7 +18,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="a floor of Indoor Location 2.0 walks",
     )
     parser.add_argument("--json", type=Path, required=True, metavar="OUT", help="where to write the metrics")
-    parser.add_argument("--plots", type=Path, metavar="DIR", help="trajectories and signal maps as PNG")
+    parser.add_argument(
+        "--plots",
+        type=Path,
+        metavar="DIR",
+        help="trajectories and signal maps as PNG, signal-map grids and the 5 m fingerprint database as JSON",
+    )
     parser.add_argument("--folds", type=int, default=5, help="leave-walks-out folds of the fingerprint test")
     parser.add_argument(
         "--modalities",
@@ -49,17 +54,18 @@ def run(args: argparse.Namespace) -> int:
             bar.update(1)
 
         try:
-            result, prepared, trajectories = run_signalslam(
+            run_ = run_signalslam(
                 args.msindoor, GraphParams(modalities=modalities), folds=args.folds, progress=progress
             )
         except (TraceFormatError, ValueError, OSError) as error:
             print(f"crowdslam signalslam: {error}")
             return 2
+    result = run_.result
     if args.plots is not None:
-        from server.datasets.signalslam_plots import plot_signal_maps, plot_trajectories
+        from server.datasets.signalslam_plots import plot_trajectories, write_maps
 
-        written = plot_trajectories(args.plots, prepared, trajectories) + plot_signal_maps(
-            args.plots, prepared, trajectories
+        written = plot_trajectories(args.plots, run_.prepared, run_.trajectories) + write_maps(
+            args.plots, run_
         )
         result["plots"] = [str(p) for p in written]
     args.json.parent.mkdir(parents=True, exist_ok=True)

@@ -4,7 +4,8 @@ Each walk's first and last waypoints are its landmarks (as the paper's NFC tags)
 score raw PDR, recalibrated PDR (Eq. 4), GraphSLAM (motion + landmark edges) and SignalSLAM (plus WiFi
 signal edges, Eq. 7), all walks of the floor jointly. Then, leaving walks out in turn (``folds``), a WiFi
 fingerprint map is built from the SignalSLAM trajectories of the other walks and the held-out walks' scans
-are localised by weighted kNN; the same with the surveyed positions gives the bound.
+are localised on its 5 m grid by weighted kNN and by KL kernel regression; the same with the surveyed
+positions gives the bound.
 """
 
 from __future__ import annotations
@@ -20,12 +21,13 @@ import numpy as np
 from server.datasets.msindoor import Trace, read_floor, read_trace
 from slam_core.pdr.frontend import ImuSamples, PdrParams, PdrState, pdr_steps
 from slam_core.signal_map.graph import GraphParams, Trajectories, Walk, position_at, solve
-from slam_core.wifi_pairs import fingerprint_matrix
+from slam_core.signal_map.maps import FingerprintGrid, fingerprint_grid, localise_kernel, localise_knn
 
 STALE_AP_MS = 3_000
 WINDOW_MS = 10_000  # the paper's 10 s windows ...
 WINDOW_STEP_MS = 1_000  # ... every second
 KNN = 7
+FINGERPRINT_CELL_M = 5.0
 
 
 @dataclass(frozen=True)
@@ -124,12 +126,20 @@ def _with_windows(p: _Prepared, n_aps: int, n_beacons: int) -> _Prepared:
     return _Prepared(walk, p.checkpoints, p.waypoints, p.scans, p.beacons, p.magnetic)
 
 
+@dataclass(frozen=True)
+class SignalSlamRun:
+    result: dict[str, Any]
+    prepared: list[_Prepared]
+    trajectories: Trajectories
+    ap_names: list[str]  # BSSID of each AP column
+
+
 def run_signalslam(
     floor_dir: Path,
     params: GraphParams | None = None,
     folds: int = 5,
     progress: Callable[[str], None] | None = None,
-) -> tuple[dict[str, Any], list[_Prepared], Trajectories]:
+) -> SignalSlamRun:
     started = time.perf_counter()
     say = progress or (lambda _: None)
     ap_index: dict[str, int] = {}
@@ -153,14 +163,15 @@ def run_signalslam(
         result[f"{label}_p90_m"] = float(np.percentile(errors, 90))
         result["n_checkpoints"] = int(errors.size)
     say("fingerprint maps, leaving walks out")
-    inferred = _fingerprint_errors(prepared, trajectories.signalslam, len(ap_index), folds)
-    surveyed = _fingerprint_errors(prepared, None, len(ap_index), folds)
-    result["fingerprint_p50_m"] = float(np.percentile(inferred, 50))
-    result["fingerprint_p90_m"] = float(np.percentile(inferred, 90))
-    result["fingerprint_surveyed_p50_m"] = float(np.percentile(surveyed, 50))
-    result["fingerprint_surveyed_p90_m"] = float(np.percentile(surveyed, 90))
+    for source, positions in (("", trajectories.signalslam), ("_surveyed", None)):
+        found = _fingerprint_errors(prepared, positions, len(ap_index), folds)
+        for method, errors in found.items():
+            name = {"knn": "fingerprint", "grid_knn": "fingerprint_grid", "grid_kl": "fingerprint_kl"}[method]
+            result[f"{name}{source}_p50_m"] = float(np.percentile(errors, 50))
+            result[f"{name}{source}_p90_m"] = float(np.percentile(errors, 90))
     result["seconds"] = time.perf_counter() - started
-    return result, prepared, trajectories
+    names = sorted(ap_index, key=ap_index.__getitem__)
+    return SignalSlamRun(result, prepared, trajectories, names)
 
 
 def _checkpoint_errors(prepared: list[_Prepared], positions: list[np.ndarray]) -> np.ndarray:
@@ -184,31 +195,38 @@ def _scan_matrix(p: _Prepared, n_aps: int, lo: float, hi: float) -> tuple[np.nda
 
 def _fingerprint_errors(
     prepared: list[_Prepared], positions: list[np.ndarray] | None, n_aps: int, folds: int
-) -> np.ndarray:
-    """Weighted kNN (k = 7, weights 1/d over the union-fingerprint distance) of held-out walks' scans on a
-    map of the other walks' scans placed by ``positions`` (None: surveyed positions)."""
-    db_xy, db_rss, db_fold, q_xy, q_rss, q_fold = [], [], [], [], [], []
+) -> dict[str, np.ndarray]:
+    """Leave-walks-out WiFi localisation on a map of the other folds' scans placed by ``positions`` (None:
+    surveyed positions): weighted kNN over the placed scans themselves (``knn``), and on their 5 m
+    fingerprint grid by weighted kNN (``grid_knn``) and by KL kernel regression (``grid_kl``)."""
+    placed, rss, truth, fold = [], [], [], []
     for i, p in enumerate(prepared):
         wp = p.waypoints
-        t, rss = _scan_matrix(p, n_aps, wp[0, 0], wp[-1, 0])
-        truth = np.column_stack([np.interp(t, wp[:, 0], wp[:, k]) for k in (1, 2)])
-        placed = truth if positions is None else position_at(p.walk.t_ms, positions[i], t)
-        db_xy.append(placed)
-        db_rss.append(rss)
-        q_xy.append(truth)
-        q_rss.append(rss)
-        db_fold.append(np.full(t.size, i % folds))
-        q_fold.append(np.full(t.size, i % folds))
-    all_rss = np.vstack(db_rss)
-    distance = fingerprint_matrix(all_rss)
-    fold = np.concatenate(db_fold)
-    xy = np.vstack(db_xy)
-    truth = np.vstack(q_xy)
-    distance[fold[:, None] == fold[None, :]] = np.inf  # a walk never localises against its own fold
-    nearest = np.argsort(distance, axis=1, kind="stable")[:, :KNN]
-    d = np.take_along_axis(distance, nearest, axis=1)
-    w = np.where(np.isfinite(d), 1.0 / np.maximum(d, 1e-3), 0.0)
-    ok = w.sum(axis=1) > 0
-    estimate = np.einsum("qk,qkc->qc", w[ok], xy[nearest[ok]]) / w[ok].sum(axis=1, keepdims=True)
-    errors: np.ndarray = np.linalg.norm(estimate - truth[ok], axis=1)
-    return errors
+        t, scan_rss = _scan_matrix(p, n_aps, wp[0, 0], wp[-1, 0])
+        surveyed = np.column_stack([np.interp(t, wp[:, 0], wp[:, k]) for k in (1, 2)])
+        placed.append(surveyed if positions is None else position_at(p.walk.t_ms, positions[i], t))
+        rss.append(scan_rss)
+        truth.append(surveyed)
+        fold.append(np.full(t.size, i % folds))
+    xy, all_rss, all_truth, all_fold = (
+        np.vstack(placed),
+        np.vstack(rss),
+        np.vstack(truth),
+        np.concatenate(fold),
+    )
+    errors: dict[str, list[np.ndarray]] = {"knn": [], "grid_knn": [], "grid_kl": []}
+    for f in range(folds):
+        held = all_fold == f
+        if not held.any() or held.all():
+            continue
+        heard = np.isfinite(all_rss[~held]).astype(float)
+        scans = FingerprintGrid(xy[~held], all_rss[~held], heard, np.ones(heard.shape[0]))
+        grid = fingerprint_grid(xy[~held], all_rss[~held], FINGERPRINT_CELL_M)
+        for name, estimate in (
+            ("knn", localise_knn(scans, all_rss[held], KNN)),
+            ("grid_knn", localise_knn(grid, all_rss[held], KNN)),
+            ("grid_kl", localise_kernel(grid, np.isfinite(all_rss[held]).astype(float))),
+        ):
+            ok = np.all(np.isfinite(estimate), axis=1)
+            errors[name].append(np.linalg.norm(estimate[ok] - all_truth[held][ok], axis=1))
+    return {name: np.concatenate(e) for name, e in errors.items()}

@@ -1,14 +1,17 @@
-"""PNG figures of ``crowdslam signalslam``: trajectories per method (the paper's Figures 3-6) and WiFi signal
-maps from the SignalSLAM trajectories (Figures 9-10)."""
+"""Outputs of ``crowdslam signalslam``: trajectories per method (the paper's Figures 3-6), WiFi signal maps
+from the SignalSLAM trajectories with their uncertainty (Figures 9-10) as PNG and JSON grids, and the 5 m
+fingerprint database."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from slam_core.signal_map.graph import Trajectories, position_at
+from slam_core.signal_map.maps import fingerprint_grid, signal_grid
 
 METHODS = (("raw", "PDR"), ("calibrated", "recalibrated PDR (Eq. 4)"), ("graphslam", "GraphSLAM"),
            ("signalslam", "SignalSLAM"))  # fmt: skip
@@ -51,46 +54,68 @@ def plot_trajectories(
     return [path]
 
 
-def plot_signal_maps(
-    folder: Path, prepared: list[Any], trajectories: Trajectories, aps: int = 2
-) -> list[Path]:
-    """RSS of the most-heard access points on a 2 m grid: Gaussian kernel regression (3 m bandwidth) of the
-    scans placed by SignalSLAM; cells with no scan within 6 m are left blank."""
-    plt = _pyplot()
-    points, columns = [], []
-    for p, xy in zip(prepared, trajectories.signalslam, strict=True):
+def _placed_scans(run: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Every scan placed by SignalSLAM, and its RSS row over the floor's AP columns (NaN = not heard)."""
+    points, rows = [], []
+    n_aps = len(run.ap_names)
+    for p, xy in zip(run.prepared, run.trajectories.signalslam, strict=True):
         placed = position_at(p.walk.t_ms, xy, p.scans.t_ms.astype(float))
         for position, entry in zip(placed, p.scans.rss, strict=True):
+            row = np.full(n_aps, np.nan)
+            row[list(entry)] = list(entry.values())
             points.append(position)
-            columns.append(entry)
-    if not points:
+            rows.append(row)
+    return np.array(points).reshape(-1, 2), np.array(rows).reshape(-1, n_aps)
+
+
+def write_maps(folder: Path, run: Any, aps: int = 2) -> list[Path]:
+    """Signal maps of the most-heard APs (PNG heatmap of the mean, PNG of its uncertainty, JSON grid) and
+    the 5 m fingerprint database (JSON), all from the SignalSLAM trajectories."""
+    plt = _pyplot()
+    xy, rss = _placed_scans(run)
+    if xy.shape[0] == 0:
         return []
-    xy = np.array(points)
-    heard: dict[int, int] = {}
-    for entry in columns:
-        for ap in entry:
-            heard[ap] = heard.get(ap, 0) + 1
+    folder.mkdir(parents=True, exist_ok=True)
     written = []
-    gx = np.arange(xy[:, 0].min(), xy[:, 0].max() + GRID_M, GRID_M)
-    gy = np.arange(xy[:, 1].min(), xy[:, 1].max() + GRID_M, GRID_M)
-    cells = np.stack(np.meshgrid(gx, gy), axis=-1).reshape(-1, 2)
-    for rank, ap in enumerate(sorted(heard, key=lambda a: -heard[a])[:aps]):
-        rows = [i for i, entry in enumerate(columns) if ap in entry]
-        rss = np.array([columns[i][ap] for i in rows])
-        d2 = np.sum((cells[:, None, :] - xy[rows][None, :, :]) ** 2, axis=-1)
-        w = np.exp(-0.5 * d2 / BANDWIDTH_M**2)
-        value = np.where(
-            d2.min(axis=1) <= SUPPORT_M**2, (w @ rss) / np.maximum(w.sum(axis=1), 1e-12), np.nan
-        ).reshape(gy.size, gx.size)
-        fig, ax = plt.subplots(figsize=(8, 6), dpi=110)
-        image = ax.pcolormesh(gx, gy, value, shading="nearest", cmap="viridis")
-        ax.plot(xy[rows, 0], xy[rows, 1], ".", color="white", ms=1.5, alpha=0.5)
-        fig.colorbar(image, ax=ax, label="RSS (dBm)")
-        ax.set_aspect("equal")
-        ax.set_title(f"WiFi AP #{rank + 1} ({heard[ap]} readings): signal map from SignalSLAM trajectories")
+    heard = np.isfinite(rss).sum(axis=0)
+    bounds = (xy[:, 0].min(), xy[:, 1].min(), xy[:, 0].max(), xy[:, 1].max())
+    for rank, column in enumerate(np.argsort(-heard, kind="stable")[:aps]):
+        rows = np.isfinite(rss[:, column])
+        grid = signal_grid(xy[rows], rss[rows, column], GRID_M, BANDWIDTH_M, SUPPORT_M, bounds)
+        gx, gy = grid.centres()
+        bssid = run.ap_names[column]
+        fig, (ax_mean, ax_std) = plt.subplots(1, 2, figsize=(13, 5.5), dpi=110, sharey=True)
+        for ax, field, label in ((ax_mean, grid.mean, "RSS (dBm)"), (ax_std, grid.std, "spread (dB)")):
+            image = ax.pcolormesh(gx, gy, field, shading="nearest", cmap="viridis")
+            fig.colorbar(image, ax=ax, label=label)
+            ax.set_aspect("equal")
+        ax_mean.plot(xy[rows, 0], xy[rows, 1], ".", color="white", ms=1.2, alpha=0.5)
+        ax_mean.set_title(f"AP {bssid}: {int(heard[column])} readings placed by SignalSLAM")
+        ax_std.set_title("uncertainty: kernel-weighted spread of the readings")
         fig.tight_layout()
-        path = folder / f"signal_map_ap{rank + 1}.png"
-        fig.savefig(path)
+        png = folder / f"signal_map_ap{rank + 1}.png"
+        fig.savefig(png)
         plt.close(fig)
-        written.append(path)
+        grid_json = folder / f"signal_map_ap{rank + 1}.json"
+        grid_json.write_text(json.dumps({
+            "bssid": bssid, "origin_m": grid.origin.tolist(), "cell_m": grid.cell_m,
+            "mean_dbm": _nullable(grid.mean), "std_db": _nullable(grid.std),
+            "effective_readings": _nullable(grid.effective_n),
+        }))  # fmt: skip
+        written += [png, grid_json]
+    database = fingerprint_grid(xy, rss, 5.0)
+    cells = [
+        {
+            "x_m": float(x), "y_m": float(y), "scans": int(n),
+            "rss_dbm": {run.ap_names[a]: round(float(v), 1) for a, v in enumerate(row) if np.isfinite(v)},
+        }
+        for (x, y), row, n in zip(database.xy, database.rss, database.scans, strict=True)
+    ]  # fmt: skip
+    db_path = folder / "fingerprints_5m.json"
+    db_path.write_text(json.dumps({"cell_m": 5.0, "cells": cells}))
+    written.append(db_path)
     return written
+
+
+def _nullable(grid: np.ndarray) -> list[list[float | None]]:
+    return [[None if not np.isfinite(v) else round(float(v), 2) for v in row] for row in grid]

@@ -133,7 +133,13 @@ def test_signalslam_cli_on_a_floor(small_floor: Path, tmp_path: Path) -> None:
     assert result["walks"] == len(WALKS)
     assert result["n_checkpoints"] >= 5
     assert result["fingerprint_surveyed_p50_m"] > 0
-    assert {Path(p).name for p in result["plots"]} >= {"trajectories.png", "signal_map_ap1.png"}
+    assert {Path(p).name for p in result["plots"]} >= {
+        "trajectories.png",
+        "signal_map_ap1.png",
+        "fingerprints_5m.json",
+    }
+    grid = json.loads((plots / "signal_map_ap1.json").read_text())
+    assert len(grid["mean_dbm"]) == len(grid["std_db"]) > 0
     assert all(Path(p).stat().st_size > 1000 for p in result["plots"])
 
 
