@@ -26,6 +26,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--folds", type=int, default=5, help="leave-walks-out folds of the fingerprint test")
     parser.add_argument(
+        "--solver", choices=("lm", "isam2"), default="lm", help="batch Levenberg-Marquardt or iSAM2 in chunks"
+    )
+    parser.add_argument(
         "--modalities",
         default="wifi",
         help="signal kernels to multiply, comma-separated from wifi, bluetooth, magnetic (default: wifi)",
@@ -55,7 +58,10 @@ def run(args: argparse.Namespace) -> int:
 
         try:
             run_ = run_signalslam(
-                args.msindoor, GraphParams(modalities=modalities), folds=args.folds, progress=progress
+                args.msindoor,
+                GraphParams(modalities=modalities, solver=args.solver),
+                folds=args.folds,
+                progress=progress,
             )
         except (TraceFormatError, ValueError, OSError) as error:
             print(f"crowdslam signalslam: {error}")

@@ -29,6 +29,7 @@ from slam_core.signal_map.calibration import CalibrationGrid, calibrate_segment,
 from slam_core.signal_map.kernels import gaussian_kernel, kl_kernel, visibility_multinomials
 
 MODALITIES = ("wifi", "bluetooth", "magnetic")
+SOLVERS = ("lm", "isam2")
 
 
 @dataclass(frozen=True)
@@ -49,6 +50,11 @@ class GraphParams:
     magnetic_alpha: float = 1.0 / (2 * 4.0**2)
     """Gaussian kernel on the windows' mean magnetic magnitude: a 4 uT difference is one sigma (the
     magnitude wanders by tens of uT across a mall floor, a few uT between passes of one place)."""
+    solver: str = "lm"
+    """``lm``: batch Levenberg-Marquardt from the recalibrated dead reckoning; ``isam2``: the poses fed to
+    iSAM2 in chunks of ``chunk_poses`` (the robust choice on long sessions, where batch optimisation from
+    dead reckoning stops in poor minima), signal edges swapped in place at each re-evaluation."""
+    chunk_poses: int = 30
     modalities: tuple[str, ...] = ("wifi",)
     """Kernels multiplied into the signal similarity. On msindoor site1 F1 (``crowdslam signalslam``):
     WiFi alone 1.95 / 4.27 m (p50 / p90), + fixed Bluetooth beacons 2.15 / 5.87, + magnetic magnitude
@@ -56,6 +62,8 @@ class GraphParams:
     ambiguity over a large floor reorder WiFi's good neighbours, so WiFi alone is the default."""
 
     def __post_init__(self) -> None:
+        if self.solver not in SOLVERS or self.chunk_poses < 1:
+            raise ValueError(f"solver must be one of {', '.join(SOLVERS)} and chunk_poses >= 1")
         unknown = [m for m in self.modalities if m not in MODALITIES]
         if unknown or not self.modalities:
             raise ValueError(f"unknown modalities {unknown}; valid: {', '.join(MODALITIES)}")
@@ -106,6 +114,7 @@ class WalkGraph:
         self.params = params
         self.offsets = np.concatenate([[0], np.cumsum([w.lengths.size + 1 for w in walks])]).astype(int)
         self.base = gtsam.NonlinearFactorGraph()
+        self.newest_pose: list[int] = []  # per factor of ``base``: the highest pose index it touches
         p = params
         motion = gtsam.noiseModel.Diagonal.Sigmas(
             np.array([p.step_sigma_along_m, p.step_sigma_across_m, p.step_sigma_heading_rad])
@@ -117,13 +126,16 @@ class WalkGraph:
             for k in range(walk.lengths.size):
                 rel = _relative(heads[k], heads[k + 1], float(walk.lengths[k]))
                 self.base.add(gtsam.BetweenFactorPose2(_key(o + k), _key(o + k + 1), rel, motion))
+                self.newest_pose.append(o + k + 1)
             self.base.add(
                 gtsam.PoseTranslationPrior2D(_key(o), np.asarray(walk.start, dtype=float), landmark)
             )
+            self.newest_pose.append(o)
             last = o + walk.lengths.size
             self.base.add(
                 gtsam.PoseTranslationPrior2D(_key(last), np.asarray(walk.end, dtype=float), landmark)
             )
+            self.newest_pose.append(last)
 
     def values(self, positions: list[np.ndarray]) -> gtsam.Values:
         values = gtsam.Values()
@@ -149,6 +161,53 @@ class WalkGraph:
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(100)
         return gtsam.LevenbergMarquardtOptimizer(graph, initial, params).optimize()
+
+
+class _Incremental:
+    """iSAM2 fed the graph's poses in chunks (walk by walk, ``chunk_poses`` at a time), then signal edges
+    replaced in place (``removeFactorIndices``) at each re-evaluation."""
+
+    def __init__(self, graph: WalkGraph, initial: gtsam.Values, chunk: int) -> None:
+        isam_params = gtsam.ISAM2Params()
+        isam_params.setRelinearizeThreshold(0.01)  # metres / radians: steps are ~0.7 m, 0.1 leaves drift
+        isam_params.relinearizeSkip = 1
+        self.isam = gtsam.ISAM2(isam_params)
+        # A chain with a position-only landmark at its start turns freely about it until its end landmark
+        # arrives in a later chunk: a loose prior on each start pose (1 rad on heading) fixes that gauge.
+        loose = gtsam.noiseModel.Diagonal.Sigmas(np.array([100.0, 100.0, 1.0]))
+        starts = {int(o): gtsam.PriorFactorPose2(_key(int(o)), initial.atPose2(_key(int(o))), loose)
+                  for o in graph.offsets[:-1]}  # fmt: skip
+        order = np.argsort(graph.newest_pose, kind="stable")
+        newest = np.asarray(graph.newest_pose)[order]
+        n_poses = int(graph.offsets[-1])
+        start = 0
+        for lo in range(0, n_poses, chunk):
+            hi = min(lo + chunk, n_poses)
+            end = int(np.searchsorted(newest, hi, side="left"))
+            factors = gtsam.NonlinearFactorGraph()
+            for i in order[start:end]:
+                factors.add(graph.base.at(int(i)))
+            for k in range(lo, hi):
+                if k in starts:
+                    factors.add(starts[k])
+            values = gtsam.Values()
+            for k in range(lo, hi):
+                values.insert(_key(k), initial.atPose2(_key(k)))
+            self.isam.update(factors, values)
+            start = end
+        for _ in range(3):  # relinearise what the last chunks moved
+            self.isam.update()
+        self._signal: list[int] = []
+
+    def estimate(self) -> gtsam.Values:
+        return self.isam.calculateEstimate()
+
+    def replace_signal_edges(self, edges: gtsam.NonlinearFactorGraph, relinearise: int = 3) -> gtsam.Values:
+        result = self.isam.update(edges, gtsam.Values(), self._signal)
+        self._signal = list(result.getNewFactorsIndices())
+        for _ in range(relinearise):
+            self.isam.update()
+        return self.isam.calculateEstimate()
 
 
 def calibrated_positions(walks: list[Walk], grid: CalibrationGrid | None = None) -> list[np.ndarray]:
@@ -208,7 +267,12 @@ def solve(walks: list[Walk], params: GraphParams | None = None) -> Trajectories:
     raw = [np.vstack([w.start, dead_reckon(w.lengths, w.headings, w.start)]) for w in walks]
     calibrated = calibrated_positions(walks)
     graph = WalkGraph(walks, params)
-    values = graph.optimise(graph.base, graph.values(calibrated))
+    incremental = None
+    if params.solver == "isam2":
+        incremental = _Incremental(graph, graph.values(calibrated), params.chunk_poses)
+        values = incremental.estimate()
+    else:
+        values = graph.optimise(graph.base, graph.values(calibrated))
     graphslam = graph.positions(values)
     if sum(w.window_t.size for w in walks) < 2:
         return Trajectories(raw, calibrated, graphslam, graphslam)
@@ -222,14 +286,19 @@ def solve(walks: list[Walk], params: GraphParams | None = None) -> Trajectories:
     )
     for _ in range(params.iterations):
         xy = np.vstack([values.atPose2(_key(int(k))).translation() for k in pose_of_window])
-        graph_s = gtsam.NonlinearFactorGraph(graph.base)
+        edges = gtsam.NonlinearFactorGraph()
         for t in range(pose_of_window.size):
             total = weights[t].sum()
             if total <= 0:
                 continue
             predicted = weights[t] @ xy[index[t]] / total  # Eq. 7
-            graph_s.add(gtsam.PoseTranslationPrior2D(_key(int(pose_of_window[t])), predicted, noise))
-        values = graph.optimise(graph_s, values)
+            edges.add(gtsam.PoseTranslationPrior2D(_key(int(pose_of_window[t])), predicted, noise))
+        if incremental is not None:
+            values = incremental.replace_signal_edges(edges)
+        else:
+            graph_s = gtsam.NonlinearFactorGraph(graph.base)
+            graph_s.push_back(edges)
+            values = graph.optimise(graph_s, values)
     return Trajectories(raw, calibrated, graphslam, graph.positions(values))
 
 

@@ -115,15 +115,16 @@ def _corridor_walk(bulge: float, n: int = 40, t0: int = 0, aps: int = 20) -> tup
     return walk, truth
 
 
-def test_graphslam_closes_a_walk_between_its_landmarks() -> None:
+@pytest.mark.parametrize("solver", ["lm", "isam2"])
+def test_graphslam_closes_a_walk_between_its_landmarks(solver: str) -> None:
     walk, truth = _corridor_walk(bulge=0.0)
     rotated = Walk(**{**walk.__dict__, "headings": walk.headings + math.radians(8.0)})
-    result = solve([rotated], GraphParams(iterations=0))
+    result = solve([rotated], GraphParams(iterations=0, solver=solver, chunk_poses=7))
     assert np.linalg.norm(result.raw[0][1:] - truth, axis=1).max() > 5.0
     # a constant heading bias costs the chain nothing: its start heading is free
     assert np.linalg.norm(result.graphslam[0][1:] - truth, axis=1).max() < 0.1
     scaled = Walk(**{**rotated.__dict__, "lengths": walk.lengths * 1.1})
-    result = solve([scaled], GraphParams(iterations=0))
+    result = solve([scaled], GraphParams(iterations=0, solver=solver, chunk_poses=7))
     raw_error = np.linalg.norm(result.raw[0][1:] - truth, axis=1).mean()
     # a scale error is spread over the steps' length noise (no scale variable in the pose graph) ...
     assert np.linalg.norm(result.graphslam[0][1:] - truth, axis=1).mean() < 0.2 * raw_error
@@ -131,12 +132,13 @@ def test_graphslam_closes_a_walk_between_its_landmarks() -> None:
     assert np.linalg.norm(result.calibrated[0][1:] - truth, axis=1).max() < 0.3
 
 
-def test_signal_edges_pull_a_walk_onto_similar_places_of_another() -> None:
+@pytest.mark.parametrize("solver", ["lm", "isam2"])
+def test_signal_edges_pull_a_walk_onto_similar_places_of_another(solver: str) -> None:
     """Three walks agree on a straight corridor; a fourth's dead reckoning bulges in the middle. Signal edges
     say the fourth passed the same places: the majority pulls it onto the corridor."""
     walks = [_corridor_walk(bulge=0.0, t0=100_000 * i)[0] for i in range(3)]
     wandering, truth = _corridor_walk(bulge=0.25, t0=400_000)
-    result = solve([*walks, wandering], GraphParams(signal_sigma_m=1.0))
+    result = solve([*walks, wandering], GraphParams(signal_sigma_m=1.0, solver=solver, chunk_poses=11))
     middle = slice(10, 30)
 
     def error(xy: np.ndarray) -> float:
@@ -183,3 +185,5 @@ def test_modalities_multiply_and_a_missing_one_is_neutral() -> None:
         assert w == pytest.approx(expected, rel=1e-9)
     with pytest.raises(ValueError, match="unknown modalities"):
         GraphParams(modalities=("lte-in-a-mall",))
+    with pytest.raises(ValueError, match="solver"):
+        GraphParams(solver="gauss-newton-by-hand")
