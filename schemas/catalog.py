@@ -13,6 +13,7 @@ from schemas.errors import PROBLEM_EXAMPLE, Problem
 from schemas.estimates import ESTIMATE_EXAMPLE, EncounterEvent, Estimate
 from schemas.live import LIVE_MESSAGE_ADAPTER, LiveBatch
 from schemas.sensors import BATCH_EXAMPLE, SensorBatch
+from schemas.signal_maps import SIGNAL_MAP_JOB_EXAMPLE, SignalMapJob
 
 PUBLIC_MODELS: dict[str, type[BaseModel] | TypeAdapter[Any]] = {
     "SensorBatch": SensorBatch,
@@ -28,6 +29,7 @@ PUBLIC_MODELS: dict[str, type[BaseModel] | TypeAdapter[Any]] = {
     "BatchReceipt": BatchReceipt,
     "KeyCreateIn": KeyCreateIn,
     "KeyCreated": KeyCreated,
+    "SignalMapJob": SignalMapJob,
 }
 
 EXAMPLES: dict[str, dict[str, Any]] = {
@@ -36,6 +38,7 @@ EXAMPLES: dict[str, dict[str, Any]] = {
     "anchor": ANCHOR_EXAMPLE,
     "building": BUILDING_EXAMPLE,
     "problem": PROBLEM_EXAMPLE,
+    "signal-map-job": SIGNAL_MAP_JOB_EXAMPLE,
 }
 """Named examples, each valid against its model (a test checks)."""
 
@@ -45,6 +48,7 @@ EXAMPLE_MODELS: dict[str, type[BaseModel]] = {
     "anchor": BuildingAnchor,
     "building": Building,
     "problem": Problem,
+    "signal-map-job": SignalMapJob,
 }
 
 

@@ -24,6 +24,7 @@ from server.errors import InvalidInputError, ProblemError
 from server.ingestion import TrackingService
 from server.metrics import Metrics
 from server.settings import Settings
+from server.signal_maps import SignalMapService
 from server.store.db import make_engine, make_session_factory
 from server.store.migrate import current_revision, head_revision
 from slam_core.encounters import Calibration
@@ -45,6 +46,7 @@ class AppState:
     metrics: Metrics
     started: float
     keys: KeyCache
+    signal_maps: SignalMapService
 
 
 class DatabaseNotMigratedError(RuntimeError):
@@ -98,10 +100,12 @@ def create_app(settings: Settings) -> FastAPI:
             Metrics(),
             time.time(),
             KeyCache(settings.key_cache_s),
+            SignalMapService(settings.data_dir / "signal_maps", recordings),
         )
         try:
             yield
         finally:
+            app.state.crowdslam.signal_maps.close()
             await tracking.close()
             engine.dispose()
 
@@ -116,9 +120,9 @@ def create_app(settings: Settings) -> FastAPI:
         },
     )
     _install_error_handlers(app)
-    from server.api import anchors, batches, buildings, health, live, positions
+    from server.api import anchors, batches, buildings, health, live, positions, signal_maps
 
-    for module in (health, buildings, batches, positions, anchors, live):
+    for module in (health, buildings, batches, positions, anchors, live, signal_maps):
         app.include_router(module.router)
     _document_raw_bodies(app)
     return app

@@ -124,6 +124,11 @@ def calibrate_floor(
     scans = labelled_scans(floor_dir)
     pairs = cross_walk_pairs(scans, eq3)
     near = pairs.distance <= NEAR_M
+    if not near.any():
+        raise ValueError(
+            f"{floor_dir}: no two scans of different walks lie within {NEAR_M:g} m of each other, so "
+            "there is nothing to calibrate the encounter models on (more walks are needed)"
+        )
     report: dict[str, Any] = {
         "floor": str(floor_dir),
         "scans": int(scans.rss.shape[0]),

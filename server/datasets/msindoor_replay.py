@@ -25,7 +25,7 @@ import numpy as np
 from schemas.common import Position
 from schemas.sensors import PositionFix
 from server.convert import BuildingContext, to_user_batch
-from server.datasets.msindoor import Trace, read_floor, read_trace, shifted
+from server.datasets.msindoor import Trace, iter_windows, read_floor, read_trace, shifted
 from server.datasets.msindoor_batches import trace_windows
 from slam_core.encounters import Calibration
 from slam_core.evaluation import MODES
@@ -110,7 +110,7 @@ def replay_floor(
     counts = dict.fromkeys(
         ("steps", "encounters", "encounters_applied", "signatures_applied", "signatures_gated"), 0
     )
-    total_windows = sum(_seconds(t) for t in traces)
+    total_windows = sum(_windows(t, options.window_ms) for t in traces)
     for phase, phase_traces in enumerate(phases):
         walks = [_prepare(t, base) for t in phase_traces]
         end = _replay_phase(tracker, walks, ctx, options, counts, lambda n: _tick(progress, n, total_windows))
@@ -143,9 +143,9 @@ def replay_floor(
     return result, errors
 
 
-def _seconds(trace: Trace) -> int:
-    acc = trace.streams["accelerometer"]
-    return int((acc[-1, 0] - acc[0, 0]) // 1000) + 1
+def _windows(trace: Trace, window_ms: int) -> int:
+    """How many batch windows the replay cuts the walk into (an upper bound: empty ones are skipped)."""
+    return sum(1 for _ in iter_windows(trace, window_ms, trace.waypoints[:, 0].astype(np.int64).tolist()))
 
 
 def _tick(progress: Callable[[int, int], None] | None, n: int, total: int) -> None:

@@ -71,19 +71,27 @@ def _placed_scans(run: Any) -> tuple[np.ndarray, np.ndarray]:
 def write_maps(folder: Path, run: Any, aps: int = 2) -> list[Path]:
     """Signal maps of the most-heard APs (PNG heatmap of the mean, PNG of its uncertainty, JSON grid) and
     the 5 m fingerprint database (JSON), all from the SignalSLAM trajectories."""
-    plt = _pyplot()
     xy, rss = _placed_scans(run)
+    return write_scan_maps(folder, xy, rss, run.ap_names, aps)
+
+
+def write_scan_maps(
+    folder: Path, xy: np.ndarray, rss: np.ndarray, ap_names: list[str], aps: int = 2
+) -> list[Path]:
+    """``write_maps`` from placed scans: positions (S, 2), RSS rows over ``ap_names`` (NaN = not heard)."""
+    plt = _pyplot()
     if xy.shape[0] == 0:
         return []
     folder.mkdir(parents=True, exist_ok=True)
     written = []
     heard = np.isfinite(rss).sum(axis=0)
-    bounds = (xy[:, 0].min(), xy[:, 1].min(), xy[:, 0].max(), xy[:, 1].max())
+    pad = BANDWIDTH_M  # the map reaches a little around the readings (and a corridor is not a line)
+    bounds = (xy[:, 0].min() - pad, xy[:, 1].min() - pad, xy[:, 0].max() + pad, xy[:, 1].max() + pad)
     for rank, column in enumerate(np.argsort(-heard, kind="stable")[:aps]):
         rows = np.isfinite(rss[:, column])
         grid = signal_grid(xy[rows], rss[rows, column], GRID_M, BANDWIDTH_M, SUPPORT_M, bounds)
         gx, gy = grid.centres()
-        bssid = run.ap_names[column]
+        bssid = ap_names[column]
         fig, (ax_mean, ax_std) = plt.subplots(1, 2, figsize=(13, 5.5), dpi=110, sharey=True)
         for ax, field, label in ((ax_mean, grid.mean, "RSS (dBm)"), (ax_std, grid.std, "spread (dB)")):
             image = ax.pcolormesh(gx, gy, field, shading="nearest", cmap="viridis")
@@ -107,7 +115,7 @@ def write_maps(folder: Path, run: Any, aps: int = 2) -> list[Path]:
     cells = [
         {
             "x_m": float(x), "y_m": float(y), "scans": int(n),
-            "rss_dbm": {run.ap_names[a]: round(float(v), 1) for a, v in enumerate(row) if np.isfinite(v)},
+            "rss_dbm": {ap_names[a]: round(float(v), 1) for a, v in enumerate(row) if np.isfinite(v)},
         }
         for (x, y), row, n in zip(database.xy, database.rss, database.scans, strict=True)
     ]  # fmt: skip

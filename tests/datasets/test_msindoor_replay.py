@@ -151,3 +151,15 @@ def test_signalslam_cli_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str
     assert main(["signalslam", "--msindoor", str(tmp_path), "--json", str(out), "--modalities", "lte"]) == 2
     assert "unknown modalities" in capsys.readouterr().out
     assert not out.exists()
+
+
+def test_calibrate_on_walks_that_never_meet_says_so(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    floor = tmp_path / "F1"
+    (floor / "path_data_files").mkdir(parents=True)
+    (floor / "floor_info.json").write_text((FLOOR / "floor_info.json").read_text())
+    for name in WALKS[4:]:  # two walks on opposite sides of the mall
+        (floor / "path_data_files" / f"{name}.txt").symlink_to(FLOOR / "path_data_files" / f"{name}.txt")
+    assert main(["calibrate", "--msindoor", str(floor), "--out", str(tmp_path / "c.json")]) == 2
+    assert "more walks are needed" in capsys.readouterr().out

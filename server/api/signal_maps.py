@@ -1,0 +1,47 @@
+"""SignalSLAM signal maps of a building, built from its recordings in a separate process."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, status
+from fastapi.responses import FileResponse
+
+from schemas.signal_maps import SignalMapJob
+from server.deps import Caller, State
+
+router = APIRouter(prefix="/v1/buildings/{building_id}/signal-maps", tags=["signal maps"])
+
+
+@router.post("", response_model=SignalMapJob, status_code=status.HTTP_202_ACCEPTED)
+async def start_build(building_id: str, caller: Caller, state: State) -> SignalMapJob:
+    """Start a build over every recording of the building (operator key). Walks between two landmarks
+    (position fixes, known-anchor readings, tags with a position) are optimised jointly with WiFi signal
+    edges; poll the job, then fetch its files (signal maps as PNG and JSON grids, the 5 m fingerprint
+    database, the optimised trajectories)."""
+    caller.require_operator(building_id)
+    worker = await state.tracking.worker(building_id)
+    ctx = await worker.call(worker.session.context)
+    return state.signal_maps.start(ctx)
+
+
+@router.get("", response_model=list[SignalMapJob])
+async def list_builds(building_id: str, caller: Caller, state: State) -> list[SignalMapJob]:
+    caller.require_operator(building_id)
+    await state.tracking.worker(building_id)  # 404 for an unknown building
+    return state.signal_maps.list(building_id)
+
+
+@router.get("/{job_id}", response_model=SignalMapJob)
+async def get_build(building_id: str, job_id: str, caller: Caller, state: State) -> SignalMapJob:
+    caller.require_operator(building_id)
+    await state.tracking.worker(building_id)  # 404 for an unknown building
+    return state.signal_maps.get(building_id, job_id)
+
+
+@router.get("/{job_id}/files/{name}", response_class=FileResponse)
+async def get_file(building_id: str, job_id: str, name: str, caller: Caller, state: State) -> FileResponse:
+    """One output of a finished build (``image/png`` or ``application/json``)."""
+    caller.require_operator(building_id)
+    await state.tracking.worker(building_id)
+    path = state.signal_maps.file(building_id, job_id, name)
+    media = "image/png" if path.suffix == ".png" else "application/json"
+    return FileResponse(path, media_type=media)

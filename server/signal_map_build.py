@@ -1,0 +1,194 @@
+"""A building's signal maps from its recordings (SignalSLAM), run in its own process by ``signal_maps``.
+
+Every recorded batch is read back and converted as ingestion converts it. Per device, its steps (sent by the
+phone, or dead-reckoned from raw IMU by the same front-end as live tracking), its landmarks (position fixes,
+readings of operator-known anchors, tags with an encoded position) and its WiFi scans are put in time order;
+each stretch between two consecutive landmarks with at least two steps becomes one walk of the SignalSLAM
+graph (the paper's segments between NFC tags). All walks of the building are solved jointly; the scans placed
+on the optimised trajectories give the signal maps and the 5 m fingerprint database.
+
+gtsam holds the GIL while it optimises, so this runs in a child process; the function takes and returns plain
+data only.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+from collections import defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pydantic import ValidationError
+
+from schemas.sensors import SensorBatch
+from server.convert import BuildingContext, to_user_batch
+from server.recording import read_batches
+from slam_core.pdr.frontend import PdrParams, PdrState, pdr_steps
+from slam_core.signal_map.graph import GraphParams, Walk, position_at, solve
+
+STALE_AP_MS = 3_000
+WINDOW_MS = 10_000
+WINDOW_STEP_MS = 1_000
+
+
+@dataclass
+class _Device:
+    pdr: PdrState = field(default_factory=PdrState)
+    step_t: list[int] = field(default_factory=list)
+    step_len: list[float] = field(default_factory=list)
+    step_azimuth: list[float] = field(default_factory=list)
+    step_turn: list[float] = field(default_factory=list)
+    fix_t: list[int] = field(default_factory=list)
+    fix_xy: list[np.ndarray] = field(default_factory=list)
+    scan_t: list[int] = field(default_factory=list)
+    scans: list[dict[int, float]] = field(default_factory=list)
+
+
+def _collect(
+    files: list[str], ctx: BuildingContext, ap_index: dict[str, int]
+) -> tuple[dict[str, _Device], int]:
+    devices: dict[str, _Device] = defaultdict(_Device)
+    skipped = 0
+    batches: list[SensorBatch] = []
+    for path in files:
+        for recorded in read_batches(Path(path)):
+            try:
+                batches.append(SensorBatch.model_validate_json(recorded.raw))
+            except ValidationError:
+                skipped += 1  # recorded by an older schema: not ours to reinterpret
+    batches.sort(key=lambda b: (b.device_id, b.seq))
+    params = PdrParams()
+    for batch in batches:
+        d = devices[batch.device_id]
+        user = to_user_batch(batch, ctx).user_batch
+        if user.step_t.size:
+            d.step_t += user.step_t.tolist()
+            d.step_len += user.step_length.tolist()
+            d.step_azimuth += user.step_azimuth.tolist()
+            d.step_turn += user.step_turn.tolist()
+        elif user.imu is not None and user.imu.acc.size:
+            try:
+                steps = pdr_steps(d.pdr, user.imu, params)
+            except ValueError:
+                skipped += 1  # samples older than the device's previous batch
+                continue
+            d.step_t += steps.t_ms.tolist()
+            d.step_len += steps.length_m.tolist()
+            d.step_azimuth += steps.azimuth_rad.tolist()
+            d.step_turn += steps.turn_rad.tolist()
+        d.fix_t += user.fix_t.tolist()
+        d.fix_xy += list(user.fix_xy)
+        for k in range(user.scan_t.size):
+            lo, hi = int(user.scan_offsets[k]), int(user.scan_offsets[k + 1])
+            t = int(user.scan_t[k])
+            entry = {
+                ap_index.setdefault(user.scan_bssid[i].lower(), len(ap_index)): float(user.scan_rss[i])
+                for i in range(lo, hi)
+                if user.scan_last_seen[i] < 0 or user.scan_last_seen[i] >= t - STALE_AP_MS
+            }
+            if entry:
+                d.scan_t.append(t)
+                d.scans.append(entry)
+    return devices, skipped
+
+
+def _headings(d: _Device) -> np.ndarray:
+    """Each step's direction (ccw from east): its azimuth, else the previous heading plus its turn."""
+    out = np.empty(len(d.step_t))
+    heading = 0.0
+    for k, (azimuth, turn) in enumerate(zip(d.step_azimuth, d.step_turn, strict=True)):
+        if math.isfinite(azimuth):
+            heading = math.pi / 2 - azimuth
+        elif math.isfinite(turn):
+            heading += turn
+        out[k] = heading
+    return out
+
+
+@dataclass(frozen=True)
+class _Segment:
+    device: str
+    walk: Walk
+    scan_t: np.ndarray
+    scans: list[dict[int, float]]
+
+
+def _segments(devices: dict[str, _Device], n_aps: int) -> list[_Segment]:
+    out = []
+    for name, d in sorted(devices.items()):
+        order = np.argsort(d.step_t, kind="stable")
+        step_t = np.asarray(d.step_t, dtype=np.int64)[order]
+        lengths = np.asarray(d.step_len)[order]
+        headings = _headings(d)[order]
+        fixes = sorted(zip(d.fix_t, d.fix_xy, strict=True), key=lambda f: f[0])
+        scan_t = np.asarray(d.scan_t, dtype=np.int64)
+        for (t0, xy0), (t1, xy1) in itertools.pairwise(fixes):
+            inside = (step_t > t0) & (step_t <= t1)
+            if inside.sum() < 2:
+                continue
+            in_scan = np.flatnonzero((scan_t >= t0) & (scan_t <= t1))
+            centres = np.arange(t0, t1 + 1, WINDOW_STEP_MS)
+            counts = np.zeros((centres.size, n_aps))
+            for i in in_scan:
+                rows = np.abs(centres - scan_t[i]) <= WINDOW_MS // 2
+                cols = np.fromiter(d.scans[i].keys(), dtype=np.int64)
+                counts[np.ix_(np.flatnonzero(rows), cols)] += 1.0
+            keep = counts.sum(axis=1) > 0
+            walk = Walk(
+                t_ms=np.concatenate([[t0], step_t[inside]]).astype(np.int64),
+                lengths=lengths[inside],
+                headings=headings[inside],
+                start=np.asarray(xy0, dtype=float),
+                end=np.asarray(xy1, dtype=float),
+                window_t=centres[keep].astype(np.int64),
+                window_counts=counts[keep],
+            )
+            out.append(_Segment(name, walk, scan_t[in_scan], [d.scans[i] for i in in_scan]))
+    return out
+
+
+def build_signal_maps(files: list[str], out_dir: str, ctx: BuildingContext) -> dict[str, Any]:
+    """Build and write the maps; returns the job's summary (segments, devices, files written)."""
+    from server.datasets.signalslam_plots import write_scan_maps
+
+    ap_index: dict[str, int] = {}
+    devices, skipped = _collect(files, ctx, ap_index)
+    segments = _segments(devices, len(ap_index))
+    if not segments:
+        raise ValueError(
+            "no stretch of any device's steps lies between two landmarks (position fixes, known-anchor "
+            "readings or tags with a position): SignalSLAM needs a landmark at each end of a walk"
+        )
+    trajectories = solve([s.walk for s in segments], GraphParams())
+    folder = Path(out_dir)
+    folder.mkdir(parents=True, exist_ok=True)
+    placed, rows = [], []
+    for segment, xy in zip(segments, trajectories.signalslam, strict=True):
+        if segment.scan_t.size:
+            placed.append(position_at(segment.walk.t_ms, xy, segment.scan_t.astype(float)))
+            for entry in segment.scans:
+                row = np.full(len(ap_index), np.nan)
+                row[list(entry)] = list(entry.values())
+                rows.append(row)
+    names = sorted(ap_index, key=ap_index.__getitem__)
+    written: list[Path] = []
+    if rows:
+        written = write_scan_maps(folder, np.vstack(placed), np.vstack(rows), names)
+    tracks = folder / "trajectories.json"
+    tracks.write_text(json.dumps([
+        {"device_id": s.device, "t_ms": s.walk.t_ms.tolist(), "xy_m": np.round(xy, 3).tolist()}
+        for s, xy in zip(segments, trajectories.signalslam, strict=True)
+    ]))  # fmt: skip
+    written.append(tracks)
+    return {
+        "segments": len(segments),
+        "devices": len({s.device for s in segments}),
+        "scans": int(sum(s.scan_t.size for s in segments)),
+        "access_points": len(ap_index),
+        "batches_skipped": skipped,
+        "files": [p.name for p in written],
+    }

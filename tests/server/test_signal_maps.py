@@ -1,0 +1,118 @@
+"""Signal-map builds through the API: recordings in, a SignalSLAM build in its own process, files out."""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from typing import Any
+
+from tests.server.conftest import Api
+
+T0 = 1_767_225_600_000
+APS = [f"0a:00:00:00:00:{i:02x}" for i in range(8)]
+
+
+def _walk(device: str, x0: float, x1: float, seconds: int, with_end_fix: bool = True) -> list[dict[str, Any]]:
+    """A phone walking along y = 0 from x0 to x1, posting one batch a second: steps with azimuths, a WiFi
+    scan every 2 s whose RSS falls with the distance to 8 APs along the corridor, fixes at both ends."""
+    azimuth = math.pi / 2 if x1 > x0 else -math.pi / 2
+    step = (x1 - x0) / (2 * seconds)
+    batches = []
+    for s in range(seconds):
+        t = T0 + 1000 * s
+        body: dict[str, Any] = {
+            "building_id": "hq",
+            "device_id": device,
+            "batch_id": f"{device}-{s}",
+            "seq": s,
+            "steps": [
+                {"t_ms": t + 250 + 500 * k, "length_m": abs(step), "azimuth_rad": azimuth} for k in range(2)
+            ],
+        }
+        x = x0 + step * 2 * s
+        if s % 2 == 0:
+            heard = [(b, round(-35.0 - 2.0 * abs(x - 4.0 * i), 1)) for i, b in enumerate(APS)]
+            aps = [{"bssid": b, "rssi_dbm": r, "frequency_mhz": 2412} for b, r in heard if r > -90]
+            body["wifi_scans"] = [{"t_ms": t + 100, "aps": aps}]
+        marks = []
+        if s == 0:
+            marks.append({"kind": "fix", "t_ms": t, "position": {"x_m": x0, "y_m": 0.0}, "sigma_m": 0.5})
+        if s == seconds - 1 and with_end_fix:
+            marks.append(
+                {"kind": "fix", "t_ms": t + 999, "position": {"x_m": x1, "y_m": 0.0}, "sigma_m": 0.5}
+            )
+        if marks:
+            body["landmarks"] = marks
+        batches.append(body)
+    return batches
+
+
+def _post(api: Api, batches: list[dict[str, Any]], device: str) -> None:
+    key = api.key("hq", "device", device)
+    for body in batches:
+        r = api.client.post("/v1/buildings/hq/batches", json=body, headers=api.auth(key))
+        assert r.status_code == 200, r.text
+
+
+def _wait(api: Api, job_id: str, timeout_s: float = 120.0) -> dict[str, Any]:
+    op = api.auth(api.operator)
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        job = api.client.get(f"/v1/buildings/hq/signal-maps/{job_id}", headers=op).json()
+        if job["status"] in ("done", "failed"):
+            return dict(job)
+        time.sleep(0.2)
+    raise AssertionError(f"build {job_id} did not finish in {timeout_s} s")
+
+
+def test_a_build_from_recordings_serves_maps(sqlite_api: Api) -> None:
+    api = sqlite_api
+    api.create_building()
+    op = api.auth(api.operator)
+    assert api.client.post("/v1/buildings/hq/signal-maps", headers=op).status_code == 409  # nothing recorded
+    _post(api, _walk("phone-a", 0.0, 28.0, 20), "phone-a")
+    _post(api, _walk("phone-b", 28.0, 0.0, 20), "phone-b")
+    started = api.client.post("/v1/buildings/hq/signal-maps", headers=op)
+    assert started.status_code == 202, started.text
+    assert started.json()["status"] == "queued"
+    assert started.json()["recordings"] >= 1
+    job = _wait(api, started.json()["id"])
+    assert job["status"] == "done", job
+    assert job["segments"] == 2
+    assert job["devices"] == 2
+    assert job["access_points"] == len(APS)
+    assert {"trajectories.json", "fingerprints_5m.json", "signal_map_ap1.json", "signal_map_ap1.png"} <= set(
+        job["files"]
+    )
+    base = f"/v1/buildings/hq/signal-maps/{job['id']}/files"
+    tracks = api.client.get(f"{base}/trajectories.json", headers=op)
+    assert tracks.status_code == 200
+    for track in tracks.json():
+        xy = track["xy_m"]
+        assert max(abs(float(p[1])) for p in xy) < 1.0  # stays in the corridor
+        assert abs(abs(xy[-1][0] - xy[0][0]) - 28.0) < 1.5
+    png = api.client.get(f"{base}/signal_map_ap1.png", headers=op)
+    assert png.status_code == 200
+    assert png.headers["content-type"] == "image/png"
+    grid = json.loads(api.client.get(f"{base}/signal_map_ap1.json", headers=op).content)
+    assert grid["bssid"] in APS
+    listed = api.client.get("/v1/buildings/hq/signal-maps", headers=op).json()
+    assert [j["id"] for j in listed] == [job["id"]]
+
+
+def test_build_errors(sqlite_api: Api) -> None:
+    api = sqlite_api
+    api.create_building()
+    op = api.auth(api.operator)
+    _post(api, _walk("phone-c", 0.0, 10.0, 8, with_end_fix=False), "phone-c")  # one landmark only
+    job = _wait(api, api.client.post("/v1/buildings/hq/signal-maps", headers=op).json()["id"])
+    assert job["status"] == "failed"
+    assert "between two landmarks" in job["error"]
+    assert api.client.get("/v1/buildings/hq/signal-maps/nope", headers=op).status_code == 404
+    missing = api.client.get(f"/v1/buildings/hq/signal-maps/{job['id']}/files/x.png", headers=op)
+    assert missing.status_code == 404
+    assert missing.json()["status"] == 404
+    dashboard = api.auth(api.key("hq", "dashboard"))
+    assert api.client.post("/v1/buildings/hq/signal-maps", headers=dashboard).status_code == 403
+    assert api.client.get("/v1/buildings/nowhere/signal-maps", headers=op).status_code in (403, 404)
