@@ -177,7 +177,8 @@ def build_signal_maps(files: list[str], out_dir: str, ctx: BuildingContext) -> d
     names = sorted(ap_index, key=ap_index.__getitem__)
     written: list[Path] = []
     if rows:
-        written = write_scan_maps(folder, np.vstack(placed), np.vstack(rows), names)
+        to_wgs84 = None if ctx.geo is None else ctx.geo.to_wgs84
+        written = write_scan_maps(folder, np.vstack(placed), np.vstack(rows), names, to_wgs84=to_wgs84)
     tracks = folder / "trajectories.json"
     tracks.write_text(json.dumps([
         {"device_id": s.device, "t_ms": s.walk.t_ms.tolist(), "xy_m": np.round(xy, 3).tolist()}

@@ -43,5 +43,5 @@ async def get_file(building_id: str, job_id: str, name: str, caller: Caller, sta
     caller.require_operator(building_id)
     await state.tracking.worker(building_id)
     path = state.signal_maps.file(building_id, job_id, name)
-    media = "image/png" if path.suffix == ".png" else "application/json"
+    media = {".png": "image/png", ".geojson": "application/geo+json"}.get(path.suffix, "application/json")
     return FileResponse(path, media_type=media)

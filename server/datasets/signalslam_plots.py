@@ -5,6 +5,7 @@ fingerprint database."""
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -76,9 +77,16 @@ def write_maps(folder: Path, run: Any, aps: int = 2) -> list[Path]:
 
 
 def write_scan_maps(
-    folder: Path, xy: np.ndarray, rss: np.ndarray, ap_names: list[str], aps: int = 2
+    folder: Path,
+    xy: np.ndarray,
+    rss: np.ndarray,
+    ap_names: list[str],
+    aps: int = 2,
+    to_wgs84: Callable[[float, float], tuple[float, float]] | None = None,
 ) -> list[Path]:
-    """``write_maps`` from placed scans: positions (S, 2), RSS rows over ``ap_names`` (NaN = not heard)."""
+    """``write_maps`` from placed scans: positions (S, 2), RSS rows over ``ap_names`` (NaN = not heard).
+    With ``to_wgs84`` (the building's geo-reference) each map is also written as GeoJSON: one point per
+    mapped cell, in WGS-84, with its mean, spread and effective number of readings."""
     plt = _pyplot()
     if xy.shape[0] == 0:
         return []
@@ -111,6 +119,10 @@ def write_scan_maps(
             "effective_readings": _nullable(grid.effective_n),
         }))  # fmt: skip
         written += [png, grid_json]
+        if to_wgs84 is not None:
+            geojson = folder / f"signal_map_ap{rank + 1}.geojson"
+            geojson.write_text(json.dumps(_grid_geojson(grid, bssid, to_wgs84)))
+            written.append(geojson)
     database = fingerprint_grid(xy, rss, 5.0)
     cells = [
         {
@@ -123,6 +135,26 @@ def write_scan_maps(
     db_path.write_text(json.dumps({"cell_m": 5.0, "cells": cells}))
     written.append(db_path)
     return written
+
+
+def _grid_geojson(
+    grid: Any, bssid: str, to_wgs84: Callable[[float, float], tuple[float, float]]
+) -> dict[str, Any]:
+    gx, gy = grid.centres()
+    features = []
+    for iy, y in enumerate(gy):
+        for ix, x in enumerate(gx):
+            if not np.isfinite(grid.mean[iy, ix]):
+                continue
+            lat, lon = to_wgs84(float(x), float(y))
+            features.append({
+                "type": "Feature",
+                "geometry": {"type": "Point", "coordinates": [round(lon, 8), round(lat, 8)]},
+                "properties": {"bssid": bssid, "rss_dbm": round(float(grid.mean[iy, ix]), 2),
+                               "std_db": round(float(grid.std[iy, ix]), 2),
+                               "effective_readings": round(float(grid.effective_n[iy, ix]), 2)},
+            })  # fmt: skip
+    return {"type": "FeatureCollection", "features": features}
 
 
 def _nullable(grid: np.ndarray) -> list[list[float | None]]:

@@ -68,7 +68,7 @@ def _wait(api: Api, job_id: str, timeout_s: float = 120.0) -> dict[str, Any]:
 
 def test_a_build_from_recordings_serves_maps(sqlite_api: Api) -> None:
     api = sqlite_api
-    api.create_building()
+    api.create_building(geo=True)
     op = api.auth(api.operator)
     assert api.client.post("/v1/buildings/hq/signal-maps", headers=op).status_code == 409  # nothing recorded
     _post(api, _walk("phone-a", 0.0, 28.0, 20), "phone-a")
@@ -97,6 +97,14 @@ def test_a_build_from_recordings_serves_maps(sqlite_api: Api) -> None:
     assert png.headers["content-type"] == "image/png"
     grid = json.loads(api.client.get(f"{base}/signal_map_ap1.json", headers=op).content)
     assert grid["bssid"] in APS
+    geo = api.client.get(
+        f"{base}/signal_map_ap1.geojson", headers=op
+    ).json()  # the building is geo-referenced
+    assert geo["type"] == "FeatureCollection"
+    assert len(geo["features"]) > 10
+    lon, lat = geo["features"][0]["geometry"]["coordinates"]
+    assert -90 <= lat <= 90
+    assert -180 <= lon <= 180
     listed = api.client.get("/v1/buildings/hq/signal-maps", headers=op).json()
     assert [j["id"] for j in listed] == [job["id"]]
 
