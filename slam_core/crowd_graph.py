@@ -17,6 +17,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy import sparse
 from scipy.optimize import least_squares
 
 
@@ -45,7 +46,7 @@ class GraphProblem:
     anchors: list[int]
     users: list[int]
     residuals: Callable[[np.ndarray], np.ndarray]
-    jacobian: Callable[[np.ndarray], np.ndarray]
+    jacobian: Callable[[np.ndarray], sparse.csr_matrix]
     x0: np.ndarray
 
 
@@ -110,7 +111,7 @@ class CrowdGraph:
             self._bias[u] = float(x[2 * n_a + k])
             self._scale[u] = float(x[2 * n_a + n_u + k])
         jac = problem.jacobian(x)
-        cov = np.linalg.inv(jac.T @ jac + 1e-9 * np.eye(x.size))
+        cov = np.linalg.inv((jac.T @ jac).toarray() + 1e-9 * np.eye(x.size))
         means, covs = {}, {}
         for j, a in enumerate(problem.anchors):
             means[a] = x[2 * j : 2 * j + 2].copy()
@@ -195,20 +196,30 @@ class CrowdGraph:
             )
             return np.concatenate([r.ravel(), priors])
 
-        def jacobian(x: np.ndarray) -> np.ndarray:
+        def jacobian(x: np.ndarray) -> sparse.csr_matrix:
+            """Sparse: each detection row touches two anchors and one user's bias and scale (a dense
+            Jacobian made the joint solve dominate a crowd replay once hundreds of anchors exist)."""
             rd, s, drd = rotated(x)
-            jac = np.zeros((2 * n_rows + 2 * n_u, n_var))
+            rows_out, cols_out, vals_out = [], [], []
             rows = np.arange(n_rows)
+            has_cur, has_prev = cur_i >= 0, prev_i >= 0
             for axis in (0, 1):
                 r_idx = 2 * rows + axis
-                has_cur = cur_i >= 0
-                jac[r_idx[has_cur], 2 * cur_i[has_cur] + axis] += w[has_cur]
-                has_prev = prev_i >= 0
-                jac[r_idx[has_prev], 2 * prev_i[has_prev] + axis] -= w[has_prev]
-                jac[r_idx, 2 * n_a + k_i] = -s * drd[:, axis] * w
-                jac[r_idx, 2 * n_a + n_u + k_i] = -rd[:, axis] * w
-            jac[2 * n_rows + np.arange(n_u), 2 * n_a + np.arange(n_u)] = 1.0 / p.bias_sigma_rad
-            jac[2 * n_rows + n_u + np.arange(n_u), 2 * n_a + n_u + np.arange(n_u)] = 1.0 / p.scale_sigma
-            return jac
+                rows_out += [r_idx[has_cur], r_idx[has_prev], r_idx, r_idx]
+                cols_out += [
+                    2 * cur_i[has_cur] + axis,
+                    2 * prev_i[has_prev] + axis,
+                    2 * n_a + k_i,
+                    2 * n_a + n_u + k_i,
+                ]
+                vals_out += [w[has_cur], -w[has_prev], -s * drd[:, axis] * w, -rd[:, axis] * w]
+            prior_rows = 2 * n_rows + np.arange(2 * n_u)
+            rows_out.append(prior_rows)
+            cols_out.append(2 * n_a + np.arange(2 * n_u))
+            vals_out.append(np.r_[np.full(n_u, 1.0 / p.bias_sigma_rad), np.full(n_u, 1.0 / p.scale_sigma)])
+            return sparse.csr_matrix(
+                (np.concatenate(vals_out), (np.concatenate(rows_out), np.concatenate(cols_out))),
+                shape=(2 * n_rows + 2 * n_u, n_var),
+            )
 
         return GraphProblem(anchors, users, residuals, jacobian, x0)

@@ -47,7 +47,7 @@ def test_analytic_jacobian_matches_a_numerical_one() -> None:
     numeric = np.array(
         [approx_fprime(x, lambda v, i=i: residuals(v)[i], 1e-7) for i in range(residuals(x).size)]
     )
-    np.testing.assert_allclose(jacobian(x), numeric, atol=1e-4)
+    np.testing.assert_allclose(jacobian(x).toarray(), numeric, atol=1e-4)
 
 
 def test_recovers_anchors_on_a_known_floor() -> None:
