@@ -27,6 +27,7 @@ from server.settings import Settings
 from server.signal_maps import SignalMapService
 from server.store.db import make_engine, make_session_factory
 from server.store.migrate import current_revision, head_revision
+from slam_core.encounter_detection import DetectionParams
 from slam_core.encounters import Calibration
 from slam_core.params import BuildingAnchorParams, FilterParams, extended_confusion
 from slam_core.tracker import TrackerParams
@@ -67,7 +68,8 @@ def tracker_params(settings: Settings) -> TrackerParams:
         filter=FilterParams(
             anchors=BuildingAnchorParams(confusion=extended_confusion(n_types)),
             use_human_anchors=settings.mode == "dynamicslam",
-        )
+        ),
+        detection=DetectionParams(wifi_model=settings.encounter_wifi_model),
     )
 
 

@@ -22,7 +22,7 @@ from schemas.sensors import (
     TagReading,
     Vector3Stream,
 )
-from slam_core.encounter_detection import MODEL_BLUETOOTH
+from slam_core.encounter_detection import MODEL_BLUETOOTH, MODEL_WIFI_FINGERPRINT
 from slam_core.geo import GeoFrame
 from slam_core.pdr.frontend import ImuSamples
 from slam_core.tracker import EncounterResult, EstimateRow, UserBatch
@@ -203,7 +203,10 @@ def encounter_event(result: EncounterResult, building_id: str) -> EncounterEvent
         t_ms=d.t_ms,
         user_a=d.user_a,
         user_b=d.user_b,
-        model=EncounterModelName.BLUETOOTH if d.model == MODEL_BLUETOOTH else EncounterModelName.WIFI_EQ3,
+        model={
+            MODEL_BLUETOOTH: EncounterModelName.BLUETOOTH,
+            MODEL_WIFI_FINGERPRINT: EncounterModelName.WIFI_FINGERPRINT,
+        }.get(d.model, EncounterModelName.WIFI_EQ3),
         distance_m=min(d.distance_m, 200.0),
         distance_sigma_m=min(math.sqrt(d.variance_m2), 200.0),
         applied=result.applied,

@@ -46,6 +46,11 @@ class Settings(BaseSettings):
     mode: Literal["dynamicslam", "semanticslam"] = Field(
         default="dynamicslam", description="semanticslam turns human anchors (encounters) off."
     )
+    encounter_wifi_model: Literal["wifi-eq3", "wifi-fingerprint"] = Field(
+        default="wifi-eq3",
+        description="WiFi encounter detector: the paper's Eq. 3, or our union-fingerprint model (its range "
+        "model must be in the encounter calibration: crowdslam calibrate fits both).",
+    )
 
     @property
     def recordings_dir(self) -> Path:

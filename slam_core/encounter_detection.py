@@ -21,10 +21,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from slam_core.encounters import BluetoothParams, Calibration, WifiEq3Params
+from slam_core.encounters import BluetoothParams, Calibration, WifiEq3Params, WifiFingerprintParams
 
 MODEL_WIFI = 0
 MODEL_BLUETOOTH = 1
+MODEL_WIFI_FINGERPRINT = 2
+WIFI_MODELS = ("wifi-eq3", "wifi-fingerprint")
 
 
 @dataclass(frozen=True)
@@ -40,6 +42,16 @@ class DetectionParams:
     entries whose last-seen time is more than this before the scan are dropped before Eq. 3."""
     retention_ms: int = 10_000
     """Scans and sightings older than this (behind the newest time seen) are forgotten."""
+    wifi_model: str = "wifi-eq3"
+    """``wifi-eq3`` (the paper) or ``wifi-fingerprint`` (ours: union RMS, ``WifiFingerprintParams``; needs
+    its range model in the calibration). Candidates are found by the same strongest-N index either way."""
+    fingerprint: WifiFingerprintParams = field(default_factory=WifiFingerprintParams)
+
+    def __post_init__(self) -> None:
+        if self.wifi_model not in WIFI_MODELS:
+            raise ValueError(
+                f"unknown WiFi encounter model {self.wifi_model!r}; valid: {', '.join(WIFI_MODELS)}"
+            )
 
 
 @dataclass(frozen=True)
@@ -58,6 +70,18 @@ class _Scan:
     user: str
     t_ms: int
     top: dict[int, float]  # the strongest N APs: interned BSSID -> RSS
+    fresh: dict[int, float]  # every fresh AP (the fingerprint model compares these)
+
+
+def union_rms(a: dict[int, float], b: dict[int, float], floor_dbm: float) -> float:
+    """RMS dB difference over the union of two scans' APs, a missing AP counting as ``floor_dbm``."""
+    keys = a.keys() | b.keys()
+    if not keys:
+        return math.inf
+    total = sum(
+        (max(a.get(k, floor_dbm), floor_dbm) - max(b.get(k, floor_dbm), floor_dbm)) ** 2 for k in keys
+    )
+    return math.sqrt(total / len(keys))
 
 
 def eq3_sparse(top_a: dict[int, float], top_b: dict[int, float]) -> tuple[float, int]:
@@ -80,6 +104,11 @@ class EncounterDetector:
         self._last_pair: dict[tuple[str, str, int], int] = {}
         self._newest_ms = 0
         self.n_candidates = 0
+        if params.wifi_model == "wifi-fingerprint" and calibration.wifi_fingerprint is None:
+            raise ValueError(
+                "the wifi-fingerprint encounter model needs its range model in the calibration "
+                "(fit it with `crowdslam calibrate`)"
+            )
 
     # ------------------------------------------------------------------ WiFi
     def add_scan(
@@ -94,6 +123,8 @@ class EncounterDetector:
             return []
         order = keep[np.argsort(-rss[keep], kind="stable")[: p.wifi.strongest_n]]
         top = {self._intern(bssids[i]): float(rss[i]) for i in order}
+        by_fingerprint = p.wifi_model == "wifi-fingerprint"
+        fresh_aps = {self._intern(bssids[i]): float(rss[i]) for i in keep} if by_fingerprint else top
         self._advance(t_ms)
         found: dict[int, _Scan] = {}
         for ap in top:
@@ -103,20 +134,28 @@ class EncounterDetector:
         passing: list[tuple[_Scan, float]] = []
         for other in found.values():
             self.n_candidates += 1
+            if by_fingerprint:
+                feature = union_rms(fresh_aps, other.fresh, p.fingerprint.floor_dbm)
+                if feature < p.fingerprint.threshold_db:
+                    passing.append((other, feature))
+                continue
             sim, n = eq3_sparse(top, other.top)
             if n >= p.wifi.min_common and sim < p.wifi.threshold_db:
                 passing.append((other, sim))
         out = []
         if passing:
             # one vectorised range lookup for every pair the scan passes, then the pairs in order
-            ranges, variances = self.calibration.wifi.range_and_variance(np.array([s for _, s in passing]))
-            for (other, sim), d, var in zip(passing, ranges, variances, strict=True):
+            model = self.calibration.wifi_fingerprint if by_fingerprint else self.calibration.wifi
+            assert model is not None  # checked at construction
+            ranges, variances = model.range_and_variance(np.array([s for _, s in passing]))
+            kind = MODEL_WIFI_FINGERPRINT if by_fingerprint else MODEL_WIFI
+            for (other, feature), d, var in zip(passing, ranges, variances, strict=True):
                 det = self._detection(
-                    max(t_ms, other.t_ms), user, other.user, MODEL_WIFI, sim, float(d), float(var)
+                    max(t_ms, other.t_ms), user, other.user, kind, feature, float(d), float(var)
                 )
                 if det is not None:
                     out.append(det)
-        scan = _Scan(user, t_ms, top)
+        scan = _Scan(user, t_ms, top, fresh_aps)
         self._scans.append(scan)
         for ap in top:
             self._by_ap[ap].append(scan)

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from server.datasets.msindoor import read_floor, read_trace
-from slam_core.encounters import Calibration, WifiEq3Params, fit_range_model
+from slam_core.encounters import Calibration, WifiEq3Params, WifiFingerprintParams, fit_range_model
 from slam_core.pdr.frontend import ImuSamples, PdrParams, PdrState, pdr_steps
 from slam_core.wifi_pairs import eq3_matrix, fingerprint_matrix, precision_at_recall, precision_recall
 
@@ -154,8 +154,23 @@ def calibrate_floor(
     model = fit_range_model(pairs.features["eq3"][finite], pairs.distance[finite], "wifi-log")
     model = model.with_empirical_variance(pairs.features["eq3"][passing], pairs.distance[passing])
     report["wifi_model"] = {"coefficients": list(model.coefficients), "sigma_db": model.sigma}
+    fingerprint = pairs.features["fingerprint"]
+    strict = fingerprint < WifiFingerprintParams().threshold_db
+    finite = np.isfinite(fingerprint)
+    fingerprint_model = fit_range_model(fingerprint[finite], pairs.distance[finite], "wifi-log")
+    if strict.sum() >= 30:
+        fingerprint_model = fingerprint_model.with_empirical_variance(
+            fingerprint[strict], pairs.distance[strict]
+        )
+    report["wifi_fingerprint_model"] = {
+        "coefficients": list(fingerprint_model.coefficients),
+        "sigma_db": fingerprint_model.sigma,
+        "threshold_db": WifiFingerprintParams().threshold_db,
+        "pairs_passing": int(strict.sum()),
+        "precision_at_threshold": float(near[strict].mean()) if strict.any() else math.nan,
+    }
     report["step_length"] = weinberg_fit(floor_dir)
-    return replace(base, wifi=model), report, pairs
+    return replace(base, wifi=model, wifi_fingerprint=fingerprint_model), report, pairs
 
 
 def plot_calibration(path: Path, pairs: Pairs, report: dict[str, Any]) -> None:

@@ -102,6 +102,8 @@ def test_calibrate_cli_writes_a_loadable_calibration(small_floor: Path, tmp_path
     assert calibration.wifi.kind == "wifi-log"
     assert calibration.wifi.sigma > 0
     assert calibration.bluetooth == load_calibration(None).bluetooth  # no phone-to-phone Bluetooth here
+    assert calibration.wifi_fingerprint is not None
+    assert calibration.wifi_fingerprint.kind == "wifi-log"
     report = written["report"]
     assert report["near_pairs"] > 0
     assert report["cross_walk_pairs"] > report["near_pairs"]

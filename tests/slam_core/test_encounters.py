@@ -72,5 +72,5 @@ def test_fit_needs_data_and_a_known_kind() -> None:
         fit_range_model(np.ones(3), np.ones(3), "wifi-log")
     with pytest.raises(ValueError, match="valid: wifi-log, bt-quadratic"):
         fit_range_model(np.ones(30), np.ones(30), "cubic")
-    with pytest.raises(ValueError, match="valid: wifi-eq3, bluetooth"):
+    with pytest.raises(ValueError, match="valid: wifi-eq3, wifi-fingerprint, bluetooth"):
         encounter_model("sonar")

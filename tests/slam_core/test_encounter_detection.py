@@ -1,0 +1,92 @@
+"""Online WiFi encounter detection with the paper's Eq. 3 and with our union-fingerprint model."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from slam_core.encounter_detection import (
+    MODEL_WIFI,
+    MODEL_WIFI_FINGERPRINT,
+    DetectionParams,
+    EncounterDetector,
+    union_rms,
+)
+from slam_core.encounters import (
+    ENCOUNTER_MODELS,
+    Calibration,
+    RangeModel,
+    WifiFingerprintParams,
+    encounter_model,
+)
+
+BT = RangeModel("bt-quadratic", (-60.0, -10.0, 0.0), 4.0)
+EQ3 = RangeModel("wifi-log", (1.0, 2.0), 0.5)
+FINGERPRINT = RangeModel("wifi-log", (2.0, 4.0), 1.0)
+T0 = 1_700_000_000_000
+BSSIDS = [f"0a:00:00:00:00:{i:02x}" for i in range(12)]
+
+
+def _scan(detector: EncounterDetector, user: str, t: int, rss: list[float]) -> list:  # type: ignore[type-arg]
+    heard = [(b, r) for b, r in zip(BSSIDS, rss, strict=True) if math.isfinite(r)]
+    return detector.add_scan(
+        user,
+        t,
+        [b for b, _ in heard],
+        np.array([r for _, r in heard]),
+        np.full(len(heard), -1, dtype=np.int64),
+    )
+
+
+def test_union_rms_matches_a_direct_computation() -> None:
+    a = {0: -50.0, 1: -60.0, 3: -105.0}
+    b = {1: -64.0, 2: -70.0}
+    floor = -100.0
+    direct = math.sqrt(((-50 + 100) ** 2 + (-60 + 64) ** 2 + (-100 + 70) ** 2 + 0.0) / 4)
+    assert union_rms(a, b, floor) == pytest.approx(direct)
+    assert union_rms({}, {}, floor) == math.inf
+
+
+@pytest.mark.parametrize(
+    ("model", "kind"), [("wifi-eq3", MODEL_WIFI), ("wifi-fingerprint", MODEL_WIFI_FINGERPRINT)]
+)
+def test_two_phones_in_the_same_place_meet_and_far_ones_do_not(model: str, kind: int) -> None:
+    detector = EncounterDetector(DetectionParams(wifi_model=model), Calibration(EQ3, BT, FINGERPRINT))
+    here = [-45.0, -50.0, -55.0, -60.0, -65.0, -70.0, -75.0, -80.0, math.nan, math.nan, math.nan, math.nan]
+    there = [math.nan, math.nan, math.nan, math.nan, -80.0, -75.0, -70.0, -65.0, -60.0, -55.0, -50.0, -45.0]
+    assert _scan(detector, "a", T0, here) == []
+    met = _scan(detector, "b", T0 + 300, [r + 1.0 if math.isfinite(r) else r for r in here])
+    assert [(d.user_a, d.user_b, d.model) for d in met] == [("b", "a", kind)]
+    assert met[0].distance_m < 3.0
+    assert _scan(detector, "c", T0 + 20_000, there) == []
+    # "d" hears "c"'s strongest APs just as "c" does, and four loud APs that "c" does not hear at all:
+    # Eq. 3 only compares the common strongest APs and passes; the union of APs tells them apart
+    mixed = _scan(detector, "d", T0 + 20_300, here[:4] + there[4:])
+    assert len(mixed) == (1 if model == "wifi-eq3" else 0)
+
+
+def test_the_fingerprint_model_needs_its_calibration_and_a_known_name() -> None:
+    with pytest.raises(ValueError, match="calibrate"):
+        EncounterDetector(DetectionParams(wifi_model="wifi-fingerprint"), Calibration(EQ3, BT))
+    with pytest.raises(ValueError, match="unknown WiFi encounter model"):
+        DetectionParams(wifi_model="wifi-magic")
+    assert isinstance(encounter_model("wifi-fingerprint"), WifiFingerprintParams)
+    assert set(ENCOUNTER_MODELS) == {"wifi-eq3", "wifi-fingerprint", "bluetooth"}
+    with pytest.raises(ValueError, match="valid: wifi-eq3, wifi-fingerprint, bluetooth"):
+        encounter_model("lte")
+
+
+def test_calibration_round_trips_with_and_without_the_fingerprint_model() -> None:
+    with_fp = Calibration(EQ3, BT, FINGERPRINT)
+    assert Calibration.from_dict(with_fp.to_dict()) == with_fp
+    without = Calibration(EQ3, BT)
+    assert "wifi_fingerprint" not in without.to_dict()
+    assert Calibration.from_dict(without.to_dict()) == without
+    broken = {
+        **with_fp.to_dict(),
+        "wifi_fingerprint": {"kind": "bt-quadratic", "coefficients": [1.0], "sigma": 1},
+    }
+    with pytest.raises(ValueError, match="wifi_fingerprint"):
+        Calibration.from_dict(broken)
