@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import itertools
 import json
-import math
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,12 +26,11 @@ from pydantic import ValidationError
 from schemas.sensors import SensorBatch
 from server.convert import BuildingContext, to_user_batch
 from server.recording import read_batches
+from slam_core.detectors import integrate_headings
 from slam_core.pdr.frontend import PdrParams, PdrState, pdr_steps
 from slam_core.signal_map.graph import GraphParams, Walk, position_at, solve
-
-STALE_AP_MS = 3_000
-WINDOW_MS = 10_000
-WINDOW_STEP_MS = 1_000
+from slam_core.signal_map.windows import WINDOW_STEP_MS, rss_matrix, window_counts
+from slam_core.wifi_pairs import STALE_AP_MS
 
 
 @dataclass
@@ -96,19 +94,6 @@ def _collect(
     return devices, skipped
 
 
-def _headings(d: _Device) -> np.ndarray:
-    """Each step's direction (ccw from east): its azimuth, else the previous heading plus its turn."""
-    out = np.empty(len(d.step_t))
-    heading = 0.0
-    for k, (azimuth, turn) in enumerate(zip(d.step_azimuth, d.step_turn, strict=True)):
-        if math.isfinite(azimuth):
-            heading = math.pi / 2 - azimuth
-        elif math.isfinite(turn):
-            heading += turn
-        out[k] = heading
-    return out
-
-
 @dataclass(frozen=True)
 class _Segment:
     device: str
@@ -123,7 +108,7 @@ def _segments(devices: dict[str, _Device], n_aps: int) -> list[_Segment]:
         order = np.argsort(d.step_t, kind="stable")
         step_t = np.asarray(d.step_t, dtype=np.int64)[order]
         lengths = np.asarray(d.step_len)[order]
-        headings = _headings(d)[order]
+        headings = integrate_headings(np.asarray(d.step_azimuth), np.asarray(d.step_turn))[order]
         fixes = sorted(zip(d.fix_t, d.fix_xy, strict=True), key=lambda f: f[0])
         scan_t = np.asarray(d.scan_t, dtype=np.int64)
         for (t0, xy0), (t1, xy1) in itertools.pairwise(fixes):
@@ -132,11 +117,7 @@ def _segments(devices: dict[str, _Device], n_aps: int) -> list[_Segment]:
                 continue
             in_scan = np.flatnonzero((scan_t >= t0) & (scan_t <= t1))
             centres = np.arange(t0, t1 + 1, WINDOW_STEP_MS)
-            counts = np.zeros((centres.size, n_aps))
-            for i in in_scan:
-                rows = np.abs(centres - scan_t[i]) <= WINDOW_MS // 2
-                cols = np.fromiter(d.scans[i].keys(), dtype=np.int64)
-                counts[np.ix_(np.flatnonzero(rows), cols)] += 1.0
+            counts = window_counts(centres, scan_t[in_scan], [d.scans[i] for i in in_scan], n_aps)
             keep = counts.sum(axis=1) > 0
             walk = Walk(
                 t_ms=np.concatenate([[t0], step_t[inside]]).astype(np.int64),
@@ -170,10 +151,7 @@ def build_signal_maps(files: list[str], out_dir: str, ctx: BuildingContext) -> d
     for segment, xy in zip(segments, trajectories.signalslam, strict=True):
         if segment.scan_t.size:
             placed.append(position_at(segment.walk.t_ms, xy, segment.scan_t.astype(float)))
-            for entry in segment.scans:
-                row = np.full(len(ap_index), np.nan)
-                row[list(entry)] = list(entry.values())
-                rows.append(row)
+            rows.append(rss_matrix(segment.scans, len(ap_index)))
     names = sorted(ap_index, key=ap_index.__getitem__)
     written: list[Path] = []
     if rows:

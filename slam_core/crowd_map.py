@@ -38,6 +38,15 @@ class _CrowdAnchor:
     signature: str = ""
 
 
+def _contribution(mean: np.ndarray, cov: np.ndarray, extra_variance: float) -> tuple[np.ndarray, np.ndarray]:
+    """A detecting user's estimate as a contribution: its covariance plus the detection's own variance."""
+    mean = np.asarray(mean, dtype=float)
+    cov = np.asarray(cov, dtype=float) + extra_variance * np.eye(2)
+    if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(cov))):
+        raise ValueError("contribution must be finite")
+    return mean, cov
+
+
 class CrowdMapBuilder:
     def __init__(
         self,
@@ -138,10 +147,7 @@ class CrowdMapBuilder:
 
     def contribute(self, user: int, mean: np.ndarray, cov: np.ndarray, detected_type: int, t: float) -> int:
         """Fuse one detection; returns the crowd anchor's index."""
-        mean = np.asarray(mean, dtype=float)
-        cov = np.asarray(cov, dtype=float) + self._r * np.eye(2)
-        if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(cov))):
-            raise ValueError("contribution must be finite")
+        mean, cov = _contribution(mean, cov, self._r)
         best, best_score = -1, math.inf
         for k, anchor in enumerate(self._anchors):
             if anchor.removed or anchor.signature:
@@ -157,15 +163,8 @@ class CrowdMapBuilder:
             if score < best_score:
                 best, best_score = k, score
         if best < 0:
-            self._anchors.append(_CrowdAnchor(mean.copy(), cov.copy(), int(detected_type), False))
-            best = len(self._anchors) - 1
-        anchor = self._anchors[best]
-        anchor.observations += 1
-        anchor.last_seen = t
-        if not anchor.known:
-            anchor.contributions[user] = (mean, cov)
-            if self._fuse:
-                self._refuse(anchor)
+            best = self._new_anchor(mean, cov, detected_type)
+        self._record(best, user, mean, cov, t)
         return best
 
     def find_signature(self, signature: str) -> int | None:
@@ -193,16 +192,21 @@ class CrowdMapBuilder:
         reading may be); returns its anchor's index, creating it on first sight."""
         if not signature:
             raise ValueError("a signed contribution needs a signature")
-        mean = np.asarray(mean, dtype=float)
-        cov = np.asarray(cov, dtype=float) + range_sigma_m**2 * np.eye(2)
-        if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(cov))):
-            raise ValueError("contribution must be finite")
+        mean, cov = _contribution(mean, cov, range_sigma_m**2)
         index = self._by_signature.get(signature)
         if index is None:
-            self._anchors.append(_CrowdAnchor(mean.copy(), cov.copy(), int(detected_type), False))
-            index = len(self._anchors) - 1
+            index = self._new_anchor(mean, cov, detected_type)
             self._anchors[index].signature = signature
             self._by_signature[signature] = index
+        self._record(index, user, mean, cov, t)
+        return index
+
+    def _new_anchor(self, mean: np.ndarray, cov: np.ndarray, anchor_type: int) -> int:
+        self._anchors.append(_CrowdAnchor(mean.copy(), cov.copy(), int(anchor_type), False))
+        return len(self._anchors) - 1
+
+    def _record(self, index: int, user: int, mean: np.ndarray, cov: np.ndarray, t: float) -> None:
+        """Count the detection; an unknown anchor keeps the user's latest contribution and is re-fused."""
         anchor = self._anchors[index]
         anchor.observations += 1
         anchor.last_seen = t
@@ -210,7 +214,6 @@ class CrowdMapBuilder:
             anchor.contributions[user] = (mean, cov)
             if self._fuse:
                 self._refuse(anchor)
-        return index
 
     def set_estimate(self, index: int, mean: np.ndarray, cov: np.ndarray) -> None:
         anchor = self._anchors[index]

@@ -25,6 +25,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from slam_core.wifi_pairs import STALE_AP_MS
+
 
 @dataclass(frozen=True)
 class DetectorParams:
@@ -44,7 +46,7 @@ class DetectorParams:
     new visit."""
     peak_drop_db: float = 3.0
     quiet_ms: int = 4_000
-    stale_ap_ms: int = 3_000
+    stale_ap_ms: int = STALE_AP_MS
     """WiFi entries last seen longer ago than this before their scan are cached re-reports: ignored."""
     turn_type: int = 3
     beacon_type: int = 6
@@ -208,18 +210,24 @@ def _one_per_place(
     return kept
 
 
-def step_headings(state: DetectorState, azimuth: np.ndarray, turn: np.ndarray) -> np.ndarray:
-    """Each step's heading (ccw from east) from its azimuth, else the previous heading plus its turn (the
-    first relative step of a user counts from zero: only changes matter to the turn detector)."""
-    out = np.empty(azimuth.size)
-    previous = state.headings[-1] if state.headings else 0.0
-    for k in range(azimuth.size):
+def integrate_headings(azimuth: np.ndarray, turn: np.ndarray, start: float = 0.0) -> np.ndarray:
+    """Each step's heading (ccw from east): from its azimuth (clockwise from north) when given, else the
+    previous heading plus its turn; ``start`` is the heading before the first step."""
+    out = np.empty(len(azimuth))
+    previous = start
+    for k in range(out.size):
         if math.isfinite(azimuth[k]):
             previous = math.pi / 2 - float(azimuth[k])
         elif math.isfinite(turn[k]):
             previous += float(turn[k])
         out[k] = previous
     return out
+
+
+def step_headings(state: DetectorState, azimuth: np.ndarray, turn: np.ndarray) -> np.ndarray:
+    """``integrate_headings`` from the user's last step (the first relative step of a user counts from
+    zero: only changes matter to the turn detector)."""
+    return integrate_headings(azimuth, turn, state.headings[-1] if state.headings else 0.0)
 
 
 def merge_events(turns: list[int], radio: list[tuple[int, int, str, int]], turn_type: int) -> AnchorEvents:

@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from slam_core.encounters import BluetoothParams, Calibration, WifiEq3Params, WifiFingerprintParams
+from slam_core.wifi_pairs import STALE_AP_MS
 
 MODEL_WIFI = 0
 MODEL_BLUETOOTH = 1
@@ -37,7 +38,7 @@ class DetectionParams:
     pair_cooldown_ms: int = 30_000
     max_sigma_m: float = 5.0
     bt_smoothing_ms: int = 4_000
-    stale_ap_ms: int = 3_000
+    stale_ap_ms: int = STALE_AP_MS
     """Beyond the paper: scans re-report cached APs (on real phones 50-60 % of entries are older than 3 s);
     entries whose last-seen time is more than this before the scan are dropped before Eq. 3."""
     retention_ms: int = 10_000

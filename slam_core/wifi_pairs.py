@@ -18,6 +18,9 @@ from __future__ import annotations
 import numpy as np
 
 FEATURES = ("eq3", "fingerprint")
+STALE_AP_MS = 3_000
+"""Scans re-report cached APs (on real phones 50-60 % of entries are older than 3 s): an entry whose
+last-seen time is more than this before its scan is dropped before any WiFi feature."""
 
 
 def strongest_mask(rss: np.ndarray, n: int) -> np.ndarray:

@@ -18,6 +18,8 @@ configure_numba_cache()  # before any test module imports numba: caches keyed by
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared"
+MSINDOOR_FLOOR = SHARED / "data" / "msindoor20" / "site1" / "F1"
+"""The shared real-walk floor; tests read a few of its small walks in place."""
 POSTGRES_ADMIN_URL = os.environ.get(
     "CROWDSLAM_TEST_POSTGRES_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/test"
 )

@@ -23,10 +23,16 @@ import numpy as np
 from server.datasets.msindoor import read_floor, read_trace
 from slam_core.encounters import Calibration, WifiEq3Params, WifiFingerprintParams, fit_range_model
 from slam_core.pdr.frontend import ImuSamples, PdrParams, PdrState, pdr_steps
-from slam_core.wifi_pairs import eq3_matrix, fingerprint_matrix, precision_at_recall, precision_recall
+from slam_core.signal_map.windows import rss_matrix
+from slam_core.wifi_pairs import (
+    STALE_AP_MS,
+    eq3_matrix,
+    fingerprint_matrix,
+    precision_at_recall,
+    precision_recall,
+)
 
 NEAR_M = 5.0
-STALE_AP_MS = 3_000
 
 
 @dataclass(frozen=True)
@@ -65,10 +71,9 @@ def labelled_scans(floor_dir: Path, stale_ap_ms: int = STALE_AP_MS) -> LabelledS
             rows.append(entry)
             xy.append(np.array([np.interp(scan.t_ms, wp[:, 0], wp[:, k]) for k in (1, 2)]))
             walk.append(w)
-    rss = np.full((len(rows), len(ap_index)), np.nan)
-    for r, entry in enumerate(rows):
-        rss[r, list(entry)] = list(entry.values())
-    return LabelledScans(rss, np.array(xy).reshape(-1, 2), np.array(walk, dtype=np.int64))
+    return LabelledScans(
+        rss_matrix(rows, len(ap_index)), np.array(xy).reshape(-1, 2), np.array(walk, dtype=np.int64)
+    )
 
 
 def weinberg_fit(floor_dir: Path, params: PdrParams | None = None) -> dict[str, float]:

@@ -22,10 +22,9 @@ from server.datasets.msindoor import Trace, read_floor, read_trace
 from slam_core.pdr.frontend import ImuSamples, PdrParams, PdrState, pdr_steps
 from slam_core.signal_map.graph import GraphParams, Trajectories, Walk, position_at, solve
 from slam_core.signal_map.maps import FingerprintGrid, fingerprint_grid, localise_kernel, localise_knn
+from slam_core.signal_map.windows import WINDOW_MS, WINDOW_STEP_MS, rss_matrix, window_counts
+from slam_core.wifi_pairs import STALE_AP_MS
 
-STALE_AP_MS = 3_000
-WINDOW_MS = 10_000  # the paper's 10 s windows ...
-WINDOW_STEP_MS = 1_000  # ... every second
 KNN = 7
 FINGERPRINT_CELL_M = 5.0
 
@@ -97,11 +96,7 @@ def _prepare(
 def _with_windows(p: _Prepared, n_aps: int, n_beacons: int) -> _Prepared:
     half = WINDOW_MS // 2
     centres = p.walk.window_t
-    counts = np.zeros((centres.size, n_aps))
-    for t, entry in zip(p.scans.t_ms, p.scans.rss, strict=True):
-        rows = np.flatnonzero(np.abs(centres - t) <= half)
-        cols = np.array(list(entry), dtype=np.int64)
-        counts[np.ix_(rows, cols)] += 1.0
+    counts = window_counts(centres, p.scans.t_ms, p.scans.rss, n_aps)
     beacons = np.zeros((centres.size, n_beacons))
     beacon_t, beacon_col = p.beacons
     for t, col in zip(beacon_t, beacon_col, strict=True):
@@ -187,10 +182,7 @@ def _checkpoint_errors(prepared: list[_Prepared], positions: list[np.ndarray]) -
 
 def _scan_matrix(p: _Prepared, n_aps: int, lo: float, hi: float) -> tuple[np.ndarray, np.ndarray]:
     keep = (p.scans.t_ms >= lo) & (p.scans.t_ms <= hi)
-    rss = np.full((int(keep.sum()), n_aps), np.nan)
-    for r, entry in enumerate(e for e, k in zip(p.scans.rss, keep, strict=True) if k):
-        rss[r, list(entry)] = list(entry.values())
-    return p.scans.t_ms[keep], rss
+    return p.scans.t_ms[keep], rss_matrix([e for e, k in zip(p.scans.rss, keep, strict=True) if k], n_aps)
 
 
 def _fingerprint_errors(

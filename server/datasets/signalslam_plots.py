@@ -13,6 +13,7 @@ import numpy as np
 
 from slam_core.signal_map.graph import Trajectories, position_at
 from slam_core.signal_map.maps import fingerprint_grid, signal_grid
+from slam_core.signal_map.windows import rss_matrix
 
 METHODS = (("raw", "PDR"), ("calibrated", "recalibrated PDR (Eq. 4)"), ("graphslam", "GraphSLAM"),
            ("signalslam", "SignalSLAM"))  # fmt: skip
@@ -57,16 +58,11 @@ def plot_trajectories(
 
 def _placed_scans(run: Any) -> tuple[np.ndarray, np.ndarray]:
     """Every scan placed by SignalSLAM, and its RSS row over the floor's AP columns (NaN = not heard)."""
-    points, rows = [], []
     n_aps = len(run.ap_names)
-    for p, xy in zip(run.prepared, run.trajectories.signalslam, strict=True):
-        placed = position_at(p.walk.t_ms, xy, p.scans.t_ms.astype(float))
-        for position, entry in zip(placed, p.scans.rss, strict=True):
-            row = np.full(n_aps, np.nan)
-            row[list(entry)] = list(entry.values())
-            points.append(position)
-            rows.append(row)
-    return np.array(points).reshape(-1, 2), np.array(rows).reshape(-1, n_aps)
+    points = [position_at(p.walk.t_ms, xy, p.scans.t_ms.astype(float))
+              for p, xy in zip(run.prepared, run.trajectories.signalslam, strict=True)]  # fmt: skip
+    rows = [rss_matrix(p.scans.rss, n_aps) for p in run.prepared]
+    return np.vstack([np.zeros((0, 2)), *points]), np.vstack([np.zeros((0, n_aps)), *rows])
 
 
 def write_maps(folder: Path, run: Any, aps: int = 2) -> list[Path]:

@@ -10,9 +10,9 @@ import pytest
 
 from server.cli.main import main
 from server.recording import read_batches
-from tests.conftest import ROOT, SHARED
+from tests.conftest import MSINDOOR_FLOOR, ROOT
 
-WALKS = SHARED / "data" / "msindoor20" / "site1" / "F1" / "path_data_files"
+WALKS = MSINDOOR_FLOOR / "path_data_files"
 
 
 def test_import_msindoor_records_every_batch_of_every_walk(tmp_path: Path) -> None:

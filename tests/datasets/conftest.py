@@ -7,7 +7,9 @@ from pathlib import Path
 
 import pytest
 
-FLOOR = Path(__file__).resolve().parents[3] / "shared" / "data" / "msindoor20" / "site1" / "F1"
+from tests.conftest import MSINDOOR_FLOOR
+
+FLOOR = MSINDOOR_FLOOR
 WALKS = (
     "5dd9fd499191710006b570de",
     "5dd9efa5c5b77e0006b17365",

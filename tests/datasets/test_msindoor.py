@@ -9,8 +9,9 @@ import pytest
 
 from server.datasets.msindoor import TraceFormatError, read_floor, read_trace
 from server.datasets.msindoor_batches import trace_batches
+from tests.conftest import MSINDOOR_FLOOR
 
-FLOOR = Path(__file__).resolve().parents[3] / "shared" / "data" / "msindoor20" / "site1" / "F1"
+FLOOR = MSINDOOR_FLOOR
 SMALL_WALK = FLOOR / "path_data_files" / "5dd9e7c59191710006b57065.txt"
 
 

@@ -4,22 +4,14 @@ Madgwick start against the phone's rotation vector, stale samples, and every err
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from slam_core.pdr.frontend import ImuSamples, PdrParams, PdrState, PdrSteps, drop_stale, pdr_steps
+from tests.conftest import MSINDOOR_FLOOR
 
-WALKS = (
-    Path(__file__).resolve().parents[4]
-    / "shared"
-    / "data"
-    / "msindoor20"
-    / "site1"
-    / "F1"
-    / "path_data_files"
-)
+WALKS = MSINDOOR_FLOOR / "path_data_files"
 PARAMS = PdrParams()
 TURNING = "5ddb9632c5b77e0006b179b1"  # 27 steps, turns through ~120 deg
 

@@ -4,24 +4,16 @@ and a real walk's step count against its surveyed length."""
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from slam_core.pdr.orientation import quaternion_from_rotation_vector
 from slam_core.pdr.steps import StepParams, detect_steps, new_state, vertical_acceleration
+from tests.conftest import MSINDOOR_FLOOR
 
 PARAMS = StepParams()
-WALKS = (
-    Path(__file__).resolve().parents[4]
-    / "shared"
-    / "data"
-    / "msindoor20"
-    / "site1"
-    / "F1"
-    / "path_data_files"
-)
+WALKS = MSINDOOR_FLOOR / "path_data_files"
 
 
 def _gait(
