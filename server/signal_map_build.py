@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import math
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,6 +29,7 @@ from server.convert import BuildingContext, to_user_batch
 from server.recording import read_batches
 from slam_core.detectors import integrate_headings
 from slam_core.pdr.frontend import PdrParams, PdrState, pdr_steps
+from slam_core.pdr.heading import with_final_offset
 from slam_core.signal_map.graph import GraphParams, Walk, position_at, solve
 from slam_core.signal_map.windows import WINDOW_STEP_MS, rss_matrix, window_counts
 from slam_core.wifi_pairs import STALE_AP_MS
@@ -40,6 +42,7 @@ class _Device:
     step_len: list[float] = field(default_factory=list)
     step_azimuth: list[float] = field(default_factory=list)
     step_turn: list[float] = field(default_factory=list)
+    step_offset: list[float] = field(default_factory=list)  # the PDR front-end's north offset, NaN: none
     fix_t: list[int] = field(default_factory=list)
     fix_xy: list[np.ndarray] = field(default_factory=list)
     scan_t: list[int] = field(default_factory=list)
@@ -68,6 +71,7 @@ def _collect(
             d.step_len += user.step_length.tolist()
             d.step_azimuth += user.step_azimuth.tolist()
             d.step_turn += user.step_turn.tolist()
+            d.step_offset += [math.nan] * user.step_t.size
         elif user.imu is not None and user.imu.acc.size:
             try:
                 steps = pdr_steps(d.pdr, user.imu, params)
@@ -78,6 +82,7 @@ def _collect(
             d.step_len += steps.length_m.tolist()
             d.step_azimuth += steps.azimuth_rad.tolist()
             d.step_turn += steps.turn_rad.tolist()
+            d.step_offset += steps.heading_offset_rad.tolist()
         d.fix_t += user.fix_t.tolist()
         d.fix_xy += list(user.fix_xy)
         for k in range(user.scan_t.size):
@@ -102,6 +107,14 @@ class _Segment:
     scans: list[dict[int, float]]
 
 
+def _offline_headings(headings: np.ndarray, azimuths: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """A walk's headings with the gyroscope yaw of the PDR front-end's steps referenced by the walk's last
+    north offset (the map is built after the walk, so it may use the best estimate for all of it)."""
+    referenced = np.pi / 2 - with_final_offset(azimuths, offsets)
+    turned: np.ndarray = np.where(np.isfinite(offsets), referenced, headings)
+    return turned
+
+
 def _segments(devices: dict[str, _Device], n_aps: int) -> list[_Segment]:
     out = []
     for name, d in sorted(devices.items()):
@@ -109,6 +122,7 @@ def _segments(devices: dict[str, _Device], n_aps: int) -> list[_Segment]:
         step_t = np.asarray(d.step_t, dtype=np.int64)[order]
         lengths = np.asarray(d.step_len)[order]
         headings = integrate_headings(np.asarray(d.step_azimuth), np.asarray(d.step_turn))[order]
+        azimuths, offsets = np.asarray(d.step_azimuth)[order], np.asarray(d.step_offset)[order]
         fixes = sorted(zip(d.fix_t, d.fix_xy, strict=True), key=lambda f: f[0])
         scan_t = np.asarray(d.scan_t, dtype=np.int64)
         for (t0, xy0), (t1, xy1) in itertools.pairwise(fixes):
@@ -122,7 +136,7 @@ def _segments(devices: dict[str, _Device], n_aps: int) -> list[_Segment]:
             walk = Walk(
                 t_ms=np.concatenate([[t0], step_t[inside]]).astype(np.int64),
                 lengths=lengths[inside],
-                headings=headings[inside],
+                headings=_offline_headings(headings[inside], azimuths[inside], offsets[inside]),
                 start=np.asarray(xy0, dtype=float),
                 end=np.asarray(xy1, dtype=float),
                 window_t=centres[keep].astype(np.int64),

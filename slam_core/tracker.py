@@ -139,12 +139,20 @@ class BuildingTracker:
 
     def dead_reckoning(self, user: str) -> np.ndarray | None:
         """Plain PDR: the user's starting fix plus every applied step, ignoring every observation (the
-        baseline the filter is measured against)."""
+        baseline the filter is measured against). Steps from the PDR front-end's gyroscope heading are
+        re-rotated by its latest north offset: the offset is one constant error whose estimate improves as
+        the walk goes on (``slam_core.pdr.heading``), so the best causal guess of the path walked so far
+        turns all of it, not only the steps still to come."""
         u = self._users.get(user)
         if u is None or u.slot < 0:
             return None
-        position: np.ndarray = u.origin + u.displacement
-        return position
+        if not math.isfinite(u.heading_offset):
+            position: np.ndarray = u.origin + u.displacement
+            return position
+        c, s = math.cos(u.heading_offset), math.sin(u.heading_offset)
+        gx, gy = u.gyro_displacement  # azimuth offset clockwise = a clockwise turn of the relative path
+        turned: np.ndarray = u.origin + np.array([c * gx + s * gy, -s * gx + c * gy])
+        return turned
 
     def estimate(self, user: str) -> EstimateRow | None:
         u = self._users.get(user)
@@ -221,6 +229,7 @@ class BuildingTracker:
             step_length=out.steps.length_m,
             step_azimuth=out.steps.azimuth_rad,
             step_turn=out.steps.turn_rad,
+            step_heading_offset=out.steps.heading_offset_rad,
             detect_t=np.concatenate([b.detect_t, out.anchors.t_ms]),
             detect_type=np.concatenate([b.detect_type, out.anchors.type_index]),
             detect_signature=signatures + out.anchors.signature,
@@ -244,6 +253,7 @@ class BuildingTracker:
             lengths: list[float] = []
             headings: list[float] = []
             times: list[int] = []
+            offsets: list[float] = []
             started = u.slot >= 0
             for t, kind, i in events:
                 if t < u.last_t_ms or (t == u.last_t_ms and kind == 1):
@@ -259,12 +269,15 @@ class BuildingTracker:
                     lengths.append(float(b.step_length[i]))
                     headings.append(heading)
                     times.append(t)
+                    offsets.append(
+                        float(b.step_heading_offset[i]) if b.step_heading_offset.size else math.nan
+                    )
                     continue
                 rnd = round_at(rounds, r)
                 if lengths:
-                    rnd.add_steps(b.user, lengths, headings, times)
+                    rnd.add_steps(b.user, lengths, headings, times, offsets)
                     report.steps_applied += len(lengths)
-                    lengths, headings, times = [], [], []
+                    lengths, headings, times, offsets = [], [], [], []
                 if kind == 0:
                     if not started:
                         self._start(b.user, b.fix_xy[i], float(b.fix_sigma[i]), float(b.fix_azimuth[i]))
@@ -284,7 +297,7 @@ class BuildingTracker:
                 u.last_t_ms = t
                 r += 1
             if lengths:
-                round_at(rounds, r).add_steps(b.user, lengths, headings, times)
+                round_at(rounds, r).add_steps(b.user, lengths, headings, times, offsets)
                 report.steps_applied += len(lengths)
         return rounds
 
@@ -322,7 +335,10 @@ class BuildingTracker:
             lengths = np.concatenate(rnd.step_len)
             headings = np.concatenate(rnd.step_head)
             self.engine.step(np.array([u.slot for u in users], dtype=np.int64), offsets, lengths, headings)
-            for u, ls, hs, ts in zip(users, rnd.step_len, rnd.step_head, rnd.step_t, strict=True):
+            for u, ls, hs, ts, offs in zip(
+                users, rnd.step_len, rnd.step_head, rnd.step_t, rnd.step_offset, strict=True
+            ):
+                u.add_gyro_steps(ls, hs, offs)
                 path = u.displacement + np.cumsum(np.column_stack([ls * np.cos(hs), ls * np.sin(hs)]), axis=0)
                 walked = u.walked + np.cumsum(ls)
                 u.trail.extend(zip(ts.tolist(), path.tolist(), walked.tolist(), strict=True))

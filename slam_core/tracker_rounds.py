@@ -20,8 +20,22 @@ class UserTrack:
     displacement: np.ndarray = field(default_factory=lambda: np.zeros(2))
     walked: float = 0.0
     origin: np.ndarray = field(default_factory=lambda: np.full(2, np.nan))  # the starting fix
+    gyro_displacement: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    """The steps walked since the fix along their directions without the front-end's north offset."""
+    heading_offset: float = math.nan  # the front-end's latest north offset (clockwise), NaN: none
     trail: list[tuple[int, list[float], float]] = field(default_factory=list)
     """Recent steps: (t, displacement after it, distance walked after it)."""
+
+    def add_gyro_steps(self, lengths: np.ndarray, headings: np.ndarray, offsets: np.ndarray) -> None:
+        """Accumulate steps (counter-clockwise headings) with the clockwise north offset each carried taken
+        back out (NaN: none)."""
+        relative = headings + np.nan_to_num(offsets)
+        self.gyro_displacement = self.gyro_displacement + np.array(
+            [float(np.sum(lengths * np.cos(relative))), float(np.sum(lengths * np.sin(relative)))]
+        )
+        finite = offsets[np.isfinite(offsets)]
+        if finite.size:
+            self.heading_offset = float(finite[-1])
 
     def at(self, t_ms: int) -> tuple[np.ndarray, float]:
         """Dead-reckoned displacement and distance walked at ``t_ms`` (its last step then; the oldest kept
@@ -52,10 +66,14 @@ class Round:
     fix_sigma: list[float] = field(default_factory=list)
 
     step_t: list[np.ndarray] = field(default_factory=list)
+    step_offset: list[np.ndarray] = field(default_factory=list)
     det_observed_t: list[int] = field(default_factory=list)
 
-    def add_steps(self, user: str, lengths: list[float], headings: list[float], times: list[int]) -> None:
+    def add_steps(
+        self, user: str, lengths: list[float], headings: list[float], times: list[int], offsets: list[float]
+    ) -> None:
         self.users.append(user)
+        self.step_offset.append(np.array(offsets))
         self.step_len.append(np.array(lengths))
         self.step_head.append(np.array(headings))
         self.step_t.append(np.array(times, dtype=np.int64))

@@ -63,6 +63,8 @@ class UserBatch:
     step_length: np.ndarray = field(default_factory=_f64)
     step_azimuth: np.ndarray = field(default_factory=_f64)  # clockwise from north, NaN when not given
     step_turn: np.ndarray = field(default_factory=_f64)  # counter-clockwise change, NaN when not given
+    step_heading_offset: np.ndarray = field(default_factory=_f64)
+    """Per step (or empty): the north reference the PDR front-end added to its gyroscope yaw (NaN: none)."""
     detect_t: np.ndarray = field(default_factory=_i64)
     detect_type: np.ndarray = field(default_factory=_i64)
     scan_t: np.ndarray = field(default_factory=_i64)
@@ -94,6 +96,7 @@ class UserBatch:
             and self.fix_sigma.shape == (f,)
             and self.fix_azimuth.shape == (f,)
             and self.step_length.shape == self.step_azimuth.shape == self.step_turn.shape == (s,)
+            and self.step_heading_offset.size in (0, s)
             and self.detect_type.shape == (d,)
             and self.scan_offsets.shape == (c + 1,)
             and int(self.scan_offsets[0]) == 0

@@ -20,6 +20,7 @@ import numpy as np
 
 from server.datasets.msindoor import Trace, read_floor, read_trace
 from slam_core.pdr.frontend import ImuSamples, PdrParams, PdrState, pdr_steps
+from slam_core.pdr.heading import with_final_offset
 from slam_core.signal_map.graph import GraphParams, Trajectories, Walk, position_at, solve
 from slam_core.signal_map.maps import FingerprintGrid, fingerprint_grid, localise_kernel, localise_knn
 from slam_core.signal_map.windows import WINDOW_MS, WINDOW_STEP_MS, rss_matrix, window_counts
@@ -64,10 +65,12 @@ def _prepare(
 ) -> _Prepared | None:
     wp = trace.waypoints
     acc, rv = trace.streams.get("accelerometer"), trace.streams.get("rotation_vector")
+    gyr = trace.streams.get("gyroscope", np.zeros((0, 4)))
     if len(wp) < 2 or acc is None or rv is None or len(acc) == 0 or len(rv) == 0:
         return None
     rv5 = np.column_stack([rv, np.full(len(rv), np.nan)])
-    steps = pdr_steps(PdrState(), ImuSamples(acc, rv=rv5), pdr)
+    steps = pdr_steps(PdrState(), ImuSamples(acc, gyr=gyr, rv=rv5), pdr)
+    azimuths = with_final_offset(steps.azimuth_rad, steps.heading_offset_rad)  # offline: the whole walk
     inside = (steps.t_ms > wp[0, 0]) & (steps.t_ms <= wp[-1, 0])
     if inside.sum() < 2:
         return None
@@ -76,7 +79,7 @@ def _prepare(
     walk = Walk(
         t_ms=np.concatenate([[wp[0, 0]], steps.t_ms[inside]]).astype(np.int64),
         lengths=steps.length_m[inside],
-        headings=np.pi / 2 - steps.azimuth_rad[inside],
+        headings=np.pi / 2 - azimuths[inside],
         start=wp[0, 1:].copy(),
         end=wp[-1, 1:].copy(),
         window_t=centres.astype(np.int64),

@@ -11,6 +11,10 @@ Orientation per accelerometer sample, in order of preference:
    the steps then carry heading changes, not azimuths);
 3. neither: the vertical is taken along the measured acceleration (tilt only) and no direction is known.
 
+With an absolute azimuth and a gyroscope, a step's direction is the gyroscope-integrated yaw referenced to
+north by the causal mean of the absolute azimuth (``heading.gyro_heading``); each step also carries that
+offset, so a consumer can re-rotate the path already walked when the offset estimate improves.
+
 Steps come from ``steps.detect_steps`` on the earth-vertical acceleration (Weinberg length, circular-mean
 direction over the step). The first step after a pause has no Weinberg window: it takes the user's previous
 step length, or ``default_step_m``.
@@ -23,6 +27,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from slam_core.pdr.heading import HeadingParams, current_offset, gyro_heading, vertical_rate
+from slam_core.pdr.heading import new_state as new_heading_state
 from slam_core.pdr.orientation import azimuth, madgwick_run, quaternion_from_rotation_vector
 from slam_core.pdr.steps import StepParams, detect_steps, new_state, vertical_acceleration
 
@@ -33,6 +39,7 @@ _NWU_TO_ENU = np.array([math.cos(math.pi / 4), 0.0, 0.0, math.sin(math.pi / 4)])
 @dataclass(frozen=True)
 class PdrParams:
     steps: StepParams = field(default_factory=StepParams)
+    heading: HeadingParams = field(default_factory=HeadingParams)
     madgwick_gain: float = 0.033
     """ahrs' default gain (Madgwick's beta for a gyroscope error of ~3 deg/s)."""
     default_step_m: float = 0.7
@@ -78,6 +85,7 @@ class PdrState:
     """Everything one user's front-end remembers between batches (pickled with the tracker)."""
 
     steps: np.ndarray = field(default_factory=new_state)
+    heading: np.ndarray = field(default_factory=new_heading_state)
     q: np.ndarray = field(default_factory=lambda: np.full(4, np.nan))  # Madgwick's, NaN until started
     fused_t_ms: float = math.nan
     gyr_hold: np.ndarray = field(default_factory=lambda: np.full(4, np.nan))  # latest (t, x, y, z)
@@ -94,6 +102,9 @@ class PdrSteps:
     length_m: np.ndarray
     azimuth_rad: np.ndarray  # clockwise from north; NaN when only the turn is known
     turn_rad: np.ndarray  # counter-clockwise heading change since the previous step; NaN with an azimuth
+    heading_offset_rad: np.ndarray
+    """The part of each azimuth that references the gyroscope-integrated yaw to north (azimuth minus
+    offset is the relative yaw); NaN when the azimuth is the absolute one as measured."""
 
 
 def _held(samples: np.ndarray, hold: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -152,9 +163,11 @@ def _multiply(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     )
 
 
-def _orientation(state: PdrState, imu: ImuSamples, params: PdrParams) -> tuple[np.ndarray, np.ndarray, bool]:
-    """Per accelerometer sample: an east-north-up quaternion (NaN rows: tilt only), the azimuth, and
-    whether every known azimuth is absolute."""
+def _orientation(
+    state: PdrState, imu: ImuSamples, params: PdrParams
+) -> tuple[np.ndarray, np.ndarray, bool, np.ndarray]:
+    """Per accelerometer sample: an east-north-up quaternion (NaN rows: tilt only), the azimuth, whether
+    every known azimuth is absolute, and the held gyroscope sample (NaN rows: none yet)."""
     t = imu.acc[:, 0]
     rv, state.rv_hold = _held(imu.rv, state.rv_hold, t)
     gyr, state.gyr_hold = _held(imu.gyr, state.gyr_hold, t)
@@ -186,7 +199,7 @@ def _orientation(state: PdrState, imu: ImuSamples, params: PdrParams) -> tuple[n
         )
         state.fused_t_ms = float(t[fuse][-1])
         q[fuse] = _multiply(_NWU_TO_ENU, fused)
-    return q, azimuth(q), absolute
+    return q, azimuth(q), absolute, gyr
 
 
 def drop_stale(state: PdrState, imu: ImuSamples) -> tuple[ImuSamples, int]:
@@ -231,8 +244,19 @@ def pdr_steps(state: PdrState, imu: ImuSamples, params: PdrParams) -> PdrSteps:
         ):
             if rows.size:
                 setattr(state, name, rows[-1].copy())
-        return PdrSteps(np.zeros(0, np.int64), np.zeros(0), np.zeros(0), np.zeros(0))
-    q, yaw, absolute = _orientation(state, imu, params)
+        return PdrSteps(np.zeros(0, np.int64), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0))
+    q, yaw, absolute, gyr = _orientation(state, imu, params)
+    offsets = None
+    if (
+        absolute
+        and params.heading.gyro_heading
+        and (np.isfinite(gyr[:, 0]).any() or not math.isnan(state.heading[0]))
+    ):
+        rate = np.full(t.size, np.nan)
+        known = np.isfinite(q[:, 0]) & np.isfinite(gyr[:, 0])
+        rate[known] = vertical_rate(gyr[known], q[known])
+        offset_before = current_offset(state.heading)
+        yaw, offsets = gyro_heading(state.heading, t, yaw, rate, params.heading)
     tilt_only = np.isnan(q[:, 0])
     vertical = np.empty(t.size)
     if (~tilt_only).any():
@@ -247,10 +271,16 @@ def pdr_steps(state: PdrState, imu: ImuSamples, params: PdrParams) -> PdrSteps:
     lengths = np.clip(lengths, 0.1, 3.0)
     if absolute:
         turns = np.full(step_t.size, np.nan)
-        return PdrSteps(step_t.astype(np.int64), lengths, step_yaw, turns)
+        step_offset = np.full(step_t.size, np.nan)
+        if offsets is not None:  # the offset when the step peaked (before this batch: as it stood then)
+            index = np.searchsorted(t, step_t, side="right") - 1
+            step_offset = np.where(index >= 0, offsets[np.maximum(index, 0)], offset_before)
+            step_yaw = (step_yaw + step_offset + math.pi) % (2 * math.pi) - math.pi
+        return PdrSteps(step_t.astype(np.int64), lengths, step_yaw, turns, step_offset)
     previous = np.concatenate([[state.last_yaw], step_yaw[:-1]])
     turns = -((step_yaw - previous + math.pi) % (2 * math.pi) - math.pi)  # azimuth is clockwise
     turns = np.where(np.isfinite(turns), turns, 0.0)
     if step_yaw.size:
         state.last_yaw = float(step_yaw[-1])
-    return PdrSteps(step_t.astype(np.int64), lengths, np.full(step_t.size, np.nan), turns)
+    nan = np.full(step_t.size, np.nan)
+    return PdrSteps(step_t.astype(np.int64), lengths, nan, turns, nan.copy())

@@ -51,7 +51,7 @@ def _batched(walk: dict[str, np.ndarray], sources: tuple[str, ...], window_ms: f
     return PdrSteps(*(np.concatenate([getattr(p, f) for p in parts]) for f in PdrSteps.__dataclass_fields__))
 
 
-@pytest.mark.parametrize("sources", [("rv",), ("gyr", "mag"), ("gyr",), ()])
+@pytest.mark.parametrize("sources", [("rv",), ("rv", "gyr"), ("gyr", "mag"), ("gyr",), ()])
 def test_one_second_batches_give_the_steps_of_the_whole_walk(sources: tuple[str, ...]) -> None:
     walk = _walk()
     whole = pdr_steps(PdrState(), _imu(walk, sources), PARAMS)

@@ -1,0 +1,68 @@
+"""The tracker's plain dead reckoning: steps from the PDR front-end's gyroscope heading are re-rotated by the
+latest north offset; steps that carry none (a phone's own) add up as sent."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from slam_core.encounters import Calibration, RangeModel
+from slam_core.tracker import BuildingTracker, TrackerParams, UserBatch
+
+T0 = 1_700_000_000_000
+CAL = Calibration(
+    RangeModel("wifi-log", (0.0, 2.0), 3.0), RangeModel("bt-quadratic", (-60.0, -10.0, 0.0), 4.0)
+)
+
+
+def _steps(t0: int, n: int, azimuth: float, offset: float | None, fix: bool) -> UserBatch:
+    """``n`` 1 m steps in the azimuth (clockwise from north) with the front-end's offset (None: none)."""
+    fields: dict[str, object] = {}
+    if fix:
+        fields = {
+            "fix_t": np.array([t0], dtype=np.int64),
+            "fix_xy": np.array([[5.0, 7.0]]),
+            "fix_sigma": np.array([0.5]),
+            "fix_azimuth": np.array([azimuth]),
+        }
+    return UserBatch(
+        user="u",
+        step_t=(t0 + 500 * (1 + np.arange(n))).astype(np.int64),
+        step_length=np.ones(n),
+        step_azimuth=np.full(n, azimuth),
+        step_turn=np.full(n, np.nan),
+        step_heading_offset=np.full(n, np.nan if offset is None else offset),
+        **fields,  # type: ignore[arg-type]
+    )
+
+
+def _dr(tracker: BuildingTracker) -> np.ndarray:
+    position = tracker.dead_reckoning("u")
+    assert position is not None
+    return position
+
+
+def test_latest_offset_turns_the_whole_path_walked() -> None:
+    tracker = BuildingTracker(TrackerParams(), CAL, seed=0)
+    tracker.apply([_steps(T0, 10, math.pi / 2, 0.0, fix=True)])
+    np.testing.assert_allclose(_dr(tracker), np.array([15.0, 7.0]), atol=1e-9)
+    # the front-end's north offset grew by 0.1 rad: the relative yaw is still east, the path turns with it
+    tracker.apply([_steps(T0 + 10_000, 10, math.pi / 2 + 0.1, 0.1, fix=False)])
+    turned = 20.0 * np.array([math.sin(math.pi / 2 + 0.1), math.cos(math.pi / 2 + 0.1)])
+    np.testing.assert_allclose(_dr(tracker), np.array([5.0, 7.0]) + turned, atol=1e-9)
+
+
+def test_steps_without_offset_add_up_as_sent() -> None:
+    tracker = BuildingTracker(TrackerParams(), CAL, seed=0)
+    tracker.apply([_steps(T0, 10, math.pi / 2, None, fix=True)])
+    tracker.apply([_steps(T0 + 10_000, 10, 0.0, None, fix=False)])
+    np.testing.assert_allclose(_dr(tracker), np.array([15.0, 17.0]), atol=1e-9)
+    assert tracker.dead_reckoning("nobody") is None
+
+
+def test_offsets_must_match_the_steps() -> None:
+    batch = _steps(T0, 3, 0.0, 0.0, fix=True)
+    with pytest.raises(ValueError, match="inconsistent array shapes"):
+        UserBatch(**{**batch.__dict__, "step_heading_offset": np.zeros(2)})
