@@ -3,8 +3,9 @@
     python bench/pdr.py [--floor ../shared/data/msindoor20/site1/F1] [--json OUT]
 
 Every walk of the floor goes through ``slam_core.pdr.frontend.pdr_steps`` in the one-second batches a phone
-posts (state carried between batches), with the phone's rotation vector (the server's usual path) and with
-the Madgwick filter on gyroscope + magnetometer (phones without a rotation vector). Time is process CPU time
+posts (state carried between batches), with the phone's rotation vector alone, with the rotation vector and
+the gyroscope (the server's usual path: gyroscope heading referenced to north) and with the Madgwick filter
+on gyroscope + magnetometer (phones without a rotation vector). Time is process CPU time
 on one thread. Prints one JSON object: realtime_x per orientation source, per-batch microseconds, steps.
 """
 
@@ -63,7 +64,11 @@ def main() -> None:
         "walks": len(walks),
         "data_seconds": round(seconds, 1),
     }
-    for label, sources in (("rotation_vector", ("rv",)), ("madgwick_marg", ("gyr", "mag"))):
+    for label, sources in (
+        ("rotation_vector", ("rv",)),
+        ("rotation_vector_gyro", ("rv", "gyr")),
+        ("madgwick_marg", ("gyr", "mag")),
+    ):
         prepared = [_batches(w, sources) for w in walks]
         pdr_steps(PdrState(), prepared[0][0], params)  # compile / load the kernels outside the timing
         steps = 0
