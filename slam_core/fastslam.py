@@ -204,6 +204,17 @@ class DynamicSlam:
             self.tag_crowd_ids(users, used_slot, crowd_ids)
         self._resample(users)
 
+    def shift(self, users: np.ndarray, dxy: np.ndarray) -> None:
+        """Translate every particle of each user by ``dxy[i]`` (a revision of the user's dead-reckoned path,
+        beyond the paper: see ``BuildingTracker._revise_headings``); weights, biases and maps unchanged."""
+        users = np.ascontiguousarray(users, dtype=np.int64)
+        dxy = np.ascontiguousarray(dxy, dtype=np.float64).reshape(-1, 2)
+        self._check_users(users)
+        if dxy.shape != (users.size, 2) or not np.all(np.isfinite(dxy)):
+            raise ValueError("one finite shift (dx, dy) per user")
+        self.state.x[users] += dxy[:, :1]
+        self.state.y[users] += dxy[:, 1:]
+
     def observe_position(self, users: np.ndarray, xy: np.ndarray, sigma: np.ndarray) -> np.ndarray:
         """A position fix per user (a tag with an encoded position, a known-anchor reading, a kiosk): each
         particle is weighted by N(fix; particle, sigma^2 I), then the user is resampled. Beyond the paper,

@@ -346,6 +346,8 @@ class BuildingTracker:
                     u.trail.pop(0)
                 u.displacement = path[-1].copy()
                 u.walked = float(walked[-1])
+            if self.params.revise_headings:
+                self._revise_headings(users)
         plain = [k for k, s in enumerate(rnd.det_signature) if not s]
         signed = [k for k, s in enumerate(rnd.det_signature) if s]
         if plain:
@@ -360,6 +362,8 @@ class BuildingTracker:
                     self.crowd.contribute(self._users[name].number, row[0:2], cov, f, float(rnd.det_t[k]))
                 )
             self.engine.observe_building_anchors(slots, np.array(types), np.array(ids))
+            for name in names:
+                self._users[name].pin()
             self._add_to_graph(names, ids, changed)
         if signed:
             self._observe_signatures(rnd, signed, reports, changed)
@@ -368,6 +372,22 @@ class BuildingTracker:
             recentred = self.engine.observe_position(slots, np.array(rnd.fix_xy), np.array(rnd.fix_sigma))
             for name, flag in zip(rnd.fix_users, recentred, strict=True):
                 reports[name].recentred += int(flag)
+                self._users[name].pin()
+
+    def _revise_headings(self, users: list[UserTrack]) -> None:
+        """Beyond both papers: the PDR front-end sends each step with its current estimate of the north
+        offset of its gyroscope yaw (``slam_core.pdr.heading``), an estimate that improves as the walk goes
+        on. The path dead-reckoned since the user's last absolute observation is then due the same turn the
+        tracker's plain dead reckoning makes; its particles are translated by that revision (the cloud keeps
+        its shape: each particle's own bias and scale still apply on top)."""
+        slots, shifts = [], []
+        for u in users:
+            shift = u.revision()
+            if float(np.hypot(*shift)) > 1e-9:
+                slots.append(u.slot)
+                shifts.append(shift)
+        if slots:
+            self.engine.shift(np.array(slots, dtype=np.int64), np.array(shifts))
 
     def _add_to_graph(self, names: list[str], ids: list[int], changed: set[int]) -> None:
         changed.update(ids)
@@ -408,6 +428,7 @@ class BuildingTracker:
                     <= self.params.signature_gate_chi2
                 ):
                     fix_slots.append(u.slot)
+                    u.pin()
                     fix_xy.append(mean)
                     fix_sigma.append(math.sqrt(variance))
                     reports[name].signatures_applied += 1

@@ -23,6 +23,10 @@ class UserTrack:
     gyro_displacement: np.ndarray = field(default_factory=lambda: np.zeros(2))
     """The steps walked since the fix along their directions without the front-end's north offset."""
     heading_offset: float = math.nan  # the front-end's latest north offset (clockwise), NaN: none
+    since_gyro: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    """``gyro_displacement`` since the last absolute observation (fix, anchor): what a revision turns."""
+    since_laid: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    """What the filter was moved by since then (steps as sent, plus earlier revisions)."""
     trail: list[tuple[int, list[float], float]] = field(default_factory=list)
     """Recent steps: (t, displacement after it, distance walked after it)."""
 
@@ -30,12 +34,33 @@ class UserTrack:
         """Accumulate steps (counter-clockwise headings) with the clockwise north offset each carried taken
         back out (NaN: none)."""
         relative = headings + np.nan_to_num(offsets)
-        self.gyro_displacement = self.gyro_displacement + np.array(
+        gyro = np.array(
             [float(np.sum(lengths * np.cos(relative))), float(np.sum(lengths * np.sin(relative)))]
+        )
+        self.gyro_displacement = self.gyro_displacement + gyro
+        self.since_gyro = self.since_gyro + gyro
+        self.since_laid = self.since_laid + np.array(
+            [float(np.sum(lengths * np.cos(headings))), float(np.sum(lengths * np.sin(headings)))]
         )
         finite = offsets[np.isfinite(offsets)]
         if finite.size:
             self.heading_offset = float(finite[-1])
+
+    def revision(self) -> np.ndarray:
+        """How far the path since the last absolute observation moves when all of it takes the latest north
+        offset (zero without one); counted as laid."""
+        if not math.isfinite(self.heading_offset):
+            return np.zeros(2)
+        c, s = math.cos(self.heading_offset), math.sin(self.heading_offset)
+        gx, gy = self.since_gyro  # a clockwise azimuth offset turns the relative path clockwise
+        shift: np.ndarray = np.array([c * gx + s * gy, -s * gx + c * gy]) - self.since_laid
+        self.since_laid = self.since_laid + shift
+        return shift
+
+    def pin(self) -> None:
+        """An absolute observation was applied: the path before it is no longer the filter's to revise."""
+        self.since_gyro = np.zeros(2)
+        self.since_laid = np.zeros(2)
 
     def at(self, t_ms: int) -> tuple[np.ndarray, float]:
         """Dead-reckoned displacement and distance walked at ``t_ms`` (its last step then; the oldest kept

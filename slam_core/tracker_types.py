@@ -35,6 +35,9 @@ class TrackerParams:
     left to the gate."""
     signature_gate_chi2: float = 9.21
     """A signature observation more than this (99 %, 2 dof) from the user's cloud is skipped and counted."""
+    revise_headings: bool = True
+    """When the PDR front-end's north offset estimate moves, translate the user's particles by the revision
+    of the path dead-reckoned since its last absolute observation (``BuildingTracker._revise_headings``)."""
 
     def __post_init__(self) -> None:
         if self.crowd_solver not in CROWD_SOLVERS:

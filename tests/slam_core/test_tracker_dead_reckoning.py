@@ -66,3 +66,60 @@ def test_offsets_must_match_the_steps() -> None:
     batch = _steps(T0, 3, 0.0, 0.0, fix=True)
     with pytest.raises(ValueError, match="inconsistent array shapes"):
         UserBatch(**{**batch.__dict__, "step_heading_offset": np.zeros(2)})
+
+
+def _estimate(tracker: BuildingTracker) -> np.ndarray:
+    row = tracker.estimate("u")
+    assert row is not None
+    return np.array([row.x, row.y])
+
+
+def _pair(second_fix: bool) -> tuple[np.ndarray, np.ndarray]:
+    """The same walk through a tracker that revises and one that does not: their estimates."""
+    out = []
+    for revise in (True, False):
+        tracker = BuildingTracker(TrackerParams(revise_headings=revise), CAL, seed=4)
+        tracker.apply([_steps(T0, 10, math.pi / 2, 0.0, fix=True)])
+        second = _steps(T0 + 10_000, 10, math.pi / 2 + 0.1, 0.1, fix=False)
+        if second_fix:  # an absolute observation where the filter already is, before the turned steps
+            where = _estimate(tracker)
+            second = UserBatch(
+                **{
+                    **second.__dict__,
+                    "fix_t": np.array([T0 + 10_000], dtype=np.int64),
+                    "fix_xy": where[None, :],
+                    "fix_sigma": np.array([3.0]),
+                    "fix_azimuth": np.array([math.nan]),
+                }
+            )
+        tracker.apply([second])
+        out.append(_estimate(tracker))
+    return out[0], out[1]
+
+
+def test_filter_is_moved_by_the_revision_of_the_path_since_the_last_fix() -> None:
+    revised, plain = _pair(second_fix=False)
+    # the first ten metres east were laid with offset 0; at offset 0.1 they turn 0.1 rad clockwise
+    expected = 10.0 * np.array([math.cos(0.1) - 1.0, -math.sin(0.1)])
+    np.testing.assert_allclose(revised - plain, expected, atol=1e-9)
+    # after an absolute observation the path before it is not revised
+    revised, plain = _pair(second_fix=True)
+    np.testing.assert_allclose(revised, plain, atol=1e-9)
+
+
+def test_engine_shift_translates_particles_and_checks_its_input() -> None:
+    tracker = BuildingTracker(TrackerParams(), CAL, seed=4)
+    tracker.apply([_steps(T0, 3, 0.0, None, fix=True)])
+    engine = tracker.engine
+    slot = np.flatnonzero(engine.state.active)
+    before = (engine.state.x[slot].copy(), engine.state.y[slot].copy(), engine.state.logw[slot].copy())
+    engine.shift(slot, np.array([[1.5, -2.0]]))
+    np.testing.assert_allclose(engine.state.x[slot], before[0] + 1.5)
+    np.testing.assert_allclose(engine.state.y[slot], before[1] - 2.0)
+    np.testing.assert_array_equal(engine.state.logw[slot], before[2])
+    for bad in (np.array([[math.nan, 0.0]]), np.zeros((2, 2))):
+        with pytest.raises(ValueError, match="one finite shift"):
+            engine.shift(slot, bad)
+    with pytest.raises(ValueError, match="unknown user slot"):
+        engine.shift(np.array([99]), np.zeros((1, 2)))
+    np.testing.assert_allclose(engine.state.x[slot], before[0] + 1.5)
