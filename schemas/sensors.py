@@ -39,6 +39,8 @@ MAX_APS_PER_SCAN = 1024
 MAX_BLUETOOTH_SIGHTINGS = 3_000
 MAX_LANDMARKS = 100
 MAX_LTE_MEASUREMENTS = 300
+MIN_PRESSURE_HPA, MAX_PRESSURE_HPA = 300.0, 1100.0
+"""Air pressure from the top of Everest to below the Dead Sea, with margin."""
 MAX_BATCH_BYTES = 2 * 1024 * 1024
 """Largest accepted request body (bytes); larger bodies are refused with 413 before parsing."""
 
@@ -396,6 +398,13 @@ class SensorBatch(WireModel):
             for i in range(1, len(items)):
                 if items[i].t_ms <= items[i - 1].t_ms:
                     raise ValueError(f"{name}[{i}].t_ms must be after {name}[{i - 1}].t_ms")
+        if self.pressure is not None:
+            for i, hpa in enumerate(self.pressure.value):
+                if not MIN_PRESSURE_HPA <= hpa <= MAX_PRESSURE_HPA:
+                    raise ValueError(
+                        f"pressure.value[{i}] = {hpa} hPa is not an air pressure "
+                        f"({MIN_PRESSURE_HPA:g}-{MAX_PRESSURE_HPA:g} hPa)"
+                    )
         span = self.time_span_ms()
         if span is not None and span[1] - span[0] > MAX_BATCH_SPAN_MS:
             raise ValueError(

@@ -141,6 +141,11 @@ def _imu(batch: SensorBatch) -> ImuSamples | None:
         mag=_vector(batch.magnetometer),
         rv=_rotation(batch.rotation_vector),
         grv=_rotation(batch.game_rotation_vector),
+        pressure=(
+            np.zeros((0, 2))
+            if batch.pressure is None
+            else np.column_stack([batch.pressure.t_ms, batch.pressure.value]).astype(np.float64)
+        ),
     )
 
 

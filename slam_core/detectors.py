@@ -12,8 +12,8 @@
   from. The signature makes the anchor identifiable, so the crowd map associates it by identity instead of
   by position.
 
-Elevators, stairs and escalators need a barometer or vertical displacement across floors; the shared walks
-are single-floor and carry no barometer, so no detector for them is built or claimed here.
+- **Changes of floor** (elevators, stairs, escalators) from the barometer: ``slam_core.vertical``. Without a
+  barometer none is detected (the shared msindoor walks are single-floor and carry none).
 
 Type indices are the engine's (``server.convert.ENGINE_ANCHOR_TYPES`` order). Pure numerics: no I/O.
 """
@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from slam_core.vertical import VerticalParams, VerticalState
 from slam_core.wifi_pairs import STALE_AP_MS
 
 
@@ -51,6 +52,7 @@ class DetectorParams:
     turn_type: int = 3
     beacon_type: int = 6
     wifi_type: int = 7
+    vertical: VerticalParams = field(default_factory=VerticalParams)
 
     def __post_init__(self) -> None:
         if not (
@@ -68,6 +70,7 @@ class DetectorState:
     headings: list[float] = field(default_factory=list)  # the last steps' headings (ccw from east)
     steps_since_turn: int = 1_000_000
     visits: dict[str, _Visit] = field(default_factory=dict)  # signature -> its current visit
+    vertical: VerticalState = field(default_factory=VerticalState)
 
 
 @dataclass(frozen=True)
@@ -230,8 +233,14 @@ def step_headings(state: DetectorState, azimuth: np.ndarray, turn: np.ndarray) -
     return integrate_headings(azimuth, turn, state.headings[-1] if state.headings else 0.0)
 
 
-def merge_events(turns: list[int], radio: list[tuple[int, int, str, int]], turn_type: int) -> AnchorEvents:
-    rows = sorted([(t, turn_type, "", t) for t in turns] + radio)
+def merge_events(
+    turns: list[int],
+    radio: list[tuple[int, int, str, int]],
+    turn_type: int,
+    floors: list[tuple[int, int, str, int]] | None = None,
+) -> AnchorEvents:
+    """One batch's detections in report order: (report time, type, signature, observed time) rows."""
+    rows = sorted([(t, turn_type, "", t) for t in turns] + radio + (floors or []))
     if not rows:
         return AnchorEvents.empty()
     return AnchorEvents(

@@ -1,5 +1,6 @@
 """The server-side sensor front-end of phones that send raw IMU: per user, the online PDR (steps) and the
-building-anchor detectors (turns, strong beacons, strong WiFi APs), all state carried between batches.
+building-anchor detectors (turns, strong beacons, strong WiFi APs, changes of floor), all state carried
+between batches.
 
 Phones that count their own steps are expected to run their own detectors too (they send
 ``anchor_detections``); the tracker only calls this for batches with raw IMU and no steps.
@@ -21,6 +22,7 @@ from slam_core.detectors import (
     step_headings,
 )
 from slam_core.pdr.frontend import ImuSamples, PdrParams, PdrState, PdrSteps, drop_stale, pdr_steps
+from slam_core.vertical import detect_floor_changes
 
 
 @dataclass(frozen=True)
@@ -50,7 +52,7 @@ class FrontEnd:
         self.detectors = detectors
         self._pdr: dict[str, PdrState] = {}
         self._detect: dict[str, DetectorState] = {}
-        self.fired = {"turn": 0, "beacon": 0, "wifi": 0}
+        self.fired = {"turn": 0, "beacon": 0, "wifi": 0, "elevator": 0, "stairs": 0, "escalator": 0}
 
     def forget(self, user: str) -> None:
         self._pdr.pop(user, None)
@@ -70,7 +72,21 @@ class FrontEnd:
             detect, p, radio.scan_t, radio.scan_offsets, radio.scan_bssid, radio.scan_rss,
             radio.scan_last_seen, radio.beacon_t, radio.beacon_mac, radio.beacon_rss,
         )  # fmt: skip
+        floors = []
+        pressure = imu.pressure
+        last = detect.vertical.last_t
+        if pressure.size and not np.isnan(last) and pressure[0, 0] <= last:  # a late or re-sent batch
+            fresh = pressure[pressure[:, 0] > last]
+            dropped += pressure.shape[0] - fresh.shape[0]
+            pressure = fresh
+        if p.vertical.enabled and pressure.size:
+            v = p.vertical
+            changes = detect_floor_changes(detect.vertical, v, pressure, steps.t_ms)
+            floors = [(c.t_ms, c.type_index, "", c.observed_t_ms) for c in changes]
+            for c in changes:
+                kind = {v.elevator_type: "elevator", v.stairs_type: "stairs"}.get(c.type_index, "escalator")
+                self.fired[kind] += 1
         self.fired["turn"] += len(turns)
         self.fired["beacon"] += sum(e[1] == p.beacon_type for e in radio_events)
         self.fired["wifi"] += sum(e[1] == p.wifi_type for e in radio_events)
-        return FrontEndOutput(steps, merge_events(turns, radio_events, p.turn_type), dropped)
+        return FrontEndOutput(steps, merge_events(turns, radio_events, p.turn_type, floors), dropped)

@@ -61,9 +61,16 @@ class ImuSamples:
     rv: np.ndarray = field(default_factory=lambda: np.zeros((0, 5)))
     grv: np.ndarray = field(default_factory=lambda: np.zeros((0, 5)))
     """Game rotation vector, as ``rv``."""
+    pressure: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    """Barometer (t_ms, hPa): not used by the PDR itself, by the floor-change detector beside it."""
 
     def __post_init__(self) -> None:
-        for name, rows, width in (("acc", self.acc, 4), ("gyr", self.gyr, 4), ("mag", self.mag, 4)):
+        for name, rows, width in (
+            ("acc", self.acc, 4),
+            ("gyr", self.gyr, 4),
+            ("mag", self.mag, 4),
+            ("pressure", self.pressure, 2),
+        ):
             _check_stream(name, rows, width)
         for name, rows in (("rv", self.rv), ("grv", self.grv)):
             _check_stream(name, rows, 5)
@@ -74,7 +81,7 @@ class ImuSamples:
 def _check_stream(name: str, rows: np.ndarray, width: int) -> None:
     if rows.ndim != 2 or rows.shape[1] != width:
         raise ValueError(f"{name}: expected an (N, {width}) array, got shape {rows.shape}")
-    if width == 4 and not np.all(np.isfinite(rows)):
+    if width in (2, 4) and not np.all(np.isfinite(rows)):
         raise ValueError(f"{name}: samples must be finite")
     if rows.shape[0] > 1 and np.any(np.diff(rows[:, 0]) <= 0):
         raise ValueError(f"{name}: sample times must strictly increase")
@@ -220,7 +227,7 @@ def drop_stale(state: PdrState, imu: ImuSamples) -> tuple[ImuSamples, int]:
             dropped += rows.shape[0] - fresh.shape[0]
             rows = fresh
         kept[name] = rows
-    return (ImuSamples(**kept) if dropped else imu), dropped
+    return (ImuSamples(**kept, pressure=imu.pressure) if dropped else imu), dropped
 
 
 def pdr_steps(state: PdrState, imu: ImuSamples, params: PdrParams) -> PdrSteps:

@@ -164,6 +164,13 @@ CASES: list[tuple[str, Mutation, int, str, str]] = [
         f"at most {MAX_IMU_SAMPLES} items",
     ),
     (
+        "pressure that is no air pressure",
+        _set("pressure", {"t_ms": [1700000000000, 1700000000100], "value": [1001.0, 50.0]}),
+        422,
+        "body",
+        "pressure.value[1] = 50.0 hPa is not an air pressure",
+    ),
+    (
         "batch spans two minutes",
         _set("steps.0.t_ms", 1700000120000),
         422,
