@@ -12,8 +12,9 @@
   from. The signature makes the anchor identifiable, so the crowd map associates it by identity instead of
   by position.
 
-- **Changes of floor** (elevators, stairs, escalators) from the barometer: ``slam_core.vertical``. Without a
-  barometer none is detected (the shared msindoor walks are single-floor and carry none).
+- **Changes of floor** (elevators, stairs, escalators) from the barometer: ``slam_core.vertical``; without a
+  barometer, lift rides from the accelerometer while the user stands: ``slam_core.lift`` (the shared
+  msindoor walks are single-floor and carry no barometer: neither fires there).
 
 Type indices are the engine's (``server.convert.ENGINE_ANCHOR_TYPES`` order). Pure numerics: no I/O.
 """
@@ -25,6 +26,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from slam_core.lift import LiftParams
+from slam_core.lift import new_state as new_lift_state
 from slam_core.vertical import VerticalParams, VerticalState
 from slam_core.wifi_pairs import STALE_AP_MS
 
@@ -53,6 +56,8 @@ class DetectorParams:
     beacon_type: int = 6
     wifi_type: int = 7
     vertical: VerticalParams = field(default_factory=VerticalParams)
+    lift: LiftParams = field(default_factory=LiftParams)
+    """Used only for users who have never sent pressure."""
 
     def __post_init__(self) -> None:
         if not (
@@ -71,6 +76,7 @@ class DetectorState:
     steps_since_turn: int = 1_000_000
     visits: dict[str, _Visit] = field(default_factory=dict)  # signature -> its current visit
     vertical: VerticalState = field(default_factory=VerticalState)
+    lift: np.ndarray = field(default_factory=new_lift_state)
 
 
 @dataclass(frozen=True)

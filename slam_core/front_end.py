@@ -21,6 +21,7 @@ from slam_core.detectors import (
     merge_events,
     step_headings,
 )
+from slam_core.lift import detect_lift_rides
 from slam_core.pdr.frontend import ImuSamples, PdrParams, PdrState, PdrSteps, drop_stale, pdr_steps
 from slam_core.vertical import detect_floor_changes
 
@@ -86,6 +87,10 @@ class FrontEnd:
             for c in changes:
                 kind = {v.elevator_type: "elevator", v.stairs_type: "stairs"}.get(c.type_index, "escalator")
                 self.fired[kind] += 1
+        elif p.lift.enabled and np.isnan(detect.vertical.last_t) and imu.acc.size:  # no barometer
+            ride_t, _ = detect_lift_rides(detect.lift, p.lift, imu.acc, steps.t_ms)
+            floors = [(int(t), p.lift.type_index, "", int(t)) for t in ride_t]
+            self.fired["elevator"] += len(floors)
         self.fired["turn"] += len(turns)
         self.fired["beacon"] += sum(e[1] == p.beacon_type for e in radio_events)
         self.fired["wifi"] += sum(e[1] == p.wifi_type for e in radio_events)

@@ -163,3 +163,101 @@ def test_front_end_reports_a_lift_ride_of_a_raw_imu_phone() -> None:
     again = front.process("u", ImuSamples(acc=acc, pressure=pressure), radio)
     assert again.anchors.t_ms.size == 0
     assert again.imu_samples_dropped == acc.shape[0] + pressure.shape[0]
+
+
+# ----------------------------------------------------------------- lift rides from the accelerometer
+
+
+def _standing_ride(
+    rise_sign: float, seed: int = 0, accel: float = 0.8, cruise_s: float = 5.0, walk_after: bool = True
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """50 Hz accelerometer (phone held at a tilt, 0.04 m/s^2 noise, a 1 % scale error) of a user who walks
+    in, stands 6 s, rides (accel for 1.5 s, cruise, decel 1.5 s), stands 2 s, walks out; step times; the
+    ride's end."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, 40.0, 0.02)
+    start = 10.0
+    a = np.zeros(t.size)
+    a[(t >= start) & (t < start + 1.5)] = accel
+    end_cruise = start + 1.5 + cruise_s
+    a[(t >= end_cruise) & (t < end_cruise + 1.5)] = -accel
+    a *= rise_sign
+    magnitude = 1.01 * (GRAVITY + a) + rng.normal(0.0, 0.04, t.size)
+    tilt = np.radians(35.0)
+    acc = np.column_stack(
+        [T0 + 1e3 * t, np.zeros(t.size), magnitude * np.sin(tilt), magnitude * np.cos(tilt)]
+    )
+    steps = np.arange(0.0, 4.0, 0.55)
+    ride_end = end_cruise + 1.5
+    if walk_after:
+        steps = np.concatenate([steps, np.arange(ride_end + 2.0, 40.0, 0.55)])
+    return acc, (T0 + 1e3 * steps).astype(np.int64), T0 + 1e3 * ride_end
+
+
+GRAVITY = 9.80665
+
+
+@pytest.mark.parametrize("sign", [1.0, -1.0])
+def test_a_lift_ride_is_found_from_the_accelerometer_while_standing(sign: float) -> None:
+    from slam_core.lift import LiftParams, detect_lift_rides, new_state
+
+    acc, steps, end = _standing_ride(sign)
+    ride_t, rise = detect_lift_rides(new_state(), LiftParams(), acc, steps)
+    assert ride_t.size == 1
+    assert abs(int(ride_t[0]) - end) < 1_500
+    assert np.sign(rise[0]) == sign
+    assert 4.0 < abs(rise[0]) < 11.0  # 1.2 m/s for 6.5 s: 7.8 m, integrated from a biased accelerometer
+
+
+def test_standing_still_or_walking_is_no_lift_ride() -> None:
+    from slam_core.lift import LiftParams, detect_lift_rides, new_state
+
+    standing, steps, _ = _standing_ride(1.0, accel=0.0)
+    assert detect_lift_rides(new_state(), LiftParams(), standing, steps)[0].size == 0
+    acc, _, _ = _standing_ride(1.0)
+    walking = (T0 + 1e3 * np.arange(0.0, 40.0, 0.55)).astype(np.int64)  # the same motion, but walking
+    assert detect_lift_rides(new_state(), LiftParams(), acc, walking)[0].size == 0
+    bump, steps, _ = _standing_ride(1.0, cruise_s=0.0, accel=0.3)  # sitting down, a short sway
+    assert detect_lift_rides(new_state(), LiftParams(), bump, steps)[0].size == 0
+
+
+def test_lift_rides_in_one_second_batches_match_the_whole_stream() -> None:
+    from slam_core.lift import LiftParams, detect_lift_rides, new_state
+
+    acc, steps, _ = _standing_ride(-1.0, seed=5)
+    whole = detect_lift_rides(new_state(), LiftParams(), acc, steps)
+    state = new_state()
+    parts = []
+    for start in np.arange(acc[0, 0], acc[-1, 0] + 1, 1000.0):
+        rows = acc[(acc[:, 0] >= start) & (acc[:, 0] < start + 1000.0)]
+        parts.append(
+            detect_lift_rides(state, LiftParams(), rows, steps[(steps >= start) & (steps < start + 1000)])
+        )
+    np.testing.assert_array_equal(np.concatenate([p[0] for p in parts]), whole[0])
+    np.testing.assert_allclose(np.concatenate([p[1] for p in parts]), whole[1], rtol=1e-12)
+    with pytest.raises(ValueError, match="across batches"):
+        detect_lift_rides(state, LiftParams(), acc[:5], np.zeros(0, np.int64))
+    with pytest.raises(ValueError, match="finite"):
+        detect_lift_rides(new_state(), LiftParams(), np.array([[T0, math.nan, 0.0, 9.8]]), np.zeros(0))
+    with pytest.raises(ValueError, match="bias_s > lowpass_s"):
+        LiftParams(bias_s=0.1)
+
+
+def test_front_end_uses_the_accelerometer_only_without_a_barometer() -> None:
+    from slam_core.detectors import DetectorParams
+    from slam_core.front_end import FrontEnd, RadioArrays
+    from slam_core.pdr.frontend import ImuSamples, PdrParams
+
+    acc, _, end = _standing_ride(1.0, walk_after=False)
+    radio = RadioArrays(
+        np.zeros(0, np.int64), np.zeros(1, np.int64), (), np.zeros(0), np.zeros(0, np.int64),
+        np.zeros(0, np.int64), (), np.zeros(0),
+    )  # fmt: skip
+    front = FrontEnd(PdrParams(), DetectorParams())
+    out = front.process("u", ImuSamples(acc=acc), radio)
+    assert out.anchors.type_index.tolist() == [0]
+    assert abs(int(out.anchors.t_ms[0]) - end) < 1_500
+    # a phone with a barometer: the barometer decides (a flat pressure: no ride)
+    flat = np.column_stack([acc[::10, 0], np.full(acc[::10].shape[0], 1000.0)])
+    out = FrontEnd(PdrParams(), DetectorParams()).process("v", ImuSamples(acc=acc, pressure=flat), radio)
+    assert out.anchors.t_ms.size == 0
