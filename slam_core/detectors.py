@@ -15,6 +15,7 @@
 - **Changes of floor** (elevators, stairs, escalators) from the barometer: ``slam_core.vertical``; without a
   barometer, lift rides from the accelerometer while the user stands: ``slam_core.lift`` (the shared
   msindoor walks are single-floor and carry no barometer: neither fires there).
+- **Magnetic anomalies** (organic anchors, SemanticSLAM): ``slam_core.magnetic``; off by default.
 
 Type indices are the engine's (``server.convert.ENGINE_ANCHOR_TYPES`` order). Pure numerics: no I/O.
 """
@@ -28,6 +29,7 @@ import numpy as np
 
 from slam_core.lift import LiftParams
 from slam_core.lift import new_state as new_lift_state
+from slam_core.magnetic import MagneticParams, MagneticState
 from slam_core.vertical import VerticalParams, VerticalState
 from slam_core.wifi_pairs import STALE_AP_MS
 
@@ -58,6 +60,7 @@ class DetectorParams:
     vertical: VerticalParams = field(default_factory=VerticalParams)
     lift: LiftParams = field(default_factory=LiftParams)
     """Used only for users who have never sent pressure."""
+    magnetic: MagneticParams = field(default_factory=MagneticParams)
 
     def __post_init__(self) -> None:
         if not (
@@ -77,6 +80,7 @@ class DetectorState:
     visits: dict[str, _Visit] = field(default_factory=dict)  # signature -> its current visit
     vertical: VerticalState = field(default_factory=VerticalState)
     lift: np.ndarray = field(default_factory=new_lift_state)
+    magnetic: MagneticState = field(default_factory=MagneticState)
 
 
 @dataclass(frozen=True)

@@ -22,6 +22,7 @@ from slam_core.detectors import (
     step_headings,
 )
 from slam_core.lift import detect_lift_rides
+from slam_core.magnetic import detect_magnetic_anomalies
 from slam_core.pdr.frontend import ImuSamples, PdrParams, PdrState, PdrSteps, drop_stale, pdr_steps
 from slam_core.vertical import detect_floor_changes
 
@@ -53,7 +54,15 @@ class FrontEnd:
         self.detectors = detectors
         self._pdr: dict[str, PdrState] = {}
         self._detect: dict[str, DetectorState] = {}
-        self.fired = {"turn": 0, "beacon": 0, "wifi": 0, "elevator": 0, "stairs": 0, "escalator": 0}
+        self.fired = {
+            "turn": 0,
+            "beacon": 0,
+            "wifi": 0,
+            "elevator": 0,
+            "stairs": 0,
+            "escalator": 0,
+            "magnetic": 0,
+        }
 
     def forget(self, user: str) -> None:
         self._pdr.pop(user, None)
@@ -73,7 +82,7 @@ class FrontEnd:
             detect, p, radio.scan_t, radio.scan_offsets, radio.scan_bssid, radio.scan_rss,
             radio.scan_last_seen, radio.beacon_t, radio.beacon_mac, radio.beacon_rss,
         )  # fmt: skip
-        floors = []
+        floors: list[tuple[int, int, str, int]] = []
         pressure = imu.pressure
         last = detect.vertical.last_t
         if pressure.size and not np.isnan(last) and pressure[0, 0] <= last:  # a late or re-sent batch
@@ -91,6 +100,10 @@ class FrontEnd:
             ride_t, _ = detect_lift_rides(detect.lift, p.lift, imu.acc, steps.t_ms)
             floors = [(int(t), p.lift.type_index, "", int(t)) for t in ride_t]
             self.fired["elevator"] += len(floors)
+        if p.magnetic.enabled and imu.mag.size:
+            anomalies = detect_magnetic_anomalies(detect.magnetic, p.magnetic, imu.mag)
+            floors += [(t, p.magnetic.type_index, "", peak) for t, peak in anomalies]
+            self.fired["magnetic"] += len(anomalies)
         self.fired["turn"] += len(turns)
         self.fired["beacon"] += sum(e[1] == p.beacon_type for e in radio_events)
         self.fired["wifi"] += sum(e[1] == p.wifi_type for e in radio_events)

@@ -5,9 +5,9 @@ While the user stands (not two steps within ``still_ms``: the step detector may 
 one), the accelerometer's magnitude minus gravity is the vertical acceleration whatever the phone's
 attitude (the horizontal part is nil). Its resting bias is tracked, the rest is low-passed and integrated
 into vertical speed and height; a ride is a speed of at least ``min_speed_mps`` that comes back to rest
-having moved at least ``min_rise_m``. A step, a gap or an
-overlong ride abandons it; a bump that never builds speed is dropped. Per user, sample by sample with all
-state in one float array (numba), so a stream whole or in one-second batches gives the same rides.
+having moved at least ``min_rise_m``. A step, a gap or an overlong ride abandons it; a bump that never
+builds speed is dropped. Per user, sample by sample with all state in one float array (numba), so a stream
+whole or in one-second batches gives the same rides.
 """
 
 from __future__ import annotations
