@@ -47,7 +47,10 @@ class Counters:
     late: int = 0
     estimates: int = 0
     encounters: int = 0
+    """Detections chosen as human anchors (``slam_core.encounter_selection``), applied or gated."""
     encounters_applied: int = 0
+    encounter_detections: int = 0
+    """Every WiFi or Bluetooth encounter detection, chosen or not."""
     steps_dropped: int = 0
     steps_detected: int = 0
     """Steps the PDR front-end found in raw IMU."""
@@ -370,6 +373,7 @@ class BuildingSession:
                 encounters = [convert.encounter_event(e, self.building_id) for e in outcome.encounters]
                 self.counters.encounters += len(encounters)
                 self.counters.encounters_applied += sum(e.applied for e in encounters)
+                self.counters.encounter_detections += outcome.detections
                 estimates = {u: self._estimate(u, row) for u, row in outcome.estimates.items()}
                 self.counters.estimates += len(estimates)
                 if self.recorder is not None:

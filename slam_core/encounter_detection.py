@@ -7,10 +7,10 @@ its strongest N APs: an inverted index from those APs to recent scans finds ever
 of a scan does not grow with the number of users in the building.
 
 Bluetooth: a phone's sighting of another phone's advertised id, averaged per pair (both directions) over
-``bt_smoothing_ms``, is an encounter above the -90 dBm cut-off.
+``bt_smoothing_ms`` (one sighting period), is an encounter above the -90 dBm cut-off.
 
-Both: at most one encounter per pair and model every ``pair_cooldown_ms``, and only when the calibrated
-range's standard deviation is at most ``max_sigma_m`` (the same rules as the simulated evaluation).
+Every detection is reported with its calibrated range and R; which ones become human anchors is chosen by
+the tracker from the filters' estimates (``slam_core.encounter_selection``), as in the simulated evaluation.
 """
 
 from __future__ import annotations
@@ -21,7 +21,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from slam_core.encounters import BluetoothParams, Calibration, WifiEq3Params, WifiFingerprintParams
+from slam_core.encounters import (
+    BluetoothParams,
+    Calibration,
+    RangeModel,
+    WifiEq3Params,
+    WifiFingerprintParams,
+)
 from slam_core.wifi_pairs import STALE_AP_MS
 
 MODEL_WIFI = 0
@@ -35,9 +41,8 @@ class DetectionParams:
     wifi: WifiEq3Params = field(default_factory=WifiEq3Params)
     bluetooth: BluetoothParams = field(default_factory=BluetoothParams)
     scan_pair_window_ms: int = 1_000
-    pair_cooldown_ms: int = 30_000
-    max_sigma_m: float = 5.0
-    bt_smoothing_ms: int = 4_000
+    bt_smoothing_ms: int = 1_000
+    """One sighting period: a longer window blurs the range of pairs walking towards each other."""
     stale_ap_ms: int = STALE_AP_MS
     """Beyond the paper: scans re-report cached APs (on real phones 50-60 % of entries are older than 3 s);
     entries whose last-seen time is more than this before the scan are dropped before Eq. 3."""
@@ -102,8 +107,8 @@ class EncounterDetector:
         self._scans: deque[_Scan] = deque()
         self._by_ap: dict[int, list[_Scan]] = defaultdict(list)
         self._bt: dict[tuple[str, str], deque[tuple[int, float]]] = {}
-        self._last_pair: dict[tuple[str, str, int], int] = {}
         self._newest_ms = 0
+        self._bt_pruned_at = 0
         self.n_candidates = 0
         if params.wifi_model == "wifi-fingerprint" and calibration.wifi_fingerprint is None:
             raise ValueError(
@@ -151,11 +156,9 @@ class EncounterDetector:
             ranges, variances = model.range_and_variance(np.array([s for _, s in passing]))
             kind = MODEL_WIFI_FINGERPRINT if by_fingerprint else MODEL_WIFI
             for (other, feature), d, var in zip(passing, ranges, variances, strict=True):
-                det = self._detection(
-                    max(t_ms, other.t_ms), user, other.user, kind, feature, float(d), float(var)
+                out.append(
+                    Detection(max(t_ms, other.t_ms), user, other.user, kind, feature, float(d), float(var))
                 )
-                if det is not None:
-                    out.append(det)
         scan = _Scan(user, t_ms, top, fresh_aps)
         self._scans.append(scan)
         for ap in top:
@@ -184,21 +187,19 @@ class EncounterDetector:
         if smoothed < self.params.bluetooth.cutoff_dbm:
             return None
         d, var = self.calibration.bluetooth.range_and_variance(np.array([smoothed]))
-        return self._detection(t_ms, receiver, sender, MODEL_BLUETOOTH, smoothed, float(d[0]), float(var[0]))
+        return Detection(t_ms, receiver, sender, MODEL_BLUETOOTH, smoothed, float(d[0]), float(var[0]))
+
+    def range_model(self, model: int) -> RangeModel:
+        """The calibrated range model behind detections of ``model``."""
+        if model == MODEL_BLUETOOTH:
+            return self.calibration.bluetooth
+        if model == MODEL_WIFI_FINGERPRINT and self.calibration.wifi_fingerprint is not None:
+            return self.calibration.wifi_fingerprint
+        if model == MODEL_WIFI:
+            return self.calibration.wifi
+        raise ValueError(f"no range model for encounter model {model}")
 
     # ------------------------------------------------------------------ shared
-    def _detection(
-        self, t_ms: int, a: str, b: str, model: int, feature: float, distance: float, variance: float
-    ) -> Detection | None:
-        """The pair's encounter unless it is cooling down or too uncertain (R above max_sigma_m^2)."""
-        key = (min(a, b), max(a, b), model)
-        last = self._last_pair.get(key)
-        if last is not None and abs(t_ms - last) < self.params.pair_cooldown_ms:
-            return None
-        if variance > self.params.max_sigma_m**2:
-            return None
-        self._last_pair[key] = t_ms
-        return Detection(t_ms, a, b, model, feature, distance, variance)
 
     def _advance(self, t_ms: int) -> None:
         """Forget scans and sightings that can no longer pair with anything new."""
@@ -213,11 +214,9 @@ class EncounterDetector:
                 bucket.remove(old)
                 if not bucket:
                     del self._by_ap[ap]
-        if len(self._bt) > 4 * len(self._last_pair) + 1024:
+        if len(self._bt) > self._bt_pruned_at + 1024:
             self._bt = {k: v for k, v in self._bt.items() if v and v[-1][0] >= horizon}
-        cooldown_horizon = t_ms - 2 * self.params.pair_cooldown_ms
-        if len(self._last_pair) > 100_000:
-            self._last_pair = {k: v for k, v in self._last_pair.items() if v >= cooldown_horizon}
+            self._bt_pruned_at = len(self._bt)
 
     @property
     def n_indexed_scans(self) -> int:

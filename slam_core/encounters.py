@@ -19,6 +19,10 @@ from typing import Any
 
 import numpy as np
 
+FIT_MAX_DISTANCE_M = 25.0
+"""Range models are fitted on labelled pairs up to 25 m, about three times the range within which encounters
+are applied (``slam_core.encounter_selection``)."""
+
 
 @dataclass(frozen=True)
 class WifiEq3Params:
@@ -111,8 +115,9 @@ class RangeModel:
     max_distance: float = 60.0
     bin_edges: tuple[float, ...] = ()
     bin_mse: tuple[float, ...] = ()
-    """Empirical mean squared range error per bin of the reported range, measured on labelled pairs; R is
-    never below it (the analytic variance alone is overconfident where the feature is ambiguous)."""
+    """Empirical mean squared range error per bin of the reported range, measured on the labelled pairs the
+    tracker would apply (detected, and within the selection range); R is never below it (the analytic
+    variance alone is overconfident where the feature is ambiguous)."""
 
     def with_empirical_variance(
         self, feature: np.ndarray, distance: np.ndarray, min_per_bin: int = 30
@@ -152,9 +157,15 @@ class RangeModel:
         return xs, ds, grid, np.abs(np.gradient(mono, grid))
 
     def range_and_variance(self, feature: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        xs, ds, grid, slope = self._inverse_table
-        feature = np.asarray(feature, dtype=float)
-        d = np.interp(feature, xs, ds)
+        """The maximum-likelihood range of each reading and its variance R (m^2)."""
+        xs, ds, _, _ = self._inverse_table
+        d = np.interp(np.asarray(feature, dtype=float), xs, ds)
+        return d, self.variance_at_distance(d)
+
+    def variance_at_distance(self, distance: np.ndarray) -> np.ndarray:
+        """R at a range: (sigma_f / |f'(d)|)^2, never below the bin's empirical floor nor 0.25 m^2."""
+        _, _, grid, slope = self._inverse_table
+        d = np.clip(np.asarray(distance, dtype=float), self.min_distance, self.max_distance)
         s = np.maximum(np.interp(d, grid, slope), self.sigma / self.max_distance)
         variance = np.minimum((self.sigma / s) ** 2, self.max_distance**2)
         if self.bin_mse:
@@ -162,7 +173,8 @@ class RangeModel:
                 np.searchsorted(np.asarray(self.bin_edges), d, side="right") - 1, 0, len(self.bin_mse) - 1
             )
             variance = np.maximum(variance, np.asarray(self.bin_mse)[k])
-        return d, np.maximum(variance, 0.25)
+        floored: np.ndarray = np.maximum(variance, 0.25)
+        return floored
 
 
 @dataclass(frozen=True)
@@ -218,11 +230,15 @@ class Calibration:
         return cls(wifi, bluetooth, fingerprint)
 
 
-def fit_range_model(feature: np.ndarray, distance: np.ndarray, kind: str) -> RangeModel:
-    """Least-squares fit of feature = f(distance) on labelled pairs."""
+def fit_range_model(
+    feature: np.ndarray, distance: np.ndarray, kind: str, max_distance_m: float = math.inf
+) -> RangeModel:
+    """Least-squares fit of feature = f(distance) on labelled pairs, those farther than ``max_distance_m``
+    left out: far beyond where encounters are used, the receiver's sensitivity cuts off the weak readings
+    and the ones left flatten the fit (on the testbed, Bluetooth ranges read 1-2 m long at 15-30 m)."""
     feature = np.asarray(feature, dtype=float)
     distance = np.asarray(distance, dtype=float)
-    ok = np.isfinite(feature) & np.isfinite(distance) & (distance > 0)
+    ok = np.isfinite(feature) & np.isfinite(distance) & (distance > 0) & (distance <= max_distance_m)
     feature, distance = feature[ok], distance[ok]
     if feature.size < 10:
         raise ValueError(f"need at least 10 labelled pairs to fit the {kind} model, got {feature.size}")

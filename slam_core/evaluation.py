@@ -15,7 +15,10 @@ import numpy as np
 
 from slam_core.crowd_graph import CrowdGraph, GraphParams
 from slam_core.crowd_map import CrowdMapBuilder
+from slam_core.encounter_detection import MODEL_BLUETOOTH, MODEL_WIFI
+from slam_core.encounter_selection import EncounterSelector, SelectionParams, pair_key
 from slam_core.encounters import (
+    FIT_MAX_DISTANCE_M,
     BluetoothParams,
     Calibration,
     WifiEq3Params,
@@ -30,13 +33,9 @@ from slam_core.simulate import Scenario, Simulation, simulate
 MODES = ("pdr", "semanticslam", "dynamicslam")
 CALIBRATION_SEED_OFFSET = 10_007
 SCAN_PAIR_WINDOW_S = 1.0
-PAIR_COOLDOWN_S = 30.0
-"""One encounter per pair and model per 30 s: successive detections of a pair walking together share its
-errors, and applying them all double counts (it collapsed particle diversity: 700 updates/user, 3.2 m)."""
-MAX_ENCOUNTER_SIGMA_M = 5.0
-"""Only encounters whose calibrated range error is at most 5 m are applied; weaker ones carry little
-information and, repeated, mostly add double counting. With these two rules the testbed yields about 7
-encounters per user, the paper's figure."""
+MEETING_GAP_S = 30.0
+"""Detections of a pair less than 30 s apart belong to one meeting (``encounters_per_user`` counts
+meetings, the paper's 'encountering other users (7 on average)')."""
 TICK_S = 0.5
 CROWD_SOLVERS = ("fusion", "graph")
 GRAPH_SOLVE_PERIOD_S = 5.0
@@ -59,7 +58,7 @@ class Encounters:
     b: np.ndarray
     distance: np.ndarray
     variance: np.ndarray
-    model: np.ndarray  # 0 WiFi, 1 Bluetooth
+    model: np.ndarray  # MODEL_WIFI or MODEL_BLUETOOTH
     true_distance: np.ndarray
 
 
@@ -84,10 +83,11 @@ def wifi_candidates(sim: Simulation, params: WifiEq3Params, threshold: float | N
     return _candidates(rows)
 
 
-BT_SMOOTHING_S = 4.0
-"""Bluetooth RSS is averaged per pair (both directions) over the last 4 s before it is used: single
-readings carry 4 dB of noise, and since far pairs vastly outnumber close ones, a lucky strong reading from
-far away is the commonest strong reading. The paper low-passes its sensor streams for the same reason."""
+BT_SMOOTHING_S = 1.0
+"""Bluetooth RSS is averaged per pair over one sighting period, both directions (two readings of 4 dB noise
+each on the testbed). A longer window blurs the range of pairs walking towards each other (with 4 s, the
+fit's residual at 0-2 m was 8 dB); it was only needed while encounters were chosen on their reading, when a
+lucky strong reading from far away was the commonest strong reading (``slam_core.encounter_selection``)."""
 
 
 def bluetooth_candidates(sim: Simulation, params: BluetoothParams, cutoff: float | None = None) -> Candidates:
@@ -117,55 +117,56 @@ def _candidates(rows: list[tuple[float, int, int, float, float]]) -> Candidates:
     return Candidates(arr[:, 0], arr[:, 1].astype(np.int64), arr[:, 2].astype(np.int64), arr[:, 3], arr[:, 4])
 
 
-def calibrate(scenario: Scenario, seed: int) -> Calibration:
-    """Fit the paper's range models on a separate simulated world (labelled pairs, as Figures 2-3)."""
+def calibrate(scenario: Scenario, seed: int, selection: SelectionParams | None = None) -> Calibration:
+    """Fit the paper's range models on a separate simulated world (labelled pairs, as Figures 2-3).
+
+    Each model is fitted on the pairs within ``FIT_MAX_DISTANCE_M``. Its R floors are measured on the
+    readings the tracker will apply: those passing the model's detection rule from pairs within the
+    selection range (the calibration world's stand-in for 'the filters place them that close')."""
+    selection = selection or SelectionParams()
     sim = simulate(scenario, seed + CALIBRATION_SEED_OFFSET)
     wifi = wifi_candidates(sim, WifiEq3Params(), threshold=math.inf)
     bt = bluetooth_candidates(sim, BluetoothParams(), cutoff=-math.inf)
-    wifi_model = fit_range_model(wifi.feature, wifi.true_distance, "wifi-log")
-    bt_model = fit_range_model(bt.feature, bt.true_distance, "bt-quadratic")
-    # empirical R on the pairs each model will actually report (those passing its threshold)
-    wifi_pass = wifi.feature < WifiEq3Params().threshold_db
-    bt_pass = bt.feature >= BluetoothParams().cutoff_dbm
+    wifi_model = fit_range_model(wifi.feature, wifi.true_distance, "wifi-log", FIT_MAX_DISTANCE_M)
+    bt_model = fit_range_model(bt.feature, bt.true_distance, "bt-quadratic", FIT_MAX_DISTANCE_M)
+    near = selection.select_range_m
+    wifi_used = (wifi.feature < WifiEq3Params().threshold_db) & (wifi.true_distance <= near)
+    bt_used = (bt.feature >= BluetoothParams().cutoff_dbm) & (bt.true_distance <= near)
     return Calibration(
-        wifi_model.with_empirical_variance(wifi.feature[wifi_pass], wifi.true_distance[wifi_pass]),
-        bt_model.with_empirical_variance(bt.feature[bt_pass], bt.true_distance[bt_pass]),
+        wifi_model.with_empirical_variance(wifi.feature[wifi_used], wifi.true_distance[wifi_used]),
+        bt_model.with_empirical_variance(bt.feature[bt_used], bt.true_distance[bt_used]),
     )
 
 
 def detect_encounters(sim: Simulation, calibration: Calibration) -> Encounters:
-    """Both models' detections, at most one per pair and model every PAIR_COOLDOWN_S."""
+    """Every detection of both models (Eq. 3 below 8 dB, Bluetooth above -90 dBm), with its range and R;
+    which of them are applied is chosen during the run (``slam_core.encounter_selection``)."""
     parts = []
     for code, cands, fit in (
-        (0, wifi_candidates(sim, WifiEq3Params()), calibration.wifi),
-        (1, bluetooth_candidates(sim, BluetoothParams()), calibration.bluetooth),
+        (MODEL_WIFI, wifi_candidates(sim, WifiEq3Params()), calibration.wifi),
+        (MODEL_BLUETOOTH, bluetooth_candidates(sim, BluetoothParams()), calibration.bluetooth),
     ):
-        last: dict[tuple[int, int], float] = {}
-        keep = []
-        for k in range(len(cands.t)):
-            pair = (min(cands.a[k], cands.b[k]), max(cands.a[k], cands.b[k]))
-            if cands.t[k] - last.get(pair, -math.inf) >= PAIR_COOLDOWN_S:
-                last[pair] = cands.t[k]
-                keep.append(k)
-        idx = np.array(keep, dtype=np.int64)
-        distance, variance = fit.range_and_variance(cands.feature[idx])
-        informative = variance <= MAX_ENCOUNTER_SIGMA_M**2
-        idx, distance, variance = idx[informative], distance[informative], variance[informative]
+        distance, variance = fit.range_and_variance(cands.feature)
         parts.append(
-            (
-                cands.t[idx],
-                cands.a[idx],
-                cands.b[idx],
-                distance,
-                variance,
-                np.full(idx.size, code),
-                cands.true_distance[idx],
-            )
+            (cands.t, cands.a, cands.b, distance, variance, np.full(cands.t.size, code), cands.true_distance)
         )
     cols = [np.concatenate([p[i] for p in parts]) for i in range(7)]
     order = np.argsort(cols[0], kind="stable")
     t, a, b, d, v, m, td = (c[order] for c in cols)
     return Encounters(t, a.astype(np.int64), b.astype(np.int64), d, v, m.astype(np.int64), td)
+
+
+def meetings_per_user(encounters: Encounters, n_users: int) -> float:
+    """Meetings (runs of a pair's detections less than MEETING_GAP_S apart) per user, each counted for
+    both users."""
+    last: dict[tuple[int, int], float] = {}
+    meetings = 0
+    for t, a, b in zip(encounters.t, encounters.a, encounters.b, strict=True):
+        pair = (int(min(a, b)), int(max(a, b)))
+        if t - last.get(pair, -math.inf) >= MEETING_GAP_S:
+            meetings += 1
+        last[pair] = float(t)
+    return 2 * meetings / n_users
 
 
 def filter_params(mode: str, sampling: str, particles: int, motion_model: str) -> FilterParams:
@@ -215,14 +216,15 @@ def run_scenario_with_errors(
         raise ValueError(f"unknown crowd solver {crowd_solver!r}; valid: {', '.join(CROWD_SOLVERS)}")
     params = filter_params(mode, sampling, particles, motion_model)
     sim = simulate(scenario, seed)
-    encounters = detect_encounters(sim, calibrate(scenario, seed)) if mode == "dynamicslam" else None
+    calibration = calibrate(scenario, seed) if mode == "dynamicslam" else None
+    encounters = detect_encounters(sim, calibration) if calibration is not None else None
     if mode == "pdr":
         errors, best_errors = _dead_reckoning_errors(sim), None
-        applied = 0
+        run = None
     else:
-        errors, best_errors, _, applied = _filter_errors(sim, params, seed, encounters, crowd_solver)
+        run = _filter_errors(sim, params, seed, encounters, crowd_solver, calibration)
+        errors, best_errors = run.errors, run.best_errors
     n_users = len(sim.users)
-    detected = 0 if encounters is None else 2 * len(encounters.t) / n_users
     result: dict[str, Any] = {
         "mode": mode,
         "seed": seed,
@@ -233,8 +235,10 @@ def run_scenario_with_errors(
         **error_summary(errors),
         "n_estimates": int(errors.size),
         "anchors_passed_per_user": sim.anchors_passed_per_user,
-        "encounters_per_user": detected,
-        "encounters_applied_per_user": 2 * applied / n_users,
+        "encounters_per_user": 0.0 if encounters is None else meetings_per_user(encounters, n_users),
+        "encounter_detections_per_user": 0.0 if encounters is None else 2 * len(encounters.t) / n_users,
+        "encounters_chosen_per_user": 0.0 if run is None else 2 * run.chosen / n_users,
+        "encounters_applied_per_user": 0.0 if run is None else 2 * run.applied.size / n_users,
         "expected_anchors_passed_per_user": scenario.raw.get("expected_statistics", {}).get(
             "building_anchors_passed_per_user"
         ),
@@ -242,8 +246,11 @@ def run_scenario_with_errors(
             "encounters_per_user"
         ),
     }
-    if encounters is not None and len(encounters.t):
-        result["encounter_true_distance_median_m"] = float(np.median(encounters.true_distance))
+    if run is not None and run.applied.size:
+        assert encounters is not None
+        residual = encounters.distance[run.applied] - encounters.true_distance[run.applied]
+        result["encounter_true_distance_median_m"] = float(np.median(encounters.true_distance[run.applied]))
+        result["encounter_range_bias_median_m"] = float(np.median(residual))
     if best_errors is not None:
         result["best_particle_median_m"] = float(np.median(best_errors))
     return result, errors
@@ -260,15 +267,29 @@ def _dead_reckoning_errors(sim: Simulation) -> np.ndarray:
     return np.concatenate(errors)
 
 
+@dataclass(frozen=True)
+class FilterRun:
+    errors: np.ndarray  # error of the weighted mean at every step of every user (m)
+    best_errors: np.ndarray  # error of the max-weight particle (m)
+    error_users: np.ndarray  # the user of each error
+    chosen: int  # encounters chosen by the selector
+    applied: np.ndarray  # indices (into the detections) of the encounters applied
+
+
 def _filter_errors(
     sim: Simulation,
     params: FilterParams,
     seed: int,
     encounters: Encounters | None,
     crowd_solver: str = "graph",
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-    """Errors of the weighted mean and of the max-weight particle at every step, the user of each error,
-    and how many encounters were applied."""
+    calibration: Calibration | None = None,
+    selection: SelectionParams | None = None,
+) -> FilterRun:
+    """Run the filters over the simulation, choosing which detected encounters to apply from the filters'
+    own estimates (``slam_core.encounter_selection``), as the live tracker does."""
+    if encounters is not None and calibration is None:
+        raise ValueError("encounters need the calibration whose range models reported them")
+    selector = EncounterSelector(selection or SelectionParams())
     engine = DynamicSlam(params, seed=seed, initial_capacity=len(sim.users))
     crowd = crowd_with_known_anchors(sim, params, fuse=crowd_solver == "fusion")
     crowd_size = len(crowd)
@@ -293,7 +314,8 @@ def _filter_errors(
     errors: list[float] = []
     best_errors: list[float] = []
     error_users: list[int] = []
-    applied = 0
+    chosen = 0
+    applied: list[np.ndarray] = []
     for tick in np.unique(np.concatenate([step_tick, enc_tick])):
         sel = np.flatnonzero(step_tick == tick)
         users_now = step_user[sel]
@@ -353,9 +375,12 @@ def _filter_errors(
                 if len(crowd) != crowd_size:
                     crowd_size = len(crowd)
                     engine.merge_crowd_map(engine.active_users, crowd.snapshot())
-        if encounters is not None and params.use_human_anchors:
+        if encounters is not None and calibration is not None and params.use_human_anchors:
             e = np.flatnonzero(enc_tick == tick)
             e = e[(slots[encounters.a[e]] >= 0) & (slots[encounters.b[e]] >= 0)]
+            if e.size:
+                e = e[_choose(engine, selector, slots, encounters, e, calibration)]
+                chosen += e.size
             if e.size:
                 outcome = engine.observe_encounters(
                     slots[encounters.a[e]],
@@ -363,7 +388,7 @@ def _filter_errors(
                     encounters.distance[e],
                     encounters.variance[e],
                 )
-                applied += int(outcome.applied.sum())
+                applied.append(e[outcome.applied])
         if sel.size:
             last_of_user = {int(u): int(k) for u, k in zip(step_user[sel], step_index[sel], strict=True)}
             us = np.array(sorted(last_of_user))
@@ -372,7 +397,38 @@ def _filter_errors(
             errors += np.linalg.norm(summary[:, 0:2] - truth, axis=1).tolist()
             error_users += us.tolist()
             best_errors += np.linalg.norm(summary[:, 5:7] - truth, axis=1).tolist()
-    return np.array(errors), np.array(best_errors), np.array(error_users, dtype=np.int64), applied
+    return FilterRun(
+        np.array(errors),
+        np.array(best_errors),
+        np.array(error_users, dtype=np.int64),
+        chosen,
+        np.concatenate(applied) if applied else np.zeros(0, dtype=np.int64),
+    )
+
+
+def _choose(
+    engine: DynamicSlam,
+    selector: EncounterSelector,
+    slots: np.ndarray,
+    encounters: Encounters,
+    e: np.ndarray,
+    calibration: Calibration,
+) -> np.ndarray:
+    """Mask over detections ``e`` (one tick) of those the selector applies, from the filters' estimates."""
+    mean_a = engine.summaries(slots[encounters.a[e]])[:, 0:2]
+    mean_b = engine.summaries(slots[encounters.b[e]])[:, 0:2]
+    predicted = np.hypot(*(mean_a - mean_b).T)
+    sigma = np.empty(e.size)
+    for code, model in ((MODEL_WIFI, calibration.wifi), (MODEL_BLUETOOTH, calibration.bluetooth)):
+        m = encounters.model[e] == code
+        sigma[m] = np.sqrt(model.variance_at_distance(predicted[m]))
+    keys = [
+        pair_key(int(a), int(b), int(c))
+        for a, b, c in zip(encounters.a[e], encounters.b[e], encounters.model[e], strict=True)
+    ]
+    t_ms = np.round(encounters.t[e] * 1000.0).astype(np.int64)
+    chosen: np.ndarray = selector.choose(t_ms, keys, predicted, sigma)
+    return chosen
 
 
 SWEEPS = ("particles", "density", "anchor-density")

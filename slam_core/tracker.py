@@ -15,8 +15,9 @@ by the server) and advances everything they imply, in this order:
 2. the crowd map is re-solved jointly (every ``graph_solve_period_ms`` of phone time) and new anchors are
    offered to every user;
 3. WiFi scans and Bluetooth sightings are matched against the building's other users (Eq. 3, the RSS
-   cut-off); encounters between tracked users become human anchors (Algorithm 1), both users updated from
-   their pre-encounter states;
+   cut-off); detections between tracked users that the selector chooses from the filters' estimates
+   (``slam_core.encounter_selection``) become human anchors (Algorithm 1), both users updated from their
+   pre-encounter states;
 4. the estimate of every user touched.
 
 Pure numerics: no I/O, no clock. Times are the phones' epoch milliseconds.
@@ -32,6 +33,7 @@ import numpy as np
 from slam_core.crowd_graph import CrowdGraph, GraphParams
 from slam_core.crowd_map import CrowdMapBuilder
 from slam_core.encounter_detection import Detection, EncounterDetector
+from slam_core.encounter_selection import EncounterSelector, pair_key
 from slam_core.encounters import Calibration
 from slam_core.fastslam import DynamicSlam
 from slam_core.front_end import FrontEnd, RadioArrays
@@ -68,6 +70,7 @@ class BuildingTracker:
         )
         self.graph = CrowdGraph(GraphParams(detection_sigma_m=fp.anchors.detection_sigma_m))
         self.detector = EncounterDetector(params.detection, calibration)
+        self.selector = EncounterSelector(params.selection)
         self._users: dict[str, UserTrack] = {}
         self.front_end = FrontEnd(params.pdr, params.detectors)
         self._by_ble: dict[str, str] = {}
@@ -198,7 +201,7 @@ class BuildingTracker:
                 self.engine.refresh_crowd_anchors(active, self.crowd.snapshot())
         if len(self.crowd) != crowd_size:
             self._offer_crowd_map()
-        encounters = self._encounters(batches)
+        encounters, detections = self._encounters(batches)
         touched = {b.user for b in batches if self.is_tracking(b.user)}
         for e in encounters:
             if e.applied:
@@ -206,7 +209,7 @@ class BuildingTracker:
         for b in batches:
             reports[b.user].status = "tracking" if self.is_tracking(b.user) else "awaiting_fix"
         estimates = self._rows(sorted(touched))
-        return TrackerOutcome(reports, estimates, encounters, sorted(changed))
+        return TrackerOutcome(reports, estimates, encounters, sorted(changed), detections)
 
     def _dead_reckon(self, b: UserBatch, report: UserReport) -> UserBatch:
         """The batch with the steps the PDR front-end finds in its raw IMU (phones counting their own steps
@@ -457,7 +460,8 @@ class BuildingTracker:
         if active.size:
             self.engine.merge_crowd_map(active, self.crowd.snapshot())
 
-    def _encounters(self, batches: list[UserBatch]) -> list[EncounterResult]:
+    def _encounters(self, batches: list[UserBatch]) -> tuple[list[EncounterResult], int]:
+        """The encounters chosen among this call's detections, and how many detections there were."""
         found: list[Detection] = []
         for b in batches:
             for c in range(b.scan_t.size):
@@ -476,19 +480,39 @@ class BuildingTracker:
                 det = self.detector.add_sighting(b.user, peer, int(b.peer_t[k]), float(b.peer_rss[k]))
                 if det is not None:
                     found.append(det)
-        if not self.params.filter.use_human_anchors:
-            return [EncounterResult(d, False) for d in found]
         usable = [d for d in found if self.is_tracking(d.user_a) and self.is_tracking(d.user_b)]
         if not usable:
-            return [EncounterResult(d, False) for d in found]
+            return [], len(found)
+        chosen = [d for d, keep in zip(usable, self._choose(usable), strict=True) if keep]
+        if not chosen or not self.params.filter.use_human_anchors:
+            return [EncounterResult(d, False) for d in chosen], len(found)
         outcome = self.engine.observe_encounters(
-            np.array([self._users[d.user_a].slot for d in usable]),
-            np.array([self._users[d.user_b].slot for d in usable]),
-            np.array([d.distance_m for d in usable]),
-            np.array([d.variance_m2 for d in usable]),
+            np.array([self._users[d.user_a].slot for d in chosen]),
+            np.array([self._users[d.user_b].slot for d in chosen]),
+            np.array([d.distance_m for d in chosen]),
+            np.array([d.variance_m2 for d in chosen]),
         )
-        applied = {id(d): bool(a) for d, a in zip(usable, outcome.applied, strict=True)}
-        return [EncounterResult(d, applied.get(id(d), False)) for d in found]
+        results = [EncounterResult(d, bool(a)) for d, a in zip(chosen, outcome.applied, strict=True)]
+        return results, len(found)
+
+    def _choose(self, detections: list[Detection]) -> np.ndarray:
+        """The selector's choice among detections of tracked users, from the filters' current estimates."""
+        names = sorted({d.user_a for d in detections} | {d.user_b for d in detections})
+        means = self.engine.summaries(np.array([self._users[n].slot for n in names], dtype=np.int64))[:, 0:2]
+        row = {n: i for i, n in enumerate(names)}
+        delta = np.array([means[row[d.user_a]] - means[row[d.user_b]] for d in detections])
+        predicted = np.hypot(delta[:, 0], delta[:, 1])
+        sigma = np.empty(len(detections))
+        models = np.array([d.model for d in detections])
+        for model in np.unique(models):
+            at = models == model
+            sigma[at] = np.sqrt(self.detector.range_model(int(model)).variance_at_distance(predicted[at]))
+        keys = [pair_key(d.user_a, d.user_b, d.model) for d in detections]
+        t_ms = np.array([d.t_ms for d in detections], dtype=np.int64)
+        chosen: np.ndarray = self.selector.choose(t_ms, keys, predicted, sigma)
+        if len(self.selector) > 100_000:
+            self.selector.forget_before(int(t_ms.max()))
+        return chosen
 
     def _rows(self, users: list[str]) -> dict[str, EstimateRow]:
         if not users:

@@ -8,6 +8,7 @@ import numpy as np
 
 from slam_core.detectors import DetectorParams
 from slam_core.encounter_detection import Detection, DetectionParams
+from slam_core.encounter_selection import SelectionParams
 from slam_core.params import FilterParams
 from slam_core.pdr.frontend import ImuSamples, PdrParams
 
@@ -18,6 +19,8 @@ CROWD_SOLVERS = ("fusion", "graph")
 class TrackerParams:
     filter: FilterParams = field(default_factory=FilterParams)
     detection: DetectionParams = field(default_factory=DetectionParams)
+    selection: SelectionParams = field(default_factory=SelectionParams)
+    """Which detections become human anchors (``slam_core.encounter_selection``)."""
     crowd_solver: str = "graph"
     graph_solve_period_ms: int = 5_000
     """The joint crowd-map solve runs at most every 5 s of phone time (it takes ~0.1 s)."""
@@ -161,5 +164,6 @@ class EncounterResult:
 class TrackerOutcome:
     reports: dict[str, UserReport]
     estimates: dict[str, EstimateRow]
-    encounters: list[EncounterResult]
+    encounters: list[EncounterResult]  # the detections chosen as human anchors (applied, or gated)
     anchors_changed: list[int]  # crowd indices created or re-estimated
+    detections: int = 0  # encounter detections, chosen or not

@@ -1,5 +1,9 @@
 """``crowdslam calibrate --msindoor FLOOR_DIR --out FILE``: fit the encounter range models on labelled
-cross-walk scan pairs and report each WiFi feature's precision and recall for pairs within 5 m."""
+cross-walk scan pairs and report each WiFi feature's precision and recall for pairs within 5 m.
+
+``crowdslam calibrate --scenario FILE [--seed N] --out FILE``: fit both range models on the scenario's
+separate calibration world (the server's bundled ``server/data/testbed_calibration.json`` is the paper
+testbed's, seed 0)."""
 
 from __future__ import annotations
 
@@ -9,13 +13,20 @@ from pathlib import Path
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument(
         "--msindoor",
         type=Path,
-        required=True,
         metavar="FLOOR_DIR",
         help="a floor of Indoor Location 2.0 walks",
     )
+    source.add_argument(
+        "--scenario",
+        type=Path,
+        metavar="FILE",
+        help="a simulated scenario (fits on its calibration world, seed + 10007)",
+    )
+    parser.add_argument("--seed", type=int, default=0, help="the scenario's seed (with --scenario)")
     parser.add_argument(
         "--out",
         type=Path,
@@ -35,6 +46,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.scenario is not None:
+        return _run_scenario(args)
     from server.app import load_calibration
     from server.datasets.msindoor import TraceFormatError
     from server.datasets.msindoor_calibration import calibrate_floor, plot_calibration
@@ -51,4 +64,20 @@ def run(args: argparse.Namespace) -> int:
     args.out.write_text(json.dumps({**calibration.to_dict(), "report": report}, indent=2) + "\n")
     print(json.dumps(report, indent=2))
     print(f"wrote {args.out} and {plot}")
+    return 0
+
+
+def _run_scenario(args: argparse.Namespace) -> int:
+    from slam_core.evaluation import calibrate
+    from slam_core.simulate import Scenario
+
+    try:
+        scenario = Scenario.from_dict(json.loads(args.scenario.read_text()))
+    except (OSError, ValueError, KeyError) as error:
+        print(f"crowdslam calibrate: {args.scenario}: {error}")
+        return 2
+    calibration = calibrate(scenario, args.seed)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(calibration.to_dict(), indent=1) + "\n")
+    print(f"wrote {args.out}")
     return 0

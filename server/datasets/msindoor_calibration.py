@@ -21,7 +21,14 @@ from typing import Any
 import numpy as np
 
 from server.datasets.msindoor import read_floor, read_trace
-from slam_core.encounters import Calibration, WifiEq3Params, WifiFingerprintParams, fit_range_model
+from slam_core.encounter_selection import SelectionParams
+from slam_core.encounters import (
+    FIT_MAX_DISTANCE_M,
+    Calibration,
+    WifiEq3Params,
+    WifiFingerprintParams,
+    fit_range_model,
+)
 from slam_core.pdr.frontend import ImuSamples, PdrParams, PdrState, pdr_steps
 from slam_core.signal_map.windows import rss_matrix
 from slam_core.wifi_pairs import (
@@ -155,17 +162,26 @@ def calibrate_floor(
         "recall": float(passing[near].mean()),
         "passing_median_distance_m": float(np.median(pairs.distance[passing])) if passing.any() else math.nan,
     }
+    # fitted where encounters are used; R floors from the pairs the tracker would apply (detected, and
+    # within the selection range of each other)
+    used = pairs.distance <= SelectionParams().select_range_m
     finite = np.isfinite(pairs.features["eq3"])
-    model = fit_range_model(pairs.features["eq3"][finite], pairs.distance[finite], "wifi-log")
-    model = model.with_empirical_variance(pairs.features["eq3"][passing], pairs.distance[passing])
+    model = fit_range_model(
+        pairs.features["eq3"][finite], pairs.distance[finite], "wifi-log", FIT_MAX_DISTANCE_M
+    )
+    model = model.with_empirical_variance(
+        pairs.features["eq3"][passing & used], pairs.distance[passing & used]
+    )
     report["wifi_model"] = {"coefficients": list(model.coefficients), "sigma_db": model.sigma}
     fingerprint = pairs.features["fingerprint"]
     strict = fingerprint < WifiFingerprintParams().threshold_db
     finite = np.isfinite(fingerprint)
-    fingerprint_model = fit_range_model(fingerprint[finite], pairs.distance[finite], "wifi-log")
-    if strict.sum() >= 30:
+    fingerprint_model = fit_range_model(
+        fingerprint[finite], pairs.distance[finite], "wifi-log", FIT_MAX_DISTANCE_M
+    )
+    if (strict & used).sum() >= 30:
         fingerprint_model = fingerprint_model.with_empirical_variance(
-            fingerprint[strict], pairs.distance[strict]
+            fingerprint[strict & used], pairs.distance[strict & used]
         )
     report["wifi_fingerprint_model"] = {
         "coefficients": list(fingerprint_model.coefficients),

@@ -108,7 +108,15 @@ def replay_floor(
     base = REPLAY_BASE_MS
     scored: list[_Walk] = []
     counts = dict.fromkeys(
-        ("steps", "encounters", "encounters_applied", "signatures_applied", "signatures_gated"), 0
+        (
+            "steps",
+            "encounter_detections",
+            "encounters",
+            "encounters_applied",
+            "signatures_applied",
+            "signatures_gated",
+        ),
+        0,
     )
     total_windows = sum(_windows(t, options.window_ms) for t in traces)
     for phase, phase_traces in enumerate(phases):
@@ -132,6 +140,7 @@ def replay_floor(
         "n_walks": len(traces),
         "n_scored_walks": len(scored),
         "steps_detected": counts["steps"],
+        "encounter_detections_per_user": 2 * counts["encounter_detections"] / len(traces),
         "encounters_per_user": 2 * counts["encounters"] / len(traces),
         "encounters_applied_per_user": 2 * counts["encounters_applied"] / len(traces),
         "crowd_anchors": len(tracker.crowd),
@@ -216,6 +225,7 @@ def _apply(
     counts["steps"] += sum(r.steps_detected for r in outcome.reports.values())
     counts["signatures_applied"] += sum(r.signatures_applied for r in outcome.reports.values())
     counts["signatures_gated"] += sum(r.signatures_gated for r in outcome.reports.values())
+    counts["encounter_detections"] += outcome.detections
     counts["encounters"] += len(outcome.encounters)
     counts["encounters_applied"] += sum(e.applied for e in outcome.encounters)
     for end, index, _ in call:

@@ -1,6 +1,7 @@
 """Regenerate the golden recording and its expected estimates (run only when a change is intended):
 
-python tests/golden/regenerate.py
+python tests/golden/regenerate.py                    # a new recording and its estimates
+python tests/golden/regenerate.py --estimates-only   # the same recording, new expected estimates
 """
 
 from __future__ import annotations
@@ -26,8 +27,16 @@ from tests.server.test_recording import small_crowd  # noqa: E402
 
 
 def main() -> None:
-    sim = simulate(small_crowd(), 7)
     target = HERE / "small-crowd.mcap"
+    if "--estimates-only" not in sys.argv[1:]:
+        record(target)
+    report = replay_offline(read_batches(target), Settings(data_dir=HERE, seed=0))
+    (HERE / "small-crowd.json").write_text(json.dumps(report.summary(), indent=1) + "\n")
+    print(f"{report.batches} batches, {len(report.latest)} users")
+
+
+def record(target: Path) -> None:
+    sim = simulate(small_crowd(), 7)
     tmp = HERE / "tmp-recording"
     recorder = BuildingRecorder(tmp, "golden")
     t = time.time_ns()
@@ -38,9 +47,6 @@ def main() -> None:
     produced.replace(target)
     (tmp / "golden").rmdir()
     tmp.rmdir()
-    report = replay_offline(read_batches(target), Settings(data_dir=HERE, seed=0))
-    (HERE / "small-crowd.json").write_text(json.dumps(report.summary(), indent=1) + "\n")
-    print(f"{report.batches} batches, {len(report.latest)} users")
 
 
 if __name__ == "__main__":

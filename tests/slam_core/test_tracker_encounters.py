@@ -1,0 +1,107 @@
+"""Encounters in the live tracker: Bluetooth sightings between tracked phones become human anchors when the
+filters place the pair close (``slam_core.encounter_selection``); the rest are counted, not applied."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+
+from slam_core.encounters import Calibration, RangeModel
+from slam_core.params import FilterParams
+from slam_core.tracker import BuildingTracker, TrackerOutcome, TrackerParams, UserBatch
+
+T0 = 1_700_000_000_000
+BT = RangeModel("bt-quadratic", (-60.0, -22.0 / math.log(10.0), 0.0), 2.8)
+CAL = Calibration(RangeModel("wifi-log", (0.0, 2.0), 3.0), BT)
+
+
+def _fix(user: str, xy: tuple[float, float], t_ms: int) -> UserBatch:
+    return UserBatch(
+        user=user,
+        ble_id=f"ble-{user}",
+        fix_t=np.array([t_ms], dtype=np.int64),
+        fix_xy=np.array([xy], dtype=float),
+        fix_sigma=np.array([0.5]),
+        fix_azimuth=np.array([0.0]),
+    )
+
+
+def _sighting(user: str, peer: str, t_ms: int, distance_m: float) -> UserBatch:
+    rss = float(BT.feature_at(np.array([distance_m]))[0])
+    return UserBatch(
+        user=user,
+        ble_id=f"ble-{user}",
+        peer_t=np.array([t_ms], dtype=np.int64),
+        peer_id=(f"ble-{peer}",),
+        peer_rss=np.array([rss]),
+    )
+
+
+def _tracker(**filter_changes: object) -> BuildingTracker:
+    params = TrackerParams(filter=replace(FilterParams(), **filter_changes))  # type: ignore[arg-type]
+    tracker = BuildingTracker(params, CAL, seed=0)
+    tracker.apply([_fix("a", (0.0, 0.0), T0), _fix("b", (4.0, 0.0), T0), _fix("c", (40.0, 0.0), T0)])
+    return tracker
+
+
+def _applied(outcome: TrackerOutcome) -> list[tuple[str, str, bool]]:
+    return [(e.detection.user_a, e.detection.user_b, e.applied) for e in outcome.encounters]
+
+
+def test_a_close_pair_is_applied_and_then_cools_down() -> None:
+    tracker = _tracker()
+    before = tracker.estimate("a")
+    outcome = tracker.apply([_sighting("a", "b", T0 + 1_000, 3.0)])
+    assert outcome.detections == 1
+    assert _applied(outcome) == [("a", "b", True)]
+    after = tracker.estimate("a")
+    assert before is not None
+    assert after is not None
+    # the covariance shrinks along the pair's axis (x): the range measures it
+    assert after.cov[0] < before.cov[0]
+    assert after.cov[0] > 0
+    assert after.cov[2] > 0
+    assert after.cov[0] * after.cov[2] > after.cov[1] ** 2
+    # within the cooldown the pair is detected, not applied again
+    again = tracker.apply([_sighting("b", "a", T0 + 3_000, 3.0)])
+    assert again.detections == 1
+    assert again.encounters == []
+    later = tracker.apply([_sighting("b", "a", T0 + 7_000, 3.0)])
+    assert _applied(later) == [("b", "a", True)]
+
+
+def test_a_pair_the_filters_place_far_apart_is_not_chosen_whatever_it_reads() -> None:
+    """'c' is 40 m from 'a' by the filters; a strong reading (1 m) is counted but not applied: the choice
+    does not depend on the reading, so a lucky or forged strong reading cannot pull users together."""
+    tracker = _tracker()
+    before = tracker.estimate("c")
+    outcome = tracker.apply([_sighting("a", "c", T0 + 1_000, 1.0)])
+    assert outcome.detections == 1
+    assert outcome.encounters == []
+    after = tracker.estimate("c")
+    assert before is not None
+    assert after is not None
+    assert (after.x, after.y) == (before.x, before.y)
+
+
+def test_without_human_anchors_encounters_are_reported_not_applied() -> None:
+    tracker = _tracker(use_human_anchors=False)
+    before = tracker.estimate("a")
+    outcome = tracker.apply([_sighting("a", "b", T0 + 1_000, 3.0)])
+    assert _applied(outcome) == [("a", "b", False)]
+    after = tracker.estimate("a")
+    assert before is not None
+    assert after is not None
+    assert after.cov == before.cov
+
+
+def test_sightings_of_untracked_or_unknown_phones_are_not_encounters() -> None:
+    tracker = _tracker()
+    unknown = tracker.apply([_sighting("a", "nobody", T0 + 1_000, 2.0)])
+    assert unknown.detections == 0
+    assert unknown.encounters == []
+    untracked = tracker.apply([_sighting("d", "a", T0 + 1_000, 2.0)])  # 'd' has no fix yet
+    assert untracked.detections == 1
+    assert untracked.encounters == []
