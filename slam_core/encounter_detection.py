@@ -9,8 +9,9 @@ of a scan does not grow with the number of users in the building.
 Bluetooth: a phone's sighting of another phone's advertised id, averaged per pair (both directions) over
 ``bt_smoothing_ms`` (one sighting period), is an encounter above the -90 dBm cut-off.
 
-Every detection is reported with its calibrated range and R; which ones become human anchors is chosen by
-the tracker from the filters' estimates (``slam_core.encounter_selection``), as in the simulated evaluation.
+Every detection is reported; which ones become human anchors is chosen by the tracker from the filters'
+estimates (``slam_core.encounter_selection``), as in the simulated evaluation, and only those are ranged
+(calibrated range and R, ``ranged``).
 """
 
 from __future__ import annotations
@@ -65,8 +66,14 @@ class Detection:
     t_ms: int
     user_a: str
     user_b: str
-    model: int  # MODEL_WIFI or MODEL_BLUETOOTH
+    model: int  # MODEL_WIFI, MODEL_WIFI_FINGERPRINT or MODEL_BLUETOOTH
     feature: float  # Sim (dB) or averaged RSS (dBm)
+
+
+@dataclass(frozen=True)
+class RangedDetection(Detection):
+    """A detection with its calibrated range and R (``EncounterDetector.ranged``)."""
+
     distance_m: float
     variance_m2: float
 
@@ -148,17 +155,8 @@ class EncounterDetector:
             sim, n = eq3_sparse(top, other.top)
             if n >= p.wifi.min_common and sim < p.wifi.threshold_db:
                 passing.append((other, sim))
-        out = []
-        if passing:
-            # one vectorised range lookup for every pair the scan passes, then the pairs in order
-            model = self.calibration.wifi_fingerprint if by_fingerprint else self.calibration.wifi
-            assert model is not None  # checked at construction
-            ranges, variances = model.range_and_variance(np.array([s for _, s in passing]))
-            kind = MODEL_WIFI_FINGERPRINT if by_fingerprint else MODEL_WIFI
-            for (other, feature), d, var in zip(passing, ranges, variances, strict=True):
-                out.append(
-                    Detection(max(t_ms, other.t_ms), user, other.user, kind, feature, float(d), float(var))
-                )
+        kind = MODEL_WIFI_FINGERPRINT if by_fingerprint else MODEL_WIFI
+        out = [Detection(max(t_ms, other.t_ms), user, other.user, kind, f) for other, f in passing]
         scan = _Scan(user, t_ms, top, fresh_aps)
         self._scans.append(scan)
         for ap in top:
@@ -186,8 +184,22 @@ class EncounterDetector:
         smoothed = sum(r for _, r in history) / len(history)
         if smoothed < self.params.bluetooth.cutoff_dbm:
             return None
-        d, var = self.calibration.bluetooth.range_and_variance(np.array([smoothed]))
-        return Detection(t_ms, receiver, sender, MODEL_BLUETOOTH, smoothed, float(d[0]), float(var[0]))
+        return Detection(t_ms, receiver, sender, MODEL_BLUETOOTH, smoothed)
+
+    def ranged(self, detections: list[Detection]) -> list[RangedDetection]:
+        """The detections with their calibrated ranges and R, one vectorised lookup per model (only the
+        detections chosen as human anchors need them)."""
+        distance = np.empty(len(detections))
+        variance = np.empty(len(detections))
+        models = np.array([d.model for d in detections], dtype=np.int64)
+        features = np.array([d.feature for d in detections], dtype=np.float64)
+        for model in np.unique(models):
+            at = models == model
+            distance[at], variance[at] = self.range_model(int(model)).range_and_variance(features[at])
+        return [
+            RangedDetection(d.t_ms, d.user_a, d.user_b, d.model, d.feature, float(r), float(v))
+            for d, r, v in zip(detections, distance, variance, strict=True)
+        ]
 
     def range_model(self, model: int) -> RangeModel:
         """The calibrated range model behind detections of ``model``."""

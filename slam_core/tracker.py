@@ -483,7 +483,9 @@ class BuildingTracker:
         usable = [d for d in found if self.is_tracking(d.user_a) and self.is_tracking(d.user_b)]
         if not usable:
             return [], len(found)
-        chosen = [d for d, keep in zip(usable, self._choose(usable), strict=True) if keep]
+        chosen = self.detector.ranged(
+            [d for d, keep in zip(usable, self._choose(usable), strict=True) if keep]
+        )
         if not chosen or not self.params.filter.use_human_anchors:
             return [EncounterResult(d, False) for d in chosen], len(found)
         outcome = self.engine.observe_encounters(

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from slam_core.detectors import DetectorParams
-from slam_core.encounter_detection import Detection, DetectionParams
+from slam_core.encounter_detection import DetectionParams, RangedDetection
 from slam_core.encounter_selection import SelectionParams
 from slam_core.params import FilterParams
 from slam_core.pdr.frontend import ImuSamples, PdrParams
@@ -156,7 +156,7 @@ class EstimateRow:
 
 @dataclass(frozen=True)
 class EncounterResult:
-    detection: Detection
+    detection: RangedDetection
     applied: bool
 
 

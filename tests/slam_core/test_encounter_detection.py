@@ -59,7 +59,7 @@ def test_two_phones_in_the_same_place_meet_and_far_ones_do_not(model: str, kind:
     assert _scan(detector, "a", T0, here) == []
     met = _scan(detector, "b", T0 + 300, [r + 1.0 if math.isfinite(r) else r for r in here])
     assert [(d.user_a, d.user_b, d.model) for d in met] == [("b", "a", kind)]
-    assert met[0].distance_m < 3.0
+    assert detector.ranged(met)[0].distance_m < 3.0
     assert _scan(detector, "c", T0 + 20_000, there) == []
     # "d" hears "c"'s strongest APs just as "c" does, and four loud APs that "c" does not hear at all:
     # Eq. 3 only compares the common strongest APs and passes; the union of APs tells them apart
