@@ -80,6 +80,59 @@ def draw_ancestors(w: np.ndarray, scheme: int, key: np.uint64, counters: np.ndar
 
 
 @njit(cache=True, nogil=True)
+def _gather_maps(
+    u: int,
+    idx: np.ndarray,
+    map_mu: np.ndarray,
+    map_cov: np.ndarray,
+    map_type: np.ndarray,
+    map_count: np.ndarray,
+    map_known: np.ndarray,
+    map_crowd_id: np.ndarray,
+    map_n: np.ndarray,
+) -> None:
+    """Particle m's map becomes a copy of its ancestor idx[m]'s. Only the anchors the ancestors hold are
+    copied (slots past ``map_n`` are never read), through buffers sized to the fullest ancestor: copying
+    whole map capacities dominated the resampling of young maps."""
+    n_particles = idx.shape[0]
+    k_max = 0
+    for m in range(n_particles):
+        k_max = max(k_max, map_n[u, idx[m]])
+    mu = np.empty((n_particles, k_max, 2))
+    cov = np.empty((n_particles, k_max, 3))
+    kind = np.empty((n_particles, k_max), dtype=map_type.dtype)
+    count = np.empty((n_particles, k_max), dtype=map_count.dtype)
+    known = np.empty((n_particles, k_max), dtype=map_known.dtype)
+    crowd = np.empty((n_particles, k_max), dtype=map_crowd_id.dtype)
+    n = np.empty(n_particles, dtype=map_n.dtype)
+    for m in range(n_particles):
+        a = idx[m]
+        n[m] = map_n[u, a]
+        for k in range(n[m]):
+            mu[m, k, 0] = map_mu[u, a, k, 0]
+            mu[m, k, 1] = map_mu[u, a, k, 1]
+            cov[m, k, 0] = map_cov[u, a, k, 0]
+            cov[m, k, 1] = map_cov[u, a, k, 1]
+            cov[m, k, 2] = map_cov[u, a, k, 2]
+            kind[m, k] = map_type[u, a, k]
+            count[m, k] = map_count[u, a, k]
+            known[m, k] = map_known[u, a, k]
+            crowd[m, k] = map_crowd_id[u, a, k]
+    for m in range(n_particles):
+        map_n[u, m] = n[m]
+        for k in range(n[m]):
+            map_mu[u, m, k, 0] = mu[m, k, 0]
+            map_mu[u, m, k, 1] = mu[m, k, 1]
+            map_cov[u, m, k, 0] = cov[m, k, 0]
+            map_cov[u, m, k, 1] = cov[m, k, 1]
+            map_cov[u, m, k, 2] = cov[m, k, 2]
+            map_type[u, m, k] = kind[m, k]
+            map_count[u, m, k] = count[m, k]
+            map_known[u, m, k] = known[m, k]
+            map_crowd_id[u, m, k] = crowd[m, k]
+
+
+@njit(cache=True, nogil=True)
 def _resample_user(
     u: int,
     threshold: float,
@@ -116,13 +169,7 @@ def _resample_user(
     bias[u] = bias[u][idx]
     scale[u] = scale[u][idx]
     walk[u] = walk[u][idx]
-    map_mu[u] = map_mu[u][idx]
-    map_cov[u] = map_cov[u][idx]
-    map_type[u] = map_type[u][idx]
-    map_count[u] = map_count[u][idx]
-    map_known[u] = map_known[u][idx]
-    map_crowd_id[u] = map_crowd_id[u][idx]
-    map_n[u] = map_n[u][idx]
+    _gather_maps(u, idx, map_mu, map_cov, map_type, map_count, map_known, map_crowd_id, map_n)
     key = rng_key[u]
     for m in range(n_particles):
         logw[u, m] = -math.log(n_particles)
