@@ -13,6 +13,16 @@ from sqlalchemy.orm import Session
 from server.app import AppState
 from server.auth import Principal, authenticate, bearer_secret
 
+AUTHORIZATION_HELP = "Bearer <API key>"
+AUTHORIZATION_PARAMETER: dict[str, object] = {
+    "name": "authorization",
+    "in": "header",
+    "required": False,
+    "schema": {"anyOf": [{"type": "string"}, {"type": "null"}], "title": "Authorization"},
+    "description": AUTHORIZATION_HELP,
+}
+"""The header as ``get_principal`` documents it, for routes that read it themselves."""
+
 
 def get_state(request: Request) -> AppState:
     state: AppState = request.app.state.crowdslam
@@ -30,9 +40,8 @@ def get_session(state: State) -> Iterator[Session]:
 DbSession = Annotated[Session, Depends(get_session)]
 
 
-async def get_principal(
-    state: State, authorization: Annotated[str | None, Header(description="Bearer <API key>")] = None
-) -> Principal:
+async def principal(state: AppState, authorization: str | None) -> Principal:
+    """The caller behind an Authorization header: from the key cache, else from the database."""
     secret = bearer_secret(authorization)
     now = time.monotonic()
     if secret is not None and (cached := state.keys.get(secret, now)) is not None:
@@ -42,10 +51,16 @@ async def get_principal(
         with state.sessions() as session:
             return authenticate(session, secret)
 
-    principal = await asyncio.to_thread(lookup)
+    found = await asyncio.to_thread(lookup)
     if secret is not None:
-        state.keys.put(secret, principal, now)
-    return principal
+        state.keys.put(secret, found, now)
+    return found
+
+
+async def get_principal(
+    state: State, authorization: Annotated[str | None, Header(description=AUTHORIZATION_HELP)] = None
+) -> Principal:
+    return await principal(state, authorization)
 
 
 Caller = Annotated[Principal, Depends(get_principal)]

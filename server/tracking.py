@@ -386,6 +386,11 @@ class BuildingSession:
                         messages.append(AnchorMessage(anchor=anchor))
                 messages += [PositionMessage(estimate=e) for e in estimates.values()]
                 messages += [EncounterMessage(encounter=e) for e in encounters]
+                by_user: dict[str, list[EncounterEvent]] = {}
+                for e in encounters:
+                    by_user.setdefault(e.user_a, []).append(e)
+                    if e.user_b != e.user_a:
+                        by_user.setdefault(e.user_b, []).append(e)
                 for i in now:
                     b = group[i].batch
                     report = outcome.reports[converted[i][0].user]
@@ -401,9 +406,12 @@ class BuildingSession:
                         )
                     if report.steps_dropped:
                         warnings.append(_dropped_warning(report.steps_dropped, report.status))
-                    mine = [e for e in encounters if b.effective_user_id in (e.user_a, e.user_b)]
                     results[i] = self._receipt(
-                        b, "applied", warnings, estimates.get(b.effective_user_id), mine
+                        b,
+                        "applied",
+                        warnings,
+                        estimates.get(b.effective_user_id),
+                        by_user.get(b.effective_user_id),
                     )
             mark_applied_rounds(session, rounds)
             if time.monotonic() - self._last_snapshot >= self.snapshot_period_s:

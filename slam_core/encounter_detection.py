@@ -17,6 +17,7 @@ estimates (``slam_core.encounter_selection``), as in the simulated evaluation, a
 from __future__ import annotations
 
 import math
+from bisect import bisect_left, bisect_right
 from collections import defaultdict, deque
 from dataclasses import dataclass, field
 
@@ -84,6 +85,35 @@ class _Scan:
     t_ms: int
     top: dict[int, float]  # the strongest N APs: interned BSSID -> RSS
     fresh: dict[int, float]  # every fresh AP (the fingerprint model compares these)
+    arrival: int  # order of arrival: candidates are compared in it, whatever their times
+
+
+@dataclass
+class _Bucket:
+    """The retained scans that hold one AP among their strongest N, sorted by scan time, so the scans
+    within the pair window are found by bisection (retention is ten times the window: a linear pass over
+    the bucket was most of a scan's cost in a busy building)."""
+
+    times: list[int] = field(default_factory=list)
+    scans: list[_Scan] = field(default_factory=list)
+
+    def add(self, scan: _Scan) -> None:
+        at = bisect_right(self.times, scan.t_ms)
+        self.times.insert(at, scan.t_ms)
+        self.scans.insert(at, scan)
+
+    def within(self, lo_ms: int, hi_ms: int) -> list[_Scan]:
+        return self.scans[bisect_left(self.times, lo_ms) : bisect_right(self.times, hi_ms)]
+
+    def forget_before(self, horizon_ms: int) -> None:
+        cut = bisect_left(self.times, horizon_ms)
+        if cut:
+            del self.times[:cut]
+            del self.scans[:cut]
+
+
+def _arrival(scan: _Scan) -> int:
+    return scan.arrival
 
 
 def union_rms(a: dict[int, float], b: dict[int, float], floor_dbm: float) -> float:
@@ -111,8 +141,9 @@ class EncounterDetector:
         self.params = params
         self.calibration = calibration
         self._ap_ids: dict[str, int] = {}
-        self._scans: deque[_Scan] = deque()
-        self._by_ap: dict[int, list[_Scan]] = defaultdict(list)
+        self._scans: deque[_Scan] = deque()  # in order of arrival
+        self._by_ap: dict[int, _Bucket] = defaultdict(_Bucket)
+        self._arrivals = 0
         self._bt: dict[tuple[str, str], deque[tuple[int, float]]] = {}
         self._newest_ms = 0
         self._bt_pruned_at = 0
@@ -140,10 +171,14 @@ class EncounterDetector:
         fresh_aps = {self._intern(bssids[i]): float(rss[i]) for i in keep} if by_fingerprint else top
         self._advance(t_ms)
         found: dict[int, _Scan] = {}
+        window = p.scan_pair_window_ms
         for ap in top:
-            for other in self._by_ap.get(ap, ()):
-                if other.user != user and abs(other.t_ms - t_ms) <= p.scan_pair_window_ms:
-                    found[id(other)] = other
+            bucket = self._by_ap.get(ap)
+            if bucket is None:
+                continue
+            for other in sorted(bucket.within(t_ms - window, t_ms + window), key=_arrival):
+                if other.user != user:
+                    found[other.arrival] = other
         passing: list[tuple[_Scan, float]] = []
         for other in found.values():
             self.n_candidates += 1
@@ -157,10 +192,11 @@ class EncounterDetector:
                 passing.append((other, sim))
         kind = MODEL_WIFI_FINGERPRINT if by_fingerprint else MODEL_WIFI
         out = [Detection(max(t_ms, other.t_ms), user, other.user, kind, f) for other, f in passing]
-        scan = _Scan(user, t_ms, top, fresh_aps)
+        scan = _Scan(user, t_ms, top, fresh_aps, self._arrivals)
+        self._arrivals += 1
         self._scans.append(scan)
         for ap in top:
-            self._by_ap[ap].append(scan)
+            self._by_ap[ap].add(scan)
         return out
 
     def _intern(self, bssid: str) -> int:
@@ -219,13 +255,14 @@ class EncounterDetector:
             return
         self._newest_ms = t_ms
         horizon = t_ms - self.params.retention_ms
+        touched: set[int] = set()
         while self._scans and self._scans[0].t_ms < horizon:
-            old = self._scans.popleft()
-            for ap in old.top:
-                bucket = self._by_ap[ap]
-                bucket.remove(old)
-                if not bucket:
-                    del self._by_ap[ap]
+            touched.update(self._scans.popleft().top)
+        for ap in touched:
+            bucket = self._by_ap[ap]
+            bucket.forget_before(horizon)
+            if not bucket.times:
+                del self._by_ap[ap]
         if len(self._bt) > self._bt_pruned_at + 1024:
             self._bt = {k: v for k, v in self._bt.items() if v and v[-1][0] >= horizon}
             self._bt_pruned_at = len(self._bt)

@@ -499,18 +499,22 @@ class BuildingTracker:
 
     def _choose(self, detections: list[Detection]) -> np.ndarray:
         """The selector's choice among detections of tracked users, from the filters' current estimates."""
-        names = sorted({d.user_a for d in detections} | {d.user_b for d in detections})
-        means = self.engine.summaries(np.array([self._users[n].slot for n in names], dtype=np.int64))[:, 0:2]
-        row = {n: i for i, n in enumerate(names)}
-        delta = np.array([means[row[d.user_a]] - means[row[d.user_b]] for d in detections])
+        n = len(detections)
+        slot_a, slot_b = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)
+        models, t_ms = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)
+        keys = []
+        for i, d in enumerate(detections):  # one pass: a busy building has thousands per call
+            slot_a[i], slot_b[i] = self._users[d.user_a].slot, self._users[d.user_b].slot
+            models[i], t_ms[i] = d.model, d.t_ms
+            keys.append(pair_key(d.user_a, d.user_b, d.model))
+        slots, index = np.unique(np.concatenate([slot_a, slot_b]), return_inverse=True)
+        means = self.engine.summaries(slots)[:, 0:2]
+        delta = means[index[:n]] - means[index[n:]]
         predicted = np.hypot(delta[:, 0], delta[:, 1])
-        sigma = np.empty(len(detections))
-        models = np.array([d.model for d in detections])
+        sigma = np.empty(n)
         for model in np.unique(models):
             at = models == model
             sigma[at] = np.sqrt(self.detector.range_model(int(model)).variance_at_distance(predicted[at]))
-        keys = [pair_key(d.user_a, d.user_b, d.model) for d in detections]
-        t_ms = np.array([d.t_ms for d in detections], dtype=np.int64)
         chosen: np.ndarray = self.selector.choose(t_ms, keys, predicted, sigma)
         if len(self.selector) > 100_000:
             self.selector.forget_before(int(t_ms.max()))
