@@ -94,8 +94,11 @@ def bench_human_anchor(params: FilterParams) -> float:
     return (time.perf_counter() - t0) / n * 1e6
 
 
+REFERENCE_USERS = 100
+
+
 def bench_reference_ratio(
-    params: FilterParams, n_users: int = 100, n_ticks: int = 5, repeats: int = 7
+    params: FilterParams, n_users: int = REFERENCE_USERS, n_ticks: int = 5, repeats: int = 7
 ) -> tuple[float, float, float]:
     """Same users, same inputs, same random streams: textbook objects vs compiled kernels. The engine's
     time is the median of ``repeats`` runs from the same start (one run of a few milliseconds is at the
@@ -155,7 +158,7 @@ def main() -> int:
         "reference_ratio": round(ratio, 1),
         "reference_ms": round(ref_ms, 1),
         "engine_ms_same_inputs": round(eng_ms, 3),
-        "reference_users": 100,
+        "reference_users": REFERENCE_USERS,
     }
     text = json.dumps(result, indent=2)
     print(text)

@@ -91,45 +91,19 @@ def _gather_maps(
     map_crowd_id: np.ndarray,
     map_n: np.ndarray,
 ) -> None:
-    """Particle m's map becomes a copy of its ancestor idx[m]'s. Only the anchors the ancestors hold are
-    copied (slots past ``map_n`` are never read), through buffers sized to the fullest ancestor: copying
-    whole map capacities dominated the resampling of young maps."""
-    n_particles = idx.shape[0]
-    k_max = 0
-    for m in range(n_particles):
-        k_max = max(k_max, map_n[u, idx[m]])
-    mu = np.empty((n_particles, k_max, 2))
-    cov = np.empty((n_particles, k_max, 3))
-    kind = np.empty((n_particles, k_max), dtype=map_type.dtype)
-    count = np.empty((n_particles, k_max), dtype=map_count.dtype)
-    known = np.empty((n_particles, k_max), dtype=map_known.dtype)
-    crowd = np.empty((n_particles, k_max), dtype=map_crowd_id.dtype)
-    n = np.empty(n_particles, dtype=map_n.dtype)
-    for m in range(n_particles):
-        a = idx[m]
-        n[m] = map_n[u, a]
-        for k in range(n[m]):
-            mu[m, k, 0] = map_mu[u, a, k, 0]
-            mu[m, k, 1] = map_mu[u, a, k, 1]
-            cov[m, k, 0] = map_cov[u, a, k, 0]
-            cov[m, k, 1] = map_cov[u, a, k, 1]
-            cov[m, k, 2] = map_cov[u, a, k, 2]
-            kind[m, k] = map_type[u, a, k]
-            count[m, k] = map_count[u, a, k]
-            known[m, k] = map_known[u, a, k]
-            crowd[m, k] = map_crowd_id[u, a, k]
-    for m in range(n_particles):
-        map_n[u, m] = n[m]
-        for k in range(n[m]):
-            map_mu[u, m, k, 0] = mu[m, k, 0]
-            map_mu[u, m, k, 1] = mu[m, k, 1]
-            map_cov[u, m, k, 0] = cov[m, k, 0]
-            map_cov[u, m, k, 1] = cov[m, k, 1]
-            map_cov[u, m, k, 2] = cov[m, k, 2]
-            map_type[u, m, k] = kind[m, k]
-            map_count[u, m, k] = count[m, k]
-            map_known[u, m, k] = known[m, k]
-            map_crowd_id[u, m, k] = crowd[m, k]
+    """Particle m's map becomes a copy of its ancestor idx[m]'s. Only the slots up to the fullest ancestor's
+    ``map_n`` are copied (slots past a particle's ``map_n`` are never read): copying whole map capacities
+    dominated the resampling of young maps."""
+    k = 0
+    for m in range(idx.shape[0]):
+        k = max(k, map_n[u, idx[m]])
+    map_mu[u, :, :k] = map_mu[u][idx, :k]
+    map_cov[u, :, :k] = map_cov[u][idx, :k]
+    map_type[u, :, :k] = map_type[u][idx, :k]
+    map_count[u, :, :k] = map_count[u][idx, :k]
+    map_known[u, :, :k] = map_known[u][idx, :k]
+    map_crowd_id[u, :, :k] = map_crowd_id[u][idx, :k]
+    map_n[u] = map_n[u][idx]
 
 
 @njit(cache=True, nogil=True)
