@@ -13,9 +13,12 @@ Each walk is a chain of ``Pose2`` vertices, one per PDR step between its first a
 
 Departures from the paper, said here: the paper sets every information matrix to identity (omega_33 = 4) on
 stride edges; our vertices are single steps, so the motion noise is per step (``GraphParams``), and the
-signal-edge sigma is the regression's measured accuracy (metres, not the paper's unit information).
-Optimisation is Levenberg-Marquardt from the recalibrated dead reckoning (Eq. 4), which starts close to the
-solution on walks with landmarks at both ends.
+signal-edge sigma is the regression's measured accuracy (metres, not the paper's unit information), widened
+for the overlap of the 10 s windows. Beyond the paper, each walk's start pose has a prior on its heading (the
+phone's heading, with the heading-bias sigma): with landmarks at both ends a straight walk is held by them,
+but a walk that comes back near its start could otherwise turn freely about them (on msindoor site1 F1,
+GraphSLAM p90 6.3 m without the prior, 3.5 m with it). Optimisation is Levenberg-Marquardt from the
+recalibrated dead reckoning (Eq. 4, in its posterior form: ``calibration.CalibrationPrior``).
 """
 
 from __future__ import annotations
@@ -25,8 +28,9 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from slam_core.signal_map.calibration import CalibrationGrid, calibrate_segment, dead_reckon
+from slam_core.signal_map.calibration import CalibrationGrid, CalibrationPrior, calibrate_segment, dead_reckon
 from slam_core.signal_map.kernels import gaussian_kernel, kl_kernel, visibility_multinomials
+from slam_core.signal_map.windows import WINDOW_MS, WINDOW_STEP_MS
 
 MODALITIES = ("wifi", "bluetooth", "magnetic")
 SOLVERS = ("lm", "isam2")
@@ -34,16 +38,23 @@ SOLVERS = ("lm", "isam2")
 
 @dataclass(frozen=True)
 class GraphParams:
-    step_sigma_along_m: float = 0.10
-    """Per step: the measured step-scale error (sigma 0.14 per walk) is ~0.1 m of a 0.7 m step."""
+    step_sigma_along_m: float = 0.20
+    """Per step, what a walk's scale does not explain: between consecutive waypoints of msindoor site1 F1,
+    after each walk's own scale, segment lengths scatter by 0.10 in log ratio over ~12 steps, about 0.25 m
+    per step (an upper bound: the surveyed line between clicks has its own error)."""
     step_sigma_across_m: float = 0.05
     step_sigma_heading_rad: float = np.radians(1.0)
-    """Per step: the phone's heading error is mostly a constant bias per walk, which the free start heading
-    absorbs; what varies step to step is about a degree."""
+    """Per step: the phone's heading error is mostly a constant bias per walk, which the start pose's heading
+    absorbs (within ``start_heading_prior``); what varies step to step is about a degree."""
     landmark_sigma_m: float = 0.5
     signal_sigma_m: float = 5.0
-    """A WiFi kernel regression is good to about 5 m on a mall floor (weighted kNN on surveyed positions:
-    4.6 m p50 on msindoor site1 F1), so a signal edge is a 5 m landmark, made robust by the Huber kernel."""
+    """A WiFi kernel regression is good to about 5 m on a mall floor (Eq. 7 on surveyed neighbour positions:
+    4.5 m p50 on msindoor site1 F1), so one window's signal edge is a 5 m landmark, made robust by the Huber
+    kernel; ``signal_overlap`` widens it for the windows that share its scans."""
+    signal_overlap: float = WINDOW_MS / WINDOW_STEP_MS
+    """Windows of 10 s every 1 s: each scan is in 10 windows, so their edges are not independent
+    observations. Each edge's sigma is ``signal_sigma_m * sqrt(signal_overlap)`` so that one 10 s stretch of
+    scans carries one landmark's information, not ten."""
     signal_huber_k: float = 1.345
     neighbours: int = 10  # n of Eq. 7
     kernel_alpha: float = 1.0
@@ -57,9 +68,20 @@ class GraphParams:
     chunk_poses: int = 30
     modalities: tuple[str, ...] = ("wifi",)
     """Kernels multiplied into the signal similarity. On msindoor site1 F1 (``crowdslam signalslam``):
-    WiFi alone 1.95 / 4.27 m (p50 / p90), + fixed Bluetooth beacons 2.15 / 5.87, + magnetic magnitude
-    2.06 / 4.39, all three 2.18 / 5.80: the beacons' sparse, noisy visibility and the magnetic magnitude's
+    WiFi alone 1.48 / 3.12 m (p50 / p90), + fixed Bluetooth beacons 1.55 / 3.50, + magnetic magnitude
+    1.50 / 3.20, all three 1.58 / 3.68: the beacons' sparse, noisy visibility and the magnetic magnitude's
     ambiguity over a large floor reorder WiFi's good neighbours, so WiFi alone is the default."""
+
+    same_walk_gap_ms: int = 20_000
+    """Windows of the same walk closer in time than this are not signal neighbours (they overlap)."""
+    iterations: int = 5
+    calibration_prior: bool = True
+    """Beyond the paper: recalibrate (Eq. 4) on the posterior with the bias-scale priors
+    (``CalibrationPrior``); False is the paper's plain grid search."""
+    start_heading_prior: bool = True
+    """Beyond the paper: a prior on each walk's start heading, the phone's heading with the heading-bias
+    sigma. Without it a walk that ends near its start may turn freely about its landmarks (the motion
+    edges are relative and the landmarks position-only)."""
 
     def __post_init__(self) -> None:
         if self.solver not in SOLVERS or self.chunk_poses < 1:
@@ -67,10 +89,9 @@ class GraphParams:
         unknown = [m for m in self.modalities if m not in MODALITIES]
         if unknown or not self.modalities:
             raise ValueError(f"unknown modalities {unknown}; valid: {', '.join(MODALITIES)}")
-
-    same_walk_gap_ms: int = 20_000
-    """Windows of the same walk closer in time than this are not signal neighbours (they overlap)."""
-    iterations: int = 5
+        if min(self.step_sigma_along_m, self.step_sigma_across_m, self.step_sigma_heading_rad,
+               self.landmark_sigma_m, self.signal_sigma_m) <= 0 or self.signal_overlap < 1:  # fmt: skip
+            raise ValueError("graph sigmas must be positive and signal_overlap >= 1")
 
 
 @dataclass(frozen=True)
@@ -120,6 +141,9 @@ class WalkGraph:
             np.array([p.step_sigma_along_m, p.step_sigma_across_m, p.step_sigma_heading_rad])
         )
         landmark = gtsam.noiseModel.Isotropic.Sigma(2, p.landmark_sigma_m)
+        heading_prior = gtsam.noiseModel.Diagonal.Sigmas(
+            np.array([1e3, 1e3, CalibrationPrior().offset_sigma_rad])
+        )
         for w, walk in enumerate(walks):
             o = self.offsets[w]
             heads = np.concatenate([[walk.headings[0]], walk.headings])  # the start pose faces the first step
@@ -131,6 +155,10 @@ class WalkGraph:
                 gtsam.PoseTranslationPrior2D(_key(o), np.asarray(walk.start, dtype=float), landmark)
             )
             self.newest_pose.append(o)
+            if p.start_heading_prior:
+                start = gtsam.Pose2(float(walk.start[0]), float(walk.start[1]), float(heads[0]))
+                self.base.add(gtsam.PriorFactorPose2(_key(o), start, heading_prior))
+                self.newest_pose.append(o)
             last = o + walk.lengths.size
             self.base.add(
                 gtsam.PoseTranslationPrior2D(_key(last), np.asarray(walk.end, dtype=float), landmark)
@@ -210,12 +238,15 @@ class _Incremental:
         return self.isam.calculateEstimate()
 
 
-def calibrated_positions(walks: list[Walk], grid: CalibrationGrid | None = None) -> list[np.ndarray]:
-    """Eq. 4 per walk (its landmarks at both ends), applied to the whole walk."""
+def calibrated_positions(
+    walks: list[Walk], grid: CalibrationGrid | None = None, prior: CalibrationPrior | None = None
+) -> list[np.ndarray]:
+    """Eq. 4 per walk (its landmarks at both ends), with ``prior`` its posterior form, applied to the
+    whole walk."""
     grid = grid or CalibrationGrid()
     out = []
     for walk in walks:
-        scale, offset, _ = calibrate_segment(walk.lengths, walk.headings, walk.start, walk.end, grid)
+        scale, offset, _ = calibrate_segment(walk.lengths, walk.headings, walk.start, walk.end, grid, prior)
         out.append(
             np.vstack([walk.start, dead_reckon(walk.lengths, walk.headings, walk.start, scale, offset)])
         )
@@ -265,7 +296,7 @@ def solve(walks: list[Walk], params: GraphParams | None = None) -> Trajectories:
     edges, Eq. 7, iterated) positions of every walk's poses."""
     params = params or GraphParams()
     raw = [np.vstack([w.start, dead_reckon(w.lengths, w.headings, w.start)]) for w in walks]
-    calibrated = calibrated_positions(walks)
+    calibrated = calibrated_positions(walks, prior=CalibrationPrior() if params.calibration_prior else None)
     graph = WalkGraph(walks, params)
     incremental = None
     if params.solver == "isam2":
@@ -282,7 +313,7 @@ def solve(walks: list[Walk], params: GraphParams | None = None) -> Trajectories:
     )
     noise = gtsam.noiseModel.Robust.Create(
         gtsam.noiseModel.mEstimator.Huber.Create(params.signal_huber_k),
-        gtsam.noiseModel.Isotropic.Sigma(2, params.signal_sigma_m),
+        gtsam.noiseModel.Isotropic.Sigma(2, params.signal_sigma_m * np.sqrt(params.signal_overlap)),
     )
     for _ in range(params.iterations):
         xy = np.vstack([values.atPose2(_key(int(k))).translation() for k in pose_of_window])

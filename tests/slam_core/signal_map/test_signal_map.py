@@ -10,7 +10,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from slam_core.signal_map.calibration import CalibrationGrid, calibrate_segment, dead_reckon
+from slam_core.signal_map.calibration import CalibrationGrid, CalibrationPrior, calibrate_segment, dead_reckon
 from slam_core.signal_map.graph import GraphParams, Walk, position_at, solve
 from slam_core.signal_map.kernels import gaussian_kernel, kl_kernel, symmetric_kl, visibility_multinomials
 
@@ -54,6 +54,53 @@ def test_eq4_recovers_stride_scale_and_offset() -> None:
     assert residual < 0.5
     with pytest.raises(ValueError, match="non-empty"):
         calibrate_segment(np.zeros(0), np.zeros(0), start, start, CalibrationGrid())
+
+
+def _loop_walk(n: int = 60) -> tuple[np.ndarray, np.ndarray]:
+    """A square walked once around: 4 x 15 steps of 0.7 m, ending where it started."""
+    headings = np.repeat(np.radians([0.0, 90.0, 180.0, 270.0]), n // 4)
+    return np.full(n, 0.7), headings
+
+
+def test_the_prior_keeps_a_loop_walk_near_its_dead_reckoning_where_eq4_is_blind() -> None:
+    lengths, headings = _loop_walk()
+    start = np.array([5.0, 5.0])
+    end = start + np.array([0.4, -0.3])
+    # both landmarks at one place: every rotation and scale of a closed loop lands on it
+    _, offset, _ = calibrate_segment(lengths, headings, start, end, CalibrationGrid())
+    assert abs(math.degrees(offset)) > 20.0  # Eq. 4 alone turns the loop by whatever fits the 0.5 m
+    scale, offset, _ = calibrate_segment(lengths, headings, start, end, CalibrationGrid(), CalibrationPrior())
+    assert abs(math.degrees(offset)) <= 2.0
+    assert abs(scale - 1.0) <= 0.03
+
+
+def test_the_prior_leaves_a_long_straight_walk_to_its_landmarks() -> None:
+    rng = np.random.default_rng(1)
+    headings = np.cumsum(rng.normal(0, 0.02, 120)) + 0.3
+    lengths = rng.uniform(0.6, 0.8, 120)
+    start = np.array([3.0, 4.0])
+    end = dead_reckon(lengths, headings, start, scale=1.12, offset=math.radians(-9.0))[-1]
+    plain = calibrate_segment(lengths, headings, start, end, CalibrationGrid())
+    posterior = calibrate_segment(lengths, headings, start, end, CalibrationGrid(), CalibrationPrior())
+    assert posterior[0] == pytest.approx(plain[0], abs=0.021)
+    assert math.degrees(posterior[1]) == pytest.approx(math.degrees(plain[1]), abs=1.01)
+    with pytest.raises(ValueError, match="positive"):
+        CalibrationPrior(scale_sigma=0.0)
+
+
+@pytest.mark.parametrize("solver", ["lm", "isam2"])
+def test_the_start_heading_prior_holds_a_closed_loop_to_the_phones_heading(solver: str) -> None:
+    lengths, headings = _loop_walk()
+    t = 1000 * np.arange(lengths.size + 1)
+    truth = dead_reckon(lengths, headings, np.zeros(2))
+    # the dead reckoning is right; the landmark at the end is 1.2 m off, as a tag read a step late
+    walk = Walk(t_ms=t.astype(np.int64), lengths=lengths, headings=headings, start=np.zeros(2),
+                end=np.array([1.2, 0.0]), window_t=t[1:].astype(np.int64),
+                window_counts=np.zeros((lengths.size, 0)))  # fmt: skip
+    held = solve([walk], GraphParams(iterations=0, solver=solver, chunk_poses=7))
+    error = np.linalg.norm(held.graphslam[0][1:] - truth, axis=1)
+    assert error.max() < 1.3  # the chain bends its last steps onto the late landmark, no more
+    assert np.linalg.norm(held.graphslam[0][1:31] - truth[:30], axis=1).max() < 0.6
 
 
 def _numerical_jacobian(factor: Any, values: gtsam.Values, key: int) -> np.ndarray:
@@ -121,8 +168,13 @@ def test_graphslam_closes_a_walk_between_its_landmarks(solver: str) -> None:
     rotated = Walk(**{**walk.__dict__, "headings": walk.headings + math.radians(8.0)})
     result = solve([rotated], GraphParams(iterations=0, solver=solver, chunk_poses=7))
     assert np.linalg.norm(result.raw[0][1:] - truth, axis=1).max() > 5.0
-    # a constant heading bias costs the chain nothing: its start heading is free
-    assert np.linalg.norm(result.graphslam[0][1:] - truth, axis=1).max() < 0.1
+    # a constant heading bias costs the chain little: its start heading has only a 10 deg prior, against the
+    # landmark 40 m away (with the prior off it costs nothing)
+    assert np.linalg.norm(result.graphslam[0][1:] - truth, axis=1).max() < 0.2
+    free = solve(
+        [rotated], GraphParams(iterations=0, solver=solver, chunk_poses=7, start_heading_prior=False)
+    )
+    assert np.linalg.norm(free.graphslam[0][1:] - truth, axis=1).max() < 0.1
     scaled = Walk(**{**rotated.__dict__, "lengths": walk.lengths * 1.1})
     result = solve([scaled], GraphParams(iterations=0, solver=solver, chunk_poses=7))
     raw_error = np.linalg.norm(result.raw[0][1:] - truth, axis=1).mean()
