@@ -27,6 +27,7 @@ from server.settings import Settings
 from server.signal_maps import SignalMapService
 from server.store.db import make_engine, make_session_factory
 from server.store.migrate import current_revision, head_revision
+from slam_core.crowd_fingerprints import FingerprintParams
 from slam_core.encounter_detection import DetectionParams
 from slam_core.encounters import Calibration
 from slam_core.params import BuildingAnchorParams, FilterParams, extended_confusion
@@ -70,6 +71,7 @@ def tracker_params(settings: Settings) -> TrackerParams:
             use_human_anchors=settings.mode == "dynamicslam",
         ),
         detection=DetectionParams(wifi_model=settings.encounter_wifi_model),
+        fingerprints=FingerprintParams(enabled=settings.fingerprint_fixes),
     )
 
 

@@ -6,6 +6,7 @@ touching the state. Randomness comes from per-user counter streams keyed by (see
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -250,6 +251,39 @@ class DynamicSlam:
             s.ctrl_cov[u] = 0.0
         self._resample(users[~recentred])
         return recentred
+
+    def observe_position_robust(
+        self,
+        users: np.ndarray,
+        xy: np.ndarray,
+        sigma: float,
+        outlier_probability: float,
+        outlier_radius_m: float,
+    ) -> None:
+        """A doubtful position fix per user (a WiFi fingerprint's position): each particle is weighted by
+        (1 - e) N(fix; particle, sigma^2 I) + e / (pi r^2), so a wrong fix far from the cloud changes the
+        weights almost uniformly instead of dragging the user (the outlier term of the human-anchor
+        likelihood, in two dimensions). Never re-centres. Resampled by effective sample size."""
+        users = np.ascontiguousarray(users, dtype=np.int64)
+        xy = np.ascontiguousarray(xy, dtype=np.float64).reshape(-1, 2)
+        self._check_users(users)
+        if xy.shape != (users.size, 2) or not np.all(np.isfinite(xy)):
+            raise ValueError("one finite fix (x, y) per user")
+        if not (sigma > 0 and outlier_radius_m > 0 and 0.0 <= outlier_probability < 1.0):
+            raise ValueError("sigma and outlier_radius_m must be positive, outlier_probability in [0, 1)")
+        s = self.state
+        var = sigma**2
+        log_keep = math.log1p(-outlier_probability) - math.log(2 * math.pi * var)
+        log_out = (
+            math.log(outlier_probability / (math.pi * outlier_radius_m**2))
+            if outlier_probability
+            else -math.inf
+        )
+        for i, u in enumerate(users):
+            d2 = (s.x[u] - xy[i, 0]) ** 2 + (s.y[u] - xy[i, 1]) ** 2
+            logw = s.logw[u] + np.logaddexp(log_keep - 0.5 * d2 / var, log_out)
+            s.logw[u] = logw - np.logaddexp.reduce(logw)
+        self._resample(users)
 
     def _within_cloud(self, u: int, fix: np.ndarray) -> bool:
         """The fix lies within 3 sigma of the cloud's own spread (then weighting, not shifting, is right)."""

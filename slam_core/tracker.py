@@ -30,6 +30,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from slam_core.crowd_fingerprints import CrowdFingerprints
 from slam_core.crowd_graph import CrowdGraph, GraphParams
 from slam_core.crowd_map import CrowdMapBuilder
 from slam_core.encounter_detection import Detection, EncounterDetector
@@ -71,6 +72,7 @@ class BuildingTracker:
         self.graph = CrowdGraph(GraphParams(detection_sigma_m=fp.anchors.detection_sigma_m))
         self.detector = EncounterDetector(params.detection, calibration)
         self.selector = EncounterSelector(params.selection)
+        self.fingerprints = CrowdFingerprints(params.fingerprints)
         self._users: dict[str, UserTrack] = {}
         self.front_end = FrontEnd(params.pdr, params.detectors)
         self._by_ble: dict[str, str] = {}
@@ -201,6 +203,8 @@ class BuildingTracker:
                 self.engine.refresh_crowd_anchors(active, self.crowd.snapshot())
         if len(self.crowd) != crowd_size:
             self._offer_crowd_map()
+        if self.params.fingerprints.enabled:
+            self._fingerprint_fixes(batches, reports)
         encounters, detections = self._encounters(batches)
         touched = {b.user for b in batches if self.is_tracking(b.user)}
         for e in encounters:
@@ -454,6 +458,48 @@ class BuildingTracker:
                 np.array(fix_slots, dtype=np.int64), np.array(fix_xy), np.array(fix_sigma)
             )
         changed.update(ids)
+
+    def _fingerprint_fixes(self, batches: list[UserBatch], reports: dict[str, UserReport]) -> None:
+        """Each fresh scan of a tracked user: localised on the crowd fingerprint map (other users' scans),
+        the position, carried to now through the user's own dead reckoning since the scan, is a robust fix
+        (``DynamicSlam.observe_position_robust``); then the scan joins the map at the user's estimate at
+        scan time when that estimate is confident. The fixes of one call go to the engine in one batch."""
+        p = self.params.fingerprints
+        stale = self.params.detection.stale_ap_ms
+        slots, fixes, places = [], [], []
+        names = [b.user for b in batches if self.is_tracking(b.user) and b.scan_t.size]
+        rows = self._rows(names)
+        for b in batches:
+            if b.user not in rows:
+                continue
+            u, row = self._users[b.user], rows[b.user]
+            cov = np.array([[row.cov[0], row.cov[1]], [row.cov[1], row.cov[2]]])
+            confident = float(np.max(np.linalg.eigvalsh(cov))) <= p.max_reference_std_m**2
+            located = None
+            for c in range(b.scan_t.size):
+                lo, hi = int(b.scan_offsets[c]), int(b.scan_offsets[c + 1])
+                t = int(b.scan_t[c])
+                fresh = (b.scan_last_seen[lo:hi] < 0) | (b.scan_last_seen[lo:hi] >= t - stale)
+                bssids = [str(x) for x, f in zip(b.scan_bssid[lo:hi], fresh, strict=True) if f]
+                rss = b.scan_rss[lo:hi][fresh]
+                then, _ = u.at(t)
+                shift = u.displacement - then
+                xy = self.fingerprints.locate(u.number, bssids, rss)
+                if xy is not None:
+                    located = xy + shift  # the latest scan of the batch wins: one fix per user per call
+                if confident:
+                    places.append((u.number, np.array([row.x, row.y]) - shift, bssids, rss))
+            if located is not None:
+                slots.append(u.slot)
+                fixes.append(located)
+                reports[b.user].fingerprint_fixes += 1
+        if slots:
+            self.engine.observe_position_robust(
+                np.array(slots, dtype=np.int64), np.array(fixes), p.sigma_m, p.outlier_probability,
+                p.outlier_radius_m,
+            )  # fmt: skip
+        for number, xy, bssids, rss in places:
+            self.fingerprints.add(number, xy, bssids, rss)
 
     def _offer_crowd_map(self) -> None:
         active = self.engine.active_users

@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from slam_core.crowd_fingerprints import FingerprintParams
 from slam_core.detectors import DetectorParams
 from slam_core.encounter_detection import DetectionParams, RangedDetection
 from slam_core.encounter_selection import SelectionParams
@@ -38,6 +39,9 @@ class TrackerParams:
     left to the gate."""
     signature_gate_chi2: float = 9.21
     """A signature observation more than this (99 %, 2 dof) from the user's cloud is skipped and counted."""
+    fingerprints: FingerprintParams = field(default_factory=FingerprintParams)
+    """The crowd-learned WiFi fingerprint map and its robust position fixes
+    (``slam_core.crowd_fingerprints``); off unless enabled."""
     revise_headings: bool = True
     """When the PDR front-end's north offset estimate moves, translate the user's particles by the revision
     of the path dead-reckoned since its last absolute observation (``BuildingTracker._revise_headings``)."""
@@ -142,6 +146,7 @@ class UserReport:
     detections_applied: int = 0
     fixes_applied: int = 0
     recentred: int = 0
+    fingerprint_fixes: int = 0  # scans localised on the crowd fingerprint map and applied
 
 
 @dataclass(frozen=True)

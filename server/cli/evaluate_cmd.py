@@ -47,6 +47,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default="graph",
         help="shared anchor map: joint least squares (graph) or sequential fusion of estimates",
     )
+    parser.add_argument(
+        "--fingerprints",
+        action="store_true",
+        help="--msindoor: also localise scans on the WiFi fingerprint map the crowd learns (robust fixes)",
+    )
     parser.add_argument("--sweep", choices=("particles", "density", "anchor-density"))
     parser.add_argument(
         "--compare", action="store_true", help="run pdr, semanticslam and dynamicslam; one CDF (Figure 14)"
@@ -62,8 +67,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.msindoor is not None:
         return _msindoor(args)
-    if args.warm_split is not None or args.calibration is not None:
-        print("crowdslam evaluate: --warm-split and --calibration apply to --msindoor only")
+    if args.warm_split is not None or args.calibration is not None or args.fingerprints:
+        print("crowdslam evaluate: --warm-split, --calibration and --fingerprints apply to --msindoor only")
         return 2
 
     try:
@@ -106,6 +111,7 @@ def _msindoor(args: argparse.Namespace) -> int:
             motion_model=args.motion_model,
             crowd_solver=args.crowd_solver,
             seed=args.seed,
+            fingerprints=args.fingerprints,
         )
         calibration = load_calibration(args.calibration)
     except (OSError, ValueError) as error:

@@ -60,6 +60,8 @@ class ReplayOptions:
     crowd_solver: str = "graph"
     seed: int = 0
     window_ms: int = 1000
+    fingerprints: bool = False
+    """Also localise scans on the crowd-learned WiFi fingerprint map (``slam_core.crowd_fingerprints``)."""
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -81,6 +83,7 @@ def replay_params(base: TrackerParams, options: ReplayOptions) -> TrackerParams:
             use_human_anchors=options.mode == "dynamicslam",
         ),
         crowd_solver=options.crowd_solver,
+        fingerprints=replace(base.fingerprints, enabled=options.fingerprints or base.fingerprints.enabled),
     )
 
 
@@ -115,6 +118,7 @@ def replay_floor(
             "encounters_applied",
             "signatures_applied",
             "signatures_gated",
+            "fingerprint_fixes",
         ),
         0,
     )
@@ -147,6 +151,8 @@ def replay_floor(
         "detections_per_walk": {k: v / len(traces) for k, v in tracker.front_end.fired.items()},
         "signature_observations_applied": counts["signatures_applied"],
         "signature_observations_gated": counts["signatures_gated"],
+        "fingerprints": options.fingerprints,
+        "fingerprint_fixes": counts["fingerprint_fixes"],
         "seconds": time.perf_counter() - started,
     }
     return result, errors
@@ -225,6 +231,7 @@ def _apply(
     counts["steps"] += sum(r.steps_detected for r in outcome.reports.values())
     counts["signatures_applied"] += sum(r.signatures_applied for r in outcome.reports.values())
     counts["signatures_gated"] += sum(r.signatures_gated for r in outcome.reports.values())
+    counts["fingerprint_fixes"] += sum(r.fingerprint_fixes for r in outcome.reports.values())
     counts["encounter_detections"] += outcome.detections
     counts["encounters"] += len(outcome.encounters)
     counts["encounters_applied"] += sum(e.applied for e in outcome.encounters)

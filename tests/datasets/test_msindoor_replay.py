@@ -4,6 +4,7 @@ floor made of a few of the shared walks; and the tracker's PDR front-end path it
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +17,7 @@ from server.datasets.msindoor import read_trace
 from server.datasets.msindoor_batches import trace_batches
 from server.datasets.msindoor_replay import ReplayOptions, replay_floor
 from server.settings import Settings
+from slam_core.crowd_fingerprints import FingerprintParams
 from slam_core.tracker import BuildingTracker
 from tests.datasets.conftest import FLOOR, WALKS
 
@@ -50,6 +52,20 @@ def test_warm_split_scores_only_the_later_walks(small_floor: Path) -> None:
     later = tuple(t.path.stem for t in traces[len(traces) // 2 :])
     assert result["n_scored_walks"] == len(later)
     assert errors.size == _waypoints_after_the_first(later)
+    assert result["median_m"] < 8.0
+
+
+def test_fingerprint_fixes_come_from_the_warm_crowds_scans(small_floor: Path) -> None:
+    result, errors = replay_floor(
+        small_floor,
+        ReplayOptions(mode="dynamicslam", warm_split=0.5, particles=30, fingerprints=True),
+        # three warm walks hold far fewer scans than a floor's crowd: let the map speak sooner
+        replace(tracker_params(Settings()), fingerprints=FingerprintParams(min_references=7)),
+        load_calibration(None),
+    )
+    assert result["fingerprints"] is True
+    assert result["fingerprint_fixes"] > 0
+    assert np.all(np.isfinite(errors))
     assert result["median_m"] < 8.0
 
 
@@ -90,6 +106,8 @@ def test_evaluate_cli_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str])
     assert "floor_info.json" in capsys.readouterr().out
     scenario = FLOOR.parents[2].parent / "scenarios" / "paper-testbed.json"
     assert main(["evaluate", "--scenario", str(scenario), "--warm-split", "0.5", "--json", str(out)]) == 2
+    assert "--msindoor only" in capsys.readouterr().out
+    assert main(["evaluate", "--scenario", str(scenario), "--fingerprints", "--json", str(out)]) == 2
     assert "--msindoor only" in capsys.readouterr().out
     assert not out.exists()
 

@@ -1,0 +1,127 @@
+"""The crowd-learned fingerprint map (weighted kNN against a direct computation over wifi_pairs' union
+distance) and the engine's robust position fix it feeds."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from slam_core.crowd_fingerprints import CrowdFingerprints, FingerprintParams
+from slam_core.fastslam import DynamicSlam
+from slam_core.params import FilterParams
+from slam_core.signal_map.maps import FingerprintGrid, localise_knn
+
+
+def _scans(rng: np.random.Generator, n: int, aps: int = 12) -> tuple[np.ndarray, np.ndarray]:
+    """Scans at random places of a 60 m x 30 m floor, log-distance RSS from APs on a grid; NaN below -90."""
+    xy = rng.uniform([0, 0], [60, 30], size=(n, 2))
+    ap = np.column_stack([np.tile(np.linspace(5, 55, aps // 2), 2), np.repeat([8.0, 22.0], aps // 2)])
+    d = np.linalg.norm(xy[:, None, :] - ap[None, :, :], axis=2)
+    rss = -40.0 - 25.0 * np.log10(np.maximum(d, 1.0)) + rng.normal(0, 2.0, d.shape)
+    return xy, np.where(rss > -90.0, rss, np.nan)
+
+
+def _add_all(db: CrowdFingerprints, owners: np.ndarray, xy: np.ndarray, rss: np.ndarray) -> list[str]:
+    names = [f"ap{i}" for i in range(rss.shape[1])]
+    for o, p, row in zip(owners, xy, rss, strict=True):
+        heard = np.isfinite(row)
+        db.add(int(o), p, [n for n, h in zip(names, heard, strict=True) if h], row[heard])
+    return names
+
+
+def test_locate_is_weighted_knn_over_the_union_distance() -> None:
+    rng = np.random.default_rng(3)
+    xy, rss = _scans(rng, 300)
+    db = CrowdFingerprints(FingerprintParams(max_spread_m=1e9))
+    names = _add_all(db, np.arange(300) % 5 + 1, xy, rss)
+    q_xy, q_rss = _scans(rng, 20)
+    oracle = localise_knn(FingerprintGrid(xy, rss, np.isfinite(rss), np.ones(300)), q_rss, k=7)
+    for row, expected in zip(q_rss, oracle, strict=True):
+        heard = np.isfinite(row)
+        found = db.locate(0, [n for n, h in zip(names, heard, strict=True) if h], row[heard])
+        assert found is not None
+        np.testing.assert_allclose(found, expected, atol=1e-3)
+    errors = np.linalg.norm(oracle - q_xy, axis=1)
+    assert np.median(errors) < 5.0  # and the map is useful on a clean floor
+
+
+def test_own_scans_are_never_references_and_small_maps_say_nothing() -> None:
+    rng = np.random.default_rng(4)
+    xy, rss = _scans(rng, 60)
+    db = CrowdFingerprints(FingerprintParams(min_references=50, max_spread_m=1e9))
+    names = _add_all(db, np.zeros(60, dtype=np.int64), xy, rss)
+    heard = np.isfinite(rss[0])
+    query = ([n for n, h in zip(names, heard, strict=True) if h], rss[0][heard])
+    assert db.locate(0, *query) is None  # every reference is the user's own
+    assert db.locate(1, *query) is not None
+    assert db.locate(1, query[0][:2], query[1][:2]) is None  # fewer than min_aps
+    assert db.locate(1, ["never-seen"] * 5, np.full(5, -60.0)) is None  # no AP in common
+
+
+def test_the_map_is_a_bounded_ring() -> None:
+    rng = np.random.default_rng(5)
+    xy, rss = _scans(rng, 300)
+    db = CrowdFingerprints(FingerprintParams(k=3, min_references=10, max_references=100))
+    _add_all(db, np.ones(300, dtype=np.int64), xy, rss)
+    assert len(db) == 100
+    assert db._gain.shape[0] == 100
+
+
+def test_fingerprint_params_are_checked() -> None:
+    for bad, message in (
+        ({"k": 0}, "k <="),
+        ({"min_references": 3, "k": 7}, "k <= min_references"),
+        ({"max_references": 10}, "min_references <= max_references"),
+        ({"sigma_m": 0.0}, "positive"),
+        ({"outlier_probability": 1.0}, "outlier_probability"),
+        ({"min_aps": 0}, "min_aps"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            FingerprintParams(**bad)  # type: ignore[arg-type]
+
+
+def _spread_user(engine: DynamicSlam) -> int:
+    return engine.add_user(0.0, 0.0, position_sigma=3.0)
+
+
+def test_a_near_fix_concentrates_the_cloud_and_a_far_one_barely_moves_it() -> None:
+    params = FilterParams(n_particles=200)
+    near, far = DynamicSlam(params, seed=1), DynamicSlam(params, seed=1)
+    for engine in (near, far):
+        _spread_user(engine)
+    before = near.summaries(np.array([0]))[0]
+    near.observe_position_robust(np.array([0]), np.array([[2.0, 0.0]]), 1.5, 0.3, 50.0)
+    far.observe_position_robust(np.array([0]), np.array([[40.0, 0.0]]), 1.5, 0.3, 50.0)
+    for engine in (near, far):
+        w = np.exp(engine.state.logw[0])
+        np.testing.assert_allclose(w.sum(), 1.0, atol=1e-9)
+        assert np.all(np.isfinite(engine.summaries(np.array([0]))))
+    after_near, after_far = near.summaries(np.array([0]))[0], far.summaries(np.array([0]))[0]
+    assert after_near[0] > before[0] + 1.0  # pulled toward the fix at x = 2
+    assert after_near[2] < 0.7 * before[2]  # and narrower
+    assert abs(after_far[0] - before[0]) < 1.0  # the outlier term: a fix 40 m away is not believed
+
+
+def test_robust_fix_rejects_bad_input_and_changes_nothing() -> None:
+    engine = DynamicSlam(FilterParams(n_particles=20), seed=0)
+    _spread_user(engine)
+    before = {k: v.copy() for k, v in vars(engine.state).items()}
+    for call, message in (
+        (
+            lambda: engine.observe_position_robust(np.array([0]), np.array([[np.nan, 0.0]]), 5, 0.3, 50),
+            "finite",
+        ),
+        (
+            lambda: engine.observe_position_robust(np.array([0]), np.zeros((2, 2)), 5.0, 0.3, 50.0),
+            "one finite",
+        ),
+        (lambda: engine.observe_position_robust(np.array([0]), np.zeros((1, 2)), 0.0, 0.3, 50.0), "positive"),
+        (
+            lambda: engine.observe_position_robust(np.array([0]), np.zeros((1, 2)), 5.0, 1.0, 50.0),
+            "outlier_probability",
+        ),
+    ):
+        with pytest.raises(ValueError, match=message):
+            call()
+    for k, v in vars(engine.state).items():
+        np.testing.assert_array_equal(v, before[k], err_msg=k)
