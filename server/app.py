@@ -104,7 +104,9 @@ def create_app(settings: Settings) -> FastAPI:
             Metrics(),
             time.time(),
             KeyCache(settings.key_cache_s),
-            SignalMapService(settings.data_dir / "signal_maps", recordings),
+            SignalMapService(
+                settings.data_dir / "signal_maps", recordings, tuple(settings.signal_map_modalities)
+            ),
         )
         try:
             yield

@@ -51,6 +51,12 @@ class Settings(BaseSettings):
         description="WiFi encounter detector: the paper's Eq. 3, or our union-fingerprint model (its range "
         "model must be in the encounter calibration: crowdslam calibrate fits both).",
     )
+    signal_map_modalities: list[Literal["wifi", "bluetooth", "magnetic", "lte"]] = Field(
+        default=["wifi"],
+        min_length=1,
+        description="Signal kernels multiplied into a signal-map build's similarity (SignalSLAM Section "
+        "II-D); a modality a window lacks is neutral. On msindoor site1 F1 WiFi alone was best.",
+    )
     fingerprint_fixes: bool = Field(
         default=False,
         description="Also localise each WiFi scan on the fingerprint map the crowd learns while it is "

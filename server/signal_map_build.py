@@ -31,7 +31,14 @@ from slam_core.detectors import integrate_headings
 from slam_core.pdr.frontend import PdrParams, PdrState, pdr_steps
 from slam_core.pdr.heading import with_final_offset
 from slam_core.signal_map.graph import GraphParams, Walk, position_at, solve
-from slam_core.signal_map.windows import WINDOW_STEP_MS, rss_matrix, window_counts
+from slam_core.signal_map.windows import (
+    WINDOW_STEP_MS,
+    rss_matrix,
+    window_counts,
+    window_mean_series,
+    window_means,
+    window_sightings,
+)
 from slam_core.wifi_pairs import STALE_AP_MS
 
 
@@ -47,11 +54,27 @@ class _Device:
     fix_xy: list[np.ndarray] = field(default_factory=list)
     scan_t: list[int] = field(default_factory=list)
     scans: list[dict[int, float]] = field(default_factory=list)
+    beacon_t: list[int] = field(default_factory=list)
+    beacon_col: list[int] = field(default_factory=list)
+    lte_t: list[int] = field(default_factory=list)
+    lte: list[dict[int, float]] = field(default_factory=list)  # cell column -> RSRP (dBm)
+    magnetic: list[np.ndarray] = field(default_factory=list)  # (M, 2) t, magnitude (uT) per batch
 
 
-def _collect(
-    files: list[str], ctx: BuildingContext, ap_index: dict[str, int]
-) -> tuple[dict[str, _Device], int]:
+@dataclass
+class _Columns:
+    """The building's columns: WiFi APs, Bluetooth beacons and LTE cells, in first-seen order."""
+
+    aps: dict[str, int] = field(default_factory=dict)
+    beacons: dict[str, int] = field(default_factory=dict)
+    cells: dict[str, int] = field(default_factory=dict)
+
+    @staticmethod
+    def names(index: dict[str, int]) -> list[str]:
+        return sorted(index, key=index.__getitem__)
+
+
+def _collect(files: list[str], ctx: BuildingContext, columns: _Columns) -> tuple[dict[str, _Device], int]:
     devices: dict[str, _Device] = defaultdict(_Device)
     skipped = 0
     batches: list[SensorBatch] = []
@@ -89,13 +112,25 @@ def _collect(
             lo, hi = int(user.scan_offsets[k]), int(user.scan_offsets[k + 1])
             t = int(user.scan_t[k])
             entry = {
-                ap_index.setdefault(user.scan_bssid[i].lower(), len(ap_index)): float(user.scan_rss[i])
+                columns.aps.setdefault(user.scan_bssid[i].lower(), len(columns.aps)): float(user.scan_rss[i])
                 for i in range(lo, hi)
                 if user.scan_last_seen[i] < 0 or user.scan_last_seen[i] >= t - STALE_AP_MS
             }
             if entry:
                 d.scan_t.append(t)
                 d.scans.append(entry)
+        for k in range(user.beacon_t.size):
+            d.beacon_t.append(int(user.beacon_t[k]))
+            d.beacon_col.append(
+                columns.beacons.setdefault(str(user.beacon_mac[k]).lower(), len(columns.beacons))
+            )
+        for cell in batch.lte:
+            d.lte_t.append(cell.t_ms)
+            d.lte.append({columns.cells.setdefault(cell.cell_id, len(columns.cells)): cell.rsrp_dbm})
+        if batch.magnetometer is not None and batch.magnetometer.t_ms:  # phones counting steps send it too
+            mag = batch.magnetometer
+            magnitude = np.linalg.norm(np.column_stack([mag.x, mag.y, mag.z]), axis=1)
+            d.magnetic.append(np.column_stack([np.asarray(mag.t_ms, dtype=float), magnitude]))
     return devices, skipped
 
 
@@ -105,6 +140,8 @@ class _Segment:
     walk: Walk
     scan_t: np.ndarray
     scans: list[dict[int, float]]
+    lte_t: np.ndarray
+    lte: list[dict[int, float]]
 
 
 def _offline_headings(headings: np.ndarray, azimuths: np.ndarray, offsets: np.ndarray) -> np.ndarray:
@@ -115,7 +152,7 @@ def _offline_headings(headings: np.ndarray, azimuths: np.ndarray, offsets: np.nd
     return turned
 
 
-def _segments(devices: dict[str, _Device], n_aps: int) -> list[_Segment]:
+def _segments(devices: dict[str, _Device], columns: _Columns) -> list[_Segment]:
     out = []
     for name, d in sorted(devices.items()):
         order = np.argsort(d.step_t, kind="stable")
@@ -125,13 +162,22 @@ def _segments(devices: dict[str, _Device], n_aps: int) -> list[_Segment]:
         azimuths, offsets = np.asarray(d.step_azimuth)[order], np.asarray(d.step_offset)[order]
         fixes = sorted(zip(d.fix_t, d.fix_xy, strict=True), key=lambda f: f[0])
         scan_t = np.asarray(d.scan_t, dtype=np.int64)
+        lte_t = np.asarray(d.lte_t, dtype=np.int64)
+        beacon_t, beacon_col = (
+            np.asarray(d.beacon_t, dtype=np.int64),
+            np.asarray(d.beacon_col, dtype=np.int64),
+        )
+        magnetic = np.vstack([np.zeros((0, 2)), *d.magnetic])
+        magnetic = magnetic[np.argsort(magnetic[:, 0], kind="stable")]
         for (t0, xy0), (t1, xy1) in itertools.pairwise(fixes):
             inside = (step_t > t0) & (step_t <= t1)
             if inside.sum() < 2:
                 continue
             in_scan = np.flatnonzero((scan_t >= t0) & (scan_t <= t1))
+            in_lte = np.flatnonzero((lte_t >= t0) & (lte_t <= t1))
+            lte = [d.lte[i] for i in in_lte]
             centres = np.arange(t0, t1 + 1, WINDOW_STEP_MS)
-            counts = window_counts(centres, scan_t[in_scan], [d.scans[i] for i in in_scan], n_aps)
+            counts = window_counts(centres, scan_t[in_scan], [d.scans[i] for i in in_scan], len(columns.aps))
             keep = counts.sum(axis=1) > 0
             walk = Walk(
                 t_ms=np.concatenate([[t0], step_t[inside]]).astype(np.int64),
@@ -141,36 +187,63 @@ def _segments(devices: dict[str, _Device], n_aps: int) -> list[_Segment]:
                 end=np.asarray(xy1, dtype=float),
                 window_t=centres[keep].astype(np.int64),
                 window_counts=counts[keep],
+                window_beacons=window_sightings(centres, beacon_t, beacon_col, len(columns.beacons))[keep],
+                window_magnetic=window_mean_series(centres, magnetic[:, 0], magnetic[:, 1])[keep],
+                window_lte=window_means(centres, lte_t[in_lte], lte, len(columns.cells))[keep],
             )
-            out.append(_Segment(name, walk, scan_t[in_scan], [d.scans[i] for i in in_scan]))
+            out.append(
+                _Segment(name, walk, scan_t[in_scan], [d.scans[i] for i in in_scan], lte_t[in_lte], lte)
+            )
     return out
 
 
-def build_signal_maps(files: list[str], out_dir: str, ctx: BuildingContext) -> dict[str, Any]:
-    """Build and write the maps; returns the job's summary (segments, devices, files written)."""
-    from server.datasets.signalslam_plots import write_scan_maps
+def build_signal_maps(
+    files: list[str], out_dir: str, ctx: BuildingContext, modalities: tuple[str, ...] = ("wifi",)
+) -> dict[str, Any]:
+    """Build and write the maps; returns the job's summary (segments, devices, files written). The
+    signal edges use ``modalities`` (``GraphParams.modalities``); the maps cover the most-heard WiFi APs and
+    LTE cells and the magnetic magnitude, whatever the recordings hold."""
+    from server.datasets.signalslam_plots import LTE_CELL, MAGNETIC, write_column_maps, write_scan_maps
 
-    ap_index: dict[str, int] = {}
-    devices, skipped = _collect(files, ctx, ap_index)
-    segments = _segments(devices, len(ap_index))
+    columns = _Columns()
+    devices, skipped = _collect(files, ctx, columns)
+    segments = _segments(devices, columns)
     if not segments:
         raise ValueError(
             "no stretch of any device's steps lies between two landmarks (position fixes, known-anchor "
             "readings or tags with a position): SignalSLAM needs a landmark at each end of a walk"
         )
-    trajectories = solve([s.walk for s in segments], GraphParams())
+    trajectories = solve([s.walk for s in segments], GraphParams(modalities=modalities))
     folder = Path(out_dir)
     folder.mkdir(parents=True, exist_ok=True)
-    placed, rows = [], []
+    placed, rows, lte_xy, lte_rows, mag_xy, mag_values = [], [], [], [], [], []
     for segment, xy in zip(segments, trajectories.signalslam, strict=True):
+        t_ms = segment.walk.t_ms
         if segment.scan_t.size:
-            placed.append(position_at(segment.walk.t_ms, xy, segment.scan_t.astype(float)))
-            rows.append(rss_matrix(segment.scans, len(ap_index)))
-    names = sorted(ap_index, key=ap_index.__getitem__)
+            placed.append(position_at(t_ms, xy, segment.scan_t.astype(float)))
+            rows.append(rss_matrix(segment.scans, len(columns.aps)))
+        if segment.lte_t.size:
+            lte_xy.append(position_at(t_ms, xy, segment.lte_t.astype(float)))
+            lte_rows.append(rss_matrix(segment.lte, len(columns.cells)))
+        magnitude = segment.walk.window_magnetic
+        if magnitude is not None and np.isfinite(magnitude).any():
+            has = np.isfinite(magnitude)
+            mag_xy.append(position_at(t_ms, xy, segment.walk.window_t[has].astype(float)))
+            mag_values.append(magnitude[has, None])
     written: list[Path] = []
+    to_wgs84 = None if ctx.geo is None else ctx.geo.to_wgs84
     if rows:
-        to_wgs84 = None if ctx.geo is None else ctx.geo.to_wgs84
-        written = write_scan_maps(folder, np.vstack(placed), np.vstack(rows), names, to_wgs84=to_wgs84)
+        names = _Columns.names(columns.aps)
+        written += write_scan_maps(folder, np.vstack(placed), np.vstack(rows), names, to_wgs84=to_wgs84)
+    if lte_rows:
+        cells = _Columns.names(columns.cells)
+        written += write_column_maps(
+            folder, np.vstack(lte_xy), np.vstack(lte_rows), cells, LTE_CELL, to_wgs84=to_wgs84
+        )
+    if mag_values:
+        written += write_column_maps(
+            folder, np.vstack(mag_xy), np.vstack(mag_values), ["magnetic magnitude"], MAGNETIC, 1, to_wgs84
+        )
     tracks = folder / "trajectories.json"
     tracks.write_text(json.dumps([
         {"device_id": s.device, "t_ms": s.walk.t_ms.tolist(), "xy_m": np.round(xy, 3).tolist()}
@@ -181,7 +254,7 @@ def build_signal_maps(files: list[str], out_dir: str, ctx: BuildingContext) -> d
         "segments": len(segments),
         "devices": len({s.device for s in segments}),
         "scans": int(sum(s.scan_t.size for s in segments)),
-        "access_points": len(ap_index),
+        "access_points": len(columns.aps),
         "batches_skipped": skipped,
         "files": [p.name for p in written],
     }

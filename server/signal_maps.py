@@ -23,9 +23,10 @@ RECORD = "job.json"
 
 
 class SignalMapService:
-    def __init__(self, root: Path, recordings: Path | None) -> None:
+    def __init__(self, root: Path, recordings: Path | None, modalities: tuple[str, ...] = ("wifi",)) -> None:
         self.root = root
         self.recordings = recordings
+        self.modalities = modalities
         self._pool: ProcessPoolExecutor | None = None
         self._futures: dict[str, Future[dict[str, Any]]] = {}
         self._lock = threading.Lock()
@@ -72,7 +73,11 @@ class SignalMapService:
                     max_workers=1, mp_context=multiprocessing.get_context("spawn")
                 )
             future = self._pool.submit(
-                build_signal_maps, [str(f) for f in files], str(self._folder(ctx.building_id, job.id)), ctx
+                build_signal_maps,
+                [str(f) for f in files],
+                str(self._folder(ctx.building_id, job.id)),
+                ctx,
+                self.modalities,
             )
             self._futures[job.id] = future
         future.add_done_callback(lambda f: self._finish(job, f))

@@ -23,7 +23,13 @@ from slam_core.pdr.frontend import ImuSamples, PdrParams, PdrState, pdr_steps
 from slam_core.pdr.heading import with_final_offset
 from slam_core.signal_map.graph import GraphParams, Trajectories, Walk, position_at, solve
 from slam_core.signal_map.maps import FingerprintGrid, fingerprint_grid, localise_kernel, localise_knn
-from slam_core.signal_map.windows import WINDOW_MS, WINDOW_STEP_MS, rss_matrix, window_counts
+from slam_core.signal_map.windows import (
+    WINDOW_STEP_MS,
+    rss_matrix,
+    window_counts,
+    window_mean_series,
+    window_sightings,
+)
 from slam_core.wifi_pairs import STALE_AP_MS
 
 KNN = 7
@@ -97,20 +103,10 @@ def _prepare(
 
 
 def _with_windows(p: _Prepared, n_aps: int, n_beacons: int) -> _Prepared:
-    half = WINDOW_MS // 2
     centres = p.walk.window_t
     counts = window_counts(centres, p.scans.t_ms, p.scans.rss, n_aps)
-    beacons = np.zeros((centres.size, n_beacons))
-    beacon_t, beacon_col = p.beacons
-    for t, col in zip(beacon_t, beacon_col, strict=True):
-        beacons[np.abs(centres - t) <= half, col] += 1.0
-    magnetic = np.full(centres.size, np.nan)
-    if len(p.magnetic):
-        lo = np.searchsorted(p.magnetic[:, 0], centres - half)
-        hi = np.searchsorted(p.magnetic[:, 0], centres + half, side="right")
-        sums = np.concatenate([[0.0], np.cumsum(p.magnetic[:, 1])])
-        n = hi - lo
-        magnetic = np.where(n > 0, (sums[hi] - sums[lo]) / np.maximum(n, 1), np.nan)
+    beacons = window_sightings(centres, *p.beacons, n_beacons)
+    magnetic = window_mean_series(centres, p.magnetic[:, 0], p.magnetic[:, 1])
     keep = counts.sum(axis=1) > 0
     walk = Walk(
         **{

@@ -29,10 +29,15 @@ import gtsam
 import numpy as np
 
 from slam_core.signal_map.calibration import CalibrationGrid, CalibrationPrior, calibrate_segment, dead_reckon
-from slam_core.signal_map.kernels import gaussian_kernel, kl_kernel, visibility_multinomials
+from slam_core.signal_map.kernels import (
+    gaussian_kernel,
+    kl_kernel,
+    union_gaussian_kernel,
+    visibility_multinomials,
+)
 from slam_core.signal_map.windows import WINDOW_MS, WINDOW_STEP_MS
 
-MODALITIES = ("wifi", "bluetooth", "magnetic")
+MODALITIES = ("wifi", "bluetooth", "magnetic", "lte")
 SOLVERS = ("lm", "isam2")
 
 
@@ -61,6 +66,11 @@ class GraphParams:
     magnetic_alpha: float = 1.0 / (2 * 4.0**2)
     """Gaussian kernel on the windows' mean magnetic magnitude: a 4 uT difference is one sigma (the
     magnitude wanders by tens of uT across a mall floor, a few uT between passes of one place)."""
+    lte_alpha: float = 1.0 / (2 * 6.0**2)
+    """Gaussian kernel on the windows' LTE RSRP over their union of cells: 6 dB is one sigma (indoor
+    shadowing of a cell's RSRP)."""
+    lte_floor_dbm: float = -120.0
+    """A cell one window did not hear counts at this RSRP (about where phones lose an LTE cell)."""
     solver: str = "lm"
     """``lm``: batch Levenberg-Marquardt from the recalibrated dead reckoning; ``isam2``: the poses fed to
     iSAM2 in chunks of ``chunk_poses`` (the robust choice on long sessions, where batch optimisation from
@@ -107,6 +117,7 @@ class Walk:
     window_counts: np.ndarray  # (W, A) AP sightings per window (global AP columns)
     window_beacons: np.ndarray | None = None  # (W, B) Bluetooth beacon sightings per window
     window_magnetic: np.ndarray | None = None  # (W,) mean magnetic magnitude (uT), NaN without samples
+    window_lte: np.ndarray | None = None  # (W, C) mean LTE RSRP per cell (dBm), NaN where not heard
 
 
 @dataclass(frozen=True)
@@ -256,8 +267,8 @@ def calibrated_positions(
 def signal_neighbours(walks: list[Walk], params: GraphParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """For every window: its walk, the indices of its ``n`` most similar windows on other walks (or far in
     time on its own), and their kernel values. Kernels (Section II-D): KL on WiFi AP visibility, KL on
-    Bluetooth beacon visibility, Gaussian on magnetic magnitude, multiplied element-wise; a modality a
-    window lacks is neutral (1) for its pairs."""
+    Bluetooth beacon visibility, Gaussian on magnetic magnitude, Gaussian on LTE RSRP over the union of
+    cells, multiplied element-wise; a modality a window lacks is neutral (1) for its pairs."""
     walk_of = np.concatenate([np.full(w.window_t.size, i) for i, w in enumerate(walks)])
     times = np.concatenate([w.window_t for w in walks])
     kernel = np.ones((times.size, times.size))
@@ -270,6 +281,11 @@ def signal_neighbours(walks: list[Walk], params: GraphParams) -> tuple[np.ndarra
         magnitude = np.concatenate([w.window_magnetic for w in walks if w.window_magnetic is not None])
         has = np.isfinite(magnitude)
         block = gaussian_kernel(np.where(has, magnitude, 0.0), alpha=params.magnetic_alpha)
+        kernel *= np.where(has[:, None] & has[None, :], block, 1.0)
+    if "lte" in params.modalities and all(w.window_lte is not None for w in walks):
+        rsrp = np.vstack([w.window_lte for w in walks if w.window_lte is not None])
+        has = np.isfinite(rsrp).any(axis=1)
+        block = union_gaussian_kernel(rsrp, params.lte_alpha, params.lte_floor_dbm)
         kernel *= np.where(has[:, None] & has[None, :], block, 1.0)
     excluded = (walk_of[:, None] == walk_of[None, :]) & (
         np.abs(times[:, None] - times[None, :]) < params.same_walk_gap_ms

@@ -3,7 +3,10 @@
 - WiFi / Bluetooth: D is the symmetrised Kullback-Leibler divergence KL(p||q) + KL(q||p) between the
   multinomials of access-point visibility of two time windows (how often each AP was heard in the window's
   scans), smoothed with ``epsilon`` so an AP heard in one window only gives a finite divergence.
-- LTE RSRP, magnetic magnitude: D is the squared Euclidean distance (Gaussian kernel).
+- LTE RSRP, magnetic magnitude: D is the squared Euclidean distance (Gaussian kernel). For LTE the vectors
+  are over cells, and two windows rarely hear the same set: D is the mean squared RSRP difference over the
+  union of both windows' cells, a cell one window did not hear counting at ``floor_dbm`` (as the WiFi
+  union fingerprint does), so windows served by different cells are far apart.
 Kernels of several modalities over the same windows multiply element-wise.
 """
 
@@ -49,4 +52,20 @@ def gaussian_kernel(a: np.ndarray, b: np.ndarray | None = None, alpha: float = 1
     b = a if b is None else _rows(b)
     squared = np.sum(a * a, axis=1)[:, None] + np.sum(b * b, axis=1)[None, :] - 2.0 * a @ b.T
     kernel: np.ndarray = np.exp(-alpha * np.maximum(squared, 0.0))
+    return kernel
+
+
+def union_gaussian_kernel(rows: np.ndarray, alpha: float, floor_dbm: float) -> np.ndarray:
+    """(W, W) exp(-alpha D), D the mean squared difference over the union of both rows' finite entries, a
+    missing entry at ``floor_dbm``. Pairs where neither row has an entry get 1 (no evidence either way)."""
+    rows = np.asarray(rows, dtype=float)
+    if rows.ndim != 2:
+        raise ValueError("rows must be a (windows, cells) array, NaN where a cell was not heard")
+    heard = np.isfinite(rows).astype(float)
+    g = np.where(heard > 0, np.maximum(rows, floor_dbm) - floor_dbm, 0.0)
+    norms = np.sum(g * g, axis=1)
+    squared = np.maximum(norms[:, None] + norms[None, :] - 2.0 * (g @ g.T), 0.0)
+    counts = heard.sum(axis=1)
+    union = counts[:, None] + counts[None, :] - heard @ heard.T
+    kernel: np.ndarray = np.where(union > 0, np.exp(-alpha * squared / np.maximum(union, 1.0)), 1.0)
     return kernel

@@ -156,6 +156,7 @@ def test_signalslam_cli_on_a_floor(small_floor: Path, tmp_path: Path) -> None:
     assert {Path(p).name for p in result["plots"]} >= {
         "trajectories.png",
         "signal_map_ap1.png",
+        "signal_map_magnetic1.png",
         "fingerprints_5m.json",
     }
     grid = json.loads((plots / "signal_map_ap1.json").read_text())
@@ -168,7 +169,7 @@ def test_signalslam_cli_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str
     assert main(["signalslam", "--msindoor", str(tmp_path), "--json", str(out)]) == 2
     assert "floor_info.json" in capsys.readouterr().out
     assert main(["signalslam", "--msindoor", str(tmp_path), "--json", str(out), "--folds", "1"]) == 2
-    assert main(["signalslam", "--msindoor", str(tmp_path), "--json", str(out), "--modalities", "lte"]) == 2
+    assert main(["signalslam", "--msindoor", str(tmp_path), "--json", str(out), "--modalities", "gsm"]) == 2
     assert "unknown modalities" in capsys.readouterr().out
     assert not out.exists()
 

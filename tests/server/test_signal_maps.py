@@ -31,6 +31,13 @@ def _walk(device: str, x0: float, x1: float, seconds: int, with_end_fix: bool = 
             ],
         }
         x = x0 + step * 2 * s
+        # LTE: two cells, RSRP falling away from each end; the magnetic magnitude rises along the corridor
+        body["lte"] = [
+            {"t_ms": t + 200, "cell_id": "310-410-1", "rsrp_dbm": round(-70.0 - 1.0 * x, 1)},
+            {"t_ms": t + 200, "cell_id": "310-410-2", "rsrp_dbm": round(-98.0 + 1.0 * x, 1)},
+        ]
+        ts = [t + 100 * k for k in range(10)]
+        body["magnetometer"] = {"t_ms": ts, "x": [20.0 + x] * 10, "y": [10.0] * 10, "z": [-35.0] * 10}
         if s % 2 == 0:
             heard = [(b, round(-35.0 - 2.0 * abs(x - 4.0 * i), 1)) for i, b in enumerate(APS)]
             aps = [{"bssid": b, "rssi_dbm": r, "frequency_mhz": 2412} for b, r in heard if r > -90]
@@ -85,6 +92,8 @@ def test_a_build_from_recordings_serves_maps(sqlite_api: Api) -> None:
     assert {"trajectories.json", "fingerprints_5m.json", "signal_map_ap1.json", "signal_map_ap1.png"} <= set(
         job["files"]
     )
+    # LTE cells and the magnetic magnitude are mapped too, whatever the signal edges used
+    assert {"signal_map_cell1.json", "signal_map_cell2.png", "signal_map_magnetic1.json"} <= set(job["files"])
     base = f"/v1/buildings/hq/signal-maps/{job['id']}/files"
     tracks = api.client.get(f"{base}/trajectories.json", headers=op)
     assert tracks.status_code == 200
@@ -105,6 +114,11 @@ def test_a_build_from_recordings_serves_maps(sqlite_api: Api) -> None:
     lon, lat = geo["features"][0]["geometry"]["coordinates"]
     assert -90 <= lat <= 90
     assert -180 <= lon <= 180
+    cell = json.loads(api.client.get(f"{base}/signal_map_cell1.json", headers=op).content)
+    assert cell["cell_id"] in ("310-410-1", "310-410-2")
+    magnetic = json.loads(api.client.get(f"{base}/signal_map_magnetic1.json", headers=op).content)
+    means = [v for row in magnetic["mean_ut"] for v in row if v is not None]
+    assert 35.0 < min(means) < max(means) < 65.0  # |(20 + x, 10, -35)| over x in [0, 28]
     listed = api.client.get("/v1/buildings/hq/signal-maps", headers=op).json()
     assert [j["id"] for j in listed] == [job["id"]]
 

@@ -150,6 +150,8 @@ def _corridor_walk(bulge: float, n: int = 40, t0: int = 0, aps: int = 20) -> tup
     window_t = t[1:]
     ap_x = np.linspace(0, n, aps)
     counts = np.round(6 * np.exp(-((truth[:, 0:1] - ap_x[None, :]) ** 2) / 8.0))
+    cell_x = np.array([0.0, n / 2, float(n)])  # three LTE cells: RSRP falls 1.5 dB per metre from each
+    rsrp = -60.0 - 1.5 * np.abs(truth[:, 0:1] - cell_x[None, :])
     walk = Walk(
         t_ms=t.astype(np.int64),
         lengths=np.ones(n),
@@ -158,6 +160,7 @@ def _corridor_walk(bulge: float, n: int = 40, t0: int = 0, aps: int = 20) -> tup
         end=truth[-1],
         window_t=window_t.astype(np.int64),
         window_counts=counts,
+        window_lte=np.where(rsrp > -120.0, rsrp, np.nan),
     )
     return walk, truth
 
@@ -184,13 +187,15 @@ def test_graphslam_closes_a_walk_between_its_landmarks(solver: str) -> None:
     assert np.linalg.norm(result.calibrated[0][1:] - truth, axis=1).max() < 0.3
 
 
-@pytest.mark.parametrize("solver", ["lm", "isam2"])
-def test_signal_edges_pull_a_walk_onto_similar_places_of_another(solver: str) -> None:
+@pytest.mark.parametrize(("solver", "modality"), [("lm", "wifi"), ("isam2", "wifi"), ("lm", "lte")])
+def test_signal_edges_pull_a_walk_onto_similar_places_of_another(solver: str, modality: str) -> None:
     """Three walks agree on a straight corridor; a fourth's dead reckoning bulges in the middle. Signal edges
-    say the fourth passed the same places: the majority pulls it onto the corridor."""
+    (WiFi visibility, or LTE RSRP alone) say the fourth passed the same places: the majority pulls it onto
+    the corridor."""
     walks = [_corridor_walk(bulge=0.0, t0=100_000 * i)[0] for i in range(3)]
     wandering, truth = _corridor_walk(bulge=0.25, t0=400_000)
-    result = solve([*walks, wandering], GraphParams(signal_sigma_m=1.0, solver=solver, chunk_poses=11))
+    params = GraphParams(signal_sigma_m=1.0, solver=solver, chunk_poses=11, modalities=(modality,))
+    result = solve([*walks, wandering], params)
     middle = slice(10, 30)
 
     def error(xy: np.ndarray) -> float:
@@ -239,3 +244,63 @@ def test_modalities_multiply_and_a_missing_one_is_neutral() -> None:
         GraphParams(modalities=("lte-in-a-mall",))
     with pytest.raises(ValueError, match="solver"):
         GraphParams(solver="gauss-newton-by-hand")
+
+
+def test_union_gaussian_kernel_matches_a_direct_computation() -> None:
+    from slam_core.signal_map.kernels import union_gaussian_kernel
+
+    nan = math.nan
+    rows = np.array([[-80.0, -95.0, nan], [-82.0, nan, -100.0], [nan, nan, nan], [-130.0, nan, nan]])
+    alpha, floor = 0.02, -120.0
+    kernel = union_gaussian_kernel(rows, alpha, floor)
+    for i in range(4):
+        for j in range(4):
+            union = [c for c in range(3) if math.isfinite(rows[i, c]) or math.isfinite(rows[j, c])]
+            if not union:
+                assert kernel[i, j] == 1.0
+                continue
+
+            def level(v: float) -> float:
+                return max(v, floor) if math.isfinite(v) else floor
+
+            d = sum((level(rows[i, c]) - level(rows[j, c])) ** 2 for c in union) / len(union)
+            assert kernel[i, j] == pytest.approx(math.exp(-alpha * d), rel=1e-12)
+    with pytest.raises(ValueError, match="windows, cells"):
+        union_gaussian_kernel(np.zeros(3), alpha, floor)
+
+
+def test_window_means_average_each_column_within_the_window() -> None:
+    from slam_core.signal_map.windows import window_means
+
+    centres = np.array([0, 10_000, 30_000])
+    means = window_means(
+        centres, np.array([1_000, 4_000, 9_000]), [{0: -90.0}, {0: -100.0, 2: -80.0}, {1: -70.0}], 3
+    )
+    np.testing.assert_allclose(means[0], [-95.0, np.nan, -80.0])
+    np.testing.assert_allclose(means[1], [np.nan, -70.0, np.nan])  # 4 s is 6 s from this centre
+    assert np.all(np.isnan(means[2]))
+
+
+def test_lte_kernel_joins_the_product_and_a_window_without_lte_is_neutral() -> None:
+    from slam_core.signal_map.graph import signal_neighbours
+    from slam_core.signal_map.kernels import union_gaussian_kernel
+
+    rng = np.random.default_rng(5)
+    wifi = rng.poisson(2.0, (6, 5)).astype(float)
+    lte = rng.uniform(-110.0, -80.0, (6, 2))
+    lte[0] = np.nan  # window 0 heard no cell
+    t, one, zero = np.array([0, 1000]), np.ones(1), np.zeros(1)
+    windows = np.array([0, 1, 2]) * 1000
+    walks = [
+        Walk(t, one, zero, np.zeros(2), np.ones(2), windows, wifi[:3], window_lte=lte[:3]),
+        Walk(t, one, zero, np.zeros(2), np.ones(2), windows, wifi[3:], window_lte=lte[3:]),
+    ]
+    only_wifi = signal_neighbours(walks, GraphParams(neighbours=3))
+    both = signal_neighbours(walks, GraphParams(neighbours=3, modalities=("wifi", "lte")))
+    np.testing.assert_allclose(both[2][0], only_wifi[2][0])  # window 0: LTE says nothing
+    p = GraphParams()
+    lte_kernel = union_gaussian_kernel(lte, p.lte_alpha, p.lte_floor_dbm)
+    kernel_wifi = dict(zip(only_wifi[1][1], only_wifi[2][1], strict=True))
+    for j, w in zip(both[1][1], both[2][1], strict=True):
+        if j in kernel_wifi:
+            assert w == pytest.approx(kernel_wifi[j] * lte_kernel[1, j], rel=1e-9)
