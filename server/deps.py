@@ -57,6 +57,11 @@ async def principal(state: AppState, authorization: str | None) -> Principal:
     return found
 
 
+async def token_principal(state: AppState, token: str | None) -> Principal:
+    """The caller behind a WebSocket's ``?token=<key>``, through the same key cache (and off the loop)."""
+    return await principal(state, None if not token else f"Bearer {token}")
+
+
 async def get_principal(
     state: State, authorization: Annotated[str | None, Header(description=AUTHORIZATION_HELP)] = None
 ) -> Principal:

@@ -11,9 +11,9 @@ from schemas.api import BatchReceipt
 from schemas.errors import Problem
 from schemas.sensors import SensorBatch
 from server.app import AppState
-from server.auth import Principal, authenticate
+from server.auth import Principal
 from server.batch_decoding import decode_batch
-from server.deps import AUTHORIZATION_PARAMETER, principal
+from server.deps import AUTHORIZATION_PARAMETER, principal, token_principal
 from server.errors import BodyTooLargeError, InvalidInputError, ProblemError
 from server.tracking import Submission
 
@@ -75,14 +75,15 @@ async def post_batch(building_id: str, request: Request) -> Response:
 
 @router.websocket("/stream")
 async def stream_batches(websocket: WebSocket, building_id: str, token: str | None = None) -> None:
-    """Phones may stream batches: each text frame is a SensorBatch, each answer a BatchReceipt or Problem."""
+    """Phones may stream batches over ``?token=<device key>``: each text frame is a SensorBatch, each answer
+    a BatchReceipt or Problem, in order. The key is checked again for every frame through the key cache,
+    so a revoked key's stream is closed (4401) within ``CROWDSLAM_KEY_CACHE_S``."""
     state: AppState = websocket.app.state.crowdslam
-    with state.sessions() as session:
-        try:
-            caller = authenticate(session, token)
-        except ProblemError:
-            await websocket.close(code=4401, reason="unknown or missing key")
-            return
+    try:
+        caller = await token_principal(state, token)
+    except ProblemError:
+        await websocket.close(code=4401, reason="unknown or missing key")
+        return
     await websocket.accept()
     try:
         while True:
@@ -91,6 +92,12 @@ async def stream_batches(websocket: WebSocket, building_id: str, token: str | No
                 return
             raw = message.get("text")
             data = raw.encode() if raw is not None else (message.get("bytes") or b"")
+            try:
+                caller = await token_principal(state, token)
+            except ProblemError as exc:
+                await websocket.send_text(exc.to_problem().model_dump_json())
+                await websocket.close(code=4401, reason="the key is unknown or revoked")
+                return
             try:
                 receipt = await ingest(state, caller, building_id, data)
                 await websocket.send_text(receipt.model_dump_json())

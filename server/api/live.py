@@ -9,7 +9,7 @@ from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
 from schemas.live import LIVE_MESSAGE_ADAPTER, MAX_LIVE_BATCH, HeartbeatMessage
 from server.app import AppState
-from server.auth import authenticate
+from server.deps import token_principal
 from server.errors import ProblemError
 from server.store import repositories as repo
 
@@ -23,13 +23,13 @@ async def live(websocket: WebSocket, building_id: str, token: str | None = None,
     a heartbeat every 10 s reports messages dropped because this subscriber was slow. With ``&batch=true``
     each frame is a ``LiveBatch`` of every message waiting (for busy buildings)."""
     state: AppState = websocket.app.state.crowdslam
+    try:
+        caller = await token_principal(state, token)
+        caller.require_reader(building_id)
+    except ProblemError as exc:
+        await websocket.close(code=4401 if exc.status == 401 else 4403, reason=exc.detail[:120])
+        return
     with state.sessions() as session:
-        try:
-            caller = authenticate(session, token)
-            caller.require_reader(building_id)
-        except ProblemError as exc:
-            await websocket.close(code=4401 if exc.status == 401 else 4403, reason=exc.detail[:120])
-            return
         if repo.get_building(session, building_id) is None:
             await websocket.close(code=4404, reason=f"no building {building_id!r}")
             return

@@ -304,3 +304,52 @@ def test_raw_imu_and_a_strong_beacon_make_a_signature_anchor(sqlite_api: Api) ->
             assert row.signature == b"beacon:c4:4f:33:12:34:56"
     finally:
         engine.dispose()
+
+
+def test_phones_stream_batches_over_a_websocket_with_the_same_answers(sqlite_api: Api) -> None:
+    from datetime import UTC, datetime
+
+    import pytest
+    from sqlalchemy import update
+    from starlette.websockets import WebSocketDisconnect
+
+    from server.auth import KeyCache
+    from server.store.models import ApiKeyRow
+
+    api = sqlite_api
+    api.create_building()
+    device = api.key("hq", "device", "phone-1")
+    with (
+        pytest.raises(WebSocketDisconnect) as refused,
+        api.client.websocket_connect("/v1/buildings/hq/stream?token=nope") as ws,
+    ):
+        ws.receive_text()
+    assert refused.value.code == 4401
+    with api.client.websocket_connect(f"/v1/buildings/hq/stream?token={device}") as ws:
+        ws.send_text(json.dumps(_batch(0)))
+        first = json.loads(ws.receive_text())
+        assert first["status"] == "applied"
+        assert first["tracking"] is True
+        ws.send_text(json.dumps(_batch(0)))  # a retry answers duplicate and changes nothing
+        assert json.loads(ws.receive_text())["duplicate"] is True
+        ws.send_text('{"building_id": "hq", "device_id": "phone-1"')  # truncated JSON
+        problem = json.loads(ws.receive_text())
+        assert problem["status"] == 400  # not JSON: a Problem, and the stream goes on
+        ws.send_text(json.dumps(_batch(1, device="phone-2")))  # posting as another device
+        assert json.loads(ws.receive_text())["status"] == 403
+        ws.send_text(json.dumps(_batch(1)))
+        assert json.loads(ws.receive_text())["status"] == "applied"
+        # the key is revoked in the database: once the cache forgets it, the stream is closed
+        engine = make_engine(api.url)
+        with make_session_factory(engine).begin() as session:
+            session.execute(
+                update(ApiKeyRow).where(ApiKeyRow.scope == "device").values(revoked_at=datetime.now(UTC))
+            )
+        engine.dispose()
+        api.client.app.state.crowdslam.keys = KeyCache(ttl_s=0.0)  # type: ignore[attr-defined]
+        ws.send_text(json.dumps(_batch(2)))
+        assert json.loads(ws.receive_text())["status"] == 401
+        with pytest.raises(WebSocketDisconnect) as closed:
+            ws.receive_text()
+        assert closed.value.code == 4401
+    assert _count(api, BatchRow) == 2
