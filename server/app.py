@@ -9,6 +9,7 @@ from contextlib import asynccontextmanager
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -33,6 +34,9 @@ from slam_core.encounters import Calibration
 from slam_core.params import BuildingAnchorParams, FilterParams, extended_confusion
 from slam_core.tracker import TrackerParams
 
+if TYPE_CHECKING:
+    from server.foxglove_live import FoxgloveLive
+
 API_DESCRIPTION = """Indoor localization without a site survey. Phones post sensor batches
 (`POST /v1/buildings/{id}/batches`), dashboards read positions (`GET .../positions`, `WS .../live`),
 operators manage buildings, keys and anchor maps. Every error is an RFC 9457 problem body."""
@@ -49,6 +53,7 @@ class AppState:
     started: float
     keys: KeyCache
     signal_maps: SignalMapService
+    foxglove: FoxgloveLive | None = None
 
 
 class DatabaseNotMigratedError(RuntimeError):
@@ -88,6 +93,12 @@ def create_app(settings: Settings) -> FastAPI:
             )
         sessions = make_session_factory(engine)
         broadcaster = Broadcaster()
+        foxglove_live = None
+        if settings.foxglove_port is not None:
+            from server.foxglove_live import FoxgloveLive  # only when asked: the SDK starts a server
+
+            foxglove_live = FoxgloveLive(settings.foxglove_host, settings.foxglove_port)
+            broadcaster.add_sink(foxglove_live.publish)
         params = tracker_params(settings)
         calibration = load_calibration(settings.encounter_calibration)
         _warm_kernels(params, calibration)
@@ -107,12 +118,15 @@ def create_app(settings: Settings) -> FastAPI:
             SignalMapService(
                 settings.data_dir / "signal_maps", recordings, tuple(settings.signal_map_modalities)
             ),
+            foxglove_live,
         )
         try:
             yield
         finally:
             app.state.crowdslam.signal_maps.close()
             await tracking.close()
+            if foxglove_live is not None:
+                foxglove_live.close()
             engine.dispose()
 
     app = FastAPI(

@@ -4,12 +4,17 @@ building: its bounded queue drops the oldest message and the next heartbeat says
 from __future__ import annotations
 
 import asyncio
+import logging
 from collections import defaultdict
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from schemas.live import LIVE_MESSAGE_ADAPTER, LiveMessage
 
 QUEUE_SIZE = 2_000
+Sink = Callable[[str, list[LiveMessage]], None]
+"""Something else that sees every building's messages (the Foxglove live server)."""
+log = logging.getLogger(__name__)
 
 
 @dataclass(eq=False)
@@ -34,7 +39,12 @@ class Broadcaster:
 
     def __init__(self) -> None:
         self._subs: dict[str, set[Subscription]] = defaultdict(set)
+        self._sinks: list[Sink] = []
         self.published = 0
+        self.sink_errors = 0
+
+    def add_sink(self, sink: Sink) -> None:
+        self._sinks.append(sink)
 
     def subscribe(self, building_id: str) -> Subscription:
         sub = Subscription(building_id)
@@ -45,6 +55,12 @@ class Broadcaster:
         self._subs[sub.building_id].discard(sub)
 
     def publish(self, building_id: str, messages: list[LiveMessage]) -> None:
+        for sink in self._sinks:
+            try:
+                sink(building_id, messages)
+            except Exception:  # a viewer's trouble must never reach ingestion: counted and logged
+                self.sink_errors += 1
+                log.exception("live sink failed on %d messages of %s", len(messages), building_id)
         subs = self._subs.get(building_id)
         if not subs:
             return

@@ -57,6 +57,16 @@ class Settings(BaseSettings):
         description="Signal kernels multiplied into a signal-map build's similarity (SignalSLAM Section "
         "II-D); a modality a window lacks is neutral. On msindoor site1 F1 WiFi alone was best.",
     )
+    foxglove_port: int | None = Field(
+        default=None,
+        ge=0,
+        le=65535,
+        description="Also serve every building's live positions, anchors and encounters to the Foxglove app "
+        "or Lichtblick (foxglove-sdk's WebSocket server) on this port; 0 picks a free one. Off by default.",
+    )
+    foxglove_host: str = Field(
+        default="127.0.0.1", description="Where the Foxglove server listens (it has no authentication)."
+    )
     fingerprint_fixes: bool = Field(
         default=False,
         description="Also localise each WiFi scan on the fingerprint map the crowd learns while it is "

@@ -49,9 +49,10 @@ def run(args: argparse.Namespace) -> int:
         operator_key, _ = mint_key(session, KeyScope.OPERATOR)
     engine.dispose()
     scenario = Scenario.from_dict(json.loads(_scenario_text(args.scenario)))
+    app = create_app(settings)
     try:
         with (
-            running_server(create_app(settings), args.host, args.port) as base,
+            running_server(app, args.host, args.port) as base,
             httpx.Client(base_url=base, timeout=60.0) as client,
         ):
             sim = simulate(scenario, 0)
@@ -71,6 +72,12 @@ def run(args: argparse.Namespace) -> int:
             )
             print(f"  anchor map:  curl -H 'Authorization: Bearer {operator_key}' {building_url}/anchors")
             print(f"  operator key:        {operator_key}")
+            foxglove_live = app.state.crowdslam.foxglove
+            if foxglove_live is not None:
+                url = f"ws://{settings.foxglove_host}:{foxglove_live.port}"
+                print(f"  Foxglove/Lichtblick: {url} (topics /buildings/{args.building}/*)")
+            else:
+                print("  Foxglove/Lichtblick: set CROWDSLAM_FOXGLOVE_PORT=8765 to watch the crowd there")
             print("  Ctrl-C stops.", flush=True)
             round_number = 0
             while args.rounds == 0 or round_number < args.rounds:
