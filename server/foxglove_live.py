@@ -160,7 +160,7 @@ def _user_entity(building_id: str, e: Estimate) -> SceneEntity:
         spheres=[SpherePrimitive(pose=at, size=Vector3(x=width, y=width, z=0.2), color=USER_COLOUR)],
         texts=[
             TextPrimitive(
-                pose=_pose(e), billboard=True, font_size=14.0, scale_invariant=True, text=e.user_id,
+                pose=at, billboard=True, font_size=14.0, scale_invariant=True, text=e.user_id,
                 color=Color(r=1.0, g=1.0, b=1.0, a=1.0),
             )
         ],

@@ -30,7 +30,7 @@ from slam_core.encounters import (
     WifiEq3Params,
     WifiFingerprintParams,
 )
-from slam_core.wifi_pairs import STALE_AP_MS
+from slam_core.wifi_pairs import STALE_AP_MS, fresh_mask
 
 MODEL_WIFI = 0
 MODEL_BLUETOOTH = 1
@@ -161,7 +161,7 @@ class EncounterDetector:
         """Index one scan and return the encounters it completes with other users' scans.
         ``last_seen_ms`` is -1 where the phone did not say."""
         p = self.params
-        fresh = (last_seen_ms < 0) | (last_seen_ms >= t_ms - p.stale_ap_ms)
+        fresh = fresh_mask(t_ms, last_seen_ms, p.stale_ap_ms)
         keep = np.flatnonzero(fresh)
         if keep.size == 0:
             return []

@@ -48,6 +48,7 @@ from slam_core.tracker_types import (
     UserBatch,
     UserReport,
 )
+from slam_core.wifi_pairs import fresh_mask
 
 __all__ = [
     "CROWD_SOLVERS",
@@ -466,7 +467,8 @@ class BuildingTracker:
         scan time when that estimate is confident. The fixes of one call go to the engine in one batch."""
         p = self.params.fingerprints
         stale = self.params.detection.stale_ap_ms
-        slots, fixes, places = [], [], []
+        slots, fixes = [], []
+        places: list[tuple[int, np.ndarray, list[str], np.ndarray]] = []
         names = [b.user for b in batches if self.is_tracking(b.user) and b.scan_t.size]
         rows = self._rows(names)
         for b in batches:
@@ -475,20 +477,21 @@ class BuildingTracker:
             u, row = self._users[b.user], rows[b.user]
             cov = np.array([[row.cov[0], row.cov[1]], [row.cov[1], row.cov[2]]])
             confident = float(np.max(np.linalg.eigvalsh(cov))) <= p.max_reference_std_m**2
+            scans: list[tuple[int, np.ndarray, list[str], np.ndarray]] = []
             located = None
-            for c in range(b.scan_t.size):
+            for c in reversed(range(b.scan_t.size)):  # the latest scan the map can place is the user's fix
                 lo, hi = int(b.scan_offsets[c]), int(b.scan_offsets[c + 1])
                 t = int(b.scan_t[c])
-                fresh = (b.scan_last_seen[lo:hi] < 0) | (b.scan_last_seen[lo:hi] >= t - stale)
+                fresh = fresh_mask(t, b.scan_last_seen[lo:hi], stale)
                 bssids = [str(x) for x, f in zip(b.scan_bssid[lo:hi], fresh, strict=True) if f]
                 rss = b.scan_rss[lo:hi][fresh]
                 then, _ = u.at(t)
                 shift = u.displacement - then
-                xy = self.fingerprints.locate(u.number, bssids, rss)
-                if xy is not None:
-                    located = xy + shift  # the latest scan of the batch wins: one fix per user per call
+                if located is None and (xy := self.fingerprints.locate(u.number, bssids, rss)) is not None:
+                    located = xy + shift  # one fix per user per call
                 if confident:
-                    places.append((u.number, np.array([row.x, row.y]) - shift, bssids, rss))
+                    scans.append((u.number, np.array([row.x, row.y]) - shift, bssids, rss))
+            places += reversed(scans)  # the map takes a user's scans in time order
             if located is not None:
                 slots.append(u.slot)
                 fixes.append(located)

@@ -38,8 +38,9 @@ class CalibrationPrior:
     """Heading bias of a walk left after the phone's north reference: the engine's bias-scale prior
     (msindoor: |bias| p50 7 deg)."""
     step_sigma_m: float = 0.11
-    """Per-step position noise that does not come from scale or bias (the graph's along and across step
-    sigmas combined): the landmark J is matched to within sqrt(N) of it."""
+    """Per-step position noise that does not come from scale or bias (a step's length noise of ~0.1 m and
+    0.05 m across, combined): the landmark J is matched to within sqrt(N) of it. The graph's own along-step
+    sigma is wider (``GraphParams.step_sigma_along_m``, an upper bound measured against the waypoints)."""
     landmark_sigma_m: float = 0.5
     """Each landmark's own position error."""
 

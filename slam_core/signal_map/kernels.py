@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from slam_core.wifi_pairs import fingerprint_matrix
+
 
 def visibility_multinomials(counts: np.ndarray, epsilon: float = 1e-3) -> np.ndarray:
     """(W, A) AP sighting counts per window -> rows of smoothed visibility probabilities."""
@@ -61,11 +63,6 @@ def union_gaussian_kernel(rows: np.ndarray, alpha: float, floor_dbm: float) -> n
     rows = np.asarray(rows, dtype=float)
     if rows.ndim != 2:
         raise ValueError("rows must be a (windows, cells) array, NaN where a cell was not heard")
-    heard = np.isfinite(rows).astype(float)
-    g = np.where(heard > 0, np.maximum(rows, floor_dbm) - floor_dbm, 0.0)
-    norms = np.sum(g * g, axis=1)
-    squared = np.maximum(norms[:, None] + norms[None, :] - 2.0 * (g @ g.T), 0.0)
-    counts = heard.sum(axis=1)
-    union = counts[:, None] + counts[None, :] - heard @ heard.T
-    kernel: np.ndarray = np.where(union > 0, np.exp(-alpha * squared / np.maximum(union, 1.0)), 1.0)
+    rms = fingerprint_matrix(rows, floor_dbm)  # the union RMS; +inf where neither row has an entry
+    kernel: np.ndarray = np.where(np.isfinite(rms), np.exp(-alpha * np.square(rms)), 1.0)
     return kernel
