@@ -16,8 +16,7 @@ north by the causal mean of the absolute azimuth (``heading.gyro_heading``); eac
 offset, so a consumer can re-rotate the path already walked when the offset estimate improves.
 
 Steps come from ``steps.detect_steps`` on the earth-vertical acceleration (Weinberg length, circular-mean
-direction over the step). The first step after a pause has no Weinberg window: it takes the user's previous
-step length, or ``default_step_m``.
+direction over the step; the peak that starts a walk after a standstill is not a step).
 """
 
 from __future__ import annotations
@@ -42,12 +41,10 @@ class PdrParams:
     heading: HeadingParams = field(default_factory=HeadingParams)
     madgwick_gain: float = 0.033
     """ahrs' default gain (Madgwick's beta for a gyroscope error of ~3 deg/s)."""
-    default_step_m: float = 0.7
-    """Length of the first step after a pause, before the user has a Weinberg-measured one."""
 
     def __post_init__(self) -> None:
-        if not (self.madgwick_gain >= 0.0 and 0.1 <= self.default_step_m <= 3.0):
-            raise ValueError("madgwick_gain must be >= 0 and default_step_m in [0.1, 3]")
+        if not self.madgwick_gain >= 0.0:
+            raise ValueError("madgwick_gain must be >= 0")
 
 
 @dataclass(frozen=True)
@@ -99,7 +96,6 @@ class PdrState:
     mag_hold: np.ndarray = field(default_factory=lambda: np.full(4, np.nan))
     rv_hold: np.ndarray = field(default_factory=lambda: np.full(5, np.nan))
     grv_hold: np.ndarray = field(default_factory=lambda: np.full(5, np.nan))
-    last_length_m: float = math.nan
     last_yaw: float = math.nan  # relative yaw of the previous step (turn mode)
 
 
@@ -271,10 +267,6 @@ def pdr_steps(state: PdrState, imu: ImuSamples, params: PdrParams) -> PdrSteps:
     if tilt_only.any():  # the measured acceleration's magnitude stands in for its vertical component
         vertical[tilt_only] = np.linalg.norm(imu.acc[tilt_only, 1:4], axis=1) - 9.80665
     step_t, lengths, step_yaw = detect_steps(state.steps, t, vertical, params.steps, yaw)
-    for i in range(lengths.size):  # the first step after a pause repeats the last measured length
-        if math.isnan(lengths[i]):
-            lengths[i] = params.default_step_m if math.isnan(state.last_length_m) else state.last_length_m
-        state.last_length_m = float(lengths[i])
     lengths = np.clip(lengths, 0.1, 3.0)
     if absolute:
         turns = np.full(step_t.size, np.nan)

@@ -78,8 +78,8 @@ class GraphParams:
     chunk_poses: int = 30
     modalities: tuple[str, ...] = ("wifi",)
     """Kernels multiplied into the signal similarity. On msindoor site1 F1 (``crowdslam signalslam``):
-    WiFi alone 1.48 / 3.12 m (p50 / p90), + fixed Bluetooth beacons 1.55 / 3.50, + magnetic magnitude
-    1.50 / 3.20, all three 1.58 / 3.68: the beacons' sparse, noisy visibility and the magnetic magnitude's
+    WiFi alone 1.40 / 2.91 m (p50 / p90), + fixed Bluetooth beacons 1.52 / 3.26, + magnetic magnitude
+    1.42 / 2.93, all three 1.56 / 3.39: the beacons' sparse, noisy visibility and the magnetic magnitude's
     ambiguity over a large floor reorder WiFi's good neighbours, so WiFi alone is the default."""
 
     same_walk_gap_ms: int = 20_000

@@ -152,5 +152,5 @@ def test_malformed_samples_are_refused(kwargs: dict[str, np.ndarray], message: s
 
 
 def test_parameters_are_checked() -> None:
-    with pytest.raises(ValueError, match="default_step_m"):
-        PdrParams(default_step_m=0.0)
+    with pytest.raises(ValueError, match="madgwick_gain"):
+        PdrParams(madgwick_gain=-0.1)

@@ -4,6 +4,7 @@ and a real walk's step count against its surveyed length."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -29,11 +30,27 @@ def _gait(
 def test_one_step_per_gait_cycle_with_constant_length() -> None:
     t, vertical = _gait()
     times, lengths, _ = detect_steps(new_state(), t, vertical, PARAMS)
-    assert abs(times.size - 20.0 * 1.8) <= 2
-    assert np.isnan(lengths[0])
-    assert np.all(np.isfinite(lengths[1:]))
-    assert np.std(lengths[1:]) < 0.05 * np.mean(lengths[1:])
+    assert abs(times.size - (20.0 * 1.8 - 1)) <= 2  # the walk's first peak is not a step
+    assert np.all(np.isfinite(lengths))
+    assert np.std(lengths) < 0.05 * np.mean(lengths)
     assert np.all(np.diff(times) >= PARAMS.min_interval_ms)
+
+
+def test_the_peak_that_starts_a_walk_after_a_standstill_is_not_a_step() -> None:
+    """Gait initiation: the first peak after standing longer than ``max_interval_ms`` only starts the walk.
+    The gait's maxima lie at (k + 1/4) / 1.8 s: eight up to the standstill at 4 s (the last, at 4.03 s,
+    cut at its top) and seven in (6, 10) s."""
+    t, walking = _gait(seconds=10.0)
+    s = (t - t[0]) / 1000.0
+    vertical = np.where((s > 4.0) & (s < 6.0), 0.0, walking)
+    times, lengths, _ = detect_steps(new_state(), t, vertical, PARAMS)
+    resumed = t[0] + 6000.0
+    assert (times < resumed).sum() == 7
+    assert (times > resumed).sum() == 6
+    assert np.all(np.isfinite(lengths))
+    # the same gait with a pause shorter than max_interval_ms: one walk, only its first peak dropped
+    one_walk = replace(PARAMS, max_interval_ms=5000.0)
+    assert (detect_steps(new_state(), t, vertical, one_walk)[0] > resumed).sum() == 7
 
 
 def test_stronger_steps_are_longer() -> None:
