@@ -4,7 +4,9 @@ sightings arrive.
 WiFi: each scan is compared, by Eq. 3, with the other users' scans within ``scan_pair_window_ms``. Eq. 3
 only compares APs common to both scans' strongest N, so a scan can only pass against scans sharing one of
 its strongest N APs: an inverted index from those APs to recent scans finds every candidate, and the cost
-of a scan does not grow with the number of users in the building.
+of a scan does not grow with the number of users in the building. The scans and the index live in arrays
+(``ScanStore``) and a compiled kernel compares a whole tracker call's scans (``kernels.wifi_encounters``);
+``eq3_sparse`` and ``union_rms`` below are the per-pair definitions it is tested against.
 
 Bluetooth: a phone's sighting of another phone's advertised id, averaged per pair (both directions) over
 ``bt_smoothing_ms`` (one sighting period), is an encounter above the -90 dBm cut-off.
@@ -17,8 +19,8 @@ estimates (``slam_core.encounter_selection``), as in the simulated evaluation, a
 from __future__ import annotations
 
 import math
-from bisect import bisect_left, bisect_right
-from collections import defaultdict, deque
+from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -29,6 +31,17 @@ from slam_core.encounters import (
     RangeModel,
     WifiEq3Params,
     WifiFingerprintParams,
+)
+from slam_core.kernels.wifi_encounters import (
+    CANDIDATES,
+    COUNT,
+    HEAD,
+    META_SIZE,
+    N_LATE,
+    NEWEST,
+    NO_TIME,
+    detect_scans,
+    relink,
 )
 from slam_core.wifi_pairs import STALE_AP_MS, fresh_mask
 
@@ -50,6 +63,9 @@ class DetectionParams:
     entries whose last-seen time is more than this before the scan are dropped before Eq. 3."""
     retention_ms: int = 10_000
     """Scans and sightings older than this (behind the newest time seen) are forgotten."""
+    late_scan_ms: int = 2_000
+    """A scan more than this behind the newest scan when it arrives (a delayed batch) is compared directly
+    rather than through the index (``kernels.wifi_encounters``): it bounds how far back an index walk goes."""
     wifi_model: str = "wifi-eq3"
     """``wifi-eq3`` (the paper) or ``wifi-fingerprint`` (ours: union RMS, ``WifiFingerprintParams``; needs
     its range model in the calibration). Candidates are found by the same strongest-N index either way."""
@@ -72,48 +88,43 @@ class Detection:
 
 
 @dataclass(frozen=True)
+class DetectionArrays:
+    """Detections as arrays (a busy building finds thousands per call; only the few chosen become
+    ``Detection`` objects). Users are the detector's interned ids (``EncounterDetector.user_name``)."""
+
+    t_ms: np.ndarray  # int64
+    user_a: np.ndarray  # int64
+    user_b: np.ndarray  # int64
+    model: np.ndarray  # int64
+    feature: np.ndarray  # float64
+
+    @classmethod
+    def empty(cls) -> DetectionArrays:
+        none = np.zeros(0, dtype=np.int64)
+        return cls(none, none, none, none, np.zeros(0))
+
+    @classmethod
+    def concatenate(cls, parts: Sequence[DetectionArrays]) -> DetectionArrays:
+        if not parts:
+            return cls.empty()
+        return cls(*(np.concatenate([getattr(p, f) for p in parts]) for f in _DETECTION_FIELDS))
+
+    def __len__(self) -> int:
+        return int(self.t_ms.size)
+
+    def subset(self, index: np.ndarray) -> DetectionArrays:
+        return DetectionArrays(*(getattr(self, f)[index] for f in _DETECTION_FIELDS))
+
+
+_DETECTION_FIELDS = ("t_ms", "user_a", "user_b", "model", "feature")
+
+
+@dataclass(frozen=True)
 class RangedDetection(Detection):
     """A detection with its calibrated range and R (``EncounterDetector.ranged``)."""
 
     distance_m: float
     variance_m2: float
-
-
-@dataclass
-class _Scan:
-    user: str
-    t_ms: int
-    top: dict[int, float]  # the strongest N APs: interned BSSID -> RSS
-    fresh: dict[int, float]  # every fresh AP (the fingerprint model compares these)
-    arrival: int  # order of arrival: candidates are compared in it, whatever their times
-
-
-@dataclass
-class _Bucket:
-    """The retained scans that hold one AP among their strongest N, sorted by scan time, so the scans
-    within the pair window are found by bisection (retention is ten times the window: a linear pass over
-    the bucket was most of a scan's cost in a busy building)."""
-
-    times: list[int] = field(default_factory=list)
-    scans: list[_Scan] = field(default_factory=list)
-
-    def add(self, scan: _Scan) -> None:
-        at = bisect_right(self.times, scan.t_ms)
-        self.times.insert(at, scan.t_ms)
-        self.scans.insert(at, scan)
-
-    def within(self, lo_ms: int, hi_ms: int) -> list[_Scan]:
-        return self.scans[bisect_left(self.times, lo_ms) : bisect_right(self.times, hi_ms)]
-
-    def forget_before(self, horizon_ms: int) -> None:
-        cut = bisect_left(self.times, horizon_ms)
-        if cut:
-            del self.times[:cut]
-            del self.scans[:cut]
-
-
-def _arrival(scan: _Scan) -> int:
-    return scan.arrival
 
 
 def union_rms(a: dict[int, float], b: dict[int, float], floor_dbm: float) -> float:
@@ -136,68 +147,233 @@ def eq3_sparse(top_a: dict[int, float], top_b: dict[int, float]) -> tuple[float,
     return math.sqrt(sum((top_a[k] - top_b[k]) ** 2 for k in common)) / n, n
 
 
+def _grown(array: np.ndarray, size: int, fill: float | int) -> np.ndarray:
+    """``array`` with its first axis at least ``size`` (doubling), new rows set to ``fill``."""
+    if array.shape[0] >= size:
+        return array
+    bigger = np.full((max(size, 2 * array.shape[0]), *array.shape[1:]), fill, dtype=array.dtype)
+    bigger[: array.shape[0]] = array
+    return bigger
+
+
+class ScanStore:
+    """A building's recent WiFi scans as arrays, in order of arrival, with a per-AP inverted index through
+    their strongest N APs (``kernels.wifi_encounters``). Forgotten scans are dropped when the arrays fill."""
+
+    def __init__(self, strongest_n: int, capacity: int = 1024) -> None:
+        self.meta = np.zeros(META_SIZE, dtype=np.int64)
+        self.meta[NEWEST] = NO_TIME
+        self.t = np.zeros(capacity, dtype=np.int64)
+        self.user = np.zeros(capacity, dtype=np.int64)
+        self.top_ap = np.full((capacity, strongest_n), -1, dtype=np.int64)
+        self.top_rss = np.zeros((capacity, strongest_n))
+        self.link = np.full((capacity, strongest_n), -1, dtype=np.int64)
+        self.fresh_lo = np.zeros(capacity, dtype=np.int64)
+        self.fresh_hi = np.zeros(capacity, dtype=np.int64)
+        self.late = np.zeros(capacity, dtype=np.int64)
+        self.visited = np.zeros(capacity, dtype=np.int64)
+        self.fresh_ap = np.zeros(4 * capacity, dtype=np.int64)
+        self.fresh_rss = np.zeros(4 * capacity)
+        self.fresh_used = 0
+        self.ap_head = np.full(256, -1, dtype=np.int64)
+        self.top_mark = np.zeros(256, dtype=np.int64)
+        self.mark = np.zeros(256, dtype=np.int64)
+        self.value = np.zeros(256)
+
+    @property
+    def live(self) -> int:
+        return int(self.meta[COUNT] - self.meta[HEAD])
+
+    def _compact(self) -> None:
+        """Move the live scans (and their fresh APs) to the front and rebuild the index."""
+        head, count = int(self.meta[HEAD]), int(self.meta[COUNT])
+        if head == 0:
+            return
+        n = count - head
+        for name in ("t", "user", "top_ap", "top_rss", "fresh_lo", "fresh_hi"):
+            array = getattr(self, name)
+            array[:n] = array[head:count]
+        base = int(self.fresh_lo[0]) if n else self.fresh_used
+        used = self.fresh_used - base
+        self.fresh_ap[:used] = self.fresh_ap[base : self.fresh_used]
+        self.fresh_rss[:used] = self.fresh_rss[base : self.fresh_used]
+        self.fresh_lo[:n] -= base
+        self.fresh_hi[:n] -= base
+        self.fresh_used = used
+        late = self.late[: self.meta[N_LATE]]
+        late = late[late >= head] - head
+        self.late[: late.size] = late
+        self.meta[N_LATE] = late.size
+        late_flag = np.zeros(n, dtype=np.bool_)
+        late_flag[late] = True
+        self.visited[:] = 0
+        self.meta[HEAD] = 0
+        self.meta[COUNT] = n
+        relink(self.top_ap, self.link, self.ap_head, late_flag, n)
+
+    def _make_room(self, n_scans: int, n_fresh: int, n_aps: int) -> None:
+        if self.meta[COUNT] + n_scans > self.t.size or self.fresh_used + n_fresh > self.fresh_ap.size:
+            self._compact()
+        need = int(self.meta[COUNT]) + n_scans
+        for name, fill in (
+            ("t", 0), ("user", 0), ("top_ap", -1), ("top_rss", 0.0), ("link", -1), ("fresh_lo", 0),
+            ("fresh_hi", 0), ("late", 0), ("visited", 0),
+        ):  # fmt: skip
+            setattr(self, name, _grown(getattr(self, name), need, fill))
+        self.fresh_ap = _grown(self.fresh_ap, self.fresh_used + n_fresh, 0)
+        self.fresh_rss = _grown(self.fresh_rss, self.fresh_used + n_fresh, 0.0)
+        self.ap_head = _grown(self.ap_head, n_aps, -1)
+        self.top_mark = _grown(self.top_mark, n_aps, 0)
+        self.mark = _grown(self.mark, n_aps, 0)
+        self.value = _grown(self.value, n_aps, 0.0)
+
+    def add(
+        self,
+        t_ms: np.ndarray,
+        user: np.ndarray,
+        top_ap: np.ndarray,
+        top_rss: np.ndarray,
+        fresh_offsets: np.ndarray,
+        fresh_ap: np.ndarray,
+        fresh_rss: np.ndarray,
+        n_aps: int,
+        params: DetectionParams,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Store scans (in arrival order) and compare each with the live scans before it; returns the
+        passing pairs as (t, index among these scans, the other's user, feature)."""
+        self._make_room(t_ms.size, fresh_ap.size, n_aps)
+        base = self.fresh_used
+        self.fresh_ap[base : base + fresh_ap.size] = fresh_ap
+        self.fresh_rss[base : base + fresh_ap.size] = fresh_rss
+        self.fresh_used += fresh_ap.size
+        by_fingerprint = params.wifi_model == "wifi-fingerprint"
+        out_t, out_new, out_other, out_f = detect_scans(
+            self.meta, self.t, self.user, self.top_ap, self.top_rss, self.link, self.fresh_lo,
+            self.fresh_hi, self.fresh_ap, self.fresh_rss, self.ap_head, self.late, self.visited,
+            self.top_mark, self.mark, self.value, t_ms, user, top_ap, top_rss, base + fresh_offsets[:-1],
+            base + fresh_offsets[1:], params.scan_pair_window_ms, params.retention_ms, params.late_scan_ms,
+            by_fingerprint,
+            params.fingerprint.threshold_db if by_fingerprint else params.wifi.threshold_db,
+            params.wifi.min_common, params.fingerprint.floor_dbm,
+        )  # fmt: skip
+        return out_t, out_new, self.user[out_other], out_f
+
+
 class EncounterDetector:
-    def __init__(self, params: DetectionParams, calibration: Calibration) -> None:
+    def __init__(self, params: DetectionParams, calibration: Calibration, scan_capacity: int = 1024) -> None:
         self.params = params
         self.calibration = calibration
         self._ap_ids: dict[str, int] = {}
-        self._scans: deque[_Scan] = deque()  # in order of arrival
-        self._by_ap: dict[int, _Bucket] = defaultdict(_Bucket)
-        self._arrivals = 0
+        self._user_ids: dict[str, int] = {}
+        self._user_names: list[str] = []
+        self._store = ScanStore(params.wifi.strongest_n, scan_capacity)
         self._bt: dict[tuple[str, str], deque[tuple[int, float]]] = {}
-        self._newest_ms = 0
+        self._bt_newest_ms = 0
         self._bt_pruned_at = 0
-        self.n_candidates = 0
         if params.wifi_model == "wifi-fingerprint" and calibration.wifi_fingerprint is None:
             raise ValueError(
                 "the wifi-fingerprint encounter model needs its range model in the calibration "
                 "(fit it with `crowdslam calibrate`)"
             )
 
+    @property
+    def n_candidates(self) -> int:
+        """Scan pairs compared so far."""
+        return int(self._store.meta[CANDIDATES])
+
+    @property
+    def n_indexed_scans(self) -> int:
+        return self._store.live
+
+    def user_id(self, user: str) -> int:
+        """The interned id detections carry for ``user``."""
+        ident = self._user_ids.get(user)
+        if ident is None:
+            ident = self._user_ids[user] = len(self._user_names)
+            self._user_names.append(user)
+        return ident
+
+    def user_name(self, ident: int) -> str:
+        return self._user_names[ident]
+
+    def to_detections(self, found: DetectionArrays) -> list[Detection]:
+        names = self._user_names
+        return [
+            Detection(int(t), names[int(a)], names[int(b)], int(m), float(f))
+            for t, a, b, m, f in zip(
+                found.t_ms, found.user_a, found.user_b, found.model, found.feature, strict=True
+            )
+        ]
+
     # ------------------------------------------------------------------ WiFi
+    def add_scans(
+        self,
+        users: Sequence[str],
+        t_ms: np.ndarray,
+        offsets: np.ndarray,
+        bssids: Sequence[str],
+        rss: np.ndarray,
+        last_seen_ms: np.ndarray,
+    ) -> DetectionArrays:
+        """Index scans (in arrival order; scan c's entries are ``offsets[c]:offsets[c + 1]``) and return the
+        encounters each completes with other users' earlier scans. ``last_seen_ms`` is -1 where the phone
+        did not say. A scan without fresh APs is neither indexed nor compared."""
+        p = self.params
+        by_fingerprint = p.wifi_model == "wifi-fingerprint"
+        n_top = p.wifi.strongest_n
+        kept_t, kept_user, tops, top_rss = [], [], [], []
+        fresh_ap: list[int] = []
+        fresh_rss: list[float] = []
+        fresh_offsets = [0]
+        for c in range(len(users)):
+            lo, hi = int(offsets[c]), int(offsets[c + 1])
+            t = int(t_ms[c])
+            keep = lo + np.flatnonzero(fresh_mask(t, last_seen_ms[lo:hi], p.stale_ap_ms))
+            if keep.size == 0:
+                continue
+            order = keep[np.argsort(-rss[keep], kind="stable")[:n_top]]
+            top = {
+                self._intern(bssids[i]): float(rss[i]) for i in order.tolist()
+            }  # a repeated BSSID counts once
+            kept_t.append(t)
+            kept_user.append(self.user_id(users[c]))
+            row = np.full(n_top, -1, dtype=np.int64)
+            row[: len(top)] = list(top)
+            tops.append(row)
+            values = np.zeros(n_top)
+            values[: len(top)] = list(top.values())
+            top_rss.append(values)
+            if by_fingerprint:
+                fresh = {self._intern(bssids[i]): float(rss[i]) for i in keep.tolist()}
+                fresh_ap += fresh
+                fresh_rss += fresh.values()
+            fresh_offsets.append(len(fresh_ap))
+        if not kept_t:
+            return DetectionArrays.empty()
+        out_t, out_new, other, feature = self._store.add(
+            np.array(kept_t, dtype=np.int64),
+            np.array(kept_user, dtype=np.int64),
+            np.array(tops),
+            np.array(top_rss),
+            np.array(fresh_offsets, dtype=np.int64),
+            np.array(fresh_ap, dtype=np.int64),
+            np.array(fresh_rss, dtype=np.float64),
+            len(self._ap_ids),
+            p,
+        )
+        model = MODEL_WIFI_FINGERPRINT if by_fingerprint else MODEL_WIFI
+        return DetectionArrays(
+            out_t, np.array(kept_user, dtype=np.int64)[out_new], other, np.full(out_t.size, model), feature
+        )
+
     def add_scan(
         self, user: str, t_ms: int, bssids: list[str], rss: np.ndarray, last_seen_ms: np.ndarray
     ) -> list[Detection]:
-        """Index one scan and return the encounters it completes with other users' scans.
-        ``last_seen_ms`` is -1 where the phone did not say."""
-        p = self.params
-        fresh = fresh_mask(t_ms, last_seen_ms, p.stale_ap_ms)
-        keep = np.flatnonzero(fresh)
-        if keep.size == 0:
-            return []
-        order = keep[np.argsort(-rss[keep], kind="stable")[: p.wifi.strongest_n]]
-        top = {self._intern(bssids[i]): float(rss[i]) for i in order}
-        by_fingerprint = p.wifi_model == "wifi-fingerprint"
-        fresh_aps = {self._intern(bssids[i]): float(rss[i]) for i in keep} if by_fingerprint else top
-        self._advance(t_ms)
-        found: dict[int, _Scan] = {}
-        window = p.scan_pair_window_ms
-        for ap in top:
-            bucket = self._by_ap.get(ap)
-            if bucket is None:
-                continue
-            for other in sorted(bucket.within(t_ms - window, t_ms + window), key=_arrival):
-                if other.user != user:
-                    found[other.arrival] = other
-        passing: list[tuple[_Scan, float]] = []
-        for other in found.values():
-            self.n_candidates += 1
-            if by_fingerprint:
-                feature = union_rms(fresh_aps, other.fresh, p.fingerprint.floor_dbm)
-                if feature < p.fingerprint.threshold_db:
-                    passing.append((other, feature))
-                continue
-            sim, n = eq3_sparse(top, other.top)
-            if n >= p.wifi.min_common and sim < p.wifi.threshold_db:
-                passing.append((other, sim))
-        kind = MODEL_WIFI_FINGERPRINT if by_fingerprint else MODEL_WIFI
-        out = [Detection(max(t_ms, other.t_ms), user, other.user, kind, f) for other, f in passing]
-        scan = _Scan(user, t_ms, top, fresh_aps, self._arrivals)
-        self._arrivals += 1
-        self._scans.append(scan)
-        for ap in top:
-            self._by_ap[ap].add(scan)
-        return out
+        """One scan (``add_scans`` of one), its detections as objects."""
+        found = self.add_scans(
+            [user], np.array([t_ms]), np.array([0, len(bssids)]), bssids, rss, last_seen_ms
+        )
+        return self.to_detections(found)
 
     def _intern(self, bssid: str) -> int:
         key = bssid.lower()
@@ -207,20 +383,51 @@ class EncounterDetector:
         return ident
 
     # ------------------------------------------------------------------ Bluetooth
+    def add_sightings(
+        self, receivers: Sequence[str], senders: Sequence[str], t_ms: np.ndarray, rss_dbm: np.ndarray
+    ) -> DetectionArrays:
+        """Phones heard other phones (in arrival order); an encounter each time a pair's RSS, averaged over
+        both directions and ``bt_smoothing_ms``, passes the cut-off."""
+        rows = []
+        for receiver, sender, t, rss in zip(receivers, senders, t_ms.tolist(), rss_dbm.tolist(), strict=True):
+            if receiver == sender:
+                continue
+            self._advance_bluetooth(t)
+            pair = (min(receiver, sender), max(receiver, sender))
+            history = self._bt.setdefault(pair, deque())
+            history.append((t, rss))
+            while history and t - history[0][0] >= self.params.bt_smoothing_ms:
+                history.popleft()
+            smoothed = sum(r for _, r in history) / len(history)
+            if smoothed >= self.params.bluetooth.cutoff_dbm:
+                rows.append((t, self.user_id(receiver), self.user_id(sender), smoothed))
+        if not rows:
+            return DetectionArrays.empty()
+        t_col, a_col, b_col, f_col = zip(*rows, strict=True)
+        return DetectionArrays(
+            np.array(t_col, dtype=np.int64),
+            np.array(a_col, dtype=np.int64),
+            np.array(b_col, dtype=np.int64),
+            np.full(len(rows), MODEL_BLUETOOTH, dtype=np.int64),
+            np.array(f_col, dtype=np.float64),
+        )
+
     def add_sighting(self, receiver: str, sender: str, t_ms: int, rss_dbm: float) -> Detection | None:
-        """One phone heard another; returns an encounter when the pair-averaged RSS passes the cut-off."""
-        if receiver == sender:
-            return None
-        self._advance(t_ms)
-        pair = (min(receiver, sender), max(receiver, sender))
-        history = self._bt.setdefault(pair, deque())
-        history.append((t_ms, rss_dbm))
-        while history and t_ms - history[0][0] >= self.params.bt_smoothing_ms:
-            history.popleft()
-        smoothed = sum(r for _, r in history) / len(history)
-        if smoothed < self.params.bluetooth.cutoff_dbm:
-            return None
-        return Detection(t_ms, receiver, sender, MODEL_BLUETOOTH, smoothed)
+        """One sighting (``add_sightings`` of one), its detection as an object."""
+        found = self.to_detections(
+            self.add_sightings([receiver], [sender], np.array([t_ms]), np.array([rss_dbm]))
+        )
+        return found[0] if found else None
+
+    def _advance_bluetooth(self, t_ms: int) -> None:
+        """Forget sightings that can no longer be averaged with anything new."""
+        if t_ms <= self._bt_newest_ms:
+            return
+        self._bt_newest_ms = t_ms
+        if len(self._bt) > self._bt_pruned_at + 1024:
+            horizon = t_ms - self.params.retention_ms
+            self._bt = {k: v for k, v in self._bt.items() if v and v[-1][0] >= horizon}
+            self._bt_pruned_at = len(self._bt)
 
     def ranged(self, detections: list[Detection]) -> list[RangedDetection]:
         """The detections with their calibrated ranges and R, one vectorised lookup per model (only the
@@ -246,27 +453,3 @@ class EncounterDetector:
         if model == MODEL_WIFI:
             return self.calibration.wifi
         raise ValueError(f"no range model for encounter model {model}")
-
-    # ------------------------------------------------------------------ shared
-
-    def _advance(self, t_ms: int) -> None:
-        """Forget scans and sightings that can no longer pair with anything new."""
-        if t_ms <= self._newest_ms:
-            return
-        self._newest_ms = t_ms
-        horizon = t_ms - self.params.retention_ms
-        touched: set[int] = set()
-        while self._scans and self._scans[0].t_ms < horizon:
-            touched.update(self._scans.popleft().top)
-        for ap in touched:
-            bucket = self._by_ap[ap]
-            bucket.forget_before(horizon)
-            if not bucket.times:
-                del self._by_ap[ap]
-        if len(self._bt) > self._bt_pruned_at + 1024:
-            self._bt = {k: v for k, v in self._bt.items() if v and v[-1][0] >= horizon}
-            self._bt_pruned_at = len(self._bt)
-
-    @property
-    def n_indexed_scans(self) -> int:
-        return len(self._scans)

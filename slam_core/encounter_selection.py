@@ -57,13 +57,15 @@ class EncounterSelector:
     def choose(
         self,
         t_ms: np.ndarray,
-        pair_keys: Sequence[Hashable],
+        pair_keys: Sequence[Hashable] | np.ndarray,
         predicted_m: np.ndarray,
         sigma_at_prediction_m: np.ndarray,
     ) -> np.ndarray:
         """Boolean mask of the readings to apply. ``pair_keys[i]`` identifies reading i's unordered pair and
-        model; ``predicted_m`` is the filters' distance between the two users; ``sigma_at_prediction_m`` is
-        the model's range standard deviation at that distance. The chosen pairs start their cooldown."""
+        model (``pair_key``, or an int64 array from ``pair_keys``); ``predicted_m`` is the filters' distance
+        between the two users; ``sigma_at_prediction_m`` is the model's range standard deviation at that
+        distance. The chosen pairs start their cooldown. Vectorised but for the cooldowns of the readings
+        that pass both gates: a busy building has thousands of readings per call."""
         t_ms = np.asarray(t_ms, dtype=np.int64)
         predicted_m = np.asarray(predicted_m, dtype=np.float64)
         sigma_at_prediction_m = np.asarray(sigma_at_prediction_m, dtype=np.float64)
@@ -72,15 +74,20 @@ class EncounterSelector:
             raise ValueError("t_ms, pair_keys, predicted_m and sigma_at_prediction_m must be equally long")
         if not (np.all(np.isfinite(predicted_m)) and np.all(np.isfinite(sigma_at_prediction_m))):
             raise ValueError("predicted distances and sigmas must be finite")
-        p = self.params
-        latest: dict[Hashable, int] = {}
-        for i in np.argsort(t_ms, kind="stable"):
-            latest[pair_keys[i]] = int(i)  # the pair's latest reading in this call
         chosen = np.zeros(n, dtype=bool)
-        for key, i in latest.items():
-            self.n_considered += 1
-            if predicted_m[i] > p.select_range_m or sigma_at_prediction_m[i] > p.max_sigma_m:
-                continue
+        if n == 0:
+            return chosen
+        p = self.params
+        keys = pair_keys if isinstance(pair_keys, np.ndarray) else _codes(pair_keys)
+        backwards = np.argsort(t_ms, kind="stable")[::-1]
+        _, first = np.unique(keys[backwards], return_index=True)
+        latest = np.sort(backwards[first])  # each pair's latest reading in this call
+        self.n_considered += int(latest.size)
+        gated = latest[
+            (predicted_m[latest] <= p.select_range_m) & (sigma_at_prediction_m[latest] <= p.max_sigma_m)
+        ]
+        for i in gated.tolist():
+            key = pair_keys[i] if not isinstance(pair_keys, np.ndarray) else int(pair_keys[i])
             last = self._last_applied.get(key)
             if last is not None and t_ms[i] - last < p.pair_cooldown_ms:
                 continue
@@ -99,9 +106,32 @@ class EncounterSelector:
         self._last_applied = {k: v for k, v in self._last_applied.items() if v >= horizon}
 
 
+def _codes(keys: Sequence[Hashable]) -> np.ndarray:
+    """Hashable keys as integer codes (equal keys, equal codes)."""
+    index: dict[Hashable, int] = {}
+    return np.array([index.setdefault(k, len(index)) for k in keys], dtype=np.int64)
+
+
 UserId = TypeVar("UserId", int, str)
+
+_ID_BITS = 29
+"""Users ids below 2^29 in ``pair_keys``: two ids and the model's two bits fill 60 bits of an int64."""
 
 
 def pair_key(a: UserId, b: UserId, model: int) -> tuple[UserId, UserId, int]:
     """The unordered pair and its model, as ``choose`` expects."""
     return (min(a, b), max(a, b), model)
+
+
+def pair_keys(a: np.ndarray, b: np.ndarray, model: np.ndarray) -> np.ndarray:
+    """``pair_key`` of integer user ids (in [0, 2^29)) and models (in [0, 4)) as one int64 per reading."""
+    a = np.asarray(a, dtype=np.int64)
+    b = np.asarray(b, dtype=np.int64)
+    model = np.asarray(model, dtype=np.int64)
+    if a.size and (min(a.min(), b.min(), model.min()) < 0 or max(a.max(), b.max()) >= 1 << _ID_BITS):
+        raise ValueError(f"pair keys need user ids in [0, 2^{_ID_BITS}) and models >= 0")
+    if model.size and model.max() >= 4:
+        raise ValueError("pair keys need models in [0, 4)")
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    keys: np.ndarray = (((lo << _ID_BITS) | hi) << 2) | model
+    return keys

@@ -33,8 +33,8 @@ import numpy as np
 from slam_core.crowd_fingerprints import CrowdFingerprints
 from slam_core.crowd_graph import CrowdGraph, GraphParams
 from slam_core.crowd_map import CrowdMapBuilder
-from slam_core.encounter_detection import Detection, EncounterDetector
-from slam_core.encounter_selection import EncounterSelector, pair_key
+from slam_core.encounter_detection import DetectionArrays, EncounterDetector
+from slam_core.encounter_selection import EncounterSelector, pair_keys
 from slam_core.encounters import Calibration
 from slam_core.fastslam import DynamicSlam
 from slam_core.front_end import FrontEnd, RadioArrays
@@ -510,63 +510,89 @@ class BuildingTracker:
             self.engine.merge_crowd_map(active, self.crowd.snapshot())
 
     def _encounters(self, batches: list[UserBatch]) -> tuple[list[EncounterResult], int]:
-        """The encounters chosen among this call's detections, and how many detections there were."""
-        found: list[Detection] = []
+        """The encounters chosen among this call's detections, and how many detections there were. The
+        detections stay arrays until the few chosen ones are ranged (a busy building finds thousands)."""
+        scan_users: list[str] = []
+        scan_t, scan_offsets, scan_rss, scan_seen = [], [0], [], []
+        bssids: list[str] = []
+        receivers: list[str] = []
+        senders: list[str] = []
+        peer_t, peer_rss = [], []
         for b in batches:
-            for c in range(b.scan_t.size):
-                lo, hi = int(b.scan_offsets[c]), int(b.scan_offsets[c + 1])
-                found += self.detector.add_scan(
-                    b.user,
-                    int(b.scan_t[c]),
-                    list(b.scan_bssid[lo:hi]),
-                    b.scan_rss[lo:hi],
-                    b.scan_last_seen[lo:hi],
-                )
+            if b.scan_t.size:
+                scan_users += [b.user] * b.scan_t.size
+                scan_t.append(b.scan_t)
+                scan_offsets += (scan_offsets[-1] + b.scan_offsets[1:]).tolist()
+                bssids += b.scan_bssid
+                scan_rss.append(b.scan_rss)
+                scan_seen.append(b.scan_last_seen)
             for k in range(b.peer_t.size):
                 peer = self._by_ble.get(b.peer_id[k])
-                if peer is None:
-                    continue
-                det = self.detector.add_sighting(b.user, peer, int(b.peer_t[k]), float(b.peer_rss[k]))
-                if det is not None:
-                    found.append(det)
-        usable = [d for d in found if self.is_tracking(d.user_a) and self.is_tracking(d.user_b)]
-        if not usable:
+                if peer is not None:
+                    receivers.append(b.user)
+                    senders.append(peer)
+                    peer_t.append(int(b.peer_t[k]))
+                    peer_rss.append(float(b.peer_rss[k]))
+        parts = []
+        if scan_users:
+            parts.append(
+                self.detector.add_scans(
+                    scan_users,
+                    np.concatenate(scan_t),
+                    np.array(scan_offsets, dtype=np.int64),
+                    bssids,
+                    np.concatenate(scan_rss),
+                    np.concatenate(scan_seen),
+                )
+            )
+        if receivers:
+            parts.append(
+                self.detector.add_sightings(receivers, senders, np.array(peer_t), np.array(peer_rss))
+            )
+        found = DetectionArrays.concatenate(parts)
+        slot_a, slot_b = self._slots_of(found.user_a), self._slots_of(found.user_b)
+        usable = np.flatnonzero((slot_a >= 0) & (slot_b >= 0))
+        if usable.size == 0:
             return [], len(found)
-        chosen = self.detector.ranged(
-            [d for d, keep in zip(usable, self._choose(usable), strict=True) if keep]
-        )
+        keep = usable[self._choose(found.subset(usable), slot_a[usable], slot_b[usable])]
+        chosen = self.detector.ranged(self.detector.to_detections(found.subset(keep)))
         if not chosen or not self.params.filter.use_human_anchors:
             return [EncounterResult(d, False) for d in chosen], len(found)
         outcome = self.engine.observe_encounters(
-            np.array([self._users[d.user_a].slot for d in chosen]),
-            np.array([self._users[d.user_b].slot for d in chosen]),
+            slot_a[keep],
+            slot_b[keep],
             np.array([d.distance_m for d in chosen]),
             np.array([d.variance_m2 for d in chosen]),
         )
         results = [EncounterResult(d, bool(a)) for d, a in zip(chosen, outcome.applied, strict=True)]
         return results, len(found)
 
-    def _choose(self, detections: list[Detection]) -> np.ndarray:
+    def _slots_of(self, user_ids: np.ndarray) -> np.ndarray:
+        """Each detector user id's filter slot, -1 for users not being tracked."""
+        ids, inverse = np.unique(user_ids, return_inverse=True)
+        slots = np.full(ids.size, -1, dtype=np.int64)
+        for k, ident in enumerate(ids.tolist()):
+            u = self._users.get(self.detector.user_name(ident))
+            if u is not None and u.slot >= 0:
+                slots[k] = u.slot
+        result: np.ndarray = slots[inverse]
+        return result
+
+    def _choose(self, found: DetectionArrays, slot_a: np.ndarray, slot_b: np.ndarray) -> np.ndarray:
         """The selector's choice among detections of tracked users, from the filters' current estimates."""
-        n = len(detections)
-        slot_a, slot_b = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)
-        models, t_ms = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)
-        keys = []
-        for i, d in enumerate(detections):  # one pass: a busy building has thousands per call
-            slot_a[i], slot_b[i] = self._users[d.user_a].slot, self._users[d.user_b].slot
-            models[i], t_ms[i] = d.model, d.t_ms
-            keys.append(pair_key(d.user_a, d.user_b, d.model))
         slots, index = np.unique(np.concatenate([slot_a, slot_b]), return_inverse=True)
+        n = len(found)
         means = self.engine.summaries(slots)[:, 0:2]
         delta = means[index[:n]] - means[index[n:]]
         predicted = np.hypot(delta[:, 0], delta[:, 1])
         sigma = np.empty(n)
-        for model in np.unique(models):
-            at = models == model
+        for model in np.unique(found.model):
+            at = found.model == model
             sigma[at] = np.sqrt(self.detector.range_model(int(model)).variance_at_distance(predicted[at]))
-        chosen: np.ndarray = self.selector.choose(t_ms, keys, predicted, sigma)
+        keys = pair_keys(found.user_a, found.user_b, found.model)
+        chosen: np.ndarray = self.selector.choose(found.t_ms, keys, predicted, sigma)
         if len(self.selector) > 100_000:
-            self.selector.forget_before(int(t_ms.max()))
+            self.selector.forget_before(int(found.t_ms.max()))
         return chosen
 
     def _rows(self, users: list[str]) -> dict[str, EstimateRow]:
