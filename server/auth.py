@@ -81,7 +81,10 @@ def bearer_secret(authorization: str | None) -> str | None:
 
 class KeyCache:
     """Recently authenticated keys, so a phone posting every second costs no database query. An entry
-    lives ``ttl_s`` seconds: a key revoked in the database stops working within that time."""
+    lives ``ttl_s`` seconds: a key revoked in the database stops working within that time. The server
+    revalidates every cached key in one query every ``ttl_s / 2`` (``revalidate``), which extends the
+    entries of keys still valid: keys in use do not expire together (a thousand phones that started
+    together would otherwise all query the database in the same second)."""
 
     def __init__(self, ttl_s: float, max_entries: int = 100_000) -> None:
         self.ttl_s = ttl_s
@@ -102,3 +105,16 @@ class KeyCache:
             if len(self._entries) >= self.max_entries:
                 self._entries.clear()
         self._entries[secret] = (principal, now + self.ttl_s)
+
+    def key_ids(self) -> set[int]:
+        """The database ids of the cached keys."""
+        return {principal.key_id for principal, _ in self._entries.values()}
+
+    def revalidate(self, valid_key_ids: set[int], checked_at: float) -> None:
+        """Keys found valid by a query that started at ``checked_at`` live ``ttl_s`` from then; the
+        others are forgotten (the next request with them is checked against the database)."""
+        self._entries = {
+            secret: (principal, max(until, checked_at + self.ttl_s))
+            for secret, (principal, until) in self._entries.items()
+            if principal.key_id in valid_key_ids
+        }

@@ -31,11 +31,19 @@ class ServerDidNotStartError(RuntimeError):
 
 
 @contextmanager
-def running_server(app: FastAPI, host: str, port: int, start_timeout_s: float = 120.0) -> Iterator[str]:
+def running_server(
+    app: FastAPI, host: str, port: int, start_timeout_s: float = 120.0, ws_compression: bool = False
+) -> Iterator[str]:
     """Start serving ``app``; yields its base URL once it accepts connections, stops it on exit."""
-    server = uvicorn.Server(
-        uvicorn.Config(app, host=host, port=port, log_level="warning", ws="websockets-sansio")
+    config = uvicorn.Config(
+        app,
+        host=host,
+        port=port,
+        log_level="warning",
+        ws="websockets-sansio",
+        ws_per_message_deflate=ws_compression,
     )
+    server = uvicorn.Server(config)
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
     deadline = time.monotonic() + start_timeout_s

@@ -12,6 +12,7 @@ from sqlalchemy.orm import Session
 
 from server.app import AppState
 from server.auth import Principal, authenticate, bearer_secret
+from server.store import repositories as repo
 
 AUTHORIZATION_HELP = "Bearer <API key>"
 AUTHORIZATION_PARAMETER: dict[str, object] = {
@@ -55,6 +56,20 @@ async def principal(state: AppState, authorization: str | None) -> Principal:
     if secret is not None:
         state.keys.put(secret, found, now)
     return found
+
+
+async def revalidate_keys(state: AppState) -> None:
+    """One round of the key cache's revalidation (``KeyCache.revalidate``): one query for every cached key."""
+    ids = state.keys.key_ids()
+    if not ids:
+        return
+    checked_at = time.monotonic()
+
+    def query() -> set[int]:
+        with state.sessions() as session:
+            return repo.valid_key_ids(session, ids)
+
+    state.keys.revalidate(await asyncio.to_thread(query), checked_at)
 
 
 async def token_principal(state: AppState, token: str | None) -> Principal:

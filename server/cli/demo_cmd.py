@@ -49,10 +49,10 @@ def run(args: argparse.Namespace) -> int:
         operator_key, _ = mint_key(session, KeyScope.OPERATOR)
     engine.dispose()
     scenario = Scenario.from_dict(json.loads(_scenario_text(args.scenario)))
-    app = create_app(settings)
+    app = create_app(settings, tune_gc=True)
     try:
         with (
-            running_server(app, args.host, args.port) as base,
+            running_server(app, args.host, args.port, ws_compression=settings.ws_compression) as base,
             httpx.Client(base_url=base, timeout=60.0) as client,
         ):
             sim = simulate(scenario, 0)

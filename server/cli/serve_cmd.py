@@ -19,6 +19,14 @@ def run(args: argparse.Namespace) -> int:
     from server.app import create_app
     from server.settings import get_settings
 
-    app = create_app(get_settings())
-    uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level, ws="websockets-sansio")
+    settings = get_settings()
+    app = create_app(settings, tune_gc=True)
+    uvicorn.run(
+        app,
+        host=args.host,
+        port=args.port,
+        log_level=args.log_level,
+        ws="websockets-sansio",
+        ws_per_message_deflate=settings.ws_compression,
+    )
     return 0

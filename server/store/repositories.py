@@ -4,7 +4,7 @@ owns the transaction)."""
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from datetime import UTC, datetime
 
 from sqlalchemy import delete, func, insert, select
@@ -80,6 +80,18 @@ def insert_key(
 def find_key(session: Session, secret: str) -> ApiKeyRow | None:
     stmt = select(ApiKeyRow).where(ApiKeyRow.key_hash == hash_key(secret), ApiKeyRow.revoked_at.is_(None))
     return session.execute(stmt).scalar_one_or_none()
+
+
+def valid_key_ids(session: Session, key_ids: Collection[int], chunk: int = 500) -> set[int]:
+    """Those of these keys that exist and are not revoked."""
+    ids = sorted(key_ids)
+    valid: set[int] = set()
+    for start in range(0, len(ids), chunk):
+        stmt = select(ApiKeyRow.id).where(
+            ApiKeyRow.id.in_(ids[start : start + chunk]), ApiKeyRow.revoked_at.is_(None)
+        )
+        valid.update(int(i) for i in session.execute(stmt).scalars())
+    return valid
 
 
 # ----------------------------------------------------------------------------- devices

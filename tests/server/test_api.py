@@ -273,6 +273,60 @@ def test_key_cache_entries_expire_and_stay_bounded() -> None:
     assert cache.get("f", now=25.0) == p
 
 
+def test_revalidation_extends_valid_keys_and_forgets_revoked_ones() -> None:
+    from schemas.api import KeyScope
+    from server.auth import KeyCache, Principal
+
+    cache = KeyCache(ttl_s=10.0)
+    valid, revoked = Principal(1, KeyScope.DEVICE, "hq", "p1"), Principal(2, KeyScope.DEVICE, "hq", "p2")
+    cache.put("a", valid, now=0.0)
+    cache.put("b", revoked, now=0.0)
+    assert cache.key_ids() == {1, 2}
+    cache.revalidate({1}, checked_at=8.0)
+    assert cache.get("a", now=17.9) == valid  # 10 s from the check, not from the first lookup
+    assert cache.get("a", now=18.1) is None
+    assert cache.get("b", now=1.0) is None
+    assert cache.key_ids() == {1}
+
+
+def test_a_revoked_key_stops_working_after_one_revalidation_round(sqlite_api: Api) -> None:
+    import asyncio
+    from datetime import UTC, datetime
+
+    from sqlalchemy import update
+
+    from server.deps import revalidate_keys
+    from server.store.models import ApiKeyRow
+
+    api = sqlite_api
+    api.create_building()
+    dashboard = api.key("hq", "dashboard")
+    device = api.key("hq", "device", "phone-1")
+    assert api.client.get("/v1/buildings/hq/positions", headers=api.auth(dashboard)).status_code == 200
+    assert (
+        api.client.post("/v1/buildings/hq/batches", json=_batch(0), headers=api.auth(device)).status_code
+        == 200
+    )
+    engine = make_engine(api.url)
+    with make_session_factory(engine).begin() as session:
+        session.execute(
+            update(ApiKeyRow).where(ApiKeyRow.scope == "dashboard").values(revoked_at=datetime.now(UTC))
+        )
+    engine.dispose()
+    state = api.client.app.state.crowdslam  # type: ignore[attr-defined]
+    assert api.client.get("/v1/buildings/hq/positions", headers=api.auth(dashboard)).status_code == 200
+    cached = len(state.keys.key_ids())  # the operator's, the dashboard's and the device's
+    asyncio.run(revalidate_keys(state))
+    r = api.client.get("/v1/buildings/hq/positions", headers=api.auth(dashboard))
+    assert r.status_code == 401
+    assert "revoked" in r.json()["detail"]
+    assert len(state.keys.key_ids()) == cached - 1  # only the dashboard's key was forgotten
+    assert (
+        api.client.post("/v1/buildings/hq/batches", json=_batch(1), headers=api.auth(device)).status_code
+        == 200
+    )
+
+
 def test_raw_imu_and_a_strong_beacon_make_a_signature_anchor(sqlite_api: Api) -> None:
     api = sqlite_api
     api.create_building()
