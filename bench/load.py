@@ -14,8 +14,10 @@ wait). ``ws_lag`` runs from a batch's last step to the dashboard receiving that 
 shares the machine with the server: it speaks HTTP/1.1 over a pool of keep-alive sockets with pre-formatted
 bodies so that it costs little next to the server.
 
-Prints one JSON object: per-N rows (``phones, batches_per_s, p50_ms, p99_ms, ws_lag_p99_ms, errors``) and
-``sustained``: the largest N with p99 <= 100 ms, the offered rate met within 5 % and no errors.
+Prints one JSON object: per-N rows (``phones, batches_per_s, p50_ms, p99_ms, ws_lag_p99_ms, errors``, and
+the server's CPU time per batch and cores used, and the generator's cores, from /proc over the measured
+window: the steadiest figure of what a change costs) and ``sustained``: the largest N with p99 <= 100 ms,
+the offered rate met within 5 % and no errors.
 """
 
 from __future__ import annotations
@@ -184,6 +186,19 @@ class Results:
     errors: int = 0
     sent: int = 0
     dashboard_errors: list[str] = field(default_factory=list)
+    server_cpu_s: float = math.nan
+    """CPU seconds (user + system) the server used while the measured batches were due."""
+    generator_cpu_s: float = math.nan
+    measured_wall_s: float = math.nan
+
+
+def _cpu_seconds(pid: int) -> float:
+    """User + system CPU time of a process (Linux /proc; NaN elsewhere)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return math.nan
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 async def _dashboard(url: str, results: Results, stop: asyncio.Event) -> None:
@@ -214,7 +229,13 @@ def _positions(payload: dict[str, Any]) -> list[dict[str, Any]]:
 
 
 async def _drive(
-    port: int, keys: list[str], dashboard_key: str, duration_s: float, n_dashboards: int, connections: int
+    port: int,
+    keys: list[str],
+    dashboard_key: str,
+    duration_s: float,
+    n_dashboards: int,
+    connections: int,
+    server_pid: int,
 ) -> Results:
     n = len(keys)
     crowd = Crowd.create(n, seed=0)
@@ -254,6 +275,8 @@ async def _drive(
         near = crowd.neighbours()
         base = start + second
         measure = second >= warmup_s
+        if second == math.ceil(warmup_s):
+            cpu_at = (_cpu_seconds(server_pid), _cpu_seconds(os.getpid()), time.perf_counter())
         for phone in np.argsort(phase):
             due = base + phase[phone]
             delay = due - time.perf_counter()
@@ -269,6 +292,9 @@ async def _drive(
         second += 1
     if tasks:
         await asyncio.wait(tasks, timeout=30.0)
+    results.server_cpu_s = _cpu_seconds(server_pid) - cpu_at[0]
+    results.generator_cpu_s = _cpu_seconds(os.getpid()) - cpu_at[1]
+    results.measured_wall_s = time.perf_counter() - cpu_at[2]
     stop.set()
     for outcome in await asyncio.gather(*dashboards, return_exceptions=True):
         if isinstance(outcome, Exception):
@@ -299,7 +325,9 @@ def run_one(n: int, duration_s: float, n_dashboards: int, connections: int) -> d
         server = serve_process(env, port, data_dir / "server.log", log_level="warning")
         try:
             started = time.perf_counter()
-            results = asyncio.run(_drive(port, keys, dashboard, duration_s, n_dashboards, connections))
+            results = asyncio.run(
+                _drive(port, keys, dashboard, duration_s, n_dashboards, connections, server.pid)
+            )
             elapsed = time.perf_counter() - started
         finally:
             server.terminate()
@@ -317,6 +345,9 @@ def run_one(n: int, duration_s: float, n_dashboards: int, connections: int) -> d
         "ws_lag_p99_ms": round(float(np.percentile(lag, 99)), 1),
         "ws_positions": len(results.ws_lag_ms),
         "errors": results.errors + len(results.dashboard_errors),
+        "server_cpu_ms_per_batch": round(1e3 * results.server_cpu_s / max(results.sent, 1), 3),
+        "server_cores": round(results.server_cpu_s / results.measured_wall_s, 2),
+        "generator_cores": round(results.generator_cpu_s / results.measured_wall_s, 2),
         "dashboard_errors": results.dashboard_errors[:3],
         "seconds": round(elapsed, 1),
     }

@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi.responses import Response
 from sqlalchemy import Engine
 from sqlalchemy.orm import Session, sessionmaker
 from starlette.exceptions import HTTPException as StarletteHTTPException
@@ -25,7 +25,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from schemas.errors import Problem
 from server.auth import KeyCache
 from server.broadcast import Broadcaster
-from server.errors import InvalidInputError, ProblemError
+from server.errors import InvalidInputError, ProblemError, problem_response_parts
 from server.ingestion import TrackingService
 from server.metrics import Metrics
 from server.settings import Settings
@@ -170,6 +170,7 @@ def create_app(settings: Settings, tune_gc: bool = False) -> FastAPI:
 
     for module in (health, buildings, batches, positions, anchors, live, signal_maps):
         app.include_router(module.router)
+    app.add_middleware(batches.BatchFastPath)
     _document_raw_bodies(app)
     return app
 
@@ -247,21 +248,16 @@ def _warm_kernels(params: TrackerParams, calibration: Calibration) -> None:
 
 
 def _install_error_handlers(app: FastAPI) -> None:
-    def problem_response(problem: Problem, headers: dict[str, str] | None = None) -> JSONResponse:
-        return JSONResponse(
-            problem.model_dump(mode="json"),
-            status_code=problem.status,
-            media_type="application/problem+json",
-            headers=headers,
-        )
+    def problem_response(problem: Problem) -> Response:
+        status, body, headers = problem_response_parts(problem)
+        return Response(body, status_code=status, headers=headers)
 
     @app.exception_handler(ProblemError)
-    async def _problem(_: Request, exc: ProblemError) -> JSONResponse:
-        headers = {"WWW-Authenticate": "Bearer"} if exc.status == 401 else None
-        return problem_response(exc.to_problem(), headers)
+    async def _problem(_: Request, exc: ProblemError) -> Response:
+        return problem_response(exc.to_problem())
 
     @app.exception_handler(RequestValidationError)
-    async def _validation(_: Request, exc: RequestValidationError) -> JSONResponse:
+    async def _validation(_: Request, exc: RequestValidationError) -> Response:
         from server.errors import field_problem
 
         problems = [field_problem(e) for e in exc.errors()]
@@ -272,12 +268,12 @@ def _install_error_handlers(app: FastAPI) -> None:
         return problem_response(error.to_problem())
 
     @app.exception_handler(StarletteHTTPException)
-    async def _http(_: Request, exc: StarletteHTTPException) -> JSONResponse:
+    async def _http(_: Request, exc: StarletteHTTPException) -> Response:
         title = {404: "Not found", 405: "Method not allowed"}.get(exc.status_code, "HTTP error")
         return problem_response(Problem(title=title, status=exc.status_code, detail=str(exc.detail)))
 
     @app.exception_handler(Exception)
-    async def _unexpected(_: Request, exc: Exception) -> JSONResponse:
+    async def _unexpected(_: Request, exc: Exception) -> Response:
         return problem_response(
             Problem(
                 title="Internal server error",

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from collections.abc import Sequence
 from typing import Any
 
@@ -83,3 +84,18 @@ def field_problem(error: Any) -> FieldProblem:
     return FieldProblem(
         loc=loc, msg=str(error.get("msg", "invalid")), type=str(error.get("type", "value_error"))
     )
+
+
+PROBLEM_MEDIA_TYPE = "application/problem+json"
+
+
+def problem_response_parts(problem: Problem) -> tuple[int, bytes, dict[str, str]]:
+    """How every Problem goes on the wire, whichever path answers: status, body and headers (a 401 says
+    which scheme to use)."""
+    body = json.dumps(
+        problem.model_dump(mode="json"), ensure_ascii=False, allow_nan=False, separators=(",", ":")
+    ).encode()
+    headers = {"content-type": PROBLEM_MEDIA_TYPE}
+    if problem.status == 401:
+        headers["www-authenticate"] = "Bearer"
+    return problem.status, body, headers

@@ -23,6 +23,7 @@ from schemas.estimates import EncounterEvent, Estimate, EstimateSource
 from schemas.live import AnchorMessage, EncounterMessage, LiveMessage, PositionMessage
 from schemas.sensors import SensorBatch
 from server import convert, tracker_snapshot
+from server.device_ledger import DeviceLedger
 from server.errors import ConflictError, InvalidInputError, NotFoundError, ProblemError
 from server.recording import BuildingRecorder
 from server.store import repositories as repo
@@ -32,7 +33,6 @@ from server.store.batches import (
     drop_logged_bodies,
     insert_batches_once,
     logged_batches,
-    mark_applied_rounds,
 )
 from server.store.models import AnchorRow
 from slam_core.encounters import Calibration
@@ -97,7 +97,6 @@ class BuildingSession:
         self._public: dict[int, str] = {}  # crowd index -> public id
         self._index: dict[str, int] = {}  # public id -> crowd index
         self._labels: dict[int, str | None] = {}
-        self._last_seq: dict[str, int] = {}
         self._device_of_user: dict[str, str] = {}
         self._next_anchor = 0
         self._round = 0  # engine calls so far: the order a restart replays the batch log in
@@ -111,10 +110,14 @@ class BuildingSession:
                 if building.origin_lat_deg is not None and building.origin_lon_deg is not None
                 else None
             )
-            self._last_seq = repo.device_last_seqs(session, building_id)
+            self.devices = DeviceLedger(building_id, repo.devices(session, building_id))
             restored = self._restore(session, params, calibration)
-            logged = logged_batches(session, building_id) if restored else []
+            logged = logged_batches(session, building_id)
             if not restored:
+                # the filters start again, but the log still says which sequence numbers were applied
+                for item in logged:
+                    self.devices.replayed(SensorBatch.model_validate_json(item.body))
+                logged = []
                 self.tracker = BuildingTracker(params, calibration, seed=seed)
                 for row in repo.list_anchors(session, building_id):
                     cov = np.array([[row.cov_xx, row.cov_xy], [row.cov_xy, row.cov_yy]])
@@ -159,6 +162,7 @@ class BuildingSession:
             for item in items:
                 batch = SensorBatch.model_validate_json(item.body)
                 self._device_of_user[batch.effective_user_id] = batch.device_id
+                self.devices.replayed(batch)
                 batches.append(convert.to_user_batch(batch, ctx).user_batch)
             outcome = self.tracker.apply(batches)
             for index in outcome.anchors_changed:
@@ -167,7 +171,11 @@ class BuildingSession:
             self._round = applied_round
             self.counters.replayed += len(batches)
 
-    def _save_snapshot(self, session: Session) -> None:
+    def _save_snapshot(self, session: Session) -> list[dict[str, object]]:
+        """Write the snapshot and the devices' last sequence numbers; returns the device rows written (the
+        ledger counts them saved once the transaction commits)."""
+        rows = self.devices.unsaved_rows()
+        repo.upsert_devices(session, rows)
         state = tracker_snapshot.SessionState(
             self.tracker, dict(self._public), dict(self._labels), dict(self._device_of_user), self._round
         )
@@ -181,11 +189,13 @@ class BuildingSession:
         drop_logged_bodies(session, self.building_id)
         self._last_snapshot = time.monotonic()
         self.counters.snapshots += 1
+        return rows
 
     def snapshot(self) -> None:
         """Snapshot now (on load, after operator edits, at shutdown)."""
         with self._sessions.begin() as session:
-            self._save_snapshot(session)
+            rows = self._save_snapshot(session)
+        self.devices.saved(rows)
 
     # ------------------------------------------------------------------ anchors
     def _link(self, index: int, public_id: str, label: str | None) -> None:
@@ -248,7 +258,8 @@ class BuildingSession:
         anchor = self.anchor(index)
         with self._sessions.begin() as session:
             repo.save_anchor(session, self._anchor_row(anchor))
-            self._save_snapshot(session)
+            rows = self._save_snapshot(session)
+        self.devices.saved(rows)
         return anchor, [AnchorMessage(anchor=anchor)]
 
     def delete_anchor(self, public_id: str) -> list[LiveMessage]:
@@ -256,7 +267,8 @@ class BuildingSession:
         self.tracker.remove_anchor(self._index[public_id])
         with self._sessions.begin() as session:
             repo.delete_anchor(session, self.building_id, public_id)
-            self._save_snapshot(session)
+            rows = self._save_snapshot(session)
+        self.devices.saved(rows)
         return [AnchorMessage(anchor=anchor, deleted=True)]
 
     def merge_anchors(self, public_ids: list[str]) -> tuple[BuildingAnchor, list[LiveMessage]]:
@@ -271,7 +283,8 @@ class BuildingSession:
             repo.save_anchor(session, self._anchor_row(merged))
             for p in public_ids[1:]:
                 repo.delete_anchor(session, self.building_id, p)
-            self._save_snapshot(session)
+            rows = self._save_snapshot(session)
+        self.devices.saved(rows)
         messages: list[LiveMessage] = [AnchorMessage(anchor=merged)]
         messages += [AnchorMessage(anchor=a, deleted=True) for a in olds[1:]]
         return merged, messages
@@ -324,13 +337,15 @@ class BuildingSession:
                 continue
             converted[i] = (c.user_batch, c.warnings)
         messages: list[LiveMessage] = []
+        order = list(converted)
+        # late or applied, and by which engine call, is decided before anything is written: each row goes
+        # in with the call that applies it (a retry is recognised by the insert itself, and was late anyway)
+        calls = dict(zip(order, self.devices.plan([group[i].batch for i in order]), strict=True))
+        base = self._round
+        device_rows: list[dict[str, object]] = []
         with self._sessions.begin() as session:
-            to_apply: list[int] = []
-            row_ids: dict[int, int] = {}
-            rounds: dict[int, int] = {}  # batch row id -> engine call
-            devices: dict[str, dict[str, object]] = {}
-            order = list(converted)
-            inserted = insert_batches_once(session, [self._accepted(group[i]) for i in order])
+            inserted = insert_batches_once(session, [self._accepted(group[i], calls[i], base) for i in order])
+            by_call: dict[int, list[int]] = {}
             for i, row_id in zip(order, inserted, strict=True):
                 b = group[i].batch
                 if row_id is None:
@@ -339,87 +354,81 @@ class BuildingSession:
                     continue
                 if self.recorder is not None:
                     self.recorder.record_batch(group[i].raw, group[i].received_ns)
-                last = self._last_seq.get(b.device_id)
-                if last is not None and b.seq <= last:
+                call = calls[i]
+                if call is None:
                     self.counters.late += 1
                     results[i] = self._receipt(b, "late", converted[i][1])
                     continue
-                self._last_seq[b.device_id] = b.seq
                 self._device_of_user[b.effective_user_id] = b.device_id
-                devices[b.device_id] = {
-                    "building_id": self.building_id,
-                    "id": b.device_id,
-                    "user_id": b.effective_user_id,
-                    "ble_advertised_id": b.ble_advertised_id,
-                    "last_seq": b.seq,
-                }
-                row_ids[i] = row_id
-                to_apply.append(i)
-            repo.upsert_devices(session, list(devices.values()))
-            # a user may have several batches in one group: apply them in rounds, one per user per call
-            pending = list(to_apply)
-            while pending:
-                seen: set[str] = set()
-                now: list[int] = []
-                later: list[int] = []
-                for i in pending:
-                    user = converted[i][0].user
-                    (later if user in seen else now).append(i)
-                    seen.add(user)
-                pending = later
-                self._round += 1
-                rounds.update((row_ids[i], self._round) for i in now)
-                outcome = self.tracker.apply([converted[i][0] for i in now])
-                encounters = [convert.encounter_event(e, self.building_id) for e in outcome.encounters]
-                self.counters.encounters += len(encounters)
-                self.counters.encounters_applied += sum(e.applied for e in encounters)
-                self.counters.encounter_detections += outcome.detections
-                estimates = {u: self._estimate(u, row) for u, row in outcome.estimates.items()}
-                self.counters.estimates += len(estimates)
-                if self.recorder is not None:
-                    self.recorder.record_estimates(list(estimates.values()), group[now[0]].received_ns)
-                repo.add_positions(session, [self._position_row(e) for e in estimates.values()])
-                for index in outcome.anchors_changed:
-                    if self.tracker.crowd.is_live(index):
-                        anchor = self.anchor(index)
-                        repo.save_anchor(session, self._anchor_row(anchor))
-                        messages.append(AnchorMessage(anchor=anchor))
-                messages += [PositionMessage(estimate=e) for e in estimates.values()]
-                messages += [EncounterMessage(encounter=e) for e in encounters]
-                by_user: dict[str, list[EncounterEvent]] = {}
-                for e in encounters:
-                    by_user.setdefault(e.user_a, []).append(e)
-                    if e.user_b != e.user_a:
-                        by_user.setdefault(e.user_b, []).append(e)
-                for i in now:
-                    b = group[i].batch
-                    report = outcome.reports[converted[i][0].user]
-                    self.counters.steps_dropped += report.steps_dropped
-                    self.counters.steps_detected += report.steps_detected
-                    self.counters.imu_samples_dropped += report.imu_samples_dropped
-                    self.counters.recentred += report.recentred
-                    warnings = list(converted[i][1])
-                    if report.imu_samples_dropped:
-                        warnings.append(
-                            f"{report.imu_samples_dropped} IMU samples skipped: not newer than the samples "
-                            "already dead-reckoned for this user"
-                        )
-                    if report.steps_dropped:
-                        warnings.append(_dropped_warning(report.steps_dropped, report.status))
-                    results[i] = self._receipt(
-                        b,
-                        "applied",
-                        warnings,
-                        estimates.get(b.effective_user_id),
-                        by_user.get(b.effective_user_id),
-                    )
-            mark_applied_rounds(session, rounds)
+                row = self.devices.applied(b)
+                if row is not None:
+                    device_rows.append(row)
+                by_call.setdefault(call, []).append(i)
+            repo.upsert_devices(session, device_rows)
+            # a user may have several batches in one group: one per user per engine call
+            for call in sorted(by_call):
+                now = by_call[call]
+                self._round = base + call
+                self._apply(session, group, converted, now, results, messages)
             if time.monotonic() - self._last_snapshot >= self.snapshot_period_s:
-                self._save_snapshot(session)
+                device_rows += self._save_snapshot(session)
+        self.devices.saved(device_rows)
         self.counters.batches += len(group)
         return GroupResult([r if r is not None else ProblemError("not processed") for r in results], messages)
 
-    def _accepted(self, sub: Submission) -> AcceptedBatch:
+    def _apply(
+        self,
+        session: Session,
+        group: list[Submission],
+        converted: dict[int, tuple[UserBatch, list[str]]],
+        now: list[int],
+        results: list[BatchReceipt | ProblemError | None],
+        messages: list[LiveMessage],
+    ) -> None:
+        """One engine call over these batches (at most one per user); their receipts, positions, anchor
+        changes and live messages."""
+        outcome = self.tracker.apply([converted[i][0] for i in now])
+        encounters = [convert.encounter_event(e, self.building_id) for e in outcome.encounters]
+        self.counters.encounters += len(encounters)
+        self.counters.encounters_applied += sum(e.applied for e in encounters)
+        self.counters.encounter_detections += outcome.detections
+        estimates = {u: self._estimate(u, row) for u, row in outcome.estimates.items()}
+        self.counters.estimates += len(estimates)
+        if self.recorder is not None:
+            self.recorder.record_estimates(list(estimates.values()), group[now[0]].received_ns)
+        repo.add_positions(session, [self._position_row(e) for e in estimates.values()])
+        for index in outcome.anchors_changed:
+            if self.tracker.crowd.is_live(index):
+                anchor = self.anchor(index)
+                repo.save_anchor(session, self._anchor_row(anchor))
+                messages.append(AnchorMessage(anchor=anchor))
+        messages += [PositionMessage(estimate=e) for e in estimates.values()]
+        messages += [EncounterMessage(encounter=e) for e in encounters]
+        by_user: dict[str, list[EncounterEvent]] = {}
+        for e in encounters:
+            by_user.setdefault(e.user_a, []).append(e)
+            if e.user_b != e.user_a:
+                by_user.setdefault(e.user_b, []).append(e)
+        for i in now:
+            b = group[i].batch
+            report = outcome.reports[converted[i][0].user]
+            self.counters.steps_dropped += report.steps_dropped
+            self.counters.steps_detected += report.steps_detected
+            self.counters.imu_samples_dropped += report.imu_samples_dropped
+            self.counters.recentred += report.recentred
+            warnings = list(converted[i][1])
+            if report.imu_samples_dropped:
+                warnings.append(
+                    f"{report.imu_samples_dropped} IMU samples skipped: not newer than the samples "
+                    "already dead-reckoned for this user"
+                )
+            if report.steps_dropped:
+                warnings.append(_dropped_warning(report.steps_dropped, report.status))
+            results[i] = self._receipt(
+                b, "applied", warnings, estimates.get(b.effective_user_id), by_user.get(b.effective_user_id)
+            )
+
+    def _accepted(self, sub: Submission, call: int | None, base: int) -> AcceptedBatch:
         span = sub.batch.time_span_ms()
         return AcceptedBatch(
             self.building_id,
@@ -430,6 +439,7 @@ class BuildingSession:
             None if span is None else span[1],
             len(sub.raw),
             sub.raw,
+            None if call is None else base + call,
         )
 
     def _receipt(

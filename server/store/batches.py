@@ -22,6 +22,8 @@ class AcceptedBatch:
     n_bytes: int
     body: bytes | None = None
     """The batch as posted, logged until a tracker snapshot covers it; None when nothing will apply it."""
+    applied_round: int | None = None
+    """The building's engine call that applies it (the order a restart replays the log in); None: late."""
 
 
 @dataclass(frozen=True)
@@ -59,7 +61,8 @@ def _values(batch: AcceptedBatch) -> dict[str, object]:
         "t_first_ms": batch.t_first_ms,
         "t_last_ms": batch.t_last_ms,
         "n_bytes": batch.n_bytes,
-        "applied": False,
+        "applied": batch.applied_round is not None,
+        "applied_round": batch.applied_round,
         "body": batch.body,
     }
 
@@ -71,24 +74,6 @@ def insert_batch_once(session: Session, batch: AcceptedBatch) -> int | None:
     of one batch cannot both be accepted.
     """
     return insert_batches_once(session, [batch])[0]
-
-
-def mark_applied(session: Session, row_id: int, applied_round: int) -> None:
-    """Mark one accepted batch as applied by the building's engine call ``applied_round``."""
-    row = session.get(BatchRow, row_id)
-    if row is None:
-        raise LookupError(f"no accepted batch with id {row_id}")
-    row.applied = True
-    row.applied_round = applied_round
-
-
-def mark_applied_rounds(session: Session, rounds: dict[int, int]) -> None:
-    """Mark many batches applied: row id -> the engine call that applied it."""
-    if rounds:
-        session.execute(
-            update(BatchRow),
-            [{"id": row_id, "applied": True, "applied_round": r} for row_id, r in rounds.items()],
-        )
 
 
 def drop_logged_bodies(session: Session, building_id: str) -> None:

@@ -97,12 +97,15 @@ def valid_key_ids(session: Session, key_ids: Collection[int], chunk: int = 500) 
 # ----------------------------------------------------------------------------- devices
 
 
-def device_last_seqs(session: Session, building_id: str) -> dict[str, int]:
-    """Every device's last applied sequence number in the building."""
-    stmt = select(DeviceRow.id, DeviceRow.last_seq).where(
-        DeviceRow.building_id == building_id, DeviceRow.last_seq.is_not(None)
+def devices(session: Session, building_id: str) -> dict[str, tuple[str, str | None, int | None]]:
+    """The building's devices: id -> (user id, Bluetooth advertised id, last applied sequence number)."""
+    stmt = select(DeviceRow.id, DeviceRow.user_id, DeviceRow.ble_advertised_id, DeviceRow.last_seq).where(
+        DeviceRow.building_id == building_id
     )
-    return {device: int(seq) for device, seq in session.execute(stmt) if seq is not None}
+    return {
+        device: (user, ble, None if seq is None else int(seq))
+        for device, user, ble, seq in session.execute(stmt)
+    }
 
 
 def upsert_devices(session: Session, rows: Sequence[dict[str, object]]) -> None:

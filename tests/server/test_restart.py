@@ -141,6 +141,27 @@ def test_a_retried_batch_after_restart_is_still_a_duplicate(sqlite_url: str) -> 
     engine.dispose()
 
 
+@pytest.mark.parametrize("other_parameters", [False, True])
+def test_a_batch_older_than_the_logged_ones_is_late_after_a_restart(
+    sqlite_url: str, other_parameters: bool
+) -> None:
+    """Devices' last sequence numbers reach SQL with snapshots; after a crash the batch log supplies the
+    newer ones, also when the snapshot is refused and the filters start again."""
+    engine = _fresh_building(sqlite_url)
+    session = _session(engine)  # snapshots only on load: every group below stays in the log
+    for group in _groups(CROWD)[:6]:
+        session.process(group)
+    last = {b.device_id: b.seq for g in _groups(CROWD)[:6] for b in (s.batch for s in g)}
+    device, seq = next(iter(last.items()))
+    restarted = _session(engine, n_particles=40 if other_parameters else None)
+    assert (restarted.restore_problem is not None) == other_parameters
+    old = next(s.batch for s in CROWD if s.batch.device_id == device and s.batch.seq == seq - 1)
+    resent = old.model_copy(update={"batch_id": f"{old.batch_id}-again"})
+    receipt = restarted.process([Submission(resent, resent.model_dump_json().encode(), 0)]).receipts[0]
+    assert getattr(receipt, "status", None) == "late"
+    engine.dispose()
+
+
 def test_a_snapshot_taken_with_other_parameters_is_refused_and_the_sql_map_is_kept(sqlite_url: str) -> None:
     engine = _fresh_building(sqlite_url)
     session = _session(engine)

@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import threading
+from dataclasses import replace
 
 import pytest
 from sqlalchemy import Engine, func, select
 from sqlalchemy.exc import IntegrityError
 
-from server.store.batches import AcceptedBatch, find_batch, insert_batch_once, mark_applied
+from server.store.batches import AcceptedBatch, find_batch, insert_batch_once, logged_batches
 from server.store.db import make_session_factory
 from server.store.models import BatchRow, BuildingRow
 
@@ -90,24 +91,29 @@ def test_rolled_back_batch_can_be_sent_again(migrated_engine: Engine) -> None:
     with pytest.raises(RuntimeError, match="filter update failed"):
         apply_and_fail()
     with sessions.begin() as session:
-        row_id = insert_batch_once(session, _batch())
-        assert row_id is not None
-        mark_applied(session, row_id, 1)
+        retried = replace(_batch(), body=b"{}", applied_round=7)
+        assert insert_batch_once(session, retried) is not None
     with sessions() as session:
         row = find_batch(session, "hq", "phone-1", "b-1")
         assert row is not None
         assert row.applied
+        assert [(b.applied_round, b.body) for b in logged_batches(session, "hq")] == [(7, b"{}")]
+
+
+def test_a_late_batch_is_stored_but_not_logged_for_replay(migrated_engine: Engine) -> None:
+    _with_building(migrated_engine)
+    sessions = make_session_factory(migrated_engine)
+    with sessions.begin() as session:
+        assert insert_batch_once(session, replace(_batch(), body=b"{}")) is not None
+    with sessions() as session:
+        row = find_batch(session, "hq", "phone-1", "b-1")
+        assert row is not None
+        assert not row.applied
+        assert row.applied_round is None
+        assert logged_batches(session, "hq") == []
 
 
 def test_batch_for_unknown_building_violates_the_foreign_key(migrated_engine: Engine) -> None:
     with pytest.raises(IntegrityError), make_session_factory(migrated_engine).begin() as session:
         insert_batch_once(session, _batch())
     assert _count(migrated_engine) == 0
-
-
-def test_mark_applied_on_missing_row_is_an_error(migrated_engine: Engine) -> None:
-    with (
-        pytest.raises(LookupError, match="no accepted batch"),
-        make_session_factory(migrated_engine)() as session,
-    ):
-        mark_applied(session, 424242, 1)

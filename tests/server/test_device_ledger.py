@@ -1,0 +1,78 @@
+"""The device ledger: late batches, one engine call per user's batch in a group, which device rows SQL must
+learn when, and sequence numbers carried across a restart by the batch log."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from schemas.sensors import SensorBatch
+from server.device_ledger import DeviceLedger
+
+
+def _batch(device: str, seq: int, user: str | None = None, ble: str | None = None) -> SensorBatch:
+    body: dict[str, Any] = {
+        "building_id": "hq",
+        "device_id": device,
+        "batch_id": f"{device}-{seq}",
+        "seq": seq,
+    }
+    if user is not None:
+        body["user_id"] = user
+    if ble is not None:
+        body["ble_advertised_id"] = ble
+    return SensorBatch.model_validate(body)
+
+
+def test_plan_marks_late_batches_and_gives_each_user_one_batch_per_call() -> None:
+    ledger = DeviceLedger("hq", {"p1": ("p1", None, 5)})
+    batches = [
+        _batch("p1", 5),
+        _batch("p1", 7),
+        _batch("p2", 0),
+        _batch("p1", 6),
+        _batch("p1", 8),
+        _batch("p2", 1),
+    ]
+    assert ledger.plan(batches) == [None, 1, 1, None, 2, 2]
+    assert ledger.last_seq("p1") == 5  # planning records nothing
+
+
+def test_two_devices_of_one_user_share_its_calls() -> None:
+    ledger = DeviceLedger("hq", {})
+    batches = [_batch("watch", 0, user="ann"), _batch("phone", 0, user="ann")]
+    assert ledger.plan(batches) == [1, 2]
+
+
+def test_device_rows_are_written_when_a_device_appears_or_changes_and_seqs_at_snapshots() -> None:
+    ledger = DeviceLedger("hq", {"p1": ("p1", "ble-1", 3)})
+    assert ledger.applied(_batch("p1", 4)) is None  # same user, no Bluetooth id: nothing new for SQL
+    assert ledger.applied(_batch("p1", 5, ble="ble-1")) is None
+    row = ledger.applied(_batch("p1", 6, ble="ble-9"))
+    assert row == {
+        "building_id": "hq",
+        "id": "p1",
+        "user_id": "p1",
+        "ble_advertised_id": "ble-9",
+        "last_seq": 6,
+    }
+    new = ledger.applied(_batch("p2", 0))
+    assert new is not None
+    assert new["last_seq"] == 0
+    ledger.saved([row, new])
+    assert ledger.unsaved_rows() == []
+    ledger.applied(_batch("p1", 7))
+    unsaved = ledger.unsaved_rows()
+    assert [(r["id"], r["last_seq"], r["ble_advertised_id"]) for r in unsaved] == [("p1", 7, "ble-9")]
+    assert ledger.unsaved_rows() == unsaved  # until they are committed
+    ledger.saved(unsaved)
+    assert ledger.unsaved_rows() == []
+
+
+def test_replayed_batches_carry_sequence_numbers_across_a_restart() -> None:
+    ledger = DeviceLedger("hq", {"p1": ("p1", None, 3)})  # SQL as of the last snapshot
+    for seq in (4, 5, 6):
+        ledger.replayed(_batch("p1", seq))
+    ledger.replayed(_batch("p2", 2))
+    assert ledger.last_seq("p1") == 6
+    assert ledger.plan([_batch("p1", 5), _batch("p2", 2), _batch("p2", 3)]) == [None, None, 1]
+    assert {r["id"]: r["last_seq"] for r in ledger.unsaved_rows()} == {"p1": 6, "p2": 2}
