@@ -373,6 +373,8 @@ class BuildingSession:
             if time.monotonic() - self._last_snapshot >= self.snapshot_period_s:
                 device_rows += self._save_snapshot(session)
         self.devices.saved(device_rows)
+        if self.recorder is not None:
+            self.recorder.flush()
         self.counters.batches += len(group)
         return GroupResult([r if r is not None else ProblemError("not processed") for r in results], messages)
 

@@ -99,3 +99,23 @@ def test_golden_recording_replays_to_its_stored_estimates() -> None:
         assert got["t_ms"] == estimate["t_ms"]
         assert got["position"]["x_m"] == pytest.approx(estimate["position"]["x_m"], abs=1e-6)
         assert got["position"]["y_m"] == pytest.approx(estimate["position"]["y_m"], abs=1e-6)
+
+
+def test_the_formatted_pose_is_the_pose_in_frame_as_json() -> None:
+    import math
+
+    import numpy as np
+
+    from schemas.estimates import EstimateSource
+    from server.convert import estimate
+    from server.recording import pose_in_frame, pose_in_frame_json
+    from slam_core.tracker import EstimateRow
+
+    rng = np.random.default_rng(1)
+    for k in range(100):
+        row = EstimateRow(1_700_000_000_123 + k, *rng.normal(0, 50, 2), (1.0, 0.0, 1.0), (0.0, 0.0), k * 0.37)
+        e = estimate(row, "hq", f"user-{k}", "phone", None, EstimateSource.DYNAMICSLAM)
+        assert json.loads(pose_in_frame_json(e)) == pose_in_frame(e)
+    assert math.isclose(
+        json.loads(pose_in_frame_json(e))["pose"]["orientation"]["w"], math.cos(e.heading_rad / 2)
+    )

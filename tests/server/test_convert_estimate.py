@@ -1,0 +1,58 @@
+"""The engine's estimate rows become wire ``Estimate``s without pydantic's validation (the batch path's
+hottest conversion); they must equal the validated model, and break the schema's rules never."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+import pytest
+
+from schemas.estimates import Estimate, EstimateSource
+from server.convert import estimate
+from slam_core.geo import GeoFrame
+from slam_core.tracker import EstimateRow
+
+GEO = GeoFrame(47.6, -122.3, 0.3)
+
+
+def _row(rng: np.random.Generator) -> EstimateRow:
+    a = rng.normal(0.0, 2.0, (2, 2))
+    cov = a @ a.T + 1e-6 * np.eye(2)
+    return EstimateRow(
+        int(1_700_000_000_000 + rng.integers(0, 10**9)),
+        float(rng.uniform(-500, 500)),
+        float(rng.uniform(-500, 500)),
+        (float(cov[0, 0]), float(cov[0, 1]), float(cov[1, 1])),
+        (float(rng.uniform(-500, 500)), float(rng.uniform(-500, 500))),
+        float(rng.uniform(-20.0, 20.0)),  # the engine's heading is not wrapped
+    )
+
+
+@pytest.mark.parametrize("geo", [None, GEO])
+def test_constructed_estimates_equal_validated_ones(geo: GeoFrame | None) -> None:
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        built = estimate(_row(rng), "hq", "user-1", "phone-1", geo, EstimateSource.DYNAMICSLAM)
+        validated = Estimate.model_validate(built.model_dump())
+        assert validated == built
+        assert validated.model_dump_json() == built.model_dump_json()
+        assert -math.pi <= built.heading_rad <= math.pi
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"x": math.nan}, "not finite"),
+        ({"cov": (1.0, 0.0, math.inf)}, "not finite"),
+        ({"cov": (1.0, 2.0, 1.0)}, "positive semi-definite"),
+        ({"cov": (-1.0, 0.0, 1.0)}, "positive semi-definite"),
+        ({"heading": math.nan}, "not finite"),
+    ],
+)
+def test_an_estimate_breaking_the_schema_is_refused(change: dict[str, Any], message: str) -> None:
+    row = replace(_row(np.random.default_rng(0)), **change)
+    with pytest.raises(ValueError, match=message):
+        estimate(row, "hq", "user-1", "phone-1", None, EstimateSource.DYNAMICSLAM)
