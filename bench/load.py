@@ -10,7 +10,8 @@ loss with 4 dB noise) and Bluetooth sightings of the phones within 8 m. Phones a
 second, so the offered load is N batches per second.
 
 Latency runs from the moment a post was due to its answer (a request queued behind a slow one counts its
-wait). ``ws_lag`` runs from a batch's last step to the dashboard receiving that position. The load generator
+wait). ``ws_lag`` runs from a batch's last step to the dashboard receiving that position; the dashboards
+run in a process of their own and count the measured window only. The load generator
 shares the machine with the server: it speaks HTTP/1.1 over a pool of keep-alive sockets with pre-formatted
 bodies so that it costs little next to the server.
 
@@ -26,6 +27,7 @@ import argparse
 import asyncio
 import json
 import math
+import multiprocessing
 import os
 import sys
 import tempfile
@@ -189,6 +191,7 @@ class Results:
     server_cpu_s: float = math.nan
     """CPU seconds (user + system) the server used while the measured batches were due."""
     generator_cpu_s: float = math.nan
+    dashboards_cpu_s: float = math.nan
     measured_wall_s: float = math.nan
 
 
@@ -201,7 +204,7 @@ def _cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-async def _dashboard(url: str, results: Results, stop: asyncio.Event) -> None:
+async def _dashboard(url: str, lags: list[float], since_ms: float, stop: asyncio.Event) -> None:
     # an encounter re-publishes the peer's estimate with the peer's older time: count each (user, time) once,
     # so the lag is from a batch's last step to the first position it produced
     seen: set[tuple[str, int]] = set()
@@ -215,9 +218,26 @@ async def _dashboard(url: str, results: Results, stop: asyncio.Event) -> None:
             for message in _positions(json.loads(frame)):
                 estimate = message["estimate"]
                 key = (estimate["user_id"], estimate["t_ms"])
-                if key not in seen:
+                if key not in seen and estimate["t_ms"] >= since_ms:
                     seen.add(key)
-                    results.ws_lag_ms.append(received - estimate["t_ms"])
+                    lags.append(received - estimate["t_ms"])
+
+
+def _dashboards(url: str, n: int, since_ms: float, stop: Any, out: Any) -> None:
+    """The dashboards, in a process of their own so that reading frames does not wait behind the phones'
+    requests in one event loop (which read as live lag); sends back (lags, errors) when ``stop`` is set."""
+
+    async def run() -> tuple[list[float], list[str]]:
+        lags: list[float] = []
+        done = asyncio.Event()
+        tasks = [asyncio.create_task(_dashboard(url, lags, since_ms, done)) for _ in range(n)]
+        while not stop.is_set():
+            await asyncio.sleep(0.2)
+        done.set()
+        outcomes = await asyncio.gather(*tasks, return_exceptions=True)
+        return lags, [repr(o) for o in outcomes if isinstance(o, Exception)]
+
+    out.send(asyncio.run(run()))
 
 
 def _positions(payload: dict[str, Any]) -> list[dict[str, Any]]:
@@ -244,9 +264,12 @@ async def _drive(
     for _ in range(min(connections, n)):
         reader, writer = await asyncio.open_connection("127.0.0.1", port)
         pool.put_nowait(Connection(reader, writer))
-    stop = asyncio.Event()
     live = f"ws://127.0.0.1:{port}/v1/buildings/load/live?token={dashboard_key}&batch=true"
-    dashboards = [asyncio.create_task(_dashboard(live, results, stop)) for _ in range(n_dashboards)]
+    context = multiprocessing.get_context("spawn")
+    stop, (receive_lags, send_lags) = context.Event(), context.Pipe(duplex=False)
+    since_ms = (time.time() + 0.5 + _warmup_s(duration_s)) * 1000.0
+    dashboards = context.Process(target=_dashboards, args=(live, n_dashboards, since_ms, stop, send_lags))
+    dashboards.start()
     await asyncio.sleep(0.5)
     phase = np.linspace(0.0, 1.0, n, endpoint=False)
     tasks: set[asyncio.Task[None]] = set()
@@ -276,7 +299,12 @@ async def _drive(
         base = start + second
         measure = second >= warmup_s
         if second == math.ceil(warmup_s):
-            cpu_at = (_cpu_seconds(server_pid), _cpu_seconds(os.getpid()), time.perf_counter())
+            cpu_at = (
+                _cpu_seconds(server_pid),
+                _cpu_seconds(os.getpid()),
+                time.perf_counter(),
+                _cpu_seconds(dashboards.pid or 0),
+            )
         for phone in np.argsort(phase):
             due = base + phase[phone]
             delay = due - time.perf_counter()
@@ -295,10 +323,10 @@ async def _drive(
     results.server_cpu_s = _cpu_seconds(server_pid) - cpu_at[0]
     results.generator_cpu_s = _cpu_seconds(os.getpid()) - cpu_at[1]
     results.measured_wall_s = time.perf_counter() - cpu_at[2]
+    results.dashboards_cpu_s = _cpu_seconds(dashboards.pid or 0) - cpu_at[3]
     stop.set()
-    for outcome in await asyncio.gather(*dashboards, return_exceptions=True):
-        if isinstance(outcome, Exception):
-            results.dashboard_errors.append(repr(outcome))
+    results.ws_lag_ms, results.dashboard_errors = receive_lags.recv()
+    dashboards.join(timeout=30.0)
     while not pool.empty():
         pool.get_nowait().writer.close()
     return results
@@ -348,6 +376,7 @@ def run_one(n: int, duration_s: float, n_dashboards: int, connections: int) -> d
         "server_cpu_ms_per_batch": round(1e3 * results.server_cpu_s / max(results.sent, 1), 3),
         "server_cores": round(results.server_cpu_s / results.measured_wall_s, 2),
         "generator_cores": round(results.generator_cpu_s / results.measured_wall_s, 2),
+        "dashboards_cores": round(results.dashboards_cpu_s / results.measured_wall_s, 2),
         "dashboard_errors": results.dashboard_errors[:3],
         "seconds": round(elapsed, 1),
     }
