@@ -44,12 +44,18 @@ class Api:
         return str(response.json()["key"])
 
 
-def make_api(url: str, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Api]:
+def migrate_with_operator(url: str) -> str:
+    """Migrate the database at ``url`` to head and mint a site-wide operator key; returns the key."""
     engine = make_engine(url)
     upgrade(engine)
     with make_session_factory(engine).begin() as session:
         operator, _ = mint_key(session, KeyScope.OPERATOR)
     engine.dispose()
+    return operator
+
+
+def make_api(url: str, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Api]:
+    operator = migrate_with_operator(url)
     settings = Settings(data_dir=tmp_path_factory.mktemp("data"), database_url=url)
     with TestClient(create_app(settings)) as client:
         yield Api(client, operator, url, settings)

@@ -12,23 +12,16 @@ from typing import Any
 import pytest
 from fastapi.testclient import TestClient
 
-from schemas.api import KeyScope
 from server.api.batches import BatchFastPath
 from server.app import create_app
-from server.auth import mint_key
 from server.settings import Settings
-from server.store.db import make_engine, make_session_factory
-from server.store.migrate import upgrade
+from tests.server.conftest import migrate_with_operator
 from tests.server.test_api import _batch
 
 
 def _client(tmp: Path, fast: bool) -> tuple[TestClient, str]:
     url = f"sqlite:///{tmp / 'db.sqlite3'}"
-    engine = make_engine(url)
-    upgrade(engine)
-    with make_session_factory(engine).begin() as session:
-        operator, _ = mint_key(session, KeyScope.OPERATOR)
-    engine.dispose()
+    operator = migrate_with_operator(url)
     app = create_app(Settings(data_dir=tmp, database_url=url, max_batch_bytes=4_000))
     if not fast:
         app.user_middleware = [m for m in app.user_middleware if m.cls is not BatchFastPath]

@@ -12,19 +12,16 @@ import numpy as np
 import pytest
 from websockets.sync.client import connect
 
-from schemas.api import KeyScope
 from server.app import create_app, load_calibration, tracker_params
-from server.auth import mint_key
 from server.background import free_port, running_server
 from server.convert import BuildingContext, anchor_type_index, to_user_batch
 from server.crowd_client import device_keys, post_crowd, prepare_building
 from server.settings import Settings
 from server.simulated_phones import known_anchors, simulated_batches
-from server.store.db import make_engine, make_session_factory
-from server.store.migrate import upgrade
 from slam_core.simulate import Scenario, simulate
 from slam_core.tracker import BuildingTracker
 from tests.conftest import SHARED
+from tests.server.conftest import migrate_with_operator
 
 
 def _small_testbed() -> Scenario:
@@ -37,11 +34,7 @@ def _small_testbed() -> Scenario:
 @pytest.fixture
 def live_server(tmp_path: Path) -> Iterator[tuple[str, str, Settings]]:
     url = f"sqlite:///{tmp_path / 'db.sqlite3'}"
-    engine = make_engine(url)
-    upgrade(engine)
-    with make_session_factory(engine).begin() as session:
-        operator, _ = mint_key(session, KeyScope.OPERATOR)
-    engine.dispose()
+    operator = migrate_with_operator(url)
     settings = Settings(data_dir=tmp_path, database_url=url, seed=3)
     with running_server(create_app(settings), "127.0.0.1", free_port()) as base:
         yield base, operator, settings

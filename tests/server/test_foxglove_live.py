@@ -15,14 +15,11 @@ import websockets
 from fastapi.testclient import TestClient
 from mcap.reader import make_reader
 
-from schemas.api import KeyScope
 from server.app import create_app
-from server.auth import mint_key
 from server.broadcast import Broadcaster
 from server.foxglove_live import FoxgloveLive
 from server.settings import Settings
-from server.store.db import make_engine, make_session_factory
-from server.store.migrate import upgrade
+from tests.server.conftest import migrate_with_operator
 from tests.server.test_api import _batch
 
 
@@ -44,11 +41,7 @@ def _advertised(port: int) -> set[str]:
 
 
 def test_a_building_is_watchable_in_foxglove(sqlite_url: str, tmp_path: Path) -> None:
-    engine = make_engine(sqlite_url)
-    upgrade(engine)
-    with make_session_factory(engine).begin() as session:
-        operator, _ = mint_key(session, KeyScope.OPERATOR)
-    engine.dispose()
+    operator = migrate_with_operator(sqlite_url)
     settings = Settings(data_dir=tmp_path / "data", database_url=sqlite_url, foxglove_port=0)
     recording = tmp_path / "foxglove.mcap"
     with TestClient(create_app(settings)) as client:
