@@ -32,6 +32,7 @@ from server.settings import Settings
 from server.signal_maps import SignalMapService
 from server.store.db import make_engine, make_session_factory
 from server.store.migrate import current_revision, head_revision
+from server.tracking import Retention
 from slam_core.crowd_fingerprints import FingerprintParams
 from slam_core.encounter_detection import DetectionParams
 from slam_core.encounters import Calibration
@@ -123,8 +124,19 @@ def create_app(settings: Settings, tune_gc: bool = False) -> FastAPI:
         calibration = load_calibration(settings.encounter_calibration)
         _warm_kernels(params, calibration)
         recordings = settings.recordings_dir if settings.record else None
+        retention = Retention(
+            position_history_days=settings.position_history_days or None,
+            batch_ids_days=settings.batch_ids_days or None,
+        )
         tracking = TrackingService(
-            sessions, broadcaster, params, calibration, settings.seed, recordings, settings.snapshot_period_s
+            sessions,
+            broadcaster,
+            params,
+            calibration,
+            settings.seed,
+            recordings,
+            settings.snapshot_period_s,
+            retention,
         )
         app.state.crowdslam = AppState(
             settings,

@@ -22,7 +22,7 @@ from schemas.live import LiveMessage
 from server.broadcast import Broadcaster
 from server.errors import ProblemError
 from server.recording import BuildingRecorder
-from server.tracking import BuildingSession, Submission
+from server.tracking import BuildingSession, Retention, Submission
 from slam_core.encounters import Calibration
 from slam_core.tracker import TrackerParams
 
@@ -127,8 +127,10 @@ class TrackingService:
         seed: int,
         recordings: Path | None = None,
         snapshot_period_s: float = 60.0,
+        retention: Retention | None = None,
     ) -> None:
         self._snapshot_period_s = snapshot_period_s
+        self._retention = retention
         self._recordings = recordings
         self._sessions = sessions
         self._broadcaster = broadcaster
@@ -157,6 +159,7 @@ class TrackingService:
                     self._seed,
                     recorder,
                     self._snapshot_period_s,
+                    self._retention,
                 )
                 worker = self._workers[building_id] = BuildingWorker(session, self._broadcaster)
         return worker

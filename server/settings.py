@@ -37,6 +37,19 @@ class Settings(BaseSettings):
         description="How often each building's tracker is snapshotted to SQL. After a crash, the batches "
         "acknowledged since the snapshot are replayed from the batch log, so this bounds restart time.",
     )
+    position_history_days: float = Field(
+        default=7.0,
+        ge=0.0,
+        description="How long each user's position history is kept (GET .../users/{user}/positions); older "
+        "rows are pruned in the background. Every user's latest position is kept regardless. 0 keeps all.",
+    )
+    batch_ids_days: float = Field(
+        default=2.0,
+        ge=0.0,
+        description="How long the ids of accepted batches are kept to recognise retries. A batch retried "
+        "later answers late instead of duplicate (its sequence number is not after its device's last): "
+        "either way it changes nothing. Batches a restart would replay are never pruned. 0 keeps all.",
+    )
     key_cache_s: float = Field(
         default=30.0,
         ge=0.0,

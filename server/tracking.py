@@ -12,6 +12,7 @@ import itertools
 import math
 import time
 from dataclasses import dataclass, field
+from datetime import UTC, datetime
 from typing import Literal
 
 import numpy as np
@@ -60,8 +61,24 @@ class Counters:
     snapshots: int = 0
     replayed: int = 0
     """Logged batches re-applied on load, after a crash."""
+    pruned_positions: int = 0
+    """Position history rows deleted past their retention."""
+    pruned_batches: int = 0
+    """Batch id rows deleted past their retention."""
     restore_failures: int = 0
     """Snapshots refused on load (another format, other parameters): tracking restarted from the SQL map."""
+
+
+@dataclass(frozen=True)
+class Retention:
+    """How much history SQL keeps (``Settings.position_history_days``, ``batch_ids_days``; None: all)."""
+
+    position_history_days: float | None = 7.0
+    batch_ids_days: float | None = 2.0
+    prune_period_s: float = 1.0
+    """Old rows are deleted at most this often, ``prune_chunk`` per table at a time: a building inserting
+    3,000 position rows a second keeps up, and no group waits behind a long delete."""
+    prune_chunk: int = 10_000
 
 
 @dataclass(frozen=True)
@@ -87,8 +104,11 @@ class BuildingSession:
         seed: int,
         recorder: BuildingRecorder | None = None,
         snapshot_period_s: float = 60.0,
+        retention: Retention | None = None,
     ) -> None:
         self.building_id = building_id
+        self.retention = retention or Retention()
+        self._last_prune = -math.inf
         self.recorder = recorder
         self.snapshot_period_s = snapshot_period_s
         self._sessions = sessions
@@ -372,6 +392,8 @@ class BuildingSession:
                 self._apply(session, group, converted, now, results, messages)
             if time.monotonic() - self._last_snapshot >= self.snapshot_period_s:
                 device_rows += self._save_snapshot(session)
+            if time.monotonic() - self._last_prune >= self.retention.prune_period_s:
+                self._prune(session)
         self.devices.saved(device_rows)
         if self.recorder is not None:
             self.recorder.flush()
@@ -398,7 +420,8 @@ class BuildingSession:
         self.counters.estimates += len(estimates)
         if self.recorder is not None:
             self.recorder.record_estimates(list(estimates.values()), group[now[0]].received_ns)
-        repo.add_positions(session, [self._position_row(e) for e in estimates.values()])
+        stored_at_ms = int(time.time() * 1000)
+        repo.add_positions(session, [self._position_row(e, stored_at_ms) for e in estimates.values()])
         for index in outcome.anchors_changed:
             if self.tracker.crowd.is_live(index):
                 anchor = self.anchor(index)
@@ -429,6 +452,23 @@ class BuildingSession:
             results[i] = self._receipt(
                 b, "applied", warnings, estimates.get(b.effective_user_id), by_user.get(b.effective_user_id)
             )
+
+    def _prune(self, session: Session) -> None:
+        """Delete a chunk of position history and of batch ids past their retention."""
+        r = self.retention
+        now = time.time()
+        positions_before = (
+            None if r.position_history_days is None else int((now - r.position_history_days * 86_400) * 1e3)
+        )
+        batches_before = (
+            None if r.batch_ids_days is None else datetime.fromtimestamp(now - r.batch_ids_days * 86_400, UTC)
+        )
+        positions, batches = repo.prune_history(
+            session, self.building_id, positions_before, batches_before, r.prune_chunk
+        )
+        self.counters.pruned_positions += positions
+        self.counters.pruned_batches += batches
+        self._last_prune = time.monotonic()
 
     def _accepted(self, sub: Submission, call: int | None, base: int) -> AcceptedBatch:
         span = sub.batch.time_span_ms()
@@ -465,8 +505,9 @@ class BuildingSession:
             warnings=warnings,
         )
 
-    def _position_row(self, e: Estimate) -> dict[str, object]:
+    def _position_row(self, e: Estimate, stored_at_ms: int) -> dict[str, object]:
         return {
+            "stored_at_ms": stored_at_ms,
             "building_id": self.building_id,
             "user_id": e.user_id,
             "device_id": e.device_id,

@@ -11,12 +11,12 @@ from schemas.estimates import Estimate, EstimateSource
 from server.deps import Caller, DbSession
 from server.errors import InvalidInputError, NotFoundError
 from server.store import repositories as repo
-from server.store.models import PositionSnapshotRow
+from server.store.models import LatestPositionRow, PositionSnapshotRow
 
 router = APIRouter(prefix="/v1/buildings/{building_id}", tags=["positions"])
 
 
-def estimate_from_row(row: PositionSnapshotRow) -> Estimate:
+def estimate_from_row(row: PositionSnapshotRow | LatestPositionRow) -> Estimate:
     return Estimate(
         building_id=row.building_id,
         user_id=row.user_id,

@@ -101,6 +101,7 @@ class BatchRow(Base):
         ForeignKeyConstraint(["building_id"], ["buildings.id"], ondelete="CASCADE"),
         UniqueConstraint("building_id", "device_id", "batch_id", name="uq_batches_device_batch"),
         Index("ix_batches_device_seq", "building_id", "device_id", "seq"),
+        Index("ix_batches_building_received", "building_id", "received_at"),
     )
 
     id: Mapped[int] = mapped_column(BigIntPk, primary_key=True, autoincrement=True)
@@ -169,11 +170,35 @@ class PositionSnapshotRow(Base):
     __table_args__ = (
         ForeignKeyConstraint(["building_id"], ["buildings.id"], ondelete="CASCADE"),
         Index("ix_position_snapshots_user_time", "building_id", "user_id", "t_ms"),
+        Index("ix_position_snapshots_building_stored", "building_id", "stored_at_ms"),
     )
 
     id: Mapped[int] = mapped_column(BigIntPk, primary_key=True, autoincrement=True)
     building_id: Mapped[str] = mapped_column(String(64))
     user_id: Mapped[str] = mapped_column(String(64))
+    device_id: Mapped[str] = mapped_column(String(64))
+    t_ms: Mapped[int] = mapped_column(BigInteger)
+    x_m: Mapped[float] = mapped_column(Float)
+    y_m: Mapped[float] = mapped_column(Float)
+    cov_xx: Mapped[float] = mapped_column(Float)
+    cov_xy: Mapped[float] = mapped_column(Float)
+    cov_yy: Mapped[float] = mapped_column(Float)
+    heading_rad: Mapped[float] = mapped_column(Float)
+    floor: Mapped[int] = mapped_column(Integer, default=0)
+    source: Mapped[str] = mapped_column(String(16))
+    stored_at_ms: Mapped[int | None] = mapped_column(BigInteger)
+    """Server time of the write: history is pruned by it (``t_ms`` is the phone's, and a replayed recording
+    may be years old)."""
+
+
+class LatestPositionRow(Base):
+    """Each user's latest position snapshot (GET /positions reads it; the history would need a scan)."""
+
+    __tablename__ = "latest_positions"
+    __table_args__ = (ForeignKeyConstraint(["building_id"], ["buildings.id"], ondelete="CASCADE"),)
+
+    building_id: Mapped[str] = mapped_column(String(64), primary_key=True)
+    user_id: Mapped[str] = mapped_column(String(64), primary_key=True)
     device_id: Mapped[str] = mapped_column(String(64))
     t_ms: Mapped[int] = mapped_column(BigInteger)
     x_m: Mapped[float] = mapped_column(Float)

@@ -7,16 +7,18 @@ import hashlib
 from collections.abc import Collection, Sequence
 from datetime import UTC, datetime
 
-from sqlalchemy import delete, func, insert, select
+from sqlalchemy import ColumnElement, delete, insert, select
 from sqlalchemy.orm import Session
 
 from server.store.db import insert_once, upsert
 from server.store.models import (
     AnchorRow,
     ApiKeyRow,
+    BatchRow,
     BuildingRow,
     DeviceRow,
     FloorRow,
+    LatestPositionRow,
     PositionSnapshotRow,
     TrackerSnapshotRow,
 )
@@ -160,26 +162,69 @@ def delete_anchor(session: Session, building_id: str, public_id: str) -> bool:
 # ----------------------------------------------------------------------------- positions
 
 
+# executed on the connection, as Core: the ORM's bulk path cost more than the rows
+_POSITIONS_INSERT = insert(PositionSnapshotRow)
+
+
 def add_positions(session: Session, rows: Sequence[dict[str, object]]) -> None:
-    """Many position snapshots in one executemany (column name -> value per row)."""
-    if rows:
-        session.execute(insert(PositionSnapshotRow), list(rows))
+    """Many position snapshots in one executemany (column name -> value per row; ``stored_at_ms`` is left
+    out of the latest-position rows), and each user's latest one kept apart (rows in time order per user)."""
+    if not rows:
+        return
+    session.connection().execute(_POSITIONS_INSERT, list(rows))
+    latest = {str(r["user_id"]): {k: v for k, v in r.items() if k != "stored_at_ms"} for r in rows}
+    upsert(session, LatestPositionRow, list(latest.values()), ["building_id", "user_id"])
 
 
-def latest_positions(session: Session, building_id: str) -> list[PositionSnapshotRow]:
+def latest_positions(session: Session, building_id: str) -> list[LatestPositionRow]:
     """Every user's latest snapshot in the building."""
-    latest = (
-        select(PositionSnapshotRow.user_id, func.max(PositionSnapshotRow.id).label("id"))
-        .where(PositionSnapshotRow.building_id == building_id)
-        .group_by(PositionSnapshotRow.user_id)
-        .subquery()
-    )
     stmt = (
-        select(PositionSnapshotRow)
-        .join(latest, PositionSnapshotRow.id == latest.c.id)
-        .order_by(PositionSnapshotRow.user_id)
+        select(LatestPositionRow)
+        .where(LatestPositionRow.building_id == building_id)
+        .order_by(LatestPositionRow.user_id)
     )
     return list(session.execute(stmt).scalars())
+
+
+def prune_history(
+    session: Session,
+    building_id: str,
+    positions_before_ms: int | None,
+    batches_before: datetime | None,
+    limit: int,
+) -> tuple[int, int]:
+    """Delete at most ``limit`` position snapshots stored before ``positions_before_ms`` and at most
+    ``limit`` batch rows received before ``batches_before`` whose body a snapshot already covers (the log a
+    restart replays is never pruned); None keeps that history. Returns how many of each went."""
+    positions = batches = 0
+    if positions_before_ms is not None:
+        positions = _delete_some(
+            session,
+            PositionSnapshotRow,
+            building_id,
+            PositionSnapshotRow.stored_at_ms < positions_before_ms,
+            limit,
+        )
+    if batches_before is not None:
+        batches = _delete_some(
+            session,
+            BatchRow,
+            building_id,
+            (BatchRow.received_at < batches_before) & BatchRow.body.is_(None),
+            limit,
+        )
+    return positions, batches
+
+
+def _delete_some(
+    session: Session,
+    table: type[PositionSnapshotRow] | type[BatchRow],
+    building_id: str,
+    old: ColumnElement[bool],
+    limit: int,
+) -> int:
+    doomed = select(table.id).where(table.building_id == building_id, old).limit(limit).scalar_subquery()
+    return int(session.connection().execute(delete(table).where(table.id.in_(doomed))).rowcount or 0)
 
 
 def position_history(

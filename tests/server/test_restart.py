@@ -180,3 +180,32 @@ def test_a_snapshot_taken_with_other_parameters_is_refused_and_the_sql_map_is_ke
         assert restored[public_id].position == anchor.position
         assert restored[public_id].known == anchor.known
     engine.dispose()
+
+
+def test_the_batch_path_prunes_history_but_keeps_every_users_latest_position(sqlite_url: str) -> None:
+    from server.store import repositories as repo
+    from server.store.models import PositionSnapshotRow
+    from server.tracking import Retention
+
+    engine = _fresh_building(sqlite_url)
+    session = BuildingSession(
+        "hq",
+        make_session_factory(engine),
+        tracker_params(SETTINGS),
+        load_calibration(None),
+        SETTINGS.seed,
+        retention=Retention(position_history_days=1e-12, batch_ids_days=None, prune_period_s=0.0),
+    )
+    groups = _groups(CROWD)[:12]
+    for group in groups:
+        session.process(group)
+    with make_session_factory(engine)() as s:
+        history = int(s.execute(select(func.count()).select_from(PositionSnapshotRow)).scalar_one())
+        latest = {r.user_id: r.t_ms for r in repo.latest_positions(s, "hq")}
+        batches = int(s.execute(select(func.count()).select_from(BatchRow)).scalar_one())
+    assert session.counters.pruned_positions > 0
+    assert history == session.counters.estimates - session.counters.pruned_positions
+    assert set(latest) == set(session.tracker.users)
+    assert all(latest[u] == session.latest_estimate(u).t_ms for u in latest)  # type: ignore[union-attr]
+    assert batches == sum(len(g) for g in groups)  # batch ids kept: None keeps them all
+    engine.dispose()
