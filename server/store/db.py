@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
@@ -63,17 +64,28 @@ def insert_many_once(
         return []
     # executemany of one cached statement (SQLAlchemy batches it as "insertmanyvalues"), not a multi-VALUES
     # statement: that one is compiled afresh for every group and costs more than the insert itself
-    stmt = _dialect(session).insert(model).on_conflict_do_nothing(index_elements=conflict_columns)
-    return [tuple(r) for r in session.connection().execute(stmt.returning(*returning), values)]
+    mapped: Any = model  # a mapped class is hashable; typeshed's lru_cache wants it said
+    stmt = _insert_once_statement(_dialect_name(session), mapped, tuple(conflict_columns), tuple(returning))
+    return [tuple(r) for r in session.connection().execute(stmt, values)]
 
 
-def _dialect(session: Session) -> Any:
+@lru_cache(maxsize=64)
+def _insert_once_statement(
+    dialect: str, model: Any, conflict_columns: tuple[str, ...], returning: tuple[Any, ...]
+) -> Any:
+    """Built once per shape: building the statement (and its cache key) cost more than a group's rows."""
+    stmt = _DIALECTS[dialect].insert(model).on_conflict_do_nothing(index_elements=list(conflict_columns))
+    return stmt.returning(*returning)
+
+
+_DIALECTS: dict[str, Any] = {"postgresql": postgresql, "sqlite": sqlite}
+
+
+def _dialect_name(session: Session) -> str:
     dialect = session.get_bind().dialect.name
-    if dialect == "postgresql":
-        return postgresql
-    if dialect == "sqlite":
-        return sqlite
-    raise NotImplementedError(f"unsupported database dialect {dialect!r}; use SQLite or PostgreSQL")
+    if dialect not in _DIALECTS:
+        raise NotImplementedError(f"unsupported database dialect {dialect!r}; use SQLite or PostgreSQL")
+    return dialect
 
 
 def upsert(
@@ -87,12 +99,26 @@ def upsert(
     except that a NULL in a ``keep_when_null`` column keeps the stored one."""
     if not values:
         return
-    stmt = _dialect(session).insert(model)
+    mapped: Any = model
+    stmt = _upsert_statement(
+        _dialect_name(session), mapped, tuple(values[0]), tuple(conflict_columns), tuple(keep_when_null)
+    )
+    session.connection().execute(stmt, values)
+
+
+@lru_cache(maxsize=64)
+def _upsert_statement(
+    dialect: str,
+    model: Any,
+    columns: tuple[str, ...],
+    conflict_columns: tuple[str, ...],
+    keep_when_null: tuple[str, ...],
+) -> Any:
+    """Built once per shape (as ``_insert_once_statement``)."""
+    stmt = _DIALECTS[dialect].insert(model)
     updates = {
         c: func.coalesce(stmt.excluded[c], getattr(model, c)) if c in keep_when_null else stmt.excluded[c]
-        for c in values[0]
+        for c in columns
         if c not in conflict_columns
     }
-    session.connection().execute(
-        stmt.on_conflict_do_update(index_elements=conflict_columns, set_=updates), values
-    )
+    return stmt.on_conflict_do_update(index_elements=list(conflict_columns), set_=updates)
