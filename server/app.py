@@ -127,6 +127,7 @@ def create_app(settings: Settings, tune_gc: bool = False) -> FastAPI:
         retention = Retention(
             position_history_days=settings.position_history_days or None,
             batch_ids_days=settings.batch_ids_days or None,
+            user_idle_s=settings.user_idle_s or None,
         )
         tracking = TrackingService(
             sessions,

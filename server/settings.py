@@ -50,6 +50,13 @@ class Settings(BaseSettings):
         "later answers late instead of duplicate (its sequence number is not after its device's last): "
         "either way it changes nothing. Batches a restart would replay are never pruned. 0 keeps all.",
     )
+    user_idle_s: float = Field(
+        default=900.0,
+        ge=0.0,
+        description="A user not heard from for this long is forgotten by its building's tracker at the next "
+        "snapshot (its filter's memory freed); it needs a new position fix when it comes back. 0 keeps every "
+        "user (memory then grows with every phone that ever posted).",
+    )
     key_cache_s: float = Field(
         default=30.0,
         ge=0.0,

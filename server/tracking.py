@@ -65,6 +65,8 @@ class Counters:
     """Position history rows deleted past their retention."""
     pruned_batches: int = 0
     """Batch id rows deleted past their retention."""
+    users_evicted: int = 0
+    """Users forgotten by the tracker after ``Retention.user_idle_s`` without a batch."""
     restore_failures: int = 0
     """Snapshots refused on load (another format, other parameters): tracking restarted from the SQL map."""
 
@@ -79,6 +81,10 @@ class Retention:
     """Old rows are deleted at most this often, ``prune_chunk`` per table at a time: a building inserting
     3,000 position rows a second keeps up, and no group waits behind a long delete."""
     prune_chunk: int = 10_000
+    user_idle_s: float | None = 900.0
+    """A user not heard from for this long is forgotten by the tracker (its slot, particles and maps freed;
+    it needs a new fix when it comes back), at the next snapshot, so a restart's replay never spans an
+    eviction. None keeps every user."""
 
 
 @dataclass(frozen=True)
@@ -109,6 +115,7 @@ class BuildingSession:
         self.building_id = building_id
         self.retention = retention or Retention()
         self._last_prune = -math.inf
+        self._last_heard: dict[str, float] = {}  # user -> wall time of its last applied batch
         self.recorder = recorder
         self.snapshot_period_s = snapshot_period_s
         self._sessions = sessions
@@ -191,9 +198,23 @@ class BuildingSession:
             self._round = applied_round
             self.counters.replayed += len(batches)
 
+    def _evict_idle_users(self) -> None:
+        """Forget the users not heard from for ``Retention.user_idle_s`` (called right before a snapshot)."""
+        idle_s = self.retention.user_idle_s
+        if idle_s is None:
+            return
+        now = time.time()
+        idle = [u for u in self.tracker.users if now - self._last_heard.setdefault(u, now) > idle_s]
+        if idle:
+            self.tracker.remove_users(idle)
+            for u in idle:
+                del self._last_heard[u]
+            self.counters.users_evicted += len(idle)
+
     def _save_snapshot(self, session: Session) -> list[dict[str, object]]:
         """Write the snapshot and the devices' last sequence numbers; returns the device rows written (the
-        ledger counts them saved once the transaction commits)."""
+        ledger counts them saved once the transaction commits). Idle users are forgotten first."""
+        self._evict_idle_users()
         rows = self.devices.unsaved_rows()
         repo.upsert_devices(session, rows)
         state = tracker_snapshot.SessionState(
@@ -412,6 +433,9 @@ class BuildingSession:
         """One engine call over these batches (at most one per user); their receipts, positions, anchor
         changes and live messages."""
         outcome = self.tracker.apply([converted[i][0] for i in now])
+        heard = time.time()
+        for i in now:
+            self._last_heard[converted[i][0].user] = heard
         encounters = [convert.encounter_event(e, self.building_id) for e in outcome.encounters]
         self.counters.encounters += len(encounters)
         self.counters.encounters_applied += sum(e.applied for e in encounters)

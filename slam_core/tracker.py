@@ -97,13 +97,20 @@ class BuildingTracker:
 
     def remove_user(self, user: str) -> None:
         """Forget a user (idle or gone); its filter slot is freed. Its crowd-map contributions stay."""
-        u = self._users.pop(user, None)
-        if u is None:
-            raise KeyError(f"unknown user {user!r}")
-        self.front_end.forget(user)
-        if u.slot >= 0:
-            self.engine.remove_user(u.slot)
-        self._by_ble = {k: v for k, v in self._by_ble.items() if v != user}
+        self.remove_users([user])
+
+    def remove_users(self, users: list[str]) -> None:
+        """Forget these users (``remove_user`` for many: the Bluetooth index is rebuilt once)."""
+        unknown = [n for n in users if n not in self._users]
+        if unknown:
+            raise KeyError(f"unknown users {unknown!r}")
+        for name in users:
+            u = self._users.pop(name)
+            self.front_end.forget(name)
+            if u.slot >= 0:
+                self.engine.remove_user(u.slot)
+        gone = set(users)
+        self._by_ble = {k: v for k, v in self._by_ble.items() if v not in gone}
 
     def pin_anchor(self, xy: np.ndarray, anchor_type: int, index: int | None = None) -> int:
         """Add an operator-known anchor (or pin an existing one); returns its crowd index."""

@@ -209,3 +209,37 @@ def test_the_batch_path_prunes_history_but_keeps_every_users_latest_position(sql
     assert all(latest[u] == session.latest_estimate(u).t_ms for u in latest)  # type: ignore[union-attr]
     assert batches == sum(len(g) for g in groups)  # batch ids kept: None keeps them all
     engine.dispose()
+
+
+def test_idle_users_are_forgotten_at_a_snapshot_and_stay_forgotten_after_a_restart(sqlite_url: str) -> None:
+    from server.tracking import Retention
+
+    engine = _fresh_building(sqlite_url)
+
+    def session() -> BuildingSession:
+        return BuildingSession(
+            "hq",
+            make_session_factory(engine),
+            tracker_params(SETTINGS),
+            load_calibration(None),
+            SETTINGS.seed,
+            snapshot_period_s=math.inf,
+            retention=Retention(user_idle_s=1e-9),
+        )
+
+    first = session()
+    groups = _groups(CROWD)
+    for group in groups[:8]:
+        first.process(group)
+    users = len(first.tracker.users)
+    assert users > 0
+    first.snapshot()  # everyone is idle by now
+    assert first.tracker.users == []
+    assert first.counters.users_evicted == users
+    receipts = first.process(groups[8]).receipts
+    assert all(getattr(r, "status", None) == "applied" for r in receipts)
+    assert not any(getattr(r, "tracking", True) for r in receipts)  # back without a fix: not tracked
+    restarted = session()  # the snapshot has no users, the log only the batch after it
+    assert set(restarted.tracker.users) == {s.batch.effective_user_id for s in groups[8]}
+    assert not any(restarted.tracker.is_tracking(u) for u in restarted.tracker.users)
+    engine.dispose()

@@ -105,3 +105,23 @@ def test_sightings_of_untracked_or_unknown_phones_are_not_encounters() -> None:
     untracked = tracker.apply([_sighting("d", "a", T0 + 1_000, 2.0)])  # 'd' has no fix yet
     assert untracked.detections == 1
     assert untracked.encounters == []
+
+
+def test_forgotten_users_free_their_slots_and_are_no_longer_heard() -> None:
+    import pytest
+
+    tracker = _tracker()
+    slots = tracker.engine.active_users.size
+    tracker.remove_users(["a", "c"])
+    assert tracker.users == ["b"]
+    assert tracker.engine.active_users.size == slots - 2
+    # "b" hears "a"'s phone: not an encounter any more, "a" is unknown until its next fix
+    outcome = tracker.apply([_sighting("b", "a", T0 + 1_000, 2.0)])
+    assert outcome.detections == 0
+    assert not tracker.is_tracking("a")
+    with pytest.raises(KeyError, match="unknown users"):
+        tracker.remove_users(["b", "nobody"])
+    assert tracker.users == ["b"]  # nothing was removed
+    tracker.apply([_fix("a", (1.0, 0.0), T0 + 2_000)])  # a new fix brings "a" back, in a free slot
+    assert tracker.is_tracking("a")
+    assert tracker.engine.active_users.size == slots - 1
