@@ -25,6 +25,17 @@ class ProblemError(Exception):
     def to_problem(self) -> Problem:
         return Problem(title=self.title, status=self.status, detail=self.detail, errors=self.errors)
 
+    def __reduce__(self) -> tuple[Any, tuple[Any, ...]]:
+        """Pickled as what it says (status, title, detail, errors): it crosses from a building's process."""
+        return _problem_error, (self.status, self.title, self.detail, self.errors)
+
+
+def _problem_error(status: int, title: str, detail: str, errors: list[FieldProblem]) -> ProblemError:
+    error = ProblemError(detail, errors)
+    error.status = status
+    error.title = title
+    return error
+
 
 class MalformedBodyError(ProblemError):
     status = 400

@@ -9,31 +9,33 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import time
-from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TypeVar
+from typing import Any
 
 from sqlalchemy.orm import Session, sessionmaker
 
-from schemas.api import BatchReceipt
 from schemas.live import LiveMessage
 from server.broadcast import Broadcaster
 from server.errors import ProblemError
 from server.recording import BuildingRecorder
-from server.tracking import BuildingSession, Retention, Submission
+from server.tracking import BuildingSession, Counters, Retention, Submission
 from slam_core.encounters import Calibration
+from slam_core.geo import GeoFrame
 from slam_core.tracker import TrackerParams
 
 MAX_GROUP = 256
-T = TypeVar("T")
+
+
+CALLS = frozenset({"anchors", "get_anchor", "put_known_anchor", "delete_anchor", "merge_anchors", "context"})
+"""The building session's methods the API may call (``BuildingWorker.call``), in order with its batches."""
 
 
 @dataclass
 class _Pending:
     submission: Submission
-    future: asyncio.Future[BatchReceipt]
+    future: asyncio.Future[bytes]
 
 
 @dataclass
@@ -65,14 +67,27 @@ class BuildingWorker:
     def queue_depth(self) -> int:
         return self._queue.qsize()
 
-    async def submit(self, submission: Submission) -> BatchReceipt:
-        future: asyncio.Future[BatchReceipt] = asyncio.get_running_loop().create_future()
+    @property
+    def geo(self) -> GeoFrame | None:
+        return self.session.geo
+
+    @property
+    def counters(self) -> Counters:
+        return self.session.counters
+
+    async def submit(self, submission: Submission) -> bytes:
+        """The batch's receipt, as JSON."""
+        future: asyncio.Future[bytes] = asyncio.get_running_loop().create_future()
         await self._queue.put(_Pending(submission, future))
         return await future
 
-    async def call(self, fn: Callable[[], T]) -> T:
-        """Run an operation on the building's thread (anchor edits stay ordered with batches)."""
-        return await asyncio.get_running_loop().run_in_executor(self._executor, fn)
+    async def call(self, name: str, *args: Any) -> Any:
+        """Run one of the session's ``CALLS`` on the building's thread (anchor edits stay ordered with
+        batches)."""
+        if name not in CALLS:
+            raise ValueError(f"unknown building call {name!r}; valid: {', '.join(sorted(CALLS))}")
+        method = getattr(self.session, name)
+        return await asyncio.get_running_loop().run_in_executor(self._executor, lambda: method(*args))
 
     def publish(self, messages: list[LiveMessage]) -> None:
         self._broadcaster.publish(self.session.building_id, messages)
@@ -85,8 +100,8 @@ class BuildingWorker:
                 group.append(self._queue.get_nowait())
             started = time.perf_counter()
             try:
-                result = await loop.run_in_executor(
-                    self._executor, self.session.process, [p.submission for p in group]
+                receipts, messages = await loop.run_in_executor(
+                    self._executor, self._process, [p.submission for p in group]
                 )
             except Exception as exc:
                 for p in group:
@@ -95,14 +110,22 @@ class BuildingWorker:
                 continue
             self.latency.add(time.perf_counter() - started)
             self.group_sizes.add(len(group))
-            for p, receipt in zip(group, result.receipts, strict=True):
+            for p, receipt in zip(group, receipts, strict=True):
                 if p.future.done():
                     continue
                 if isinstance(receipt, ProblemError):
                     p.future.set_exception(receipt)
                 else:
                     p.future.set_result(receipt)
-            self.publish(result.messages)
+            self.publish(messages)
+
+    def _process(self, group: list[Submission]) -> tuple[list[bytes | ProblemError], list[LiveMessage]]:
+        """On the building's thread: the group, with its receipts serialised there."""
+        result = self.session.process(group)
+        receipts = [
+            r if isinstance(r, ProblemError) else r.model_dump_json().encode() for r in result.receipts
+        ]
+        return receipts, result.messages
 
     async def close(self) -> None:
         self._task.cancel()

@@ -41,7 +41,7 @@ class _Collector(Collector):
                 f"crowdslam_{f.name}", f"{f.name.replace('_', ' ')} per building", labels=["building"]
             )
             for building, worker in workers.items():
-                counters: Counters = worker.session.counters
+                counters: Counters = worker.counters
                 family.add_metric([building], float(getattr(counters, f.name)))
             yield family
         depth = GaugeMetricFamily(

@@ -25,14 +25,16 @@ async def list_anchors(building_id: str, caller: Caller, state: State) -> list[B
     """The building's shared anchor map: learned by the crowd, or pinned by operators."""
     caller.require_reader(building_id)
     worker = await _worker(state, building_id)
-    return await worker.call(worker.session.anchors)
+    anchors: list[BuildingAnchor] = await worker.call("anchors")
+    return anchors
 
 
 @router.get("/anchors/{anchor_id}", response_model=BuildingAnchor)
 async def get_anchor(building_id: str, anchor_id: Identifier, caller: Caller, state: State) -> BuildingAnchor:
     caller.require_reader(building_id)
     worker = await _worker(state, building_id)
-    return await worker.call(lambda: worker.session.get_anchor(anchor_id))
+    anchor: BuildingAnchor = await worker.call("get_anchor", anchor_id)
+    return anchor
 
 
 @router.put("/anchors/{anchor_id}", response_model=BuildingAnchor)
@@ -42,7 +44,8 @@ async def put_known_anchor(
     """Pin an anchor at an exact position (operator key): a new known anchor, or a learned one made exact."""
     caller.require_operator(building_id)
     worker = await _worker(state, building_id)
-    anchor, messages = await worker.call(lambda: worker.session.put_known_anchor(anchor_id, body))
+    anchor: BuildingAnchor
+    anchor, messages = await worker.call("put_known_anchor", anchor_id, body)
     worker.publish(messages)
     return anchor
 
@@ -51,7 +54,7 @@ async def put_known_anchor(
 async def delete_anchor(building_id: str, anchor_id: Identifier, caller: Caller, state: State) -> Response:
     caller.require_operator(building_id)
     worker = await _worker(state, building_id)
-    messages = await worker.call(lambda: worker.session.delete_anchor(anchor_id))
+    messages = await worker.call("delete_anchor", anchor_id)
     worker.publish(messages)
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 
@@ -63,7 +66,8 @@ async def merge_anchors(
     """Merge anchors the crowd learned twice into the first one listed (operator key)."""
     caller.require_operator(building_id)
     worker = await _worker(state, building_id)
-    anchor, messages = await worker.call(lambda: worker.session.merge_anchors(list(body.anchor_ids)))
+    anchor: BuildingAnchor
+    anchor, messages = await worker.call("merge_anchors", list(body.anchor_ids))
     worker.publish(messages)
     return anchor
 
@@ -80,10 +84,10 @@ async def export_geojson(
     """Anchors as points and recent tracks as lines, in WGS-84 (needs the building's geo-reference)."""
     caller.require_reader(building_id)
     worker = await _worker(state, building_id)
-    geo = worker.session.geo
+    geo = worker.geo
     if geo is None:
         raise InvalidInputError(f"building {building_id!r} has no geo-reference; set one to export GeoJSON")
-    anchors = await worker.call(worker.session.anchors)
+    anchors: list[BuildingAnchor] = await worker.call("anchors")
     features: list[dict[str, Any]] = []
     for a in anchors:
         lat, lon = geo.to_wgs84(a.position.x_m, a.position.y_m)

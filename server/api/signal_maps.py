@@ -19,7 +19,7 @@ async def start_build(building_id: str, caller: Caller, state: State) -> SignalM
     database, the optimised trajectories)."""
     caller.require_operator(building_id)
     worker = await state.tracking.worker(building_id)
-    ctx = await worker.call(worker.session.context)
+    ctx = await worker.call("context")
     return state.signal_maps.start(ctx)
 
 
