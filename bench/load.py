@@ -114,10 +114,15 @@ class Crowd:
         return result
 
 
-def _body(crowd: Crowd, phone: int, seq: int, now_ms: int, near: np.ndarray) -> bytes:
+def _building(phone: int, buildings: int) -> str:
+    """Phones are dealt round the buildings; one building is called ``load``."""
+    return "load" if buildings == 1 else f"load-{phone % buildings}"
+
+
+def _body(crowd: Crowd, phone: int, seq: int, now_ms: int, near: np.ndarray, building: str) -> bytes:
     device = f"load-{phone:05d}"
     parts = [
-        f'{{"building_id":"load","device_id":"{device}","batch_id":"{device}-{seq}","seq":{seq},'
+        f'{{"building_id":"{building}","device_id":"{device}","batch_id":"{device}-{seq}","seq":{seq},'
         f'"ble_advertised_id":"ble-{phone:05d}"'
     ]
     x, y = crowd.xy[phone]
@@ -196,12 +201,19 @@ class Results:
 
 
 def _cpu_seconds(pid: int) -> float:
-    """User + system CPU time of a process (Linux /proc; NaN elsewhere)."""
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    except OSError:
-        return math.nan
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    """User + system CPU time of a process and its children (a building's own process: Linux /proc; NaN
+    elsewhere)."""
+    total = math.nan
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(stat.parent.name) == pid or int(fields[1]) == pid:
+            total = (0.0 if math.isnan(total) else total) + (int(fields[11]) + int(fields[12])) / os.sysconf(
+                "SC_CLK_TCK"
+            )
+    return total
 
 
 async def _dashboard(url: str, lags: list[float], since_ms: float, stop: asyncio.Event) -> None:
@@ -223,14 +235,14 @@ async def _dashboard(url: str, lags: list[float], since_ms: float, stop: asyncio
                     lags.append(received - estimate["t_ms"])
 
 
-def _dashboards(url: str, n: int, since_ms: float, stop: Any, out: Any) -> None:
+def _dashboards(urls: list[str], n: int, since_ms: float, stop: Any, out: Any) -> None:
     """The dashboards, in a process of their own so that reading frames does not wait behind the phones'
     requests in one event loop (which read as live lag); sends back (lags, errors) when ``stop`` is set."""
 
     async def run() -> tuple[list[float], list[str]]:
         lags: list[float] = []
         done = asyncio.Event()
-        tasks = [asyncio.create_task(_dashboard(url, lags, since_ms, done)) for _ in range(n)]
+        tasks = [asyncio.create_task(_dashboard(urls[k % len(urls)], lags, since_ms, done)) for k in range(n)]
         while not stop.is_set():
             await asyncio.sleep(0.2)
         done.set()
@@ -251,7 +263,7 @@ def _positions(payload: dict[str, Any]) -> list[dict[str, Any]]:
 async def _drive(
     port: int,
     keys: list[str],
-    dashboard_key: str,
+    dashboard_keys: list[str],
     duration_s: float,
     n_dashboards: int,
     connections: int,
@@ -264,21 +276,35 @@ async def _drive(
     for _ in range(min(connections, n)):
         reader, writer = await asyncio.open_connection("127.0.0.1", port)
         pool.put_nowait(Connection(reader, writer))
-    live = f"ws://127.0.0.1:{port}/v1/buildings/load/live?token={dashboard_key}&batch=true"
+    buildings = len(dashboard_keys)
+    lives = [
+        f"ws://127.0.0.1:{port}/v1/buildings/{_building(b, buildings)}/live?token={key}&batch=true"
+        for b, key in enumerate(dashboard_keys)
+    ]
     context = multiprocessing.get_context("spawn")
     stop, (receive_lags, send_lags) = context.Event(), context.Pipe(duplex=False)
     since_ms = (time.time() + 0.5 + _warmup_s(duration_s)) * 1000.0
-    dashboards = context.Process(target=_dashboards, args=(live, n_dashboards, since_ms, stop, send_lags))
+    dashboards = context.Process(target=_dashboards, args=(lives, n_dashboards, since_ms, stop, send_lags))
     dashboards.start()
     await asyncio.sleep(0.5)
     phase = np.linspace(0.0, 1.0, n, endpoint=False)
+    building_of = np.arange(n) % buildings
+    near: list[np.ndarray] = []
+
+    def bodies(phone: int, seq: int, now_ms: int) -> bytes:
+        # a phone hears the phones near it in its own building only
+        heard = near[phone][building_of[near[phone]] == building_of[phone]]
+        return _body(crowd, phone, seq, now_ms, heard, _building(phone, buildings))
+
     tasks: set[asyncio.Task[None]] = set()
     warmup_s = _warmup_s(duration_s)
 
     async def send(phone: int, seq: int, due: float, body: bytes, measure: bool) -> None:
         conn = await pool.get()
         try:
-            status = await conn.post("/v1/buildings/load/batches", keys[phone], body)
+            status = await conn.post(
+                f"/v1/buildings/{_building(phone, buildings)}/batches", keys[phone], body
+            )
         except (ConnectionError, asyncio.IncompleteReadError):
             results.errors += 1
             reader, writer = await asyncio.open_connection("127.0.0.1", port)
@@ -295,7 +321,7 @@ async def _drive(
     second = 0
     while second < duration_s:
         crowd.walk()
-        near = crowd.neighbours()
+        near = crowd.neighbours()  # read by bodies()
         base = start + second
         measure = second >= warmup_s
         if second == math.ceil(warmup_s):
@@ -312,7 +338,7 @@ async def _drive(
                 await asyncio.sleep(delay)
             now_ms = int(time.time() * 1000)
             task = asyncio.create_task(
-                send(int(phone), second, due, _body(crowd, int(phone), second, now_ms, near[phone]), measure)
+                send(int(phone), second, due, bodies(int(phone), second, now_ms), measure)
             )
             tasks.add(task)
             task.add_done_callback(tasks.discard)
@@ -332,29 +358,37 @@ async def _drive(
     return results
 
 
-def _prepare(data_dir: Path, n: int) -> tuple[list[str], str]:
+def _prepare(data_dir: Path, n: int, buildings: int) -> tuple[list[str], list[str]]:
+    """The buildings, a device key per phone (for its building) and a dashboard key per building."""
     engine = make_engine(f"sqlite:///{data_dir / 'crowdslam.sqlite3'}")
     upgrade(engine)
     with make_session_factory(engine).begin() as session:
-        session.add(BuildingRow(id="load", name="Load test", rotation_rad=0.0))
+        for b in range(buildings):
+            session.add(BuildingRow(id=_building(b, buildings), name="Load test", rotation_rad=0.0))
         session.flush()
-        keys = [mint_key(session, KeyScope.DEVICE, "load", f"load-{i:05d}")[0] for i in range(n)]
-        dashboard, _ = mint_key(session, KeyScope.DASHBOARD, "load")
+        keys = [
+            mint_key(session, KeyScope.DEVICE, _building(i, buildings), f"load-{i:05d}")[0] for i in range(n)
+        ]
+        dashboards = [
+            mint_key(session, KeyScope.DASHBOARD, _building(b, buildings))[0] for b in range(buildings)
+        ]
     engine.dispose()
-    return keys, dashboard
+    return keys, dashboards
 
 
-def run_one(n: int, duration_s: float, n_dashboards: int, connections: int) -> dict[str, Any]:
+def run_one(
+    n: int, duration_s: float, n_dashboards: int, connections: int, buildings: int = 1
+) -> dict[str, Any]:
     with tempfile.TemporaryDirectory() as tmp:
         data_dir = Path(tmp)
-        keys, dashboard = _prepare(data_dir, n)
+        keys, dashboards = _prepare(data_dir, n, buildings)
         port = free_port()
         env = {**os.environ, "CROWDSLAM_DATA_DIR": str(data_dir)}
         server = serve_process(env, port, data_dir / "server.log", log_level="warning")
         try:
             started = time.perf_counter()
             results = asyncio.run(
-                _drive(port, keys, dashboard, duration_s, n_dashboards, connections, server.pid)
+                _drive(port, keys, dashboards, duration_s, n_dashboards, connections, server.pid)
             )
             elapsed = time.perf_counter() - started
         finally:
@@ -365,6 +399,7 @@ def run_one(n: int, duration_s: float, n_dashboards: int, connections: int) -> d
     measured_s = duration_s - _warmup_s(duration_s)
     return {
         "phones": n,
+        "buildings": buildings,
         "offered_per_s": n,
         "batches_per_s": round(len(results.latencies_ms) / measured_s, 1),
         "p50_ms": round(float(np.percentile(lat, 50)), 1),
@@ -390,13 +425,16 @@ def main() -> int:
     parser.add_argument("--duration", type=float, default=30.0, help="seconds of load per phone count")
     parser.add_argument("--dashboards", type=int, default=10)
     parser.add_argument(
+        "--buildings", type=int, default=1, help="phones dealt round this many buildings (dashboards too)"
+    )
+    parser.add_argument(
         "--connections", type=int, default=256, help="keep-alive sockets shared by the phones"
     )
     parser.add_argument("--json", type=Path, help="also write the result here")
     args = parser.parse_args()
     rows = []
     for n in sorted(int(p) for p in args.phones.split(",")):
-        row = run_one(n, args.duration, args.dashboards, args.connections)
+        row = run_one(n, args.duration, args.dashboards, args.connections, args.buildings)
         print(json.dumps(row), file=sys.stderr)
         rows.append(row)
     ok = [

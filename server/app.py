@@ -28,11 +28,12 @@ from server.broadcast import Broadcaster
 from server.errors import InvalidInputError, ProblemError, problem_response_parts
 from server.ingestion import TrackingService
 from server.metrics import Metrics
+from server.recording import BuildingRecorder
 from server.settings import Settings
 from server.signal_maps import SignalMapService
 from server.store.db import make_engine, make_session_factory
 from server.store.migrate import current_revision, head_revision
-from server.tracking import Retention
+from server.tracking import BuildingSession, Retention
 from slam_core.crowd_fingerprints import FingerprintParams
 from slam_core.encounter_detection import DetectionParams
 from slam_core.encounters import Calibration
@@ -87,6 +88,38 @@ def tracker_params(settings: Settings) -> TrackerParams:
     )
 
 
+def retention(settings: Settings) -> Retention:
+    return Retention(
+        position_history_days=settings.position_history_days or None,
+        batch_ids_days=settings.batch_ids_days or None,
+        user_idle_s=settings.user_idle_s or None,
+    )
+
+
+def prepare_building_process(settings: Settings) -> None:
+    """A building's own process (``server.building_process``): kernels warm and the GC tuned before its
+    first batch, as the front's lifespan does for buildings in its own process."""
+    _warm_kernels(tracker_params(settings), load_calibration(settings.encounter_calibration))
+    _tune_gc()
+
+
+def building_session(settings: Settings, building_id: str) -> BuildingSession:
+    """A building's session as the settings describe it, on its own database engine (a building's
+    process); raises NotFoundError for an unknown building."""
+    sessions = make_session_factory(make_engine(settings.resolved_database_url))
+    recorder = BuildingRecorder(settings.recordings_dir, building_id) if settings.record else None
+    return BuildingSession(
+        building_id,
+        sessions,
+        tracker_params(settings),
+        load_calibration(settings.encounter_calibration),
+        settings.seed,
+        recorder,
+        settings.snapshot_period_s,
+        retention(settings),
+    )
+
+
 def _tune_gc() -> None:
     """For a process that is the server: everything built so far (compiled kernels, SQLAlchemy and pydantic
     machinery) lives as long as the server, so it is kept out of the cyclic collector, whose full passes
@@ -122,13 +155,9 @@ def create_app(settings: Settings, tune_gc: bool = False) -> FastAPI:
             broadcaster.add_sink(foxglove_live.publish)
         params = tracker_params(settings)
         calibration = load_calibration(settings.encounter_calibration)
-        _warm_kernels(params, calibration)
+        if not settings.building_processes:
+            _warm_kernels(params, calibration)  # else each building's process warms its own
         recordings = settings.recordings_dir if settings.record else None
-        retention = Retention(
-            position_history_days=settings.position_history_days or None,
-            batch_ids_days=settings.batch_ids_days or None,
-            user_idle_s=settings.user_idle_s or None,
-        )
         tracking = TrackingService(
             sessions,
             broadcaster,
@@ -137,7 +166,8 @@ def create_app(settings: Settings, tune_gc: bool = False) -> FastAPI:
             settings.seed,
             recordings,
             settings.snapshot_period_s,
-            retention,
+            retention(settings),
+            settings if settings.building_processes else None,
         )
         app.state.crowdslam = AppState(
             settings,

@@ -55,20 +55,34 @@ class Broadcaster:
         self._subs[sub.building_id].discard(sub)
 
     def publish(self, building_id: str, messages: list[LiveMessage]) -> None:
+        self._to_sinks(building_id, messages)
+        if self._subs.get(building_id):
+            self._offer(building_id, [LIVE_MESSAGE_ADAPTER.dump_json(m).decode() for m in messages])
+
+    def publish_texts(self, building_id: str, texts: list[str]) -> None:
+        """Messages a building's process serialised (``publish`` without serialising again); sinks, which
+        need the messages themselves, get them parsed back only when there are sinks."""
+        if self._sinks and texts:
+            self._to_sinks(building_id, [LIVE_MESSAGE_ADAPTER.validate_json(t) for t in texts])
+        self._offer(building_id, texts)
+
+    def _to_sinks(self, building_id: str, messages: list[LiveMessage]) -> None:
         for sink in self._sinks:
             try:
                 sink(building_id, messages)
             except Exception:  # a viewer's trouble must never reach ingestion: counted and logged
                 self.sink_errors += 1
                 log.exception("live sink failed on %d messages of %s", len(messages), building_id)
+
+    def _offer(self, building_id: str, texts: list[str]) -> None:
+        """Each text to every subscriber of the building (serialised once for all of them)."""
         subs = self._subs.get(building_id)
         if not subs:
             return
-        for message in messages:
-            text = LIVE_MESSAGE_ADAPTER.dump_json(message).decode()
+        for text in texts:
             for sub in subs:
                 sub.offer(text)
-        self.published += len(messages)
+        self.published += len(texts)
 
     def subscribers(self, building_id: str | None = None) -> int:
         if building_id is None:

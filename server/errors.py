@@ -89,6 +89,13 @@ class ConflictError(ProblemError):
     title = "Conflict"
 
 
+class ServiceUnavailableError(ProblemError):
+    """The request can be sent again (a building's process is restarting)."""
+
+    status = 503
+    title = "Service unavailable"
+
+
 def field_problem(error: Any) -> FieldProblem:
     """One pydantic error as a FieldProblem with a dotted path ('steps.0.length_m')."""
     loc = ".".join(str(part) for part in error.get("loc", ())) or "body"

@@ -12,14 +12,16 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 from sqlalchemy.orm import Session, sessionmaker
 
 from schemas.live import LiveMessage
 from server.broadcast import Broadcaster
-from server.errors import ProblemError
+from server.errors import NotFoundError, ProblemError
 from server.recording import BuildingRecorder
+from server.settings import Settings
+from server.store import repositories as repo
 from server.tracking import BuildingSession, Counters, Retention, Submission
 from slam_core.encounters import Calibration
 from slam_core.geo import GeoFrame
@@ -30,6 +32,26 @@ MAX_GROUP = 256
 
 CALLS = frozenset({"anchors", "get_anchor", "put_known_anchor", "delete_anchor", "merge_anchors", "context"})
 """The building session's methods the API may call (``BuildingWorker.call``), in order with its batches."""
+
+
+class Worker(Protocol):
+    """What the API sees of a building: ``BuildingWorker`` (a thread of this process) or
+    ``server.building_process.ProcessBuildingWorker`` (a process of its own)."""
+
+    alive: bool
+    latency: LatencyWindow
+    group_sizes: LatencyWindow
+
+    @property
+    def geo(self) -> GeoFrame | None: ...
+    @property
+    def counters(self) -> Counters: ...
+    @property
+    def queue_depth(self) -> int: ...
+    async def submit(self, submission: Submission) -> bytes: ...
+    async def call(self, name: str, *args: Any) -> Any: ...
+    def publish(self, messages: list[LiveMessage]) -> None: ...
+    async def close(self) -> None: ...
 
 
 @dataclass
@@ -62,6 +84,7 @@ class BuildingWorker:
         self._task = asyncio.get_running_loop().create_task(self._run())
         self.latency = LatencyWindow()
         self.group_sizes = LatencyWindow()
+        self.alive = True
 
     @property
     def queue_depth(self) -> int:
@@ -151,7 +174,10 @@ class TrackingService:
         recordings: Path | None = None,
         snapshot_period_s: float = 60.0,
         retention: Retention | None = None,
+        processes: Settings | None = None,
     ) -> None:
+        """``processes``: run each building in a process of its own, configured by these settings."""
+        self._processes = processes
         self._snapshot_period_s = snapshot_period_s
         self._retention = retention
         self._recordings = recordings
@@ -160,16 +186,26 @@ class TrackingService:
         self._params = params
         self._calibration = calibration
         self._seed = seed
-        self._workers: dict[str, BuildingWorker] = {}
+        self._workers: dict[str, Worker] = {}
         self._loading = asyncio.Lock()
 
-    async def worker(self, building_id: str) -> BuildingWorker:
+    async def worker(self, building_id: str) -> Worker:
         worker = self._workers.get(building_id)
-        if worker is not None:
+        if worker is not None and worker.alive:
             return worker
         async with self._loading:
             worker = self._workers.get(building_id)
-            if worker is None:
+            if worker is not None and not worker.alive:  # its process died: start it again
+                await worker.close()
+                worker = None
+            if worker is None and self._processes is not None:
+                from server.building_process import ProcessBuildingWorker  # it imports this module
+
+                if not await asyncio.to_thread(self._exists, building_id):  # never a process for nothing
+                    raise NotFoundError(f"no building {building_id!r}")
+                worker = await ProcessBuildingWorker.start(building_id, self._processes, self._broadcaster)
+                self._workers[building_id] = worker
+            elif worker is None:
                 recorder = (
                     None if self._recordings is None else BuildingRecorder(self._recordings, building_id)
                 )
@@ -187,8 +223,12 @@ class TrackingService:
                 worker = self._workers[building_id] = BuildingWorker(session, self._broadcaster)
         return worker
 
+    def _exists(self, building_id: str) -> bool:
+        with self._sessions() as session:
+            return repo.get_building(session, building_id) is not None
+
     @property
-    def workers(self) -> dict[str, BuildingWorker]:
+    def workers(self) -> dict[str, Worker]:
         return dict(self._workers)
 
     async def close(self) -> None:

@@ -57,6 +57,11 @@ class Settings(BaseSettings):
         "snapshot (its filter's memory freed); it needs a new position fix when it comes back. 0 keeps every "
         "user (memory then grows with every phone that ever posted).",
     )
+    building_processes: bool = Field(
+        default=False,
+        description="Run each building in a process of its own (server/building_process.py): its batch path "
+        "then has a core of its own beside the HTTP front's.",
+    )
     key_cache_s: float = Field(
         default=30.0,
         ge=0.0,

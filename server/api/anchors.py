@@ -10,13 +10,13 @@ from schemas.anchors import AnchorMergeIn, BuildingAnchor, KnownAnchorIn
 from schemas.common import MAX_TIME_MS, MIN_TIME_MS, Identifier
 from server.deps import Caller, DbSession, State
 from server.errors import InvalidInputError
-from server.ingestion import BuildingWorker
+from server.ingestion import Worker
 from server.store import repositories as repo
 
 router = APIRouter(prefix="/v1/buildings/{building_id}", tags=["anchors"])
 
 
-async def _worker(state: State, building_id: str) -> BuildingWorker:
+async def _worker(state: State, building_id: str) -> Worker:
     return await state.tracking.worker(building_id)
 
 

@@ -7,9 +7,11 @@ import json
 import os
 import signal
 import subprocess
+import time
 from pathlib import Path
 
 import httpx
+import pytest
 
 from schemas.api import BatchReceipt
 from server.background import CLI, free_port, serve_process
@@ -19,8 +21,28 @@ from slam_core.simulate import Scenario, simulate
 from tests.conftest import SHARED
 
 
-def test_kill_9_loses_no_acknowledged_batch_and_tracking_resumes(tmp_path: Path) -> None:
-    env = {**os.environ, "CROWDSLAM_DATA_DIR": str(tmp_path), "CROWDSLAM_SNAPSHOT_PERIOD_S": "1e9"}
+def _building_processes(data_dir: Path) -> list[int]:
+    """Processes serving buildings of this data directory (Linux /proc)."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        try:
+            cmdline = (entry / "cmdline").read_bytes()
+            environ = (entry / "environ").read_bytes()
+        except OSError:
+            continue
+        if b"spawn_main" in cmdline and f"CROWDSLAM_DATA_DIR={data_dir}".encode() in environ.split(b"\0"):
+            found.append(int(entry.name))
+    return found
+
+
+@pytest.mark.parametrize("processes", [False, True], ids=["building-threads", "building-processes"])
+def test_kill_9_loses_no_acknowledged_batch_and_tracking_resumes(tmp_path: Path, processes: bool) -> None:
+    env = {
+        **os.environ,
+        "CROWDSLAM_DATA_DIR": str(tmp_path),
+        "CROWDSLAM_SNAPSHOT_PERIOD_S": "1e9",
+        "CROWDSLAM_BUILDING_PROCESSES": str(processes).lower(),
+    }
     subprocess.run([*CLI, "migrate"], env=env, check=True, capture_output=True)
     created = subprocess.run(
         [*CLI, "keys", "create", "--scope", "operator"], env=env, check=True, capture_output=True, text=True
@@ -54,10 +76,15 @@ def test_kill_9_loses_no_acknowledged_batch_and_tracking_resumes(tmp_path: Path)
             auth = {"Authorization": f"Bearer {operator}"}
             anchors_before = client.get("/v1/buildings/hq/anchors", headers=auth).json()
             positions_before = client.get("/v1/buildings/hq/positions", headers=auth).json()
+            assert (len(_building_processes(tmp_path)) == 1) == processes
     finally:
         server.send_signal(signal.SIGKILL)
         server.wait()
     assert all(r.status == "applied" for r in before)
+    deadline = time.monotonic() + 10.0  # a building's process dies with the server
+    while _building_processes(tmp_path) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert _building_processes(tmp_path) == []
 
     server = serve_process(env, port, tmp_path / "server.log")
     try:

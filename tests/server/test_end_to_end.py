@@ -31,11 +31,11 @@ def _small_testbed() -> Scenario:
     return Scenario.from_dict(raw)
 
 
-@pytest.fixture
-def live_server(tmp_path: Path) -> Iterator[tuple[str, str, Settings]]:
+@pytest.fixture(params=[False, True], ids=["building-threads", "building-processes"])
+def live_server(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[tuple[str, str, Settings]]:
     url = f"sqlite:///{tmp_path / 'db.sqlite3'}"
     operator = migrate_with_operator(url)
-    settings = Settings(data_dir=tmp_path, database_url=url, seed=3)
+    settings = Settings(data_dir=tmp_path, database_url=url, seed=3, building_processes=request.param)
     with running_server(create_app(settings), "127.0.0.1", free_port()) as base:
         yield base, operator, settings
 
