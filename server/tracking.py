@@ -444,7 +444,7 @@ class BuildingSession:
         self.counters.estimates += len(estimates)
         if self.recorder is not None:
             self.recorder.record_estimates(list(estimates.values()), group[now[0]].received_ns)
-        stored_at_ms = int(time.time() * 1000)
+        stored_at_ms = int(heard * 1000)
         repo.add_positions(session, [self._position_row(e, stored_at_ms) for e in estimates.values()])
         for index in outcome.anchors_changed:
             if self.tracker.crowd.is_live(index):

@@ -292,13 +292,6 @@ class EncounterDetector:
             np.array(f_col, dtype=np.float64),
         )
 
-    def add_sighting(self, receiver: str, sender: str, t_ms: int, rss_dbm: float) -> Detection | None:
-        """One sighting (``add_sightings`` of one), its detection as an object."""
-        found = self.to_detections(
-            self.add_sightings([receiver], [sender], np.array([t_ms]), np.array([rss_dbm]))
-        )
-        return found[0] if found else None
-
     def _advance_bluetooth(self, t_ms: int) -> None:
         """Forget sightings that can no longer be averaged with anything new."""
         if t_ms <= self._bt_newest_ms:

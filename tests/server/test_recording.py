@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
+from typing import Any
 
 import pytest
 from mcap.reader import make_reader
 
+from schemas.estimates import Estimate
 from server.recording import BATCH_TOPIC, ESTIMATE_TOPIC, POSE_TOPIC, read_batches
 from server.replay import replay_offline
 from server.settings import Settings
@@ -101,21 +104,32 @@ def test_golden_recording_replays_to_its_stored_estimates() -> None:
         assert got["position"]["y_m"] == pytest.approx(estimate["position"]["y_m"], abs=1e-6)
 
 
-def test_the_formatted_pose_is_the_pose_in_frame_as_json() -> None:
-    import math
+def _pose_in_frame(estimate: Estimate) -> dict[str, Any]:
+    """Foxglove PoseInFrame in the building frame, written out as a dict: the formatter's oracle."""
+    half = estimate.heading_rad / 2.0
+    return {
+        "timestamp": {"sec": estimate.t_ms // 1000, "nsec": (estimate.t_ms % 1000) * 1_000_000},
+        "frame_id": f"{estimate.building_id}/{estimate.user_id}",
+        "pose": {
+            "position": {"x": estimate.position.x_m, "y": estimate.position.y_m, "z": 0.0},
+            "orientation": {"x": 0.0, "y": 0.0, "z": math.sin(half), "w": math.cos(half)},
+        },
+    }
 
+
+def test_the_formatted_pose_is_the_pose_in_frame_as_json() -> None:
     import numpy as np
 
     from schemas.estimates import EstimateSource
     from server.convert import estimate
-    from server.recording import pose_in_frame, pose_in_frame_json
+    from server.recording import pose_in_frame_json
     from slam_core.tracker import EstimateRow
 
     rng = np.random.default_rng(1)
     for k in range(100):
         row = EstimateRow(1_700_000_000_123 + k, *rng.normal(0, 50, 2), (1.0, 0.0, 1.0), (0.0, 0.0), k * 0.37)
         e = estimate(row, "hq", f"user-{k}", "phone", None, EstimateSource.DYNAMICSLAM)
-        assert json.loads(pose_in_frame_json(e)) == pose_in_frame(e)
+        assert json.loads(pose_in_frame_json(e)) == _pose_in_frame(e)
     assert math.isclose(
         json.loads(pose_in_frame_json(e))["pose"]["orientation"]["w"], math.cos(e.heading_rad / 2)
     )
