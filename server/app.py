@@ -84,7 +84,8 @@ def tracker_params(settings: Settings) -> TrackerParams:
             use_human_anchors=settings.mode == "dynamicslam",
         ),
         detection=DetectionParams(wifi_model=settings.encounter_wifi_model),
-        fingerprints=FingerprintParams(enabled=settings.fingerprint_fixes),
+        # other users' scans, like human anchors: off in semanticslam mode (building anchors only)
+        fingerprints=FingerprintParams(enabled=settings.fingerprint_fixes and settings.mode == "dynamicslam"),
     )
 
 

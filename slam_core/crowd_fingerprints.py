@@ -7,15 +7,21 @@ over the union of both scans' APs, a missing AP at ``floor_dbm``), and the resul
 observation of that user (``DynamicSlam.observe_position_robust``). A user's own scans are never its
 references: they would only confirm its own estimate.
 
-Memory is bounded (``max_references``, oldest dropped first); a query costs O(references x APs of the
-query), not O(references x all APs).
+Memory is bounded (``max_references``, oldest dropped first) and proportional to the APs the references
+heard: the scans are posted in an inverted index by AP (``slam_core.kernels.fingerprint_index``), so a query
+costs the postings of its own APs, not references x APs. (A dense references x APs matrix took ~390 MB on a
+2,400-AP mall floor at 20,000 references, and ~1 ms per query.)
 """
 
 from __future__ import annotations
 
+import math
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
+
+from slam_core.kernels import fingerprint_index as index
 
 
 @dataclass(frozen=True)
@@ -40,6 +46,13 @@ class FingerprintParams:
     min_references: int = 50
     """No fix before the map holds this many scans of other users."""
     max_references: int = 20_000
+    """The whole map's bound (the oldest reference leaves first)."""
+    cell_m: float = 4.0
+    per_cell: int = 16
+    """At most ``per_cell`` references per ``cell_m`` square (by position; the cell's oldest leaves first).
+    The map's size then follows the building's area, not its traffic: without it, 2,000 phones scanning
+    every 2 s would turn a 20,000-scan map over in 20 s, so that it held only the places walked in the last
+    20 s, and a busy corridor's scans would cost every query that hears its APs."""
     min_aps: int = 3
     """A scan with fewer fresh APs is neither stored nor localised."""
     floor_dbm: float = -100.0
@@ -53,79 +66,165 @@ class FingerprintParams:
             raise ValueError("outlier_probability must be in [0, 1)")
         if self.min_aps < 1:
             raise ValueError("min_aps must be >= 1")
+        if not self.cell_m > 0 or self.per_cell < 1:
+            raise ValueError("fingerprint cells need cell_m > 0 and per_cell >= 1")
 
 
 class CrowdFingerprints:
-    """Placed scans in dense arrays over an interned BSSID index; rows are a ring of ``max_references``."""
+    """Placed scans in at most ``max_references`` rows, bounded per cell of the floor, posted in an inverted
+    index by interned BSSID."""
 
     def __init__(self, params: FingerprintParams) -> None:
         self.params = params
         self._columns: dict[str, int] = {}
         n = min(64, params.max_references)
-        self._gain = np.zeros((n, 16), dtype=np.float32)  # RSS above the floor, 0 where not heard
-        self._heard = np.zeros((n, 16), dtype=np.float32)
-        self._norm = np.zeros(n)  # sum of squared gains per row
-        self._count = np.zeros(n)  # APs heard per row
         self._xy = np.zeros((n, 2))
         self._owner = np.full(n, -1, dtype=np.int64)
+        self._norm = np.zeros(n)  # sum of squared gains per row
+        self._count = np.zeros(n, dtype=np.int64)  # APs heard per row
+        self._serial = np.full(n, -1, dtype=np.int64)  # which scan a row holds (stale postings differ)
+        self._dot = np.zeros(n)  # query scratch, kept zero between queries
+        self._shared = np.zeros(n, dtype=np.int64)
+        self._per_owner: dict[int, int] = {}
+        self._cells: dict[tuple[int, int], deque[int]] = {}  # rows of each cell, oldest first
+        self._cell_of: list[tuple[int, int]] = []  # the cell of each row
+        self._by_age: deque[tuple[int, int]] = deque()  # (row, serial), oldest first; stale pairs skipped
         self._size = 0
-        self._next = 0
+        self._serial_next = 0
+        # the inverted index: one slab of postings per column in one pool
+        self._start = np.zeros(16, dtype=np.int64)
+        self._length = np.zeros(16, dtype=np.int64)
+        self._capacity = np.zeros(16, dtype=np.int64)
+        self._post_row = np.zeros(256, dtype=np.int64)
+        self._post_serial = np.zeros(256, dtype=np.int64)
+        self._post_gain = np.zeros(256, dtype=np.float32)
+        self._pool_end = 0
+        self._live_postings = 0
 
     def __len__(self) -> int:
         return self._size
 
-    def _row(self, bssids: list[str], rss: np.ndarray, intern: bool) -> tuple[np.ndarray, np.ndarray]:
-        """Columns and gains of a scan's finite entries (a BSSID listed twice counts once, strongest)."""
-        row: dict[int, float] = {}
-        for b, r in zip(bssids, np.asarray(rss, dtype=float), strict=True):
-            c = self._columns.get(b)
-            if c is None and intern:
-                c = self._columns[b] = len(self._columns)
-            if c is not None and np.isfinite(r):
-                gain = max(float(r), self.params.floor_dbm) - self.params.floor_dbm
-                row[c] = max(gain, row.get(c, 0.0))
-        return np.fromiter(row.keys(), np.int64, len(row)), np.fromiter(row.values(), np.float32, len(row))
+    @property
+    def postings(self) -> int:
+        """Pool entries in use, live or stale (for tests and memory accounting)."""
+        return self._pool_end
+
+    def _gains(self, bssids: list[str], rss: np.ndarray) -> dict[str, float]:
+        """RSS above the floor of a scan's finite entries (a BSSID listed twice counts once, strongest)."""
+        floor = self.params.floor_dbm
+        gains: dict[str, float] = {}
+        for b, r in zip(bssids, np.asarray(rss, dtype=float).tolist(), strict=True):
+            if math.isfinite(r):
+                gain = max(r, floor) - floor
+                gains[b] = max(gain, gains.get(b, 0.0))
+        return gains
 
     def add(self, owner: int, xy: np.ndarray, bssids: list[str], rss: np.ndarray) -> bool:
         """Store one scan (fresh entries only) at ``xy``; False when it has too few APs."""
         if len(bssids) < self.params.min_aps:
             return False
-        cols, gains = self._row(bssids, rss, intern=True)
-        if cols.size < self.params.min_aps:
+        heard = self._gains(bssids, rss)
+        if len(heard) < self.params.min_aps:
             return False
-        self._grow(len(self._columns))
-        row = self._next
-        self._gain[row] = 0.0
-        self._heard[row] = 0.0
-        self._gain[row, cols] = gains
-        self._heard[row, cols] = 1.0
+        cols = np.fromiter(
+            (self._columns.setdefault(b, len(self._columns)) for b in heard), np.int64, len(heard)
+        )
+        gains = np.fromiter(heard.values(), np.float32, len(heard))
+        self._grow_columns(len(self._columns))
+        cell = (math.floor(float(xy[0]) / self.params.cell_m), math.floor(float(xy[1]) / self.params.cell_m))
+        row = self._free_row(cell)
+        self._serial_next += 1
+        serial = self._serial_next
+        need = index.room_needed(cols, self._length, self._capacity)
+        if self._pool_end + need > self._post_row.size:
+            self._grow_pool(self._pool_end + need)
+        self._pool_end = index.append(
+            cols, gains, row, serial, self._start, self._length, self._capacity,
+            self._post_row, self._post_serial, self._post_gain, self._pool_end,
+        )  # fmt: skip
+        self._serial[row] = serial
         self._norm[row] = float(gains.astype(float) @ gains.astype(float))
         self._count[row] = cols.size
         self._xy[row] = xy
         self._owner[row] = owner
-        self._next = (row + 1) % self.params.max_references
-        self._size = min(self._size + 1, self.params.max_references)
+        self._per_owner[owner] = self._per_owner.get(owner, 0) + 1
+        self._live_postings += cols.size
+        self._cells.setdefault(cell, deque()).append(row)
+        self._cell_of[row] = cell
+        self._by_age.append((row, serial))
+        if len(self._by_age) > 2 * self.params.max_references:  # drop the stale pairs
+            self._by_age = deque(p for p in self._by_age if self._serial[p[0]] == p[1])
+        if self._pool_end > 3 * self._live_postings + 4 * len(self._columns):
+            self._compact()
         return True
 
-    def _grow(self, n_columns: int) -> None:
-        rows, cols = self._gain.shape
-        # the ring wraps only at max_references, so rows are short exactly when the next one is past the end
-        new_rows = min(2 * rows, self.params.max_references) if self._next >= rows else rows
-        new_cols = max(2 * cols, n_columns) if n_columns > cols else cols
-        if (new_rows, new_cols) == (rows, cols):
-            return
-        for name in ("_gain", "_heard"):
-            grown = np.zeros((new_rows, new_cols), dtype=np.float32)
-            grown[:rows, :cols] = getattr(self, name)
-            setattr(self, name, grown)
-        for name, fill in (("_norm", 0.0), ("_count", 0.0), ("_owner", -1)):
+    def _free_row(self, cell: tuple[int, int]) -> int:
+        """A row for a new reference in ``cell``: the cell's oldest when the cell is full, else a new row
+        while the map is below ``max_references``, else the map's oldest."""
+        rows = self._cells.get(cell)
+        if rows is not None and len(rows) >= self.params.per_cell:
+            row = rows[0]
+        elif self._size < self.params.max_references:
+            row = self._size
+            self._size += 1
+            if row == self._xy.shape[0]:
+                self._grow_rows()
+            self._cell_of.append(cell)
+            return row
+        else:
+            while True:
+                row, serial = self._by_age.popleft()
+                if self._serial[row] == serial:
+                    break
+        self._evict(row)
+        return row
+
+    def _evict(self, row: int) -> None:
+        """Forget the reference in ``row``: its serial changes when it is reused, so its postings go stale."""
+        old = int(self._owner[row])
+        self._per_owner[old] -= 1
+        if not self._per_owner[old]:
+            del self._per_owner[old]
+        self._live_postings -= int(self._count[row])
+        cell = self._cell_of[row]
+        rows = self._cells[cell]
+        rows.remove(row)
+        if not rows:
+            del self._cells[cell]
+
+    def _grow_rows(self) -> None:
+        rows = self._xy.shape[0]
+        new_rows = min(2 * rows, self.params.max_references)
+        for name in ("_xy", "_owner", "_norm", "_count", "_serial", "_dot", "_shared"):
             old = getattr(self, name)
-            longer = np.full(new_rows, fill, dtype=old.dtype)
+            fill = -1 if name in ("_owner", "_serial") else 0
+            longer = np.full((new_rows, *old.shape[1:]), fill, dtype=old.dtype)
             longer[:rows] = old
             setattr(self, name, longer)
-        xy = np.zeros((new_rows, 2))
-        xy[:rows] = self._xy
-        self._xy = xy
+
+    def _grow_columns(self, n_columns: int) -> None:
+        cols = self._start.size
+        if n_columns <= cols:
+            return
+        new_cols = max(2 * cols, n_columns)
+        for name in ("_start", "_length", "_capacity"):
+            longer = np.zeros(new_cols, dtype=np.int64)
+            longer[:cols] = getattr(self, name)
+            setattr(self, name, longer)
+
+    def _grow_pool(self, size: int) -> None:
+        new_size = max(size, 2 * self._post_row.size)
+        for name in ("_post_row", "_post_serial", "_post_gain"):
+            old = getattr(self, name)
+            longer = np.zeros(new_size, dtype=old.dtype)
+            longer[: self._pool_end] = old[: self._pool_end]
+            setattr(self, name, longer)
+
+    def _compact(self) -> None:
+        self._post_row, self._post_serial, self._post_gain, self._pool_end = index.compact(
+            self._start, self._length, self._capacity, self._post_row, self._post_serial, self._post_gain,
+            self._serial,
+        )  # fmt: skip
 
     def locate(self, owner: int, bssids: list[str], rss: np.ndarray) -> np.ndarray | None:
         """Weighted-kNN position of a scan over the other users' stored scans, or None when the map cannot
@@ -133,28 +232,29 @@ class CrowdFingerprints:
         p = self.params
         if len(bssids) < p.min_aps:
             return None
-        cols, gains = self._row(bssids, rss, intern=False)
-        n = self._size
-        others = self._owner[:n] != owner
-        if cols.size < p.min_aps or int(others.sum()) < p.min_references:
+        heard = self._gains(bssids, rss)
+        if len(heard) < p.min_aps or self._size - self._per_owner.get(owner, 0) < p.min_references:
             return None
-        query = gains.astype(float)
-        # Union RMS: |g_ref|^2 + |g_q|^2 - 2 g_ref . g_q over n_ref + n_q - shared APs (slam_core.wifi_pairs)
-        dot = self._gain[:n, cols].astype(float) @ query
-        shared = self._heard[:n, cols].sum(axis=1, dtype=float)
-        union = self._count[:n] + cols.size - shared
-        squared = self._norm[:n] + float(query @ query) - 2.0 * dot
-        distance = np.sqrt(np.maximum(squared, 0.0) / np.maximum(union, 1.0))
-        distance = np.where(others & (shared > 0), distance, np.inf)
-        k = min(p.k, n)
+        known = [(self._columns[b], g) for b, g in heard.items() if b in self._columns]
+        cols = np.fromiter((c for c, _ in known), np.int64, len(known))
+        gains = np.fromiter((g for _, g in known), np.float32, len(known))
+        # the query's norm and AP count include the APs no reference heard (at the floor in every reference)
+        query_norm = sum(float(np.float32(g)) ** 2 for g in heard.values())
+        rows, distance = index.union_distances(
+            cols, gains, query_norm, len(heard), owner, self._start, self._length, self._post_row,
+            self._post_serial, self._post_gain, self._serial, self._owner, self._norm, self._count, self._dot,
+            self._shared,
+        )  # fmt: skip
+        k = p.k
+        if rows.size < k:  # fewer than k references share an AP with the scan
+            return None
         nearest = np.argpartition(distance, k - 1)[:k]
         d = distance[nearest]
-        if not np.all(np.isfinite(d)):
-            return None
         w = 1.0 / np.maximum(d, 1e-3)
         w /= w.sum()
-        estimate: np.ndarray = w @ self._xy[nearest]
-        spread = float(np.sqrt(w @ np.sum((self._xy[nearest] - estimate) ** 2, axis=1)))
+        xy = self._xy[rows[nearest]]
+        estimate: np.ndarray = w @ xy
+        spread = float(np.sqrt(w @ np.sum((xy - estimate) ** 2, axis=1)))
         if spread > p.max_spread_m:  # the neighbours disagree: the map does not know this place
             return None
         return estimate

@@ -41,7 +41,8 @@ class TrackerParams:
     """A signature observation more than this (99 %, 2 dof) from the user's cloud is skipped and counted."""
     fingerprints: FingerprintParams = field(default_factory=FingerprintParams)
     """The crowd-learned WiFi fingerprint map and its robust position fixes
-    (``slam_core.crowd_fingerprints``); off unless enabled."""
+    (``slam_core.crowd_fingerprints``). Off here, so that the core's defaults are the paper's DynamicSLAM;
+    the server and ``evaluate --msindoor`` turn it on in dynamicslam mode."""
     revise_headings: bool = True
     """When the PDR front-end's north offset estimate moves, translate the user's particles by the revision
     of the path dead-reckoned since its last absolute observation (``BuildingTracker._revise_headings``)."""

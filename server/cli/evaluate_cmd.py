@@ -49,8 +49,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--fingerprints",
-        action="store_true",
-        help="--msindoor: also localise scans on the WiFi fingerprint map the crowd learns (robust fixes)",
+        action=argparse.BooleanOptionalAction,
+        help="--msindoor, dynamicslam: also localise scans on the WiFi fingerprint map the crowd learns "
+        "(robust fixes; on by default, as on the server)",
     )
     parser.add_argument("--sweep", choices=("particles", "density", "anchor-density"))
     parser.add_argument(
@@ -67,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
 
     if args.msindoor is not None:
         return _msindoor(args)
-    if args.warm_split is not None or args.calibration is not None or args.fingerprints:
+    if args.warm_split is not None or args.calibration is not None or args.fingerprints is not None:
         print("crowdslam evaluate: --warm-split, --calibration and --fingerprints apply to --msindoor only")
         return 2
 
@@ -111,7 +112,7 @@ def _msindoor(args: argparse.Namespace) -> int:
             motion_model=args.motion_model,
             crowd_solver=args.crowd_solver,
             seed=args.seed,
-            fingerprints=args.fingerprints,
+            fingerprints=args.fingerprints is not False,
         )
         calibration = load_calibration(args.calibration)
     except (OSError, ValueError) as error:

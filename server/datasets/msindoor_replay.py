@@ -60,8 +60,9 @@ class ReplayOptions:
     crowd_solver: str = "graph"
     seed: int = 0
     window_ms: int = 1000
-    fingerprints: bool = False
-    """Also localise scans on the crowd-learned WiFi fingerprint map (``slam_core.crowd_fingerprints``)."""
+    fingerprints: bool = True
+    """In ``dynamicslam`` mode, also localise scans on the crowd-learned WiFi fingerprint map
+    (``slam_core.crowd_fingerprints``), as the server does by default."""
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -72,7 +73,8 @@ class ReplayOptions:
 
 def replay_params(base: TrackerParams, options: ReplayOptions) -> TrackerParams:
     """The server's tracker parameters (``base``) in the options' mode: ``pdr`` scores plain dead reckoning,
-    ``semanticslam`` uses building anchors only, ``dynamicslam`` also human anchors."""
+    ``semanticslam`` uses building anchors only, ``dynamicslam`` also human anchors and (unless the options
+    turn them off) fixes on the crowd's WiFi fingerprint map, which come from other users' scans too."""
     return replace(
         base,
         filter=replace(
@@ -83,7 +85,9 @@ def replay_params(base: TrackerParams, options: ReplayOptions) -> TrackerParams:
             use_human_anchors=options.mode == "dynamicslam",
         ),
         crowd_solver=options.crowd_solver,
-        fingerprints=replace(base.fingerprints, enabled=options.fingerprints or base.fingerprints.enabled),
+        fingerprints=replace(
+            base.fingerprints, enabled=options.fingerprints and options.mode == "dynamicslam"
+        ),
     )
 
 
@@ -151,7 +155,7 @@ def replay_floor(
         "detections_per_walk": {k: v / len(traces) for k, v in tracker.front_end.fired.items()},
         "signature_observations_applied": counts["signatures_applied"],
         "signature_observations_gated": counts["signatures_gated"],
-        "fingerprints": options.fingerprints,
+        "fingerprints": tracker.params.fingerprints.enabled,
         "fingerprint_fixes": counts["fingerprint_fixes"],
         "seconds": time.perf_counter() - started,
     }

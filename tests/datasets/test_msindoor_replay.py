@@ -15,7 +15,7 @@ from server.cli.main import main
 from server.convert import BuildingContext, to_user_batch
 from server.datasets.msindoor import read_trace
 from server.datasets.msindoor_batches import trace_batches
-from server.datasets.msindoor_replay import ReplayOptions, replay_floor
+from server.datasets.msindoor_replay import ReplayOptions, replay_floor, replay_params
 from server.settings import Settings
 from slam_core.crowd_fingerprints import FingerprintParams
 from slam_core.tracker import BuildingTracker
@@ -80,6 +80,23 @@ def test_fingerprint_fixes_come_from_the_warm_crowds_scans(small_floor: Path) ->
     assert result["fingerprint_fixes"] > 0
     assert np.all(np.isfinite(errors))
     assert result["median_m"] < 8.0
+
+
+def test_fingerprint_fixes_are_dynamicslams_like_human_anchors() -> None:
+    """Fixes on the crowd's fingerprint map come from other users' scans: on in dynamicslam (unless turned
+    off), off in semanticslam and pdr, on the server as in the replay."""
+    base = tracker_params(Settings())
+    assert base.fingerprints.enabled
+    assert not tracker_params(Settings(mode="semanticslam")).fingerprints.enabled
+    assert not tracker_params(Settings(fingerprint_fixes=False)).fingerprints.enabled
+    for mode, fingerprints, expected in (
+        ("dynamicslam", True, True),
+        ("dynamicslam", False, False),
+        ("semanticslam", True, False),
+        ("pdr", True, False),
+    ):
+        options = ReplayOptions(mode=mode, fingerprints=fingerprints)
+        assert replay_params(base, options).fingerprints.enabled is expected, (mode, fingerprints)
 
 
 def test_replay_options_are_checked() -> None:

@@ -10,6 +10,7 @@ from slam_core.crowd_fingerprints import CrowdFingerprints, FingerprintParams
 from slam_core.fastslam import DynamicSlam
 from slam_core.params import FilterParams
 from slam_core.signal_map.maps import FingerprintGrid, localise_knn
+from slam_core.wifi_pairs import fingerprint_matrix
 
 
 def _scans(rng: np.random.Generator, n: int, aps: int = 12) -> tuple[np.ndarray, np.ndarray]:
@@ -64,7 +65,66 @@ def test_the_map_is_a_bounded_ring() -> None:
     db = CrowdFingerprints(FingerprintParams(k=3, min_references=10, max_references=100))
     _add_all(db, np.ones(300, dtype=np.int64), xy, rss)
     assert len(db) == 100
-    assert db._gain.shape[0] == 100
+    assert db._xy.shape[0] == 100
+
+
+def _brute_force_knn(
+    refs: list[tuple[int, np.ndarray, np.ndarray]], owner: int, query: np.ndarray, k: int
+) -> np.ndarray | None:
+    """Weighted kNN over ``wifi_pairs.fingerprint_matrix`` of dense rows (NaN: not heard), others' only."""
+    rss = np.vstack([r[2] for r in refs] + [query])
+    d = fingerprint_matrix(rss)[-1, :-1]
+    heard = np.isfinite(rss)
+    usable = np.array([o != owner for o, _, _ in refs]) & (heard[:-1] & heard[-1]).any(axis=1)
+    d = np.where(usable, d, np.inf)
+    nearest = np.argsort(d, kind="stable")[:k]
+    if not np.all(np.isfinite(d[nearest])):
+        return None
+    w = 1.0 / np.maximum(d[nearest], 1e-3)
+    return (w / w.sum()) @ np.array([refs[i][1] for i in nearest])
+
+
+@pytest.mark.parametrize(("cell_m", "per_cell"), [(4.0, 16), (10.0, 3)])
+def test_the_inverted_index_matches_brute_force_through_evictions_and_compactions(
+    cell_m: float, per_cell: int
+) -> None:
+    """Many APs, few heard per scan, a small map that turns over five times, by age (large cells) or by
+    place (small cells): every query equals weighted kNN over the union distance of the scans the map should
+    hold (the newest per_cell of each cell, and the newest max_references of all), and the pool of postings
+    stays proportional to the live ones."""
+    rng = np.random.default_rng(11)
+    n_aps, ring = 400, 120
+    params = FingerprintParams(
+        k=5, min_references=20, max_references=ring, max_spread_m=1e9, cell_m=cell_m, per_cell=per_cell
+    )
+    db = CrowdFingerprints(params)
+    names = [f"ap{i}" for i in range(n_aps)]
+    kept: list[tuple[int, np.ndarray, np.ndarray]] = []
+    checked = 0
+    for t in range(6 * ring):
+        row = np.full(n_aps, np.nan)
+        area = rng.integers(0, n_aps - 30)  # scans hear a window of nearby APs: neighbours share postings
+        heard = area + rng.choice(30, size=rng.integers(3, 15), replace=False)
+        row[heard] = rng.integers(-99 * 64, -40 * 64, heard.size) / 64.0  # exact in float32, rarely tied
+        xy, owner = rng.uniform(0, 50, 2), int(rng.integers(0, 6))
+        if t % 3 == 0 and len(kept) >= params.min_references:
+            expected = _brute_force_knn(kept, owner, row, params.k)
+            found = db.locate(owner, [names[i] for i in heard], row[heard])
+            assert (found is None) == (expected is None)
+            if found is not None:
+                np.testing.assert_allclose(found, expected, atol=1e-9)
+                checked += 1
+        assert db.add(owner, xy, [names[i] for i in heard], row[heard])
+        same_cell = [i for i, r in enumerate(kept) if np.array_equal(r[1] // cell_m, xy // cell_m)]
+        if len(same_cell) >= per_cell:
+            del kept[same_cell[0]]
+        elif len(kept) >= ring:
+            del kept[0]
+        kept.append((owner, xy, row))
+        assert len(db) == len(kept)
+        live = sum(int(np.isfinite(r).sum()) for _, _, r in kept)
+        assert db.postings <= 3 * live + 4 * n_aps
+    assert checked > 100
 
 
 def test_fingerprint_params_are_checked() -> None:
@@ -75,6 +135,8 @@ def test_fingerprint_params_are_checked() -> None:
         ({"sigma_m": 0.0}, "positive"),
         ({"outlier_probability": 1.0}, "outlier_probability"),
         ({"min_aps": 0}, "min_aps"),
+        ({"cell_m": 0.0}, "cell_m"),
+        ({"per_cell": 0}, "per_cell"),
     ):
         with pytest.raises(ValueError, match=message):
             FingerprintParams(**bad)  # type: ignore[arg-type]

@@ -1,0 +1,154 @@
+"""An inverted index of placed WiFi scans by AP, and the union-fingerprint distance of a query to every
+reference that shares an AP with it, compiled (``slam_core.crowd_fingerprints`` owns the arrays).
+
+Layout. Each AP (an interned column) has a slab of postings in one pool: ``start[c]``, ``length[c]``,
+``capacity[c]``; a posting is (reference row, the row's serial when it was posted, RSS gain). A full slab
+moves to the end of the pool with twice the room, so appending is O(1) amortised. References live in a ring
+of rows: when a row is overwritten its serial changes, and its old postings become stale; they are skipped
+by queries and dropped when the pool is compacted. The cost of a query is the number of postings of its
+APs, not references x APs: a 2,400-AP mall floor needs no dense references x APs matrix.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True, nogil=True)
+def room_needed(cols: np.ndarray, length: np.ndarray, capacity: np.ndarray) -> int:
+    """Pool entries that ``append`` will take from the end of the pool for these columns (slabs that move)."""
+    need = 0
+    for c in cols:
+        if length[c] == capacity[c]:
+            need += max(4, 2 * capacity[c])
+    return need
+
+
+@njit(cache=True, nogil=True)
+def append(
+    cols: np.ndarray,
+    gains: np.ndarray,
+    row: int,
+    serial: int,
+    start: np.ndarray,
+    length: np.ndarray,
+    capacity: np.ndarray,
+    post_row: np.ndarray,
+    post_serial: np.ndarray,
+    post_gain: np.ndarray,
+    pool_end: int,
+) -> int:
+    """Post one reference under each of its columns; returns the new end of the pool. The caller made sure
+    the pool holds ``room_needed`` more entries past ``pool_end``."""
+    for j in range(cols.size):
+        c = cols[j]
+        if length[c] == capacity[c]:  # move the slab to the end with twice the room
+            new_capacity = max(4, 2 * capacity[c])
+            for k in range(length[c]):
+                post_row[pool_end + k] = post_row[start[c] + k]
+                post_serial[pool_end + k] = post_serial[start[c] + k]
+                post_gain[pool_end + k] = post_gain[start[c] + k]
+            start[c] = pool_end
+            capacity[c] = new_capacity
+            pool_end += new_capacity
+        p = start[c] + length[c]
+        post_row[p] = row
+        post_serial[p] = serial
+        post_gain[p] = gains[j]
+        length[c] += 1
+    return pool_end
+
+
+@njit(cache=True, nogil=True)
+def compact(
+    start: np.ndarray,
+    length: np.ndarray,
+    capacity: np.ndarray,
+    post_row: np.ndarray,
+    post_serial: np.ndarray,
+    post_gain: np.ndarray,
+    row_serial: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """The pool rewritten without stale postings, each slab with room for half as many again (at least 4);
+    ``start``, ``length`` and ``capacity`` are updated in place. Returns the new pool and its end."""
+    n_cols = start.size
+    live = np.zeros(n_cols, dtype=np.int64)
+    total = 0
+    for c in range(n_cols):
+        for k in range(length[c]):
+            p = start[c] + k
+            if row_serial[post_row[p]] == post_serial[p]:
+                live[c] += 1
+        total += max(4, live[c] + live[c] // 2)
+    new_row = np.empty(total, dtype=np.int64)
+    new_serial = np.empty(total, dtype=np.int64)
+    new_gain = np.empty(total, dtype=np.float32)
+    end = 0
+    for c in range(n_cols):
+        n = 0
+        for k in range(length[c]):
+            p = start[c] + k
+            if row_serial[post_row[p]] == post_serial[p]:
+                new_row[end + n] = post_row[p]
+                new_serial[end + n] = post_serial[p]
+                new_gain[end + n] = post_gain[p]
+                n += 1
+        start[c] = end
+        length[c] = n
+        capacity[c] = max(4, live[c] + live[c] // 2)
+        end += capacity[c]
+    return new_row, new_serial, new_gain, end
+
+
+@njit(cache=True, nogil=True)
+def union_distances(
+    cols: np.ndarray,
+    gains: np.ndarray,
+    query_norm: float,
+    query_count: int,
+    owner: int,
+    start: np.ndarray,
+    length: np.ndarray,
+    post_row: np.ndarray,
+    post_serial: np.ndarray,
+    post_gain: np.ndarray,
+    row_serial: np.ndarray,
+    row_owner: np.ndarray,
+    row_norm: np.ndarray,
+    row_count: np.ndarray,
+    dot: np.ndarray,
+    shared: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Every live reference of another owner that shares an AP with the query, and its union-fingerprint
+    distance (``slam_core.wifi_pairs``): RMS dB over the union of both scans' APs, a missing AP at the floor,
+    from |g_ref|^2 + |g_q|^2 - 2 g_ref . g_q over n_ref + n_q - shared APs (gains are RSS above the floor).
+    ``cols`` and ``gains`` are the query's APs known to the index; ``query_norm`` and ``query_count`` are over
+    all of its APs. ``dot`` and ``shared`` are per-row scratch, zero on entry and left zero."""
+    touched = np.empty(row_serial.size, dtype=np.int64)
+    n_touched = 0
+    for j in range(cols.size):
+        q = float(gains[j])
+        c = cols[j]
+        for k in range(length[c]):
+            p = start[c] + k
+            r = post_row[p]
+            if row_serial[r] != post_serial[p] or row_owner[r] == owner:
+                continue
+            if shared[r] == 0:
+                touched[n_touched] = r
+                n_touched += 1
+            shared[r] += 1
+            dot[r] += float(post_gain[p]) * q
+    rows = touched[:n_touched].copy()
+    distance = np.empty(n_touched)
+    for i in range(n_touched):
+        r = rows[i]
+        squared = row_norm[r] + query_norm - 2.0 * dot[r]
+        union = row_count[r] + query_count - shared[r]
+        distance[i] = math.sqrt(max(squared, 0.0) / max(union, 1.0))
+        dot[r] = 0.0
+        shared[r] = 0
+    return rows, distance
