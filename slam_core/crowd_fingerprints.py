@@ -25,6 +25,25 @@ from slam_core.kernels import fingerprint_index as index
 
 
 @dataclass(frozen=True)
+class Scan:
+    """One WiFi scan of a tracked user: its fresh APs and the user's dead-reckoned displacement since."""
+
+    bssids: list[str]
+    rss: np.ndarray
+    shift: np.ndarray  # (2,) displacement from the scan to now
+
+
+@dataclass(frozen=True)
+class Place:
+    """A scan to join the map, at the position its user was estimated to hold then."""
+
+    owner: int
+    xy: np.ndarray
+    bssids: list[str]
+    rss: np.ndarray
+
+
+@dataclass(frozen=True)
 class FingerprintParams:
     enabled: bool = False
     k: int = 7
@@ -258,3 +277,19 @@ class CrowdFingerprints:
         if spread > p.max_spread_m:  # the neighbours disagree: the map does not know this place
             return None
         return estimate
+
+    def fix_and_places(
+        self, owner: int, xy: np.ndarray, cov: np.ndarray, scans: list[Scan]
+    ) -> tuple[np.ndarray | None, list[Place]]:
+        """For a user estimated at ``xy`` (covariance ``cov``) now, with this call's scans in time order: the
+        fix (the latest scan the map can place, carried to now by the displacement since it) and, when the
+        estimate is confident, the scans to add at ``xy`` less that displacement. The caller adds them after
+        all of a call's fixes, so users of one call do not locate each other's scans of that call."""
+        fix = None
+        for scan in reversed(scans):
+            if (found := self.locate(owner, scan.bssids, scan.rss)) is not None:
+                fix = found + scan.shift
+                break
+        if float(np.max(np.linalg.eigvalsh(cov))) > self.params.max_reference_std_m**2:
+            return fix, []
+        return fix, [Place(owner, xy - scan.shift, scan.bssids, scan.rss) for scan in scans]

@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from slam_core.crowd_fingerprints import CrowdFingerprints, FingerprintParams, Place, Scan
 from slam_core.crowd_graph import CrowdGraph, GraphParams
 from slam_core.crowd_map import CrowdMapBuilder
 from slam_core.encounter_detection import MODEL_BLUETOOTH, MODEL_WIFI
@@ -195,9 +196,12 @@ def run_scenario(
     particles: int = 75,
     motion_model: str = "bias-scale",
     crowd_solver: str = "graph",
+    fingerprints: bool = True,
 ) -> dict[str, Any]:
     """Metrics of one run (see ``run_scenario_with_errors``)."""
-    return run_scenario_with_errors(scenario, seed, mode, sampling, particles, motion_model, crowd_solver)[0]
+    return run_scenario_with_errors(
+        scenario, seed, mode, sampling, particles, motion_model, crowd_solver, fingerprints
+    )[0]
 
 
 def run_scenario_with_errors(
@@ -208,21 +212,26 @@ def run_scenario_with_errors(
     particles: int = 75,
     motion_model: str = "bias-scale",
     crowd_solver: str = "graph",
+    fingerprints: bool = True,
 ) -> tuple[dict[str, Any], np.ndarray]:
     """Run the scenario; returns the metrics and the error of every step of every user (metres).
     ``crowd_solver``: "graph" re-solves the shared anchor map jointly (``slam_core.crowd_graph``);
-    "fusion" fuses each detection's filtered estimate (``slam_core.crowd_map``)."""
+    "fusion" fuses each detection's filtered estimate (``slam_core.crowd_map``). ``fingerprints``: in
+    dynamicslam mode, fixes on the crowd's WiFi fingerprint map as the server makes them by default (other
+    users' scans, like human anchors: semanticslam does without)."""
     if crowd_solver not in CROWD_SOLVERS:
         raise ValueError(f"unknown crowd solver {crowd_solver!r}; valid: {', '.join(CROWD_SOLVERS)}")
     params = filter_params(mode, sampling, particles, motion_model)
     sim = simulate(scenario, seed)
     calibration = calibrate(scenario, seed) if mode == "dynamicslam" else None
     encounters = detect_encounters(sim, calibration) if calibration is not None else None
+    with_fingerprints = fingerprints and mode == "dynamicslam"
     if mode == "pdr":
         errors, best_errors = _dead_reckoning_errors(sim), None
         run = None
     else:
-        run = _filter_errors(sim, params, seed, encounters, crowd_solver, calibration)
+        fp_params = FingerprintParams(enabled=True) if with_fingerprints else None
+        run = _filter_errors(sim, params, seed, encounters, crowd_solver, calibration, None, fp_params)
         errors, best_errors = run.errors, run.best_errors
     n_users = len(sim.users)
     result: dict[str, Any] = {
@@ -232,6 +241,7 @@ def run_scenario_with_errors(
         "particles": particles,
         "motion_model": motion_model,
         "crowd_solver": crowd_solver,
+        "fingerprints": with_fingerprints,
         **error_summary(errors),
         "n_estimates": int(errors.size),
         "anchors_passed_per_user": sim.anchors_passed_per_user,
@@ -239,6 +249,7 @@ def run_scenario_with_errors(
         "encounter_detections_per_user": 0.0 if encounters is None else 2 * len(encounters.t) / n_users,
         "encounters_chosen_per_user": 0.0 if run is None else 2 * run.chosen / n_users,
         "encounters_applied_per_user": 0.0 if run is None else 2 * run.applied.size / n_users,
+        "fingerprint_fixes_per_user": 0.0 if run is None else run.fingerprint_fixes / n_users,
         "expected_anchors_passed_per_user": scenario.raw.get("expected_statistics", {}).get(
             "building_anchors_passed_per_user"
         ),
@@ -274,6 +285,7 @@ class FilterRun:
     error_users: np.ndarray  # the user of each error
     chosen: int  # encounters chosen by the selector
     applied: np.ndarray  # indices (into the detections) of the encounters applied
+    fingerprint_fixes: int = 0  # scans localised on the crowd fingerprint map and applied
 
 
 def _filter_errors(
@@ -284,9 +296,12 @@ def _filter_errors(
     crowd_solver: str = "graph",
     calibration: Calibration | None = None,
     selection: SelectionParams | None = None,
+    fingerprints: FingerprintParams | None = None,
 ) -> FilterRun:
     """Run the filters over the simulation, choosing which detected encounters to apply from the filters'
-    own estimates (``slam_core.encounter_selection``), as the live tracker does."""
+    own estimates (``slam_core.encounter_selection``), as the live tracker does; with ``fingerprints``
+    enabled, each scan is also localised on the crowd's fingerprint map as the tracker does
+    (``BuildingTracker._fingerprint_fixes``), after the tick's steps and before its encounters."""
     if encounters is not None and calibration is None:
         raise ValueError("encounters need the calibration whose range models reported them")
     selector = EncounterSelector(selection or SelectionParams())
@@ -311,12 +326,24 @@ def _filter_errors(
     enc_tick = (
         np.floor(encounters.t / TICK_S).astype(np.int64) if encounters is not None else np.zeros(0, np.int64)
     )
+    fp = CrowdFingerprints(fingerprints) if fingerprints is not None and fingerprints.enabled else None
+    scan_user = np.concatenate([np.full(len(tr.scan_t), u) for u, tr in enumerate(sim.users)])
+    scan_index = np.concatenate([np.arange(len(tr.scan_t)) for tr in sim.users])
+    scan_tick = np.floor(np.concatenate([tr.scan_t for tr in sim.users]) / TICK_S).astype(np.int64)
+    if fp is None:
+        scan_tick = np.zeros(0, np.int64)
+    dead_reckoned = [  # each user's observed displacement at each of its positions
+        np.vstack([[0.0, 0.0], np.cumsum(tr.step_length_obs[:, None] * _unit(tr.step_heading_obs), axis=0)])
+        for tr in sim.users
+    ]
+    ap_names = [f"ap{i}" for i in range(sim.world.ap_xy.shape[0])]
     errors: list[float] = []
     best_errors: list[float] = []
     error_users: list[int] = []
     chosen = 0
+    fingerprint_fixes = 0
     applied: list[np.ndarray] = []
-    for tick in np.unique(np.concatenate([step_tick, enc_tick])):
+    for tick in np.unique(np.concatenate([step_tick, enc_tick, scan_tick])):
         sel = np.flatnonzero(step_tick == tick)
         users_now = step_user[sel]
         for u in users_now[slots[users_now] < 0]:
@@ -375,6 +402,13 @@ def _filter_errors(
                 if len(crowd) != crowd_size:
                     crowd_size = len(crowd)
                     engine.merge_crowd_map(engine.active_users, crowd.snapshot())
+        if fp is not None:
+            assert fingerprints is not None
+            s = np.flatnonzero(scan_tick == tick)
+            fingerprint_fixes += _fingerprint_fixes(
+                engine, fp, fingerprints, sim, slots, displacement, dead_reckoned, ap_names,
+                scan_user[s], scan_index[s],
+            )  # fmt: skip
         if encounters is not None and calibration is not None and params.use_human_anchors:
             e = np.flatnonzero(enc_tick == tick)
             e = e[(slots[encounters.a[e]] >= 0) & (slots[encounters.b[e]] >= 0)]
@@ -403,7 +437,59 @@ def _filter_errors(
         np.array(error_users, dtype=np.int64),
         chosen,
         np.concatenate(applied) if applied else np.zeros(0, dtype=np.int64),
+        fingerprint_fixes,
     )
+
+
+def _unit(heading: np.ndarray) -> np.ndarray:
+    return np.column_stack([np.cos(heading), np.sin(heading)])
+
+
+def _fingerprint_fixes(
+    engine: DynamicSlam,
+    fp: CrowdFingerprints,
+    params: FingerprintParams,
+    sim: Simulation,
+    slots: np.ndarray,
+    displacement: np.ndarray,
+    dead_reckoned: list[np.ndarray],
+    ap_names: list[str],
+    scan_user: np.ndarray,
+    scan_index: np.ndarray,
+) -> int:
+    """One tick's scans of the tracked users, as ``BuildingTracker._fingerprint_fixes`` handles a call's;
+    returns the fixes applied."""
+    scans: dict[int, list[Scan]] = {}
+    for u, c in zip(scan_user.tolist(), scan_index.tolist(), strict=True):
+        if slots[u] < 0:
+            continue
+        tr = sim.users[u]
+        rss = tr.scan_rss[c]
+        heard = np.flatnonzero(np.isfinite(rss))
+        position = int(np.searchsorted(tr.t, tr.scan_t[c], side="right")) - 1
+        shift = displacement[u] - dead_reckoned[u][max(position, 0)]
+        scans.setdefault(u, []).append(Scan([ap_names[i] for i in heard], rss[heard], shift))
+    if not scans:
+        return 0
+    users = sorted(scans)
+    summary = engine.summaries(slots[users])
+    fix_slots, fixes = [], []
+    places: list[Place] = []
+    for u, row in zip(users, summary, strict=True):
+        cov = np.array([[row[2], row[3]], [row[3], row[4]]])
+        fix, joining = fp.fix_and_places(u, row[0:2], cov, scans[u])
+        places += joining
+        if fix is not None:
+            fix_slots.append(slots[u])
+            fixes.append(fix)
+    if fix_slots:
+        engine.observe_position_robust(
+            np.array(fix_slots, dtype=np.int64), np.array(fixes), params.sigma_m, params.outlier_probability,
+            params.outlier_radius_m,
+        )  # fmt: skip
+    for place in places:
+        fp.add(place.owner, place.xy, place.bssids, place.rss)
+    return len(fixes)
 
 
 def _choose(

@@ -30,7 +30,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from slam_core.crowd_fingerprints import CrowdFingerprints
+from slam_core.crowd_fingerprints import CrowdFingerprints, Place, Scan
 from slam_core.crowd_graph import CrowdGraph, GraphParams
 from slam_core.crowd_map import CrowdMapBuilder
 from slam_core.encounter_detection import DetectionArrays, EncounterDetector
@@ -471,45 +471,40 @@ class BuildingTracker:
         """Each fresh scan of a tracked user: localised on the crowd fingerprint map (other users' scans),
         the position, carried to now through the user's own dead reckoning since the scan, is a robust fix
         (``DynamicSlam.observe_position_robust``); then the scan joins the map at the user's estimate at
-        scan time when that estimate is confident. The fixes of one call go to the engine in one batch."""
+        scan time when that estimate is confident (``CrowdFingerprints.fix_and_places``). The fixes of one
+        call go to the engine in one batch."""
         p = self.params.fingerprints
         stale = self.params.detection.stale_ap_ms
         slots, fixes = [], []
-        places: list[tuple[int, np.ndarray, list[str], np.ndarray]] = []
+        places: list[Place] = []
         names = [b.user for b in batches if self.is_tracking(b.user) and b.scan_t.size]
         rows = self._rows(names)
         for b in batches:
             if b.user not in rows:
                 continue
             u, row = self._users[b.user], rows[b.user]
-            cov = np.array([[row.cov[0], row.cov[1]], [row.cov[1], row.cov[2]]])
-            confident = float(np.max(np.linalg.eigvalsh(cov))) <= p.max_reference_std_m**2
-            scans: list[tuple[int, np.ndarray, list[str], np.ndarray]] = []
-            located = None
-            for c in reversed(range(b.scan_t.size)):  # the latest scan the map can place is the user's fix
+            scans = []
+            for c in range(b.scan_t.size):
                 lo, hi = int(b.scan_offsets[c]), int(b.scan_offsets[c + 1])
                 t = int(b.scan_t[c])
                 fresh = fresh_mask(t, b.scan_last_seen[lo:hi], stale)
                 bssids = [str(x) for x, f in zip(b.scan_bssid[lo:hi], fresh, strict=True) if f]
-                rss = b.scan_rss[lo:hi][fresh]
                 then, _ = u.at(t)
-                shift = u.displacement - then
-                if located is None and (xy := self.fingerprints.locate(u.number, bssids, rss)) is not None:
-                    located = xy + shift  # one fix per user per call
-                if confident:
-                    scans.append((u.number, np.array([row.x, row.y]) - shift, bssids, rss))
-            places += reversed(scans)  # the map takes a user's scans in time order
-            if located is not None:
+                scans.append(Scan(bssids, b.scan_rss[lo:hi][fresh], u.displacement - then))
+            cov = np.array([[row.cov[0], row.cov[1]], [row.cov[1], row.cov[2]]])
+            fix, joining = self.fingerprints.fix_and_places(u.number, np.array([row.x, row.y]), cov, scans)
+            places += joining
+            if fix is not None:
                 slots.append(u.slot)
-                fixes.append(located)
+                fixes.append(fix)
                 reports[b.user].fingerprint_fixes += 1
         if slots:
             self.engine.observe_position_robust(
                 np.array(slots, dtype=np.int64), np.array(fixes), p.sigma_m, p.outlier_probability,
                 p.outlier_radius_m,
             )  # fmt: skip
-        for number, xy, bssids, rss in places:
-            self.fingerprints.add(number, xy, bssids, rss)
+        for place in places:
+            self.fingerprints.add(place.owner, place.xy, place.bssids, place.rss)
 
     def _offer_crowd_map(self) -> None:
         active = self.engine.active_users

@@ -50,8 +50,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--fingerprints",
         action=argparse.BooleanOptionalAction,
-        help="--msindoor, dynamicslam: also localise scans on the WiFi fingerprint map the crowd learns "
-        "(robust fixes; on by default, as on the server)",
+        help="dynamicslam: also localise scans on the WiFi fingerprint map the crowd learns (robust fixes; "
+        "on by default, as on the server)",
     )
     parser.add_argument("--sweep", choices=("particles", "density", "anchor-density"))
     parser.add_argument(
@@ -68,8 +68,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.msindoor is not None:
         return _msindoor(args)
-    if args.warm_split is not None or args.calibration is not None or args.fingerprints is not None:
-        print("crowdslam evaluate: --warm-split, --calibration and --fingerprints apply to --msindoor only")
+    if args.warm_split is not None or args.calibration is not None:
+        print("crowdslam evaluate: --warm-split and --calibration apply to --msindoor only")
         return 2
 
     try:
@@ -148,7 +148,14 @@ def _single(scenario: Any, args: argparse.Namespace, plot: Path) -> dict[str, An
 
     started = time.perf_counter()
     result, errors = run_scenario_with_errors(
-        scenario, args.seed, args.mode, args.sampling, args.particles, args.motion_model, args.crowd_solver
+        scenario,
+        args.seed,
+        args.mode,
+        args.sampling,
+        args.particles,
+        args.motion_model,
+        args.crowd_solver,
+        args.fingerprints is not False,
     )
     result["seconds"] = time.perf_counter() - started
     x, p = empirical_cdf(errors)
@@ -166,7 +173,14 @@ def _compare(scenario: Any, args: argparse.Namespace, plot: Path) -> dict[str, A
     for mode in MODES:
         started = time.perf_counter()
         result, errors = run_scenario_with_errors(
-            scenario, args.seed, mode, args.sampling, args.particles, args.motion_model, args.crowd_solver
+            scenario,
+            args.seed,
+            mode,
+            args.sampling,
+            args.particles,
+            args.motion_model,
+            args.crowd_solver,
+            args.fingerprints is not False,
         )
         result["seconds"] = time.perf_counter() - started
         results[mode] = result
@@ -191,7 +205,14 @@ def _sweep(scenario: Any, args: argparse.Namespace, plot: Path) -> dict[str, Any
             for mode in modes:
                 started = time.perf_counter()
                 r = run_scenario(
-                    world, args.seed, mode, args.sampling, particles, args.motion_model, args.crowd_solver
+                    world,
+                    args.seed,
+                    mode,
+                    args.sampling,
+                    particles,
+                    args.motion_model,
+                    args.crowd_solver,
+                    args.fingerprints is not False,
                 )
                 rows.append(
                     {

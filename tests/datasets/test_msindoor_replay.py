@@ -137,8 +137,6 @@ def test_evaluate_cli_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str])
     scenario = FLOOR.parents[2].parent / "scenarios" / "paper-testbed.json"
     assert main(["evaluate", "--scenario", str(scenario), "--warm-split", "0.5", "--json", str(out)]) == 2
     assert "--msindoor only" in capsys.readouterr().out
-    assert main(["evaluate", "--scenario", str(scenario), "--fingerprints", "--json", str(out)]) == 2
-    assert "--msindoor only" in capsys.readouterr().out
     assert not out.exists()
 
 
