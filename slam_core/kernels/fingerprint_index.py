@@ -104,7 +104,7 @@ def compact(
 
 
 @njit(cache=True, nogil=True)
-def union_distances(
+def union_nearest(
     cols: np.ndarray,
     gains: np.ndarray,
     query_norm: float,
@@ -121,10 +121,12 @@ def union_distances(
     row_count: np.ndarray,
     dot: np.ndarray,
     shared: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Every live reference of another owner that shares an AP with the query, and its union-fingerprint
-    distance (``slam_core.wifi_pairs``): RMS dB over the union of both scans' APs, a missing AP at the floor,
-    from |g_ref|^2 + |g_q|^2 - 2 g_ref . g_q over n_ref + n_q - shared APs (gains are RSS above the floor).
+    k: int,
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """The ``k`` live references of other owners nearest to the query by union-fingerprint distance
+    (``slam_core.wifi_pairs``: RMS dB over the union of both scans' APs, a missing AP at the floor, from
+    |g_ref|^2 + |g_q|^2 - 2 g_ref . g_q over n_ref + n_q - shared APs; gains are RSS above the floor), among
+    those that share an AP with it: their rows and distances, nearest first, and how many shared one.
     ``cols`` and ``gains`` are the query's APs known to the index; ``query_norm`` and ``query_count`` are over
     all of its APs. ``dot`` and ``shared`` are per-row scratch, zero on entry and left zero."""
     touched = np.empty(row_serial.size, dtype=np.int64)
@@ -132,8 +134,7 @@ def union_distances(
     for j in range(cols.size):
         q = float(gains[j])
         c = cols[j]
-        for k in range(length[c]):
-            p = start[c] + k
+        for p in range(start[c], start[c] + length[c]):
             r = post_row[p]
             if row_serial[r] != post_serial[p] or row_owner[r] == owner:
                 continue
@@ -142,13 +143,43 @@ def union_distances(
                 n_touched += 1
             shared[r] += 1
             dot[r] += float(post_gain[p]) * q
-    rows = touched[:n_touched].copy()
-    distance = np.empty(n_touched)
+    best_row = np.full(k, -1, dtype=np.int64)
+    best = np.full(k, math.inf)
     for i in range(n_touched):
-        r = rows[i]
+        r = touched[i]
         squared = row_norm[r] + query_norm - 2.0 * dot[r]
         union = row_count[r] + query_count - shared[r]
-        distance[i] = math.sqrt(max(squared, 0.0) / max(union, 1.0))
+        d = math.sqrt(max(squared, 0.0) / max(union, 1.0))
         dot[r] = 0.0
         shared[r] = 0
-    return rows, distance
+        if d < best[k - 1]:  # insert into the sorted top k (earlier rows win ties)
+            j = k - 1
+            while j > 0 and best[j - 1] > d:
+                best[j] = best[j - 1]
+                best_row[j] = best_row[j - 1]
+                j -= 1
+            best[j] = d
+            best_row[j] = r
+    n = min(k, n_touched)
+    return best_row[:n].copy(), best[:n].copy(), n_touched
+
+
+@njit(cache=True, nogil=True)
+def knn_position(row_xy: np.ndarray, rows: np.ndarray, distance: np.ndarray) -> tuple[float, float, float]:
+    """Weighted kNN (weights 1/d, d floored at 1e-3 dB) over the neighbours' positions: the position and the
+    weighted RMS distance of the neighbours about it."""
+    total = 0.0
+    x = 0.0
+    y = 0.0
+    for i in range(rows.size):
+        w = 1.0 / max(distance[i], 1e-3)
+        total += w
+        x += w * row_xy[rows[i], 0]
+        y += w * row_xy[rows[i], 1]
+    x /= total
+    y /= total
+    spread = 0.0
+    for i in range(rows.size):
+        w = 1.0 / max(distance[i], 1e-3)
+        spread += w * ((row_xy[rows[i], 0] - x) ** 2 + (row_xy[rows[i], 1] - y) ** 2)
+    return x, y, math.sqrt(spread / total)
