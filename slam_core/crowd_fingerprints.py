@@ -292,6 +292,8 @@ class CrowdFingerprints:
             if (found := self.locate(owner, scan.bssids, scan.rss)) is not None:
                 fix = found + scan.shift
                 break
-        if float(np.max(np.linalg.eigvalsh(cov))) > self.params.max_reference_std_m**2:
+        half_trace, half_gap = (cov[0, 0] + cov[1, 1]) / 2.0, (cov[0, 0] - cov[1, 1]) / 2.0
+        largest = half_trace + math.sqrt(half_gap * half_gap + cov[0, 1] * cov[1, 0])  # of a 2x2 SPD matrix
+        if largest > self.params.max_reference_std_m**2:
             return fix, []
         return fix, [Place(owner, xy - scan.shift, scan.bssids, scan.rss) for scan in scans]

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from slam_core.crowd_fingerprints import CrowdFingerprints, FingerprintParams
+from slam_core.crowd_fingerprints import CrowdFingerprints, FingerprintParams, Scan
 from slam_core.fastslam import DynamicSlam
 from slam_core.params import FilterParams
 from slam_core.signal_map.maps import FingerprintGrid, localise_knn
@@ -187,3 +187,27 @@ def test_robust_fix_rejects_bad_input_and_changes_nothing() -> None:
             call()
     for k, v in vars(engine.state).items():
         np.testing.assert_array_equal(v, before[k], err_msg=k)
+
+
+def test_fix_and_places_carries_the_latest_fix_and_keeps_only_confident_scans() -> None:
+    rng = np.random.default_rng(6)
+    xy, rss = _scans(rng, 120)
+    db = CrowdFingerprints(FingerprintParams(max_spread_m=1e9, per_cell=300))
+    names = _add_all(db, np.ones(120, dtype=np.int64), xy, rss)
+    _, q_rss = _scans(rng, 2)
+    scans = []
+    for row, shift in zip(q_rss, ([3.0, 0.0], [1.0, -1.0]), strict=True):
+        heard = np.isfinite(row)
+        scans.append(Scan([n for n, h in zip(names, heard, strict=True) if h], row[heard], np.array(shift)))
+    latest = db.locate(2, scans[1].bssids, scans[1].rss)
+    assert latest is not None
+    here = np.array([10.0, 10.0])
+    fix, places = db.fix_and_places(2, here, np.diag([4.0, 1.0]), scans)
+    assert fix is not None
+    np.testing.assert_allclose(fix, latest + np.array([1.0, -1.0]))  # the latest scan, carried to now
+    assert [p.owner for p in places] == [2, 2]
+    np.testing.assert_allclose([p.xy for p in places], [here - [3.0, 0.0], here - [1.0, -1.0]])
+    # an estimate whose larger axis' sigma exceeds max_reference_std_m (3 m) adds nothing to the map
+    tilted = np.array([[5.0, 4.5], [4.5, 5.0]])  # eigenvalues 0.5 and 9.5
+    assert db.fix_and_places(2, here, tilted, scans)[1] == []
+    assert db.fix_and_places(2, here, np.diag([9.0, 9.0]), scans)[1] != []
