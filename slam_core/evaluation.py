@@ -301,7 +301,7 @@ def _filter_errors(
     """Run the filters over the simulation, choosing which detected encounters to apply from the filters'
     own estimates (``slam_core.encounter_selection``), as the live tracker does; with ``fingerprints``
     enabled, each scan is also localised on the crowd's fingerprint map as the tracker does
-    (``BuildingTracker._fingerprint_fixes``), after the tick's steps and before its encounters."""
+    (``slam_core.tracker_radio.fingerprint_fixes``), after the tick's steps and before its encounters."""
     if encounters is not None and calibration is None:
         raise ValueError("encounters need the calibration whose range models reported them")
     selector = EncounterSelector(selection or SelectionParams())
@@ -457,8 +457,8 @@ def _fingerprint_fixes(
     scan_user: np.ndarray,
     scan_index: np.ndarray,
 ) -> int:
-    """One tick's scans of the tracked users, as ``BuildingTracker._fingerprint_fixes`` handles a call's;
-    returns the fixes applied."""
+    """One tick's scans of the tracked users, as ``slam_core.tracker_radio.fingerprint_fixes`` handles a
+    tracker call's; returns the fixes applied."""
     scans: dict[int, list[Scan]] = {}
     for u, c in zip(scan_user.tolist(), scan_index.tolist(), strict=True):
         if slots[u] < 0:

@@ -1,0 +1,234 @@
+"""The tracker's observations of identified signals (``slam_core.tracker.BuildingTracker`` calls them in
+order): signature anchors inside each round of events (identified transmitters and signatures, placed by
+the crowd), then, after the rounds, fixes on the crowd's WiFi fingerprint map, then encounters between users
+found in the call's WiFi scans and Bluetooth sightings, chosen on the filters' estimates and applied as human
+anchors (Algorithm 1).
+
+Functions over the tracker's collaborators (engine, detector, selector, fingerprint map, user tracks): the
+tracker keeps the order of the stages, these their arithmetic. Pure numerics.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from slam_core.crowd_fingerprints import CrowdFingerprints, Place, Scan
+from slam_core.crowd_graph import CrowdGraph
+from slam_core.crowd_map import CrowdMapBuilder
+from slam_core.encounter_detection import DetectionArrays, EncounterDetector
+from slam_core.encounter_selection import EncounterSelector, pair_keys
+from slam_core.fastslam import DynamicSlam
+from slam_core.tracker_rounds import Round, UserTrack
+from slam_core.tracker_types import EncounterResult, EstimateRow, TrackerParams, UserBatch, UserReport
+from slam_core.wifi_pairs import fresh_mask
+
+
+def observe_signatures(
+    engine: DynamicSlam,
+    crowd: CrowdMapBuilder,
+    graph: CrowdGraph,
+    params: TrackerParams,
+    users: dict[str, UserTrack],
+    rnd: Round,
+    signed: list[int],
+    reports: dict[str, UserReport],
+    changed: set[int],
+) -> None:
+    """Signature anchors (beyond the paper): the crowd anchor with that identity, once placed by other
+    users, is a position measurement N(anchor; user, anchor cov + signature_sigma^2), gated at
+    ``signature_gate_chi2`` against the user's cloud; then the user's pre-update estimate joins the
+    anchor. The detection is reported after the closest approach it describes, so the user is placed
+    at that moment through its own dead reckoning since (plus 10 % of the distance walked as variance).
+    Each user appears at most once per round, so the engine call is one batch."""
+    names = [rnd.det_users[k] for k in signed]
+    slots = np.array([users[n].slot for n in names], dtype=np.int64)
+    before = engine.summaries(slots)
+    fix_slots, fix_xy, fix_sigma = [], [], []
+    ids = []
+    r2 = params.signature_sigma_m**2
+    for name, row, k in zip(names, before, signed, strict=True):
+        u = users[name]
+        then, walked_then = u.at(rnd.det_observed_t[k])
+        shift = u.displacement - then
+        drift = (0.1 * (u.walked - walked_then)) ** 2
+        cov = np.array([[row[2], row[3]], [row[3], row[4]]]) + drift * np.eye(2)
+        existing = crowd.find_signature(rnd.det_signature[k])
+        if existing is not None and crowd.informed_by_others(existing, u.number):
+            anchor_mean, anchor_cov, *_ = crowd.anchor(existing)
+            mean = anchor_mean + shift  # where the anchor says the user is now
+            variance = float(np.max(np.linalg.eigvalsh(anchor_cov))) + r2 + drift
+            d = mean - row[0:2]
+            if float(d @ np.linalg.solve(cov + variance * np.eye(2), d)) <= params.signature_gate_chi2:
+                fix_slots.append(u.slot)
+                u.pin()
+                fix_xy.append(mean)
+                fix_sigma.append(math.sqrt(variance))
+                reports[name].signatures_applied += 1
+            else:
+                reports[name].signatures_gated += 1
+        index = crowd.contribute_signed(
+            u.number,
+            row[0:2] - shift,
+            cov,
+            rnd.det_types[k],
+            rnd.det_signature[k],
+            float(rnd.det_observed_t[k]),
+            params.signature_sigma_m,
+        )
+        ids.append(index)
+        if params.crowd_solver == "graph":
+            graph.add_detection(u.number, index, then, walked_then, params.signature_sigma_m)
+    if fix_slots:
+        engine.observe_position(np.array(fix_slots, dtype=np.int64), np.array(fix_xy), np.array(fix_sigma))
+    changed.update(ids)
+
+
+def fingerprint_fixes(
+    engine: DynamicSlam,
+    fingerprints: CrowdFingerprints,
+    params: TrackerParams,
+    batches: list[UserBatch],
+    users: dict[str, UserTrack],
+    rows: dict[str, EstimateRow],
+    reports: dict[str, UserReport],
+) -> None:
+    """Each fresh scan of a tracked user: localised on the crowd fingerprint map (other users' scans),
+    the position, carried to now through the user's own dead reckoning since the scan, is a robust fix
+    (``DynamicSlam.observe_position_robust``); then the scan joins the map at the user's estimate at
+    scan time when that estimate is confident (``CrowdFingerprints.fix_and_places``). The fixes of one
+    call go to the engine in one batch. ``rows``: the current estimates of the batches' tracked users with
+    scans."""
+    p = params.fingerprints
+    stale = params.detection.stale_ap_ms
+    slots, fixes = [], []
+    places: list[Place] = []
+    for b in batches:
+        if b.user not in rows:
+            continue
+        u, row = users[b.user], rows[b.user]
+        scans = []
+        for c in range(b.scan_t.size):
+            lo, hi = int(b.scan_offsets[c]), int(b.scan_offsets[c + 1])
+            t = int(b.scan_t[c])
+            fresh = fresh_mask(t, b.scan_last_seen[lo:hi], stale)
+            bssids = [str(x) for x, f in zip(b.scan_bssid[lo:hi], fresh, strict=True) if f]
+            then, _ = u.at(t)
+            scans.append(Scan(bssids, b.scan_rss[lo:hi][fresh], u.displacement - then))
+        cov = np.array([[row.cov[0], row.cov[1]], [row.cov[1], row.cov[2]]])
+        fix, joining = fingerprints.fix_and_places(u.number, np.array([row.x, row.y]), cov, scans)
+        places += joining
+        if fix is not None:
+            slots.append(u.slot)
+            fixes.append(fix)
+            reports[b.user].fingerprint_fixes += 1
+    if slots:
+        engine.observe_position_robust(
+            np.array(slots, dtype=np.int64), np.array(fixes), p.sigma_m, p.outlier_probability,
+            p.outlier_radius_m,
+        )  # fmt: skip
+    for place in places:
+        fingerprints.add(place.owner, place.xy, place.bssids, place.rss)
+
+
+def encounters(
+    engine: DynamicSlam,
+    detector: EncounterDetector,
+    selector: EncounterSelector,
+    params: TrackerParams,
+    batches: list[UserBatch],
+    users: dict[str, UserTrack],
+    by_ble: dict[str, str],
+) -> tuple[list[EncounterResult], int]:
+    """The encounters chosen among this call's detections, and how many detections there were. The
+    detections stay arrays until the few chosen ones are ranged (a busy building finds thousands)."""
+    scan_users: list[str] = []
+    scan_t, scan_offsets, scan_rss, scan_seen = [], [0], [], []
+    bssids: list[str] = []
+    receivers: list[str] = []
+    senders: list[str] = []
+    peer_t, peer_rss = [], []
+    for b in batches:
+        if b.scan_t.size:
+            scan_users += [b.user] * b.scan_t.size
+            scan_t.append(b.scan_t)
+            scan_offsets += (scan_offsets[-1] + b.scan_offsets[1:]).tolist()
+            bssids += b.scan_bssid
+            scan_rss.append(b.scan_rss)
+            scan_seen.append(b.scan_last_seen)
+        for k in range(b.peer_t.size):
+            peer = by_ble.get(b.peer_id[k])
+            if peer is not None:
+                receivers.append(b.user)
+                senders.append(peer)
+                peer_t.append(int(b.peer_t[k]))
+                peer_rss.append(float(b.peer_rss[k]))
+    parts = []
+    if scan_users:
+        parts.append(
+            detector.add_scans(
+                scan_users,
+                np.concatenate(scan_t),
+                np.array(scan_offsets, dtype=np.int64),
+                bssids,
+                np.concatenate(scan_rss),
+                np.concatenate(scan_seen),
+            )
+        )
+    if receivers:
+        parts.append(detector.add_sightings(receivers, senders, np.array(peer_t), np.array(peer_rss)))
+    found = DetectionArrays.concatenate(parts)
+    slot_a, slot_b = _slots_of(detector, users, found.user_a), _slots_of(detector, users, found.user_b)
+    usable = np.flatnonzero((slot_a >= 0) & (slot_b >= 0))
+    if usable.size == 0:
+        return [], len(found)
+    keep = usable[_choose(engine, detector, selector, found.subset(usable), slot_a[usable], slot_b[usable])]
+    chosen = detector.ranged(detector.to_detections(found.subset(keep)))
+    if not chosen or not params.filter.use_human_anchors:
+        return [EncounterResult(d, False) for d in chosen], len(found)
+    outcome = engine.observe_encounters(
+        slot_a[keep],
+        slot_b[keep],
+        np.array([d.distance_m for d in chosen]),
+        np.array([d.variance_m2 for d in chosen]),
+    )
+    results = [EncounterResult(d, bool(a)) for d, a in zip(chosen, outcome.applied, strict=True)]
+    return results, len(found)
+
+
+def _slots_of(detector: EncounterDetector, users: dict[str, UserTrack], user_ids: np.ndarray) -> np.ndarray:
+    """Each detector user id's filter slot, -1 for users not being tracked."""
+    ids, inverse = np.unique(user_ids, return_inverse=True)
+    slots = np.full(ids.size, -1, dtype=np.int64)
+    for k, ident in enumerate(ids.tolist()):
+        u = users.get(detector.user_name(ident))
+        if u is not None and u.slot >= 0:
+            slots[k] = u.slot
+    result: np.ndarray = slots[inverse]
+    return result
+
+
+def _choose(
+    engine: DynamicSlam,
+    detector: EncounterDetector,
+    selector: EncounterSelector,
+    found: DetectionArrays,
+    slot_a: np.ndarray,
+    slot_b: np.ndarray,
+) -> np.ndarray:
+    """The selector's choice among detections of tracked users, from the filters' current estimates."""
+    slots, index = np.unique(np.concatenate([slot_a, slot_b]), return_inverse=True)
+    n = len(found)
+    means = engine.summaries(slots)[:, 0:2]
+    delta = means[index[:n]] - means[index[n:]]
+    predicted = np.hypot(delta[:, 0], delta[:, 1])
+    sigma = np.empty(n)
+    for model in np.unique(found.model):
+        at = found.model == model
+        sigma[at] = np.sqrt(detector.range_model(int(model)).variance_at_distance(predicted[at]))
+    keys = pair_keys(found.user_a, found.user_b, found.model)
+    chosen: np.ndarray = selector.choose(found.t_ms, keys, predicted, sigma)
+    if len(selector) > 100_000:
+        selector.forget_before(int(found.t_ms.max()))
+    return chosen
