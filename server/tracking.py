@@ -65,6 +65,8 @@ class Counters:
     """Position history rows deleted past their retention."""
     pruned_batches: int = 0
     """Batch id rows deleted past their retention."""
+    fingerprint_fixes: int = 0
+    """Scans located on the crowd's WiFi fingerprint map and applied as position fixes."""
     users_evicted: int = 0
     """Users forgotten by the tracker after ``Retention.user_idle_s`` without a batch."""
     restore_failures: int = 0
@@ -465,6 +467,7 @@ class BuildingSession:
             self.counters.steps_detected += report.steps_detected
             self.counters.imu_samples_dropped += report.imu_samples_dropped
             self.counters.recentred += report.recentred
+            self.counters.fingerprint_fixes += report.fingerprint_fixes
             warnings = list(converted[i][1])
             if report.imu_samples_dropped:
                 warnings.append(

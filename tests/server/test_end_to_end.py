@@ -56,6 +56,7 @@ def test_live_estimates_equal_the_offline_engine(live_server: tuple[str, str, Se
         ws_url = base.replace("http", "ws", 1) + f"/v1/buildings/sim/live?token={dashboard}"
         with connect(ws_url) as ws, connect(ws_url + "&batch=true") as batched_ws:
             report = post_crowd(client, sim, "sim", keys)
+            metrics = client.get("/metrics").text
             for socket_, sink in ((ws, received), (batched_ws, batched)):
                 while True:
                     try:
@@ -75,9 +76,10 @@ def test_live_estimates_equal_the_offline_engine(live_server: tuple[str, str, Se
         tracker.pin_anchor(np.array(anchor.position), anchor_type_index(anchor.type))
     ctx = BuildingContext("sim", None, {})
     live = iter(report.receipts)
-    compared = 0
+    compared = fixes = 0
     for batch in simulated_batches(sim, "sim"):
         outcome = tracker.apply([to_user_batch(batch, ctx).user_batch])
+        fixes += sum(r.fingerprint_fixes for r in outcome.reports.values())
         receipt = next(live)
         offline = outcome.estimates.get(batch.device_id)
         if offline is None:
@@ -88,6 +90,8 @@ def test_live_estimates_equal_the_offline_engine(live_server: tuple[str, str, Se
         assert receipt.estimate.position.y_m == pytest.approx(offline.y, abs=1e-9)
         compared += 1
     assert compared > 100
+    assert fixes > 0  # the crowd's fingerprint fixes (on by default) are part of what live and offline share
+    assert f'crowdslam_fingerprint_fixes_total{{building="sim"}} {float(fixes)}' in metrics
     assert float(np.median(report.error_m)) < 2.0
     kinds = {m["type"] for m in received}
     assert "position" in kinds
