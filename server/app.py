@@ -29,11 +29,12 @@ from server.errors import InvalidInputError, ProblemError, problem_response_part
 from server.ingestion import TrackingService
 from server.metrics import Metrics
 from server.recording import BuildingRecorder
+from server.session_types import Retention
 from server.settings import Settings
 from server.signal_maps import SignalMapService
 from server.store.db import make_engine, make_session_factory
 from server.store.migrate import current_revision, head_revision
-from server.tracking import BuildingSession, Retention
+from server.tracking import BuildingSession
 from slam_core.crowd_fingerprints import FingerprintParams
 from slam_core.encounter_detection import DetectionParams
 from slam_core.encounters import Calibration

@@ -38,8 +38,9 @@ from server.batch_decoding import decode_batch
 from server.broadcast import Broadcaster
 from server.errors import ProblemError, ServiceUnavailableError
 from server.ingestion import CALLS, MAX_GROUP, LatencyWindow
+from server.session_types import Counters, Submission
 from server.settings import Settings
-from server.tracking import BuildingSession, Counters, Submission
+from server.tracking import BuildingSession
 from slam_core.geo import GeoFrame
 
 _HEADER = struct.Struct("!Q")

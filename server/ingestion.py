@@ -20,9 +20,10 @@ from schemas.live import LiveMessage
 from server.broadcast import Broadcaster
 from server.errors import NotFoundError, ProblemError
 from server.recording import BuildingRecorder
+from server.session_types import Counters, Retention, Submission
 from server.settings import Settings
 from server.store import repositories as repo
-from server.tracking import BuildingSession, Counters, Retention, Submission
+from server.tracking import BuildingSession
 from slam_core.encounters import Calibration
 from slam_core.geo import GeoFrame
 from slam_core.tracker import TrackerParams

@@ -15,7 +15,7 @@ if TYPE_CHECKING:
 
     from server.broadcast import Broadcaster
     from server.ingestion import TrackingService
-    from server.tracking import Counters
+    from server.session_types import Counters
 
 
 class Metrics:
@@ -33,7 +33,7 @@ class _Collector(Collector):
         self._broadcaster = broadcaster
 
     def collect(self) -> Iterator[Metric]:
-        from server.tracking import Counters
+        from server.session_types import Counters
 
         workers = self._tracking.workers
         for f in fields(Counters):

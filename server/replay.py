@@ -15,11 +15,12 @@ from server.app import load_calibration, tracker_params
 from server.batch_decoding import decode_batch
 from server.errors import ProblemError
 from server.recording import RecordedBatch
+from server.session_types import Submission
 from server.settings import Settings
 from server.store.db import make_engine, make_session_factory
 from server.store.migrate import upgrade
 from server.store.models import BuildingRow
-from server.tracking import BuildingSession, Submission
+from server.tracking import BuildingSession
 
 
 @dataclass

@@ -11,7 +11,6 @@ from __future__ import annotations
 import itertools
 import math
 import time
-from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from typing import Literal
 
@@ -27,6 +26,8 @@ from server import convert, tracker_snapshot
 from server.device_ledger import DeviceLedger
 from server.errors import ConflictError, InvalidInputError, NotFoundError, ProblemError
 from server.recording import BuildingRecorder
+from server.session_rows import anchor_row, position_row
+from server.session_types import Counters, GroupResult, Retention, Submission
 from server.store import repositories as repo
 from server.store.batches import (
     AcceptedBatch,
@@ -35,71 +36,9 @@ from server.store.batches import (
     insert_batches_once,
     logged_batches,
 )
-from server.store.models import AnchorRow
 from slam_core.encounters import Calibration
 from slam_core.geo import GeoFrame
 from slam_core.tracker import BuildingTracker, EstimateRow, TrackerParams, UserBatch
-
-
-@dataclass
-class Counters:
-    batches: int = 0
-    duplicates: int = 0
-    late: int = 0
-    estimates: int = 0
-    encounters: int = 0
-    """Detections chosen as human anchors (``slam_core.encounter_selection``), applied or gated."""
-    encounters_applied: int = 0
-    encounter_detections: int = 0
-    """Every WiFi or Bluetooth encounter detection, chosen or not."""
-    steps_dropped: int = 0
-    steps_detected: int = 0
-    """Steps the PDR front-end found in raw IMU."""
-    imu_samples_dropped: int = 0
-    """IMU samples older than what a user's front-end had consumed (late or re-sent batches)."""
-    recentred: int = 0
-    snapshots: int = 0
-    replayed: int = 0
-    """Logged batches re-applied on load, after a crash."""
-    pruned_positions: int = 0
-    """Position history rows deleted past their retention."""
-    pruned_batches: int = 0
-    """Batch id rows deleted past their retention."""
-    fingerprint_fixes: int = 0
-    """Scans located on the crowd's WiFi fingerprint map and applied as position fixes."""
-    users_evicted: int = 0
-    """Users forgotten by the tracker after ``Retention.user_idle_s`` without a batch."""
-    restore_failures: int = 0
-    """Snapshots refused on load (another format, other parameters): tracking restarted from the SQL map."""
-
-
-@dataclass(frozen=True)
-class Retention:
-    """How much history SQL keeps (``Settings.position_history_days``, ``batch_ids_days``; None: all)."""
-
-    position_history_days: float | None = 7.0
-    batch_ids_days: float | None = 2.0
-    prune_period_s: float = 1.0
-    """Old rows are deleted at most this often, ``prune_chunk`` per table at a time: a building inserting
-    3,000 position rows a second keeps up, and no group waits behind a long delete."""
-    prune_chunk: int = 10_000
-    user_idle_s: float | None = 900.0
-    """A user not heard from for this long is forgotten by the tracker (its slot, particles and maps freed;
-    it needs a new fix when it comes back), at the next snapshot, so a restart's replay never spans an
-    eviction. None keeps every user."""
-
-
-@dataclass(frozen=True)
-class Submission:
-    batch: SensorBatch
-    raw: bytes  # the body as posted, for the recording
-    received_ns: int
-
-
-@dataclass
-class GroupResult:
-    receipts: list[BatchReceipt | ProblemError]
-    messages: list[LiveMessage] = field(default_factory=list)
 
 
 class BuildingSession:
@@ -300,7 +239,7 @@ class BuildingSession:
         self._link(index, public_id, body.label)
         anchor = self.anchor(index)
         with self._sessions.begin() as session:
-            repo.save_anchor(session, self._anchor_row(anchor))
+            repo.save_anchor(session, anchor_row(self.building_id, anchor))
             rows = self._save_snapshot(session)
         self.devices.saved(rows)
         return anchor, [AnchorMessage(anchor=anchor)]
@@ -323,7 +262,7 @@ class BuildingSession:
             self.tracker.merge_anchors(keep, self._index[p])
         merged = self.anchor(keep)
         with self._sessions.begin() as session:
-            repo.save_anchor(session, self._anchor_row(merged))
+            repo.save_anchor(session, anchor_row(self.building_id, merged))
             for p in public_ids[1:]:
                 repo.delete_anchor(session, self.building_id, p)
             rows = self._save_snapshot(session)
@@ -331,24 +270,6 @@ class BuildingSession:
         messages: list[LiveMessage] = [AnchorMessage(anchor=merged)]
         messages += [AnchorMessage(anchor=a, deleted=True) for a in olds[1:]]
         return merged, messages
-
-    def _anchor_row(self, a: BuildingAnchor) -> AnchorRow:
-        return AnchorRow(
-            building_id=self.building_id,
-            public_id=a.id,
-            floor=a.floor,
-            type=a.type.value,
-            x_m=a.position.x_m,
-            y_m=a.position.y_m,
-            cov_xx=a.covariance_m2[0][0],
-            cov_xy=a.covariance_m2[0][1],
-            cov_yy=a.covariance_m2[1][1],
-            observation_count=a.observation_count,
-            known=a.known,
-            label=a.label,
-            last_seen_ms=a.last_seen_ms,
-            signature=a.signature.encode() if a.signature else None,
-        )
 
     # ------------------------------------------------------------------ batches
     def latest_estimate(self, user: str) -> Estimate | None:
@@ -447,11 +368,12 @@ class BuildingSession:
         if self.recorder is not None:
             self.recorder.record_estimates(list(estimates.values()), group[now[0]].received_ns)
         stored_at_ms = int(heard * 1000)
-        repo.add_positions(session, [self._position_row(e, stored_at_ms) for e in estimates.values()])
+        rows = [position_row(self.building_id, e, stored_at_ms) for e in estimates.values()]
+        repo.add_positions(session, rows)
         for index in outcome.anchors_changed:
             if self.tracker.crowd.is_live(index):
                 anchor = self.anchor(index)
-                repo.save_anchor(session, self._anchor_row(anchor))
+                repo.save_anchor(session, anchor_row(self.building_id, anchor))
                 messages.append(AnchorMessage(anchor=anchor))
         messages += [PositionMessage(estimate=e) for e in estimates.values()]
         messages += [EncounterMessage(encounter=e) for e in encounters]
@@ -531,23 +453,6 @@ class BuildingSession:
             encounters=encounters or [],
             warnings=warnings,
         )
-
-    def _position_row(self, e: Estimate, stored_at_ms: int) -> dict[str, object]:
-        return {
-            "stored_at_ms": stored_at_ms,
-            "building_id": self.building_id,
-            "user_id": e.user_id,
-            "device_id": e.device_id,
-            "t_ms": e.t_ms,
-            "x_m": e.position.x_m,
-            "y_m": e.position.y_m,
-            "cov_xx": e.covariance_m2[0][0],
-            "cov_xy": e.covariance_m2[0][1],
-            "cov_yy": e.covariance_m2[1][1],
-            "heading_rad": e.heading_rad,
-            "floor": e.floor,
-            "source": e.source.value,
-        }
 
 
 def _dropped_warning(n: int, status: str) -> str:

@@ -17,7 +17,7 @@ from server.auth import Principal
 from server.batch_decoding import decode_batch
 from server.deps import AUTHORIZATION_PARAMETER, principal, token_principal
 from server.errors import BodyTooLargeError, InvalidInputError, ProblemError, problem_response_parts
-from server.tracking import Submission
+from server.session_types import Submission
 
 router = APIRouter(prefix="/v1/buildings/{building_id}", tags=["batches"])
 

@@ -14,12 +14,13 @@ from sqlalchemy import Engine, func, select
 from schemas.anchors import KnownAnchorIn
 from schemas.common import Position
 from server.app import load_calibration, tracker_params
+from server.session_types import Submission
 from server.settings import Settings
 from server.simulated_phones import KnownAnchor, known_anchors, simulated_batches
 from server.store.db import make_engine, make_session_factory
 from server.store.migrate import upgrade
 from server.store.models import BatchRow, BuildingRow
-from server.tracking import BuildingSession, Submission
+from server.tracking import BuildingSession
 from slam_core.simulate import Scenario, simulate
 from tests.conftest import SHARED
 
@@ -183,9 +184,9 @@ def test_a_snapshot_taken_with_other_parameters_is_refused_and_the_sql_map_is_ke
 
 
 def test_the_batch_path_prunes_history_but_keeps_every_users_latest_position(sqlite_url: str) -> None:
+    from server.session_types import Retention
     from server.store import repositories as repo
     from server.store.models import PositionSnapshotRow
-    from server.tracking import Retention
 
     engine = _fresh_building(sqlite_url)
     session = BuildingSession(
@@ -212,7 +213,7 @@ def test_the_batch_path_prunes_history_but_keeps_every_users_latest_position(sql
 
 
 def test_idle_users_are_forgotten_at_a_snapshot_and_stay_forgotten_after_a_restart(sqlite_url: str) -> None:
-    from server.tracking import Retention
+    from server.session_types import Retention
 
     engine = _fresh_building(sqlite_url)
 

@@ -1,0 +1,72 @@
+"""What a building session counts, keeps and is given: its counters (exported as Prometheus metrics), its
+retention of history, one submitted batch, and a group's result."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from schemas.api import BatchReceipt
+from schemas.live import LiveMessage
+from schemas.sensors import SensorBatch
+from server.errors import ProblemError
+
+
+@dataclass
+class Counters:
+    batches: int = 0
+    duplicates: int = 0
+    late: int = 0
+    estimates: int = 0
+    encounters: int = 0
+    """Detections chosen as human anchors (``slam_core.encounter_selection``), applied or gated."""
+    encounters_applied: int = 0
+    encounter_detections: int = 0
+    """Every WiFi or Bluetooth encounter detection, chosen or not."""
+    steps_dropped: int = 0
+    steps_detected: int = 0
+    """Steps the PDR front-end found in raw IMU."""
+    imu_samples_dropped: int = 0
+    """IMU samples older than what a user's front-end had consumed (late or re-sent batches)."""
+    recentred: int = 0
+    snapshots: int = 0
+    replayed: int = 0
+    """Logged batches re-applied on load, after a crash."""
+    pruned_positions: int = 0
+    """Position history rows deleted past their retention."""
+    pruned_batches: int = 0
+    """Batch id rows deleted past their retention."""
+    fingerprint_fixes: int = 0
+    """Scans located on the crowd's WiFi fingerprint map and applied as position fixes."""
+    users_evicted: int = 0
+    """Users forgotten by the tracker after ``Retention.user_idle_s`` without a batch."""
+    restore_failures: int = 0
+    """Snapshots refused on load (another format, other parameters): tracking restarted from the SQL map."""
+
+
+@dataclass(frozen=True)
+class Retention:
+    """How much history SQL keeps (``Settings.position_history_days``, ``batch_ids_days``; None: all)."""
+
+    position_history_days: float | None = 7.0
+    batch_ids_days: float | None = 2.0
+    prune_period_s: float = 1.0
+    """Old rows are deleted at most this often, ``prune_chunk`` per table at a time: a building inserting
+    3,000 position rows a second keeps up, and no group waits behind a long delete."""
+    prune_chunk: int = 10_000
+    user_idle_s: float | None = 900.0
+    """A user not heard from for this long is forgotten by the tracker (its slot, particles and maps freed;
+    it needs a new fix when it comes back), at the next snapshot, so a restart's replay never spans an
+    eviction. None keeps every user."""
+
+
+@dataclass(frozen=True)
+class Submission:
+    batch: SensorBatch
+    raw: bytes  # the body as posted, for the recording
+    received_ns: int
+
+
+@dataclass
+class GroupResult:
+    receipts: list[BatchReceipt | ProblemError]
+    messages: list[LiveMessage] = field(default_factory=list)
