@@ -95,17 +95,19 @@ def post_crowd(
     speed: float = 0.0,
     prefix: str = "",
     progress: Callable[[int], None] | None = None,
+    epoch_ms: int = EPOCH_MS,
 ) -> CrowdReport:
     """Post every batch in time order, one at a time (so the run is reproducible). ``speed`` > 0 paces the
     posts at that multiple of real time; 0 posts as fast as the server answers. ``prefix`` renames devices
-    and users so repeated runs are new people."""
+    and users so repeated runs are new people; ``epoch_ms`` is the phone time of simulation time 0 (a later
+    crowd in the same building comes later)."""
     report = CrowdReport()
     started = time.perf_counter()
-    for batch in simulated_batches(sim, building_id):
+    for batch in simulated_batches(sim, building_id, epoch_ms):
         if prefix:
             batch = _renamed(batch, prefix)
         if speed > 0:
-            due = _first_time_s(batch) / speed
+            due = _first_time_s(batch, epoch_ms) / speed
             delay = due - (time.perf_counter() - started)
             if delay > 0:
                 time.sleep(delay)
@@ -124,7 +126,7 @@ def post_crowd(
         report.encounters += len(receipt.encounters)
         if receipt.estimate is not None and batch.steps:
             user = int(batch.device_id.rsplit("-", 1)[-1])
-            truth = sim.true_position(user, (receipt.estimate.t_ms - EPOCH_MS) / 1000.0)
+            truth = sim.true_position(user, (receipt.estimate.t_ms - epoch_ms) / 1000.0)
             report.error_m.append(
                 float(
                     np.hypot(
@@ -138,9 +140,9 @@ def post_crowd(
     return report
 
 
-def _first_time_s(batch: SensorBatch) -> float:
+def _first_time_s(batch: SensorBatch, epoch_ms: int) -> float:
     span = batch.time_span_ms()
-    return 0.0 if span is None else (span[0] - EPOCH_MS) / 1000.0
+    return 0.0 if span is None else (span[0] - epoch_ms) / 1000.0
 
 
 def _renamed(batch: SensorBatch, prefix: str) -> SensorBatch:

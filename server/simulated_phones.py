@@ -54,19 +54,21 @@ def known_anchors(sim: Simulation) -> list[KnownAnchor]:
     ]
 
 
-def _ms(t_s: float) -> int:
-    return EPOCH_MS + round(t_s * 1000.0)
-
-
-def simulated_batches(sim: Simulation, building_id: str) -> Iterator[SensorBatch]:
-    """Every user's batches, ordered by window end then user (the order a crowd posting in real time has)."""
-    per_user = [list(_user_batches(sim, u, building_id)) for u in range(len(sim.users))]
+def simulated_batches(sim: Simulation, building_id: str, epoch_ms: int = EPOCH_MS) -> Iterator[SensorBatch]:
+    """Every user's batches, ordered by window end then user (the order a crowd posting in real time has).
+    Simulation time 0 is phone time ``epoch_ms``."""
+    per_user = [list(_user_batches(sim, u, building_id, epoch_ms)) for u in range(len(sim.users))]
     keyed = [(end, u, k) for u, batches in enumerate(per_user) for k, (end, _) in enumerate(batches)]
     for _, u, k in sorted(keyed):
         yield per_user[u][k][1]
 
 
-def _user_batches(sim: Simulation, user: int, building_id: str) -> Iterator[tuple[int, SensorBatch]]:
+def _user_batches(
+    sim: Simulation, user: int, building_id: str, epoch_ms: int
+) -> Iterator[tuple[int, SensorBatch]]:
+    def _ms(t_s: float) -> int:
+        return epoch_ms + round(t_s * 1000.0)
+
     tr = sim.users[user]
     step_ms = np.array([_ms(t) for t in tr.t[1:]], dtype=np.int64)
     scan_ms = np.array([_ms(t) for t in tr.scan_t], dtype=np.int64)

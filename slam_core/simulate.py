@@ -317,9 +317,11 @@ def _bluetooth(
     return np.array(times), np.array(pairs, dtype=np.int64).reshape(-1, 2), np.array(rss)
 
 
-def simulate(scenario: Scenario, seed: int) -> Simulation:
+def simulate(scenario: Scenario, seed: int, world_seed: int | None = None) -> Simulation:
+    """The scenario's world and its users' walks from ``seed``; with ``world_seed``, the world (anchors,
+    access points, shadowing) from that seed instead, so that several crowds walk the same building."""
     rng = np.random.default_rng(seed)
-    world = build_world(scenario, rng)
+    world = build_world(scenario, rng if world_seed is None else np.random.default_rng(world_seed))
     traces = [_user_trace(scenario, world, rng) for _ in range(scenario["users"]["count"])]
     bt_t, bt_pair, bt_rss = _bluetooth(scenario, traces, rng)
     passed = float(np.mean([tr.anchor_passes for tr in traces]))

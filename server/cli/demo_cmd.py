@@ -38,6 +38,7 @@ def run(args: argparse.Namespace) -> int:
     from server.background import ServerDidNotStartError, running_server
     from server.crowd_client import device_keys, post_crowd, prepare_building
     from server.settings import get_settings
+    from server.simulated_phones import EPOCH_MS
     from server.store.db import make_engine, make_session_factory
     from server.store.migrate import upgrade
     from slam_core.simulate import Scenario, simulate
@@ -80,11 +81,14 @@ def run(args: argparse.Namespace) -> int:
                 print("  Foxglove/Lichtblick: set CROWDSLAM_FOXGLOVE_PORT=8765 to watch the crowd there")
             print("  Ctrl-C stops.", flush=True)
             round_number = 0
+            epoch_ms = EPOCH_MS
             while args.rounds == 0 or round_number < args.rounds:
-                sim = simulate(scenario, round_number)
+                # new people walking the same building (its anchors and access points), after the last crowd
+                sim = simulate(scenario, round_number, world_seed=0)
                 prefix = f"r{round_number}-"
                 keys = device_keys(client, args.building, operator_key, len(sim.users), prefix)
-                report = post_crowd(client, sim, args.building, keys, args.speed, prefix)
+                report = post_crowd(client, sim, args.building, keys, args.speed, prefix, epoch_ms=epoch_ms)
+                epoch_ms += round(max(float(tr.t[-1]) for tr in sim.users) * 1000.0) + 60_000
                 s = report.summary()
                 print(
                     f"  crowd {round_number}: {s['batches']} batches, {s['errors']} errors, "
