@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from slam_core.crowd_fingerprints import CrowdFingerprints, FingerprintParams, Place, Scan
+from slam_core.crowd_fingerprints import CrowdFingerprints, FingerprintParams, Scan
 from slam_core.crowd_graph import CrowdGraph, GraphParams
 from slam_core.crowd_map import CrowdMapBuilder
 from slam_core.encounter_detection import MODEL_BLUETOOTH, MODEL_WIFI
@@ -30,6 +30,7 @@ from slam_core.fastslam import DynamicSlam
 from slam_core.metrics import error_summary
 from slam_core.params import FilterParams, HumanAnchorParams, MotionParams
 from slam_core.simulate import Scenario, Simulation, simulate
+from slam_core.tracker_radio import apply_fingerprint_fixes
 
 MODES = ("pdr", "semanticslam", "dynamicslam")
 CALIBRATION_SEED_OFFSET = 10_007
@@ -457,8 +458,8 @@ def _fingerprint_fixes(
     scan_user: np.ndarray,
     scan_index: np.ndarray,
 ) -> int:
-    """One tick's scans of the tracked users, as ``slam_core.tracker_radio.fingerprint_fixes`` handles a
-    tracker call's; returns the fixes applied."""
+    """One tick's scans of the tracked users, through ``slam_core.tracker_radio.apply_fingerprint_fixes`` as
+    a tracker call's are; returns the fixes applied."""
     scans: dict[int, list[Scan]] = {}
     for u, c in zip(scan_user.tolist(), scan_index.tolist(), strict=True):
         if slots[u] < 0:
@@ -473,23 +474,11 @@ def _fingerprint_fixes(
         return 0
     users = sorted(scans)
     summary = engine.summaries(slots[users])
-    fix_slots, fixes = [], []
-    places: list[Place] = []
-    for u, row in zip(users, summary, strict=True):
-        cov = np.array([[row[2], row[3]], [row[3], row[4]]])
-        fix, joining = fp.fix_and_places(u, row[0:2], cov, scans[u])
-        places += joining
-        if fix is not None:
-            fix_slots.append(slots[u])
-            fixes.append(fix)
-    if fix_slots:
-        engine.observe_position_robust(
-            np.array(fix_slots, dtype=np.int64), np.array(fixes), params.sigma_m, params.outlier_probability,
-            params.outlier_radius_m,
-        )  # fmt: skip
-    for place in places:
-        fp.add(place.owner, place.xy, place.bssids, place.rss)
-    return len(fixes)
+    located = [
+        (int(slots[u]), u, row[0:2], np.array([[row[2], row[3]], [row[3], row[4]]]), scans[u])
+        for u, row in zip(users, summary, strict=True)
+    ]
+    return sum(apply_fingerprint_fixes(engine, fp, params, located))
 
 
 def _choose(

@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 
-from slam_core.crowd_fingerprints import CrowdFingerprints, Place, Scan
+from slam_core.crowd_fingerprints import CrowdFingerprints, FingerprintParams, Place, Scan
 from slam_core.crowd_graph import CrowdGraph
 from slam_core.crowd_map import CrowdMapBuilder
 from slam_core.encounter_detection import DetectionArrays, EncounterDetector
@@ -85,6 +85,35 @@ def observe_signatures(
     changed.update(ids)
 
 
+def apply_fingerprint_fixes(
+    engine: DynamicSlam,
+    fingerprints: CrowdFingerprints,
+    params: FingerprintParams,
+    located: list[tuple[int, int, np.ndarray, np.ndarray, list[Scan]]],
+) -> list[bool]:
+    """For each (slot, owner, estimate now, its covariance, the user's scans of this call in time order):
+    the latest scan the map can place, carried to now, is a robust fix
+    (``DynamicSlam.observe_position_robust``, all of a call's fixes in one engine call), then the confident
+    users' scans join the map (``CrowdFingerprints.fix_and_places``). Returns whether each user got a fix."""
+    slots, fixes, got = [], [], []
+    places: list[Place] = []
+    for slot, owner, xy, cov, scans in located:
+        fix, joining = fingerprints.fix_and_places(owner, xy, cov, scans)
+        places += joining
+        got.append(fix is not None)
+        if fix is not None:
+            slots.append(slot)
+            fixes.append(fix)
+    if slots:
+        engine.observe_position_robust(
+            np.array(slots, dtype=np.int64), np.array(fixes), params.sigma_m, params.outlier_probability,
+            params.outlier_radius_m,
+        )  # fmt: skip
+    for place in places:
+        fingerprints.add(place.owner, place.xy, place.bssids, place.rss)
+    return got
+
+
 def fingerprint_fixes(
     engine: DynamicSlam,
     fingerprints: CrowdFingerprints,
@@ -94,16 +123,10 @@ def fingerprint_fixes(
     rows: dict[str, EstimateRow],
     reports: dict[str, UserReport],
 ) -> None:
-    """Each fresh scan of a tracked user: localised on the crowd fingerprint map (other users' scans),
-    the position, carried to now through the user's own dead reckoning since the scan, is a robust fix
-    (``DynamicSlam.observe_position_robust``); then the scan joins the map at the user's estimate at
-    scan time when that estimate is confident (``CrowdFingerprints.fix_and_places``). The fixes of one
-    call go to the engine in one batch. ``rows``: the current estimates of the batches' tracked users with
-    scans."""
-    p = params.fingerprints
+    """Each fresh scan of a tracked user, with the user's dead reckoning since it, for
+    ``apply_fingerprint_fixes``. ``rows``: the current estimates of the batches' tracked users with scans."""
     stale = params.detection.stale_ap_ms
-    slots, fixes = [], []
-    places: list[Place] = []
+    names, located = [], []
     for b in batches:
         if b.user not in rows:
             continue
@@ -117,19 +140,11 @@ def fingerprint_fixes(
             then, _ = u.at(t)
             scans.append(Scan(bssids, b.scan_rss[lo:hi][fresh], u.displacement - then))
         cov = np.array([[row.cov[0], row.cov[1]], [row.cov[1], row.cov[2]]])
-        fix, joining = fingerprints.fix_and_places(u.number, np.array([row.x, row.y]), cov, scans)
-        places += joining
-        if fix is not None:
-            slots.append(u.slot)
-            fixes.append(fix)
-            reports[b.user].fingerprint_fixes += 1
-    if slots:
-        engine.observe_position_robust(
-            np.array(slots, dtype=np.int64), np.array(fixes), p.sigma_m, p.outlier_probability,
-            p.outlier_radius_m,
-        )  # fmt: skip
-    for place in places:
-        fingerprints.add(place.owner, place.xy, place.bssids, place.rss)
+        names.append(b.user)
+        located.append((u.slot, u.number, np.array([row.x, row.y]), cov, scans))
+    got = apply_fingerprint_fixes(engine, fingerprints, params.fingerprints, located)
+    for name, fixed in zip(names, got, strict=True):
+        reports[name].fingerprint_fixes += int(fixed)
 
 
 def encounters(
