@@ -249,10 +249,23 @@ class CrowdFingerprints:
             setattr(self, name, longer)
 
     def _compact(self) -> None:
+        """Drop stale postings, and forget the BSSIDs no stored scan hears any more (phones' hotspots and
+        randomised MACs would otherwise grow the column index for as long as the server runs)."""
         self._post_row, self._post_serial, self._post_gain, self._pool_end = index.compact(
             self._start, self._length, self._capacity, self._post_row, self._post_serial, self._post_gain,
             self._serial,
         )  # fmt: skip
+        n = len(self._columns)
+        kept = np.flatnonzero(self._length[:n] > 0)
+        if kept.size == n:
+            return
+        renumbered = np.full(n, -1, dtype=np.int64)
+        renumbered[kept] = np.arange(kept.size)
+        self._columns = {b: int(renumbered[c]) for b, c in self._columns.items() if renumbered[c] >= 0}
+        for name in ("_start", "_length", "_capacity"):
+            column = np.zeros(max(16, kept.size), dtype=np.int64)
+            column[: kept.size] = getattr(self, name)[kept]
+            setattr(self, name, column)
 
     def locate(self, owner: int, bssids: list[str], rss: np.ndarray) -> np.ndarray | None:
         """Weighted-kNN position of a scan over the other users' stored scans, or None when the map cannot

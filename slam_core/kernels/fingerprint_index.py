@@ -72,8 +72,9 @@ def compact(
     post_gain: np.ndarray,
     row_serial: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-    """The pool rewritten without stale postings, each slab with room for half as many again (at least 4);
-    ``start``, ``length`` and ``capacity`` are updated in place. Returns the new pool and its end."""
+    """The pool rewritten without stale postings, each slab with room for half as many again (at least 4; none
+    for a column left empty); ``start``, ``length`` and ``capacity`` are updated in place. Returns the new
+    pool and its end."""
     n_cols = start.size
     live = np.zeros(n_cols, dtype=np.int64)
     total = 0
@@ -82,7 +83,7 @@ def compact(
             p = start[c] + k
             if row_serial[post_row[p]] == post_serial[p]:
                 live[c] += 1
-        total += max(4, live[c] + live[c] // 2)
+        total += 0 if live[c] == 0 else max(4, live[c] + live[c] // 2)
     new_row = np.empty(total, dtype=np.int64)
     new_serial = np.empty(total, dtype=np.int64)
     new_gain = np.empty(total, dtype=np.float32)
@@ -98,7 +99,7 @@ def compact(
                 n += 1
         start[c] = end
         length[c] = n
-        capacity[c] = max(4, live[c] + live[c] // 2)
+        capacity[c] = 0 if live[c] == 0 else max(4, live[c] + live[c] // 2)
         end += capacity[c]
     return new_row, new_serial, new_gain, end
 

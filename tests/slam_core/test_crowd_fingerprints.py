@@ -211,3 +211,28 @@ def test_fix_and_places_carries_the_latest_fix_and_keeps_only_confident_scans() 
     tilted = np.array([[5.0, 4.5], [4.5, 5.0]])  # eigenvalues 0.5 and 9.5
     assert db.fix_and_places(2, here, tilted, scans)[1] == []
     assert db.fix_and_places(2, here, np.diag([9.0, 9.0]), scans)[1] != []
+
+
+def test_bssids_no_stored_scan_hears_are_forgotten() -> None:
+    """Every scan hears three fixed APs and a hotspot never seen again: after many turnovers of a small map
+    the column index holds the fixed APs and the hotspots of the scans still stored, not every hotspot ever
+    heard, and the map answers as a fresh one holding the same scans does."""
+    rng = np.random.default_rng(8)
+    params = FingerprintParams(k=3, min_references=10, max_references=40, max_spread_m=1e9)
+    db = CrowdFingerprints(params)
+    scans = []
+    for t in range(2_000):
+        scan = (t % 5, rng.uniform(0, 50, 2), ["fixed-a", "fixed-b", "fixed-c", f"hotspot-{t}"])
+        scans.append((*scan, rng.uniform(-90.0, -50.0, 4)))
+        db.add(*scans[-1])
+    assert len(db) == 40
+    assert len(db._columns) <= 3 + 3 * 40  # fixed APs, and hotspots of stored scans and a little slack
+    fresh = CrowdFingerprints(params)
+    for scan in scans[-40:]:
+        fresh.add(*scan)
+    for query in (["fixed-a", "fixed-b", "fixed-c"], ["fixed-a", "fixed-c", "hotspot-1999"]):
+        rss = rng.uniform(-90.0, -50.0, 3)
+        found, expected = db.locate(99, query, rss), fresh.locate(99, query, rss)
+        assert found is not None
+        assert expected is not None
+        np.testing.assert_allclose(found, expected, atol=1e-9)
