@@ -29,7 +29,7 @@ from slam_core.encounters import (
 from slam_core.fastslam import DynamicSlam
 from slam_core.metrics import error_summary
 from slam_core.params import FilterParams, HumanAnchorParams, MotionParams
-from slam_core.simulate import Scenario, Simulation, simulate
+from slam_core.simulate import Scenario, Simulation, UserTrace, simulate
 from slam_core.tracker_radio import apply_fingerprint_fixes
 
 MODES = ("pdr", "semanticslam", "dynamicslam")
@@ -268,14 +268,17 @@ def run_scenario_with_errors(
     return result, errors
 
 
+def _dead_reckoned(tr: UserTrace) -> np.ndarray:
+    """(S+1, 2) the user's observed steps summed from its start: its dead-reckoned displacement at each of
+    its positions."""
+    steps = tr.step_length_obs[:, None] * np.column_stack(
+        [np.cos(tr.step_heading_obs), np.sin(tr.step_heading_obs)]
+    )
+    return np.vstack([np.zeros((1, 2)), np.cumsum(steps, axis=0)])
+
+
 def _dead_reckoning_errors(sim: Simulation) -> np.ndarray:
-    errors = []
-    for tr in sim.users:
-        steps = tr.step_length_obs[:, None] * np.column_stack(
-            [np.cos(tr.step_heading_obs), np.sin(tr.step_heading_obs)]
-        )
-        path = tr.start_fix + np.cumsum(steps, axis=0)
-        errors.append(np.linalg.norm(path - tr.xy[1:], axis=1))
+    errors = [np.linalg.norm(tr.start_fix + _dead_reckoned(tr)[1:] - tr.xy[1:], axis=1) for tr in sim.users]
     return np.concatenate(errors)
 
 
@@ -333,10 +336,7 @@ def _filter_errors(
     scan_tick = np.floor(np.concatenate([tr.scan_t for tr in sim.users]) / TICK_S).astype(np.int64)
     if fp is None:
         scan_tick = np.zeros(0, np.int64)
-    dead_reckoned = [  # each user's observed displacement at each of its positions
-        np.vstack([[0.0, 0.0], np.cumsum(tr.step_length_obs[:, None] * _unit(tr.step_heading_obs), axis=0)])
-        for tr in sim.users
-    ]
+    dead_reckoned = [_dead_reckoned(tr) for tr in sim.users]
     ap_names = [f"ap{i}" for i in range(sim.world.ap_xy.shape[0])]
     errors: list[float] = []
     best_errors: list[float] = []
@@ -440,10 +440,6 @@ def _filter_errors(
         np.concatenate(applied) if applied else np.zeros(0, dtype=np.int64),
         fingerprint_fixes,
     )
-
-
-def _unit(heading: np.ndarray) -> np.ndarray:
-    return np.column_stack([np.cos(heading), np.sin(heading)])
 
 
 def _fingerprint_fixes(
