@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from slam_core.encounters import Calibration
 from slam_core.tracker import BuildingTracker, TrackerParams
 
-FORMAT_VERSION = 5
+FORMAT_VERSION = 6
 """Bump when BuildingTracker's attributes change: old snapshots are then refused, not misread."""
 
 

@@ -14,6 +14,8 @@ import numpy as np
 from slam_core.kernels.rng import splitmix64
 
 NO_CROWD_ID = -1
+_MAP_FIELDS = frozenset({"map_mu", "map_cov", "map_type", "map_count", "map_known", "map_crowd_id"})
+"""The per-particle anchor map's arrays, (U, M, K, ...): past a particle's ``map_n`` never read."""
 
 
 @dataclass
@@ -83,6 +85,33 @@ class FilterState:
     @property
     def map_capacity(self) -> int:
         return int(self.map_mu.shape[2])
+
+    # Pickled (the server's snapshots) without the unused tail of the particle maps: they are allocated for
+    # map_capacity anchors per particle (48 by default), so 1,024 user slots x 75 particles hold ~200 MB
+    # however few anchors are in use, and pickling and compressing it all froze a building for ~1 s. Past
+    # a particle's map_n nothing is ever read (resampling copies only up to it), so the tail comes back as
+    # the empty state's defaults.
+    def __getstate__(self) -> dict[str, object]:
+        used = int(self.map_n.max()) if self.map_n.size else 0
+        state: dict[str, object] = {
+            f.name: getattr(self, f.name)[:, :, :used] if f.name in _MAP_FIELDS else getattr(self, f.name)
+            for f in fields(self)
+        }
+        state["map_capacity"] = self.map_capacity
+        return state
+
+    def __setstate__(self, state: dict[str, object]) -> None:
+        map_capacity = state.pop("map_capacity")
+        x = state["x"]
+        assert isinstance(map_capacity, int)
+        assert isinstance(x, np.ndarray)
+        full = FilterState.empty(x.shape[0], x.shape[1], map_capacity)
+        for name, value in state.items():
+            if name in _MAP_FIELDS:
+                assert isinstance(value, np.ndarray)
+                getattr(full, name)[:, :, : value.shape[2]] = value
+                value = getattr(full, name)
+            setattr(self, name, value)
 
     def grown(self, capacity: int) -> FilterState:
         """A copy with more user slots; existing slots keep their contents."""

@@ -1,0 +1,140 @@
+"""Building benchmark: one building's batch path without HTTP, the part of the server that holds one core.
+
+    python bench/building.py [--phones 1000] [--seconds 20] [--group 32] [--json OUT] [--profile OUT.prof]
+
+A ``BuildingSession`` on SQLite with recording on (the server's defaults) is fed the load benchmark's phones
+(``bench/load.py``: a batch per phone per second, two steps, a WiFi scan every 2 s, Bluetooth sightings) in
+groups of ``--group`` batches, the way the building's worker drains its queue under load. Every phone
+posts its fix first; the figures count the seconds after that. Prints one JSON object: ``us_per_batch``
+(wall time of ``process`` and of the JSON of its receipts and live messages, median over the seconds),
+``json_us_per_batch`` (that JSON alone), and what it ran on. Without the HTTP front, the load generator
+and the dashboards on the same cores, this is steadier than ``bench/load.py`` and says what a change to
+the batch path costs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import json
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+
+from server.numba_cache import configure_numba_cache
+
+configure_numba_cache()
+
+from load import Crowd, _body
+
+from schemas.live import LIVE_MESSAGE_ADAPTER
+from server.app import load_calibration, tracker_params
+from server.batch_decoding import decode_batch
+from server.recording import BuildingRecorder
+from server.session_types import Submission
+from server.settings import Settings
+from server.store.db import make_engine, make_session_factory
+from server.store.migrate import upgrade
+from server.store.models import BuildingRow
+from server.tracking import BuildingSession
+
+
+def run(phones: int, seconds: int, group: int, profile: Path | None) -> dict[str, object]:
+    settings = Settings()
+    with tempfile.TemporaryDirectory() as tmp:
+        engine = make_engine(f"sqlite:///{Path(tmp) / 'crowdslam.sqlite3'}")
+        upgrade(engine)
+        with make_session_factory(engine).begin() as s:
+            s.add(BuildingRow(id="load", name="Load test", rotation_rad=0.0))
+        session = BuildingSession(
+            "load",
+            make_session_factory(engine),
+            tracker_params(settings),
+            load_calibration(settings.encounter_calibration),
+            settings.seed,
+            recorder=BuildingRecorder(Path(tmp) / "recordings", "load"),
+            snapshot_period_s=settings.snapshot_period_s,
+        )
+        crowd = Crowd.create(phones, seed=0)
+        start_ms = int(time.time() * 1000)
+        per_second: list[float] = []
+        json_per_second: list[float] = []
+        profiler = cProfile.Profile() if profile is not None else None
+        for second in range(seconds + 1):
+            crowd.walk()
+            near = crowd.neighbours()
+            now_ms = start_ms + 1000 * second
+            bodies = [
+                _body(crowd, p, second, now_ms + p * 1000 // phones, near[p], "load") for p in range(phones)
+            ]
+            busy = json_busy = 0.0
+            for first in range(0, phones, group):
+                raws = bodies[first : first + group]
+                started = time.perf_counter()
+                if profiler is not None and second:
+                    profiler.enable()
+                subs = [Submission(decode_batch(r, len(r)), r, time.time_ns()) for r in raws]
+                result = session.process(subs)
+                encoded = time.perf_counter()
+                for receipt in result.receipts:
+                    receipt.model_dump_json()  # type: ignore[union-attr]
+                for message in result.messages:
+                    LIVE_MESSAGE_ADAPTER.dump_json(message)
+                if profiler is not None:
+                    profiler.disable()
+                done = time.perf_counter()
+                busy += done - started
+                json_busy += done - encoded
+                if any(not hasattr(r, "status") for r in result.receipts):
+                    raise RuntimeError(f"a batch failed: {result.receipts}")
+            if second:  # the first second carries every phone's fix and compiles nothing: not measured
+                per_second.append(busy / phones * 1e6)
+                json_per_second.append(json_busy / phones * 1e6)
+        if profiler is not None and profile is not None:
+            profiler.dump_stats(profile)
+        assert session.recorder is not None
+        session.recorder.close()
+        engine.dispose()
+    return {
+        "phones": phones,
+        "group": group,
+        "seconds": seconds,
+        "us_per_batch": round(statistics.median(per_second), 1),
+        "us_per_batch_min": round(min(per_second), 1),
+        "json_us_per_batch": round(statistics.median(json_per_second), 1),
+        "batches_per_s_one_core": round(1e6 / statistics.median(per_second)),
+        "fingerprint_fixes": session.counters.fingerprint_fixes,
+        "encounters": session.counters.encounters,
+    }
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--phones", type=int, default=1000)
+    parser.add_argument(
+        "--seconds", type=int, default=20, help="measured seconds of batches (after the fixes)"
+    )
+    parser.add_argument("--group", type=int, default=32, help="batches per call of BuildingSession.process")
+    parser.add_argument("--json", type=Path, help="also write the result here")
+    parser.add_argument("--profile", type=Path, help="write a cProfile of the measured seconds here")
+    args = parser.parse_args()
+    if args.phones < 1 or args.seconds < 1 or args.group < 1:
+        parser.error("--phones, --seconds and --group must be at least 1")
+    result = run(args.phones, args.seconds, args.group, args.profile)
+    print(json.dumps(result, indent=2))
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(result, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
