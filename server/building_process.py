@@ -141,7 +141,7 @@ class _BuildingLoop:
                     continue
                 self._flush()
                 if f[0] == "close":
-                    self.session.snapshot()
+                    self.session.close()
                     if self.session.recorder is not None:
                         self.session.recorder.close()
                     _send(self.sock, ("result", f[1], True, None))

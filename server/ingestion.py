@@ -156,7 +156,7 @@ class BuildingWorker:
         with contextlib.suppress(asyncio.CancelledError):
             await self._task
         # a clean stop leaves nothing to replay: the next start loads this snapshot and an empty log
-        await asyncio.get_running_loop().run_in_executor(self._executor, self.session.snapshot)
+        await asyncio.get_running_loop().run_in_executor(self._executor, self.session.close)
         self._executor.shutdown(wait=True)
         if self.session.recorder is not None:
             self.session.recorder.close()

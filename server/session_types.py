@@ -29,6 +29,8 @@ class Counters:
     """IMU samples older than what a user's front-end had consumed (late or re-sent batches)."""
     recentred: int = 0
     snapshots: int = 0
+    snapshot_failures: int = 0
+    """Periodic snapshots that could not be compressed (the batch log keeps what they would have covered)."""
     replayed: int = 0
     """Logged batches re-applied on load, after a crash."""
     pruned_positions: int = 0

@@ -9,6 +9,7 @@ phones.
 from __future__ import annotations
 
 import itertools
+import logging
 import math
 import time
 from datetime import UTC, datetime
@@ -40,6 +41,8 @@ from slam_core.encounters import Calibration
 from slam_core.geo import GeoFrame
 from slam_core.tracker import BuildingTracker, EstimateRow, TrackerParams, UserBatch
 
+logger = logging.getLogger(__name__)
+
 
 class BuildingSession:
     def __init__(
@@ -69,6 +72,7 @@ class BuildingSession:
         self._next_anchor = 0
         self._round = 0  # engine calls so far: the order a restart replays the batch log in
         self._last_snapshot = -math.inf
+        self._background = tracker_snapshot.BackgroundSnapshots(building_id)
         with sessions() as session:
             building = repo.get_building(session, building_id)
             if building is None:
@@ -155,23 +159,58 @@ class BuildingSession:
     def _save_snapshot(self, session: Session) -> list[dict[str, object]]:
         """Write the snapshot and the devices' last sequence numbers; returns the device rows written (the
         ledger counts them saved once the transaction commits). Idle users are forgotten first."""
-        self._evict_idle_users()
-        rows = self.devices.unsaved_rows()
-        repo.upsert_devices(session, rows)
-        state = tracker_snapshot.SessionState(
-            self.tracker, dict(self._public), dict(self._labels), dict(self._device_of_user), self._round
-        )
+        self._background.discard()  # superseded by this one
+        rows = self._snapshot_start(session)
         repo.save_tracker_snapshot(
             session,
             self.building_id,
             tracker_snapshot.FORMAT_VERSION,
             self._round,
-            tracker_snapshot.encode(state),
+            tracker_snapshot.encode(self._session_state()),
         )
         drop_logged_bodies(session, self.building_id)
-        self._last_snapshot = time.monotonic()
         self.counters.snapshots += 1
         return rows
+
+    def _snapshot_start(self, session: Session) -> list[dict[str, object]]:
+        self._evict_idle_users()
+        rows = self.devices.unsaved_rows()
+        repo.upsert_devices(session, rows)
+        self._last_snapshot = time.monotonic()
+        return rows
+
+    def _session_state(self) -> tracker_snapshot.SessionState:
+        return tracker_snapshot.SessionState(
+            self.tracker, dict(self._public), dict(self._labels), dict(self._device_of_user), self._round
+        )
+
+    def _periodic_snapshot(self, session: Session) -> list[dict[str, object]]:
+        """In a group's transaction: write the snapshot compressed since an earlier group, or take one when
+        due (``tracker_snapshot.BackgroundSnapshots``). Returns the device rows written."""
+        try:
+            ready = self._background.ready()
+        except Exception:
+            logger.exception("building %s: compressing a snapshot failed", self.building_id)
+            self.counters.snapshot_failures += 1
+            ready = None
+        if ready is not None:
+            applied_round, blob = ready
+            drop_logged_bodies(session, self.building_id, up_to_round=applied_round)
+            repo.save_tracker_snapshot(
+                session, self.building_id, tracker_snapshot.FORMAT_VERSION, applied_round, blob
+            )
+            self.counters.snapshots += 1
+            return []
+        if self._background.pending or time.monotonic() - self._last_snapshot < self.snapshot_period_s:
+            return []
+        rows = self._snapshot_start(session)
+        self._background.take(self._session_state())
+        return rows
+
+    def close(self) -> None:
+        """Snapshot now and stop the snapshot thread (a clean stop leaves nothing to replay)."""
+        self.snapshot()
+        self._background.close()
 
     def snapshot(self) -> None:
         """Snapshot now (on load, after operator edits, at shutdown)."""
@@ -334,8 +373,7 @@ class BuildingSession:
                 now = by_call[call]
                 self._round = base + call
                 self._apply(session, group, converted, now, results, messages)
-            if time.monotonic() - self._last_snapshot >= self.snapshot_period_s:
-                device_rows += self._save_snapshot(session)
+            device_rows += self._periodic_snapshot(session)
             if time.monotonic() - self._last_prune >= self.retention.prune_period_s:
                 self._prune(session)
         self.devices.saved(device_rows)

@@ -76,14 +76,14 @@ def insert_batch_once(session: Session, batch: AcceptedBatch) -> int | None:
     return insert_batches_once(session, [batch])[0]
 
 
-def drop_logged_bodies(session: Session, building_id: str) -> None:
-    """Forget the bodies of a building's batches once a snapshot covers them (and of batches never
-    applied: late ones are not replayed)."""
-    session.execute(
-        update(BatchRow)
-        .where(BatchRow.building_id == building_id, BatchRow.body.is_not(None))
-        .values(body=None)
-    )
+def drop_logged_bodies(session: Session, building_id: str, up_to_round: int | None = None) -> None:
+    """Forget the bodies of a building's batches once a snapshot covers them: all, or those applied by
+    engine calls up to ``up_to_round`` (a snapshot taken at that call); and of batches never applied (late
+    ones are not replayed)."""
+    stmt = update(BatchRow).where(BatchRow.building_id == building_id, BatchRow.body.is_not(None))
+    if up_to_round is not None:
+        stmt = stmt.where(BatchRow.applied_round.is_(None) | (BatchRow.applied_round <= up_to_round))
+    session.execute(stmt.values(body=None))
 
 
 def logged_batches(session: Session, building_id: str) -> list[LoggedBatch]:

@@ -19,7 +19,7 @@ from server.settings import Settings
 from server.simulated_phones import KnownAnchor, known_anchors, simulated_batches
 from server.store.db import make_engine, make_session_factory
 from server.store.migrate import upgrade
-from server.store.models import BatchRow, BuildingRow
+from server.store.models import BatchRow, BuildingRow, TrackerSnapshotRow
 from server.tracking import BuildingSession
 from slam_core.simulate import Scenario, simulate
 from tests.conftest import SHARED
@@ -84,6 +84,16 @@ def _logged(engine: Engine) -> int:
         return int(s.execute(select(func.count()).where(BatchRow.body.is_not(None))).scalar_one())
 
 
+def _logged_after(engine: Engine, applied_round: int) -> int:
+    with make_session_factory(engine)() as s:
+        return int(s.execute(select(func.count()).where(BatchRow.applied_round > applied_round)).scalar_one())
+
+
+def _snapshot_round(engine: Engine) -> int:
+    with make_session_factory(engine)() as s:
+        return int(s.execute(select(TrackerSnapshotRow.applied_round)).scalar_one())
+
+
 @pytest.mark.parametrize("snapshot_period_s", [math.inf, 0.0])
 def test_an_abandoned_session_is_rebuilt_exactly_and_tracking_resumes(
     database_url: str, sqlite_url: str, snapshot_period_s: float
@@ -106,7 +116,11 @@ def test_an_abandoned_session_is_rebuilt_exactly_and_tracking_resumes(
     assert _estimates(crashed) == at_crash
     applied_since_snapshot = _logged(engine)
     if snapshot_period_s == 0.0:
-        assert applied_since_snapshot == 0  # every group snapshotted: nothing to replay
+        # a snapshot taken at every chance: compressed in the background and written by a later group,
+        # which leaves logged exactly the batches applied after the snapshot written last
+        assert crashed.counters.snapshots >= 2
+        assert applied_since_snapshot == _logged_after(engine, _snapshot_round(engine))
+        assert applied_since_snapshot < sum(len(g) for g in groups[:cut])
     else:
         assert applied_since_snapshot == sum(len(g) for g in groups[:cut])
     anchors_at_crash = crashed.anchors()
@@ -127,6 +141,35 @@ def test_an_abandoned_session_is_rebuilt_exactly_and_tracking_resumes(
     assert all(restarted.tracker.is_tracking(u) for u in restarted.tracker.users)
     reference_engine.dispose()
     engine.dispose()
+
+
+def test_a_snapshot_compressed_in_the_background_covers_its_own_engine_calls_only(sqlite_url: str) -> None:
+    """Taken by one group, written by a later one: the batches applied in between stay logged, and a crash
+    while a snapshot is being compressed restarts from the one before it and the whole log."""
+    g0, g1, g2, g3 = _groups(CROWD)[:4]
+    reference = _session(_fresh_building(sqlite_url.replace(".sqlite3", "-ref.sqlite3")))
+    for group in (g0, g1, g2, g3):
+        reference.process(group)
+    engine = _fresh_building(sqlite_url)
+    session = _session(engine, snapshot_period_s=0.0)
+    loaded_round = _snapshot_round(engine)
+    session.process(g0)  # takes a snapshot: compressed in the background, nothing written yet
+    assert _snapshot_round(engine) == loaded_round
+    assert _logged(engine) == len(g0)
+    taken_at = session._round
+    session._background.wait()
+    session.process(g1)  # writes it: g0 is covered, g1 is not
+    assert _snapshot_round(engine) == taken_at
+    assert _logged(engine) == len(g1) == _logged_after(engine, taken_at)
+    session.process(g2)  # takes the next one
+    session.process(g3)  # which may or may not be written yet: either way a restart is exact
+    del session  # as after kill -9
+    restarted = _session(engine, snapshot_period_s=0.0)
+    assert restarted.restore_problem is None
+    assert restarted.counters.replayed == _logged_after(
+        engine, taken_at
+    ) or restarted.counters.replayed == len(g3)
+    assert _estimates(restarted) == _estimates(reference)
 
 
 def test_a_retried_batch_after_restart_is_still_a_duplicate(sqlite_url: str) -> None:
