@@ -170,7 +170,6 @@ def create_app(settings: Settings, tune_gc: bool = False) -> FastAPI:
             settings.snapshot_period_s,
             retention(settings),
             settings if settings.building_processes else None,
-            settings.kernel_threads,
         )
         app.state.crowdslam = AppState(
             settings,

@@ -37,7 +37,7 @@ from schemas.live import LIVE_MESSAGE_ADAPTER, LiveMessage
 from server.batch_decoding import decode_batch
 from server.broadcast import Broadcaster
 from server.errors import ProblemError, ServiceUnavailableError
-from server.ingestion import CALLS, MAX_GROUP, LatencyWindow, set_kernel_threads
+from server.ingestion import CALLS, MAX_GROUP, LatencyWindow
 from server.session_types import Counters, Submission
 from server.settings import Settings
 from server.tracking import BuildingSession
@@ -91,10 +91,12 @@ def _frame(message: object) -> bytes:
 def serve_building(building_id: str, settings: Settings, sock: socket.socket, front_pid: int) -> None:
     """Entry point of a building's process: load the building, then serve the front until it closes."""
     _die_with(front_pid)
-    # One core per building by default (Settings.kernel_threads): with numba's thread pool, OpenMP's
+    # One core per building: its batch kernels run on its own thread. With numba's thread pool, OpenMP's
     # workers spun between the back-to-back launches (half a core), or, told to sleep, took a wake-up per
     # launch.
-    set_kernel_threads(settings.kernel_threads)
+    import numba
+
+    numba.set_num_threads(1)
     from server.app import building_session, prepare_building_process  # the app module imports this one
 
     prepare_building_process(settings)

@@ -74,27 +74,13 @@ class LatencyWindow:
             del self.values[: len(self.values) - self.limit]
 
 
-def set_kernel_threads(n: int) -> None:
-    """Threads of the numba kernels launched from the calling thread (numba's setting is per thread);
-    ``Settings.kernel_threads``."""
-    import numba
-
-    available = int(numba.config.NUMBA_NUM_THREADS)  # type: ignore[attr-defined]
-    if n > available:
-        raise ValueError(f"kernel_threads is {n}, but numba has {available} threads on this machine")
-    numba.set_num_threads(n)
-
-
 class BuildingWorker:
-    def __init__(self, session: BuildingSession, broadcaster: Broadcaster, kernel_threads: int = 1) -> None:
+    def __init__(self, session: BuildingSession, broadcaster: Broadcaster) -> None:
         self.session = session
         self._broadcaster = broadcaster
         self._queue: asyncio.Queue[_Pending] = asyncio.Queue()
         self._executor = ThreadPoolExecutor(
-            max_workers=1,
-            thread_name_prefix=f"building-{session.building_id}",
-            initializer=set_kernel_threads,
-            initargs=(kernel_threads,),
+            max_workers=1, thread_name_prefix=f"building-{session.building_id}"
         )
         self._task = asyncio.get_running_loop().create_task(self._run())
         self.latency = LatencyWindow()
@@ -190,11 +176,8 @@ class TrackingService:
         snapshot_period_s: float = 60.0,
         retention: Retention | None = None,
         processes: Settings | None = None,
-        kernel_threads: int = 1,
     ) -> None:
         """``processes``: run each building in a process of its own, configured by these settings."""
-        set_kernel_threads(kernel_threads)  # checked now: a bad value fails the start, not every batch
-        self._kernel_threads = kernel_threads
         self._processes = processes
         self._snapshot_period_s = snapshot_period_s
         self._retention = retention
@@ -238,9 +221,7 @@ class TrackingService:
                     self._snapshot_period_s,
                     self._retention,
                 )
-                worker = self._workers[building_id] = BuildingWorker(
-                    session, self._broadcaster, self._kernel_threads
-                )
+                worker = self._workers[building_id] = BuildingWorker(session, self._broadcaster)
         return worker
 
     def _exists(self, building_id: str) -> bool:

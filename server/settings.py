@@ -62,13 +62,6 @@ class Settings(BaseSettings):
         description="Run each building in a process of its own (server/building_process.py): its batch path "
         "then has a core of its own beside the HTTP front's.",
     )
-    kernel_threads: int = Field(
-        default=1,
-        ge=1,
-        description="Threads of a building's numba kernels (at most the machine's cores). A building's "
-        "groups launch small kernels back to back, between which OpenMP's idle workers spin: with 2 they "
-        "took CPU from the HTTP front (bench/load.py, 800 phones on 2 cores: p99 0.4 s, with 1: 0.1 s).",
-    )
     key_cache_s: float = Field(
         default=30.0,
         ge=0.0,
