@@ -76,14 +76,16 @@ def compact(
     for a column left empty); ``start``, ``length`` and ``capacity`` are updated in place. Returns the new
     pool and its end."""
     n_cols = start.size
-    live = np.zeros(n_cols, dtype=np.int64)
+    room = np.zeros(n_cols, dtype=np.int64)
     total = 0
     for c in range(n_cols):
+        live = 0
         for k in range(length[c]):
             p = start[c] + k
             if row_serial[post_row[p]] == post_serial[p]:
-                live[c] += 1
-        total += 0 if live[c] == 0 else max(4, live[c] + live[c] // 2)
+                live += 1
+        room[c] = 0 if live == 0 else max(4, live + live // 2)
+        total += room[c]
     new_row = np.empty(total, dtype=np.int64)
     new_serial = np.empty(total, dtype=np.int64)
     new_gain = np.empty(total, dtype=np.float32)
@@ -99,8 +101,8 @@ def compact(
                 n += 1
         start[c] = end
         length[c] = n
-        capacity[c] = 0 if live[c] == 0 else max(4, live[c] + live[c] // 2)
-        end += capacity[c]
+        capacity[c] = room[c]
+        end += room[c]
     return new_row, new_serial, new_gain, end
 
 
