@@ -19,7 +19,9 @@ by the server) and advances everything they imply, in this order:
    cut-off); detections between tracked users that the selector chooses from the filters' estimates
    (``slam_core.encounter_selection``) become human anchors (Algorithm 1), both users updated from their
    pre-encounter states;
-4. the estimate of every user touched.
+4. the estimate of every user whose batch was applied. A peer that an encounter moved is not estimated
+   here: its estimate comes with its own next batch (within a sighting period), so that every batch yields
+   one estimate, however many encounters it makes.
 
 The signature, fingerprint and encounter stages live in ``slam_core.tracker_radio``; the per-user dead
 reckoning and the rounds of events in ``slam_core.tracker_rounds``.
@@ -223,13 +225,9 @@ class BuildingTracker:
         encounters, detections = radio.encounters(
             self.engine, self.detector, self.selector, self.params, batches, self._users, self._by_ble
         )
-        touched = {b.user for b in batches if self.is_tracking(b.user)}
-        for e in encounters:
-            if e.applied:
-                touched.update((e.detection.user_a, e.detection.user_b))
         for b in batches:
             reports[b.user].status = "tracking" if self.is_tracking(b.user) else "awaiting_fix"
-        estimates = self._rows(sorted(touched))
+        estimates = self._rows(sorted(b.user for b in batches if reports[b.user].status == "tracking"))
         return TrackerOutcome(reports, estimates, encounters, sorted(changed), detections)
 
     def _dead_reckon(self, b: UserBatch, report: UserReport) -> UserBatch:

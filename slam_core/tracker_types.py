@@ -169,7 +169,7 @@ class EncounterResult:
 @dataclass
 class TrackerOutcome:
     reports: dict[str, UserReport]
-    estimates: dict[str, EstimateRow]
+    estimates: dict[str, EstimateRow]  # of the users whose batches were applied (peers: with their next)
     encounters: list[EncounterResult]  # the detections chosen as human anchors (applied, or gated)
     anchors_changed: list[int]  # crowd indices created or re-estimated
     detections: int = 0  # encounter detections, chosen or not

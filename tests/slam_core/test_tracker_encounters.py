@@ -52,10 +52,12 @@ def _applied(outcome: TrackerOutcome) -> list[tuple[str, str, bool]]:
 
 def test_a_close_pair_is_applied_and_then_cools_down() -> None:
     tracker = _tracker()
-    before = tracker.estimate("a")
+    before, peer_before = tracker.estimate("a"), tracker.estimate("b")
     outcome = tracker.apply([_sighting("a", "b", T0 + 1_000, 3.0)])
     assert outcome.detections == 1
     assert _applied(outcome) == [("a", "b", True)]
+    # one estimate per applied batch: the peer's moved filter is estimated with its own next batch
+    assert list(outcome.estimates) == ["a"]
     after = tracker.estimate("a")
     assert before is not None
     assert after is not None
@@ -66,6 +68,8 @@ def test_a_close_pair_is_applied_and_then_cools_down() -> None:
     assert after.cov[0] * after.cov[2] > after.cov[1] ** 2
     # within the cooldown the pair is detected, not applied again
     again = tracker.apply([_sighting("b", "a", T0 + 3_000, 3.0)])
+    assert peer_before is not None
+    assert again.estimates["b"].cov[0] < peer_before.cov[0]  # the first call's encounter had moved b too
     assert again.detections == 1
     assert again.encounters == []
     later = tracker.apply([_sighting("b", "a", T0 + 7_000, 3.0)])
