@@ -45,7 +45,7 @@ from slam_core.encounter_selection import EncounterSelector
 from slam_core.encounters import Calibration
 from slam_core.fastslam import DynamicSlam
 from slam_core.front_end import FrontEnd, RadioArrays
-from slam_core.tracker_rounds import TRAIL_MS, Round, UserTrack, round_at
+from slam_core.tracker_rounds import Round, UserTrack, lay_steps, round_at
 from slam_core.tracker_types import (
     CROWD_SOLVERS,
     EncounterResult,
@@ -357,17 +357,7 @@ class BuildingTracker:
             lengths = np.concatenate(rnd.step_len)
             headings = np.concatenate(rnd.step_head)
             self.engine.step(np.array([u.slot for u in users], dtype=np.int64), offsets, lengths, headings)
-            for u, ls, hs, ts, offs in zip(
-                users, rnd.step_len, rnd.step_head, rnd.step_t, rnd.step_offset, strict=True
-            ):
-                u.add_gyro_steps(ls, hs, offs)
-                path = u.displacement + np.cumsum(np.column_stack([ls * np.cos(hs), ls * np.sin(hs)]), axis=0)
-                walked = u.walked + np.cumsum(ls)
-                u.trail.extend(zip(ts.tolist(), path.tolist(), walked.tolist(), strict=True))
-                while u.trail and u.trail[0][0] < int(ts[-1]) - TRAIL_MS:
-                    u.trail.pop(0)
-                u.displacement = path[-1].copy()
-                u.walked = float(walked[-1])
+            lay_steps(users, rnd, lengths, headings)
             if self.params.revise_headings:
                 self._revise_headings(users)
         plain = [k for k, s in enumerate(rnd.det_signature) if not s]
