@@ -258,12 +258,29 @@ def _document_raw_bodies(app: FastAPI) -> None:
 
 
 def _warm_kernels(params: TrackerParams, calibration: Calibration) -> None:
-    """Compile (or load from cache) every kernel the batch path uses before the first request."""
+    """Compile (or load from cache) every kernel the batch path uses before the first request: the serial
+    twins that groups of phones use and the parallel kernels of calls over a whole building
+    (``slam_core.kernels.serial``)."""
+    import numpy as np
+
+    from slam_core.kernels.serial import PARALLEL_MIN_USERS
+
+    for parallel_min_users in (1, PARALLEL_MIN_USERS):
+        _warm_tracker(params, calibration, parallel_min_users)
+    from slam_core.pdr.frontend import ImuSamples, PdrState, pdr_steps
+
+    t = np.arange(3_000.0, 4_000.0, 20.0)
+    gravity = np.column_stack([t, np.zeros(t.size), np.zeros(t.size), np.full(t.size, 9.81)])
+    pdr_steps(PdrState(), ImuSamples(acc=gravity, gyr=gravity * [1, 0, 0, 0], mag=gravity), params.pdr)
+
+
+def _warm_tracker(params: TrackerParams, calibration: Calibration, parallel_min_users: int) -> None:
     import numpy as np
 
     from slam_core.tracker import BuildingTracker, UserBatch
 
     tracker = BuildingTracker(params, calibration, seed=0)
+    tracker.engine.parallel_min_users = parallel_min_users
     tracker.pin_anchor(np.array([1.0, 0.0]), 0)
     for name in ("a", "b"):
         tracker.apply(
@@ -285,11 +302,6 @@ def _warm_kernels(params: TrackerParams, calibration: Calibration) -> None:
         )
     tracker.engine.observe_encounters(np.array([0]), np.array([1]), np.array([1.0]), np.array([1.0]))
     tracker.engine.observe_position(np.array([0]), np.array([[1.0, 0.0]]), np.array([0.5]))
-    from slam_core.pdr.frontend import ImuSamples, PdrState, pdr_steps
-
-    t = np.arange(3_000.0, 4_000.0, 20.0)
-    gravity = np.column_stack([t, np.zeros(t.size), np.zeros(t.size), np.full(t.size, 9.81)])
-    pdr_steps(PdrState(), ImuSamples(acc=gravity, gyr=gravity * [1, 0, 0, 0], mag=gravity), params.pdr)
 
 
 def _install_error_handlers(app: FastAPI) -> None:

@@ -11,11 +11,23 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slam_core.kernels.building import building_anchor_update, merge_crowd_anchors
-from slam_core.kernels.human import human_anchor_update
-from slam_core.kernels.motion import MODEL_BIAS_SCALE, MODEL_PAPER, initialise_user, motion_update
-from slam_core.kernels.resampling import SCHEME_CODES, resample_users
-from slam_core.kernels.summary import summarise
+from slam_core.kernels.building import (
+    building_anchor_update,
+    building_anchor_update_serial,
+    merge_crowd_anchors,
+    merge_crowd_anchors_serial,
+)
+from slam_core.kernels.human import human_anchor_update, human_anchor_update_serial
+from slam_core.kernels.motion import (
+    MODEL_BIAS_SCALE,
+    MODEL_PAPER,
+    initialise_user,
+    motion_update,
+    motion_update_serial,
+)
+from slam_core.kernels.resampling import SCHEME_CODES, resample_users, resample_users_serial
+from slam_core.kernels.serial import PARALLEL_MIN_USERS, pick
+from slam_core.kernels.summary import summarise, summarise_serial
 from slam_core.params import FilterParams
 from slam_core.state import FilterState, SlotAllocator, user_key
 
@@ -61,8 +73,16 @@ class EncounterOutcome:
 
 
 class DynamicSlam:
-    def __init__(self, params: FilterParams, seed: int = 0, initial_capacity: int = 16) -> None:
+    def __init__(
+        self,
+        params: FilterParams,
+        seed: int = 0,
+        initial_capacity: int = 16,
+        parallel_min_users: int = PARALLEL_MIN_USERS,
+    ) -> None:
         self.params = params
+        self.parallel_min_users = parallel_min_users
+        """Calls over fewer users run the kernels' serial twins (``slam_core.kernels.serial``)."""
         self.seed = seed
         self.state = FilterState.empty(initial_capacity, params.n_particles, params.anchors.capacity)
         self._slots = SlotAllocator(initial_capacity)
@@ -153,7 +173,7 @@ class DynamicSlam:
             raise ValueError("step lengths must be finite and >= 0, headings finite")
         s = self.state
         motion = self.params.motion
-        motion_update(
+        pick(motion_update, motion_update_serial, users.shape[0], self.parallel_min_users)(
             s.x,
             s.y,
             s.heading,
@@ -196,7 +216,7 @@ class DynamicSlam:
         s = self.state
         a = self.params.anchors
         used_slot = np.full((users.size, s.n_particles), -1, dtype=np.int64)
-        building_anchor_update(
+        pick(building_anchor_update, building_anchor_update_serial, users.shape[0], self.parallel_min_users)(
             s.x, s.y, s.logw, s.map_mu, s.map_cov, s.map_type, s.map_count, s.map_known, s.map_crowd_id,
             s.map_n, s.ctrl_cov, s.rng_key, s.rng_ctr, users, detected_types, self._type_posterior,
             a.detection_sigma_m, a.new_anchor_likelihood, s.n_map_overflow, s.n_degenerate, used_slot,
@@ -334,7 +354,7 @@ class DynamicSlam:
         known_var = self.params.anchors.known_sigma_m**2
         cov = crowd.cov.copy()
         cov[crowd.known] = (known_var, 0.0, known_var)
-        merge_crowd_anchors(
+        pick(merge_crowd_anchors, merge_crowd_anchors_serial, users.shape[0], self.parallel_min_users)(
             s.map_mu, s.map_cov, s.map_type, s.map_count, s.map_known, s.map_crowd_id, s.map_n, users,
             np.ascontiguousarray(crowd.mean), np.ascontiguousarray(cov), crowd.type.astype(np.int8),
             crowd.known.astype(np.bool_), crowd.crowd_id.astype(np.int64), s.n_map_overflow,
@@ -412,7 +432,7 @@ class DynamicSlam:
     ) -> None:
         s = self.state
         h = self.params.human
-        human_anchor_update(
+        pick(human_anchor_update, human_anchor_update_serial, users.shape[0], self.parallel_min_users)(
             s.x,
             s.y,
             s.logw,
@@ -436,7 +456,7 @@ class DynamicSlam:
         s = self.state
         rs = self.params.resampling
         bias_scale = self.params.motion.model == "bias-scale"  # the paper model has no bias or scale
-        resample_users(
+        pick(resample_users, resample_users_serial, users.shape[0], self.parallel_min_users)(
             np.ascontiguousarray(users, dtype=np.int64),
             rs.ess_threshold,
             SCHEME_CODES[rs.scheme],
@@ -468,7 +488,9 @@ class DynamicSlam:
         self._check_users(users, allow_repeats=True)
         out = np.empty((users.shape[0], len(SUMMARY_FIELDS)))
         s = self.state
-        summarise(s.x, s.y, s.heading, s.logw, users, out)
+        pick(summarise, summarise_serial, users.shape[0], self.parallel_min_users)(
+            s.x, s.y, s.heading, s.logw, users, out
+        )
         return out
 
     def _check_users(self, users: np.ndarray, allow_repeats: bool = False) -> None:

@@ -14,6 +14,7 @@ from numba import njit, prange
 
 from slam_core.kernels.linalg2 import gauss_logpdf2, sample2
 from slam_core.kernels.rng import normal
+from slam_core.kernels.serial import serial_twin
 from slam_core.kernels.weights import finish_observation
 
 CTRL_FLOOR_M2 = 1e-4
@@ -261,3 +262,7 @@ def merge_crowd_anchors(
                 map_known[u, m, n] = crowd_known[c]
                 map_crowd_id[u, m, n] = crowd_id[c]
                 map_n[u, m] = n + 1
+
+
+building_anchor_update_serial = serial_twin(building_anchor_update)
+merge_crowd_anchors_serial = serial_twin(merge_crowd_anchors)

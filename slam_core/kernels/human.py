@@ -10,6 +10,7 @@ from numba import njit, prange
 
 from slam_core.kernels.linalg2 import sample2
 from slam_core.kernels.rng import normal
+from slam_core.kernels.serial import serial_twin
 from slam_core.kernels.weights import finish_observation
 
 CTRL_FLOOR_M2 = 1e-4
@@ -149,3 +150,6 @@ def human_anchor_update(
             n2 = normal(key, rng_ctr, u)
             x[u, m], y[u, m] = sample2(mx, my, c_xx, c_xy, c_yy, n1, n2)  # Eq. 14
         finish_observation(logw, ctrl_cov, degenerate, u)
+
+
+human_anchor_update_serial = serial_twin(human_anchor_update)

@@ -10,6 +10,7 @@ from numba import njit, prange
 
 from slam_core.kernels.linalg2 import wrap_angle
 from slam_core.kernels.rng import normal, normal_at
+from slam_core.kernels.serial import serial_twin
 
 MODEL_PAPER = 0
 MODEL_BIAS_SCALE = 1
@@ -151,3 +152,6 @@ def initialise_user(
         scale[u, m] = max(0.2, 1.0 + scale_sigma * normal(key, rng_ctr, u))
         walk[u, m] = 0.0
         logw[u, m] = -math.log(n_particles)
+
+
+motion_update_serial = serial_twin(motion_update)

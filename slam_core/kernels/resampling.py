@@ -12,6 +12,7 @@ import numpy as np
 from numba import njit, prange
 
 from slam_core.kernels.rng import normal, uniform
+from slam_core.kernels.serial import serial_twin
 from slam_core.kernels.weights import effective_sample_size
 
 SYSTEMATIC = 0
@@ -185,3 +186,6 @@ def resample_users(
             map_count, map_known, map_crowd_id, map_n, rng_key, rng_ctr, n_resamples, roughening_bias,
             roughening_scale,
         )  # fmt: skip
+
+
+resample_users_serial = serial_twin(resample_users)

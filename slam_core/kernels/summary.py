@@ -7,6 +7,8 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from slam_core.kernels.serial import serial_twin
+
 
 @njit(cache=True, nogil=True, parallel=True)
 def summarise(
@@ -50,3 +52,6 @@ def summarise(
         out[i, 5] = x[u, best]
         out[i, 6] = y[u, best]
         out[i, 7] = math.atan2(ss, sc)
+
+
+summarise_serial = serial_twin(summarise)

@@ -7,6 +7,7 @@ import subprocess
 import sys
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -182,7 +183,7 @@ _DETERMINISM_SCRIPT = """
 import numpy as np
 from slam_core.fastslam import DynamicSlam
 from slam_core.params import FilterParams
-e = DynamicSlam(FilterParams(n_particles=30), seed=123)
+e = DynamicSlam(FilterParams(n_particles=30), seed=123, parallel_min_users=1)  # every call in parallel
 users = np.array([e.add_user(float(i), float(-i)) for i in range(40)])
 rng = np.random.default_rng(0)
 for t in range(30):
@@ -209,3 +210,63 @@ def test_same_seed_same_estimates_on_one_and_two_threads() -> None:
         outputs.append(run.stdout.strip())
     assert outputs[0] == outputs[1]
     assert len(outputs[0]) > 100
+
+
+def _run_operations(parallel_min_users: int) -> DynamicSlam:
+    """Every kernel with a serial twin (motion, building anchors, crowd merge, encounters, resampling,
+    summaries) over 12 users, always resampling."""
+    params = replace(PARAMS, resampling=ResamplingParams(ess_threshold=1.0))
+    engine = DynamicSlam(params, seed=7, parallel_min_users=parallel_min_users)
+    users = np.array([engine.add_user(float(i), float(-i)) for i in range(12)])
+    rng = np.random.default_rng(3)
+    crowd = CrowdMap(
+        mean=np.array([[2.0, 1.0], [8.0, -3.0]]),
+        cov=np.array([[0.5, 0.0, 0.5], [1.0, 0.1, 1.0]]),
+        type=np.array([0, 3]),
+        known=np.array([True, False]),
+        crowd_id=np.array([0, 1]),
+    )
+    for t in range(12):
+        engine.step(users, np.arange(13), 0.7 + 0.05 * rng.standard_normal(12), rng.uniform(-3, 3, 12))
+        if t % 3 == 0:
+            engine.observe_building_anchors(users[t % 2 :: 2], rng.integers(0, 5, 6))
+            engine.observe_encounters(users[0:4], users[4:8], rng.uniform(0, 5, 4), np.full(4, 4.0))
+        if t == 5:
+            engine.merge_crowd_map(users, crowd)
+    return engine
+
+
+def test_serial_twins_give_the_parallel_kernels_numbers() -> None:
+    """Small calls run the serial twins (``slam_core.kernels.serial``): the same state, bit for bit."""
+    parallel, serial = _run_operations(parallel_min_users=1), _run_operations(parallel_min_users=10**9)
+    for name in ("x", "y", "heading", "bias", "scale", "logw", "ctrl_cov", "map_mu", "map_cov", "map_n"):
+        np.testing.assert_array_equal(
+            getattr(parallel.state, name), getattr(serial.state, name), err_msg=name
+        )
+    users = parallel.active_users
+    np.testing.assert_array_equal(parallel.summaries(users), serial.summaries(users))
+    assert parallel.state.n_resamples[users].min() >= 1  # every user observed something, and resampled
+    assert parallel.state.map_n[users].min() >= 2  # the crowd's anchors were merged
+
+
+def test_calls_under_the_threshold_take_the_serial_twins() -> None:
+    from slam_core.kernels import building, human, motion, resampling, summary
+    from slam_core.kernels.serial import pick
+
+    assert pick("parallel", "serial", 255, 256) == "serial"
+    assert pick("parallel", "serial", 256, 256) == "parallel"
+    pairs: list[tuple[Any, Any]] = [
+        (summary.summarise, summary.summarise_serial),
+        (motion.motion_update, motion.motion_update_serial),
+        (resampling.resample_users, resampling.resample_users_serial),
+        (human.human_anchor_update, human.human_anchor_update_serial),
+        (building.building_anchor_update, building.building_anchor_update_serial),
+        (building.merge_crowd_anchors, building.merge_crowd_anchors_serial),
+    ]
+    for kernel, twin in pairs:
+        assert kernel.targetoptions.get("parallel")
+        assert not twin.targetoptions.get("parallel")
+        assert twin.targetoptions.get("nogil")
+        assert twin.py_func.__code__ is kernel.py_func.__code__
+        # numba's cache files are named after the qualified name: the two compilations must not share one
+        assert twin.py_func.__qualname__ == kernel.py_func.__qualname__ + "_serial"
