@@ -72,46 +72,60 @@ def to_user_batch(batch: SensorBatch, ctx: BuildingContext) -> Converted:
         fix_sigma.append(sigma)
         fix_azimuth.append(azimuth)
     steps = batch.steps
-    nan = math.nan
     scans = batch.wifi_scans
-    offsets = np.zeros(len(scans) + 1, dtype=np.int64)
-    offsets[1:] = np.cumsum([len(s.aps) for s in scans])
+    aps = [ap for s in scans for ap in s.aps]
     peers = [s for s in batch.bluetooth if isinstance(s, PeerSighting)]
     beacons = [s for s in batch.bluetooth if isinstance(s, BeaconSighting)]
+    detections = batch.anchor_detections
     user_batch = UserBatch(
         user=batch.effective_user_id,
         ble_id=batch.ble_advertised_id,
-        fix_t=np.array(fix_t, dtype=np.int64),
-        fix_xy=np.array(fix_xy, dtype=np.float64).reshape(-1, 2),
-        fix_sigma=np.array(fix_sigma, dtype=np.float64),
-        fix_azimuth=np.array(fix_azimuth, dtype=np.float64),
-        step_t=np.array([s.t_ms for s in steps], dtype=np.int64),
-        step_length=np.array([s.length_m for s in steps], dtype=np.float64),
-        step_azimuth=np.array(
-            [nan if s.azimuth_rad is None else s.azimuth_rad for s in steps], dtype=np.float64
-        ),
-        step_turn=np.array(
-            [nan if s.heading_change_rad is None else s.heading_change_rad for s in steps], dtype=np.float64
-        ),
-        detect_t=np.array([d.t_ms for d in batch.anchor_detections], dtype=np.int64),
-        detect_type=np.array([anchor_type_index(d.type) for d in batch.anchor_detections], dtype=np.int64),
-        scan_t=np.array([s.t_ms for s in scans], dtype=np.int64),
-        scan_offsets=offsets,
-        scan_bssid=tuple(ap.bssid for s in scans for ap in s.aps),
-        scan_rss=np.array([ap.rssi_dbm for s in scans for ap in s.aps], dtype=np.float64),
-        scan_last_seen=np.array(
-            [-1 if ap.last_seen_ms is None else ap.last_seen_ms for s in scans for ap in s.aps],
-            dtype=np.int64,
-        ),
-        peer_t=np.array([p.t_ms for p in peers], dtype=np.int64),
+        fix_t=_ints(fix_t),
+        fix_xy=np.array(fix_xy, dtype=np.float64).reshape(-1, 2) if fix_xy else _NO_XY,
+        fix_sigma=_floats(fix_sigma),
+        fix_azimuth=_floats(fix_azimuth),
+        step_t=_ints([s.t_ms for s in steps]),
+        step_length=_floats([s.length_m for s in steps]),
+        step_azimuth=_floats([_nan_if_none(s.azimuth_rad) for s in steps]),
+        step_turn=_floats([_nan_if_none(s.heading_change_rad) for s in steps]),
+        detect_t=_ints([d.t_ms for d in detections]),
+        detect_type=_ints([anchor_type_index(d.type) for d in detections]),
+        scan_t=_ints([s.t_ms for s in scans]),
+        scan_offsets=np.cumsum([0] + [len(s.aps) for s in scans], dtype=np.int64)
+        if scans
+        else np.zeros(1, dtype=np.int64),
+        scan_bssid=tuple(ap.bssid for ap in aps),
+        scan_rss=_floats([ap.rssi_dbm for ap in aps]),
+        scan_last_seen=_ints([-1 if ap.last_seen_ms is None else ap.last_seen_ms for ap in aps]),
+        peer_t=_ints([p.t_ms for p in peers]),
         peer_id=tuple(p.peer_advertised_id for p in peers),
-        peer_rss=np.array([p.rssi_dbm for p in peers], dtype=np.float64),
-        beacon_t=np.array([s.t_ms for s in beacons], dtype=np.int64),
+        peer_rss=_floats([p.rssi_dbm for p in peers]),
+        beacon_t=_ints([s.t_ms for s in beacons]),
         beacon_mac=tuple(s.mac for s in beacons),
-        beacon_rss=np.array([s.rssi_dbm for s in beacons], dtype=np.float64),
+        beacon_rss=_floats([s.rssi_dbm for s in beacons]),
         imu=_imu(batch),
     )
     return Converted(user_batch, warnings)
+
+
+# Shared empty arrays: most batches carry no fix, detection or beacon, and an array per absent field had
+# cost a fifth of the conversion. Nothing can be written into an empty array; they stay writable so that
+# the numba kernels see one array type (a read-only array is another type to them, compiled anew).
+_NO_INTS = np.zeros(0, dtype=np.int64)
+_NO_FLOATS = np.zeros(0, dtype=np.float64)
+_NO_XY = np.zeros((0, 2), dtype=np.float64)
+
+
+def _ints(values: list[int]) -> np.ndarray:
+    return np.array(values, dtype=np.int64) if values else _NO_INTS
+
+
+def _floats(values: list[float]) -> np.ndarray:
+    return np.array(values, dtype=np.float64) if values else _NO_FLOATS
+
+
+def _nan_if_none(value: float | None) -> float:
+    return math.nan if value is None else value
 
 
 def _vector(stream: Vector3Stream | None) -> np.ndarray:

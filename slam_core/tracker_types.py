@@ -122,11 +122,19 @@ class UserBatch:
         )
         if not shapes_ok:
             raise ValueError(f"user batch of {self.user!r}: inconsistent array shapes")
-        finite = all(
-            np.all(np.isfinite(a))
+        # one pass over the non-empty ones: a batch converts in tens of microseconds, and seven reductions
+        # over mostly empty arrays had cost 30 us of it
+        checked = [
+            a.ravel()
             for a in (self.fix_xy, self.fix_sigma, self.step_length, self.scan_rss, self.peer_rss)
-        )
-        if not finite or np.any(self.fix_sigma <= 0) or np.any(self.step_length < 0):
+            if a.size
+        ]
+        finite = not checked or bool(np.isfinite(np.concatenate(checked)).all())
+        if (
+            not finite
+            or (self.fix_sigma.size and self.fix_sigma.min() <= 0)
+            or (self.step_length.size and self.step_length.min() < 0)
+        ):
             raise ValueError(
                 f"user batch of {self.user!r}: non-finite values, sigma <= 0 or negative lengths"
             )
