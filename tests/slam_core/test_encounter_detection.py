@@ -90,3 +90,23 @@ def test_calibration_round_trips_with_and_without_the_fingerprint_model() -> Non
     }
     with pytest.raises(ValueError, match="wifi_fingerprint"):
         Calibration.from_dict(broken)
+
+
+def test_bluetooth_pairs_not_heard_within_the_retention_are_forgotten() -> None:
+    """A pair's sightings average over one sighting period; pairs silent for ``retention_ms`` are dropped
+    as time advances (a long-running building holds only its recent pairs), and a pair heard again starts
+    its average afresh with the same result."""
+    params = DetectionParams()
+    detector = EncounterDetector(params, Calibration(EQ3, BT))
+    for k in range(50):  # 50 pairs, each heard once, 100 ms apart
+        detector.add_sightings([f"u{k}"], [f"v{k}"], np.array([T0 + 100 * k]), np.array([-70.0]))
+    assert len(detector._bt) == 50
+    later = T0 + 100 * 30 + params.retention_ms  # pairs heard before T0 + 3,000 ms are past the retention
+    found = detector.add_sightings(
+        ["u0", "w"], ["v0", "x"], np.array([later, later]), np.array([-75.0, -95.0])
+    )
+    assert len(detector._bt) == 50 - 30 + 2  # u0..u29 went; u0-v0 came back and w-x joined
+    assert ("u29", "v29") not in detector._bt
+    assert ("u30", "v30") in detector._bt
+    # u0-v0 is detected on its new reading alone (-75 dBm, above the cut-off); w-x at -95 dBm is not
+    assert found.feature.tolist() == [-75.0]
