@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import cProfile
-import json
 import statistics
 import sys
 import tempfile
@@ -33,6 +32,7 @@ from server.numba_cache import configure_numba_cache
 configure_numba_cache()
 
 from load import Crowd, _body
+from report import emit
 
 from schemas.live import LIVE_MESSAGE_ADAPTER
 from server.app import load_calibration, tracker_params
@@ -132,10 +132,7 @@ def main() -> int:
     if args.phones < 1 or args.seconds < 1 or args.group < 1:
         parser.error("--phones, --seconds and --group must be at least 1")
     result = run(args.phones, args.seconds, args.group, args.profile)
-    print(json.dumps(result, indent=2))
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(result, indent=2) + "\n")
+    emit(result, args.json)
     return 0
 
 

@@ -11,7 +11,6 @@ default: serially, ``slam_core.kernels.serial``), and what they were measured on
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 import time
@@ -24,6 +23,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from server.numba_cache import configure_numba_cache
 
 configure_numba_cache()
+from report import emit
+
 from slam_core import reference
 from slam_core.fastslam import DynamicSlam
 from slam_core.kernels.serial import PARALLEL_MIN_USERS
@@ -174,10 +175,7 @@ def main() -> int:
         "engine_serial_ms_same_inputs": round(eng_serial_ms, 3),
         "reference_users": REFERENCE_USERS,
     }
-    text = json.dumps(result, indent=2)
-    print(text)
-    if args.json:
-        args.json.write_text(text + "\n")
+    emit(result, args.json)
     return 0
 
 

@@ -13,7 +13,6 @@ one thread), the share of scans located and their median error in metres.
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 import time
@@ -27,6 +26,8 @@ sys.path.insert(0, str(ROOT))
 from server.numba_cache import configure_numba_cache
 
 configure_numba_cache()
+from report import emit
+
 from slam_core.crowd_fingerprints import CrowdFingerprints, FingerprintParams
 
 SCAN_TOP = 15
@@ -87,10 +88,7 @@ def main() -> None:
         "located_share": len(errors) / len(queries),
         "median_error_m": statistics.median(errors) if errors else None,
     }
-    text = json.dumps(result, indent=2)
-    print(text)
-    if args.json:
-        args.json.write_text(text + "\n")
+    emit(result, args.json)
 
 
 if __name__ == "__main__":

@@ -13,7 +13,6 @@ per row ``kernel, users, other_core, parallel_mean_us, parallel_p99_us, serial_m
 from __future__ import annotations
 
 import argparse
-import json
 import multiprocessing
 import sys
 import time
@@ -27,6 +26,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from server.numba_cache import configure_numba_cache
 
 configure_numba_cache()
+
+from report import emit
 
 from slam_core.fastslam import DynamicSlam
 from slam_core.params import FilterParams
@@ -109,10 +110,7 @@ def main() -> int:
     if not sizes or min(sizes) < 1 or args.calls < 1:
         parser.error("--users and --calls must be at least 1")
     result = {"rows": run(sizes, args.calls)}
-    print(json.dumps(result, indent=2))
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(result, indent=2) + "\n")
+    emit(result, args.json)
     return 0
 
 

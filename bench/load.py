@@ -45,6 +45,7 @@ from server.numba_cache import configure_numba_cache
 
 configure_numba_cache()
 
+from report import emit
 from websockets.asyncio.client import connect
 
 from schemas.api import KeyScope
@@ -455,10 +456,7 @@ def main() -> int:
         "sustained": sustained,
         "rows": rows,
     }
-    text = json.dumps(result, indent=2)
-    print(text)
-    if args.json:
-        args.json.write_text(text + "\n")
+    emit(result, args.json)
     return 0
 
 

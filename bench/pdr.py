@@ -12,7 +12,6 @@ on one thread. Prints one JSON object: realtime_x per orientation source, per-ba
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -25,6 +24,8 @@ sys.path.insert(0, str(ROOT))
 from server.numba_cache import configure_numba_cache
 
 configure_numba_cache()
+from report import emit
+
 from server.datasets.msindoor import read_floor, read_trace
 from slam_core.pdr.frontend import ImuSamples, PdrParams, PdrState, pdr_steps
 
@@ -85,10 +86,7 @@ def main() -> None:
             "batches": n_batches,
             "steps": steps,
         }
-    text = json.dumps(result, indent=2)
-    print(text)
-    if args.json:
-        args.json.write_text(text + "\n")
+    emit(result, args.json)
 
 
 if __name__ == "__main__":
