@@ -91,9 +91,7 @@ def to_user_batch(batch: SensorBatch, ctx: BuildingContext) -> Converted:
         detect_t=_ints([d.t_ms for d in detections]),
         detect_type=_ints([anchor_type_index(d.type) for d in detections]),
         scan_t=_ints([s.t_ms for s in scans]),
-        scan_offsets=np.cumsum([0] + [len(s.aps) for s in scans], dtype=np.int64)
-        if scans
-        else np.zeros(1, dtype=np.int64),
+        scan_offsets=np.cumsum([0, *(len(s.aps) for s in scans)], dtype=np.int64),  # [0] without scans
         scan_bssid=tuple(ap.bssid for ap in aps),
         scan_rss=_floats([ap.rssi_dbm for ap in aps]),
         scan_last_seen=_ints([-1 if ap.last_seen_ms is None else ap.last_seen_ms for ap in aps]),
