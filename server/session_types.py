@@ -33,6 +33,8 @@ class Counters:
     """Periodic snapshots that could not be compressed (the batch log keeps what they would have covered)."""
     replayed: int = 0
     """Logged batches re-applied on load, after a crash."""
+    log_bodies_cleared: int = 0
+    """Logged batch bodies cleared once a snapshot covered them."""
     pruned_positions: int = 0
     """Position history rows deleted past their retention."""
     pruned_batches: int = 0
@@ -55,6 +57,9 @@ class Retention:
     """Old rows are deleted at most this often, ``prune_chunk`` per table at a time: a building inserting
     3,000 position rows a second keeps up, and no group waits behind a long delete."""
     prune_chunk: int = 10_000
+    log_clear_chunk: int = 256
+    """Batch bodies a snapshot covers are cleared this many per group (at least a group's largest size,
+    ``ingestion.MAX_GROUP``, so the clearing keeps up with the batches logged)."""
     user_idle_s: float | None = 900.0
     """A user not heard from for this long is forgotten by the tracker (its slot, particles and maps freed;
     it needs a new fix when it comes back), at the next snapshot, so a restart's replay never spans an

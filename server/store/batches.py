@@ -8,7 +8,7 @@ from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
 from server.store.db import insert_many_once
-from server.store.models import BatchRow
+from server.store.models import BatchRow, TrackerSnapshotRow
 
 
 @dataclass(frozen=True)
@@ -76,18 +76,35 @@ def insert_batch_once(session: Session, batch: AcceptedBatch) -> int | None:
     return insert_batches_once(session, [batch])[0]
 
 
-def drop_logged_bodies(session: Session, building_id: str, up_to_round: int | None = None) -> None:
-    """Forget the bodies of a building's batches once a snapshot covers them: all, or those applied by
-    engine calls up to ``up_to_round`` (a snapshot taken at that call); and of batches never applied (late
-    ones are not replayed)."""
-    stmt = update(BatchRow).where(BatchRow.building_id == building_id, BatchRow.body.is_not(None))
-    if up_to_round is not None:
-        stmt = stmt.where(BatchRow.applied_round.is_(None) | (BatchRow.applied_round <= up_to_round))
-    session.execute(stmt.values(body=None))
+def clear_covered_bodies(session: Session, building_id: str, limit: int | None = None) -> int:
+    """Forget the bodies of a building's batches that its tracker snapshot covers (applied by engine calls
+    up to the snapshot's round), and of batches never applied (late ones are not replayed). The snapshot's
+    round is read in the same statement, so nothing is cleared that the snapshot in SQL does not cover.
+    At most ``limit`` rows when given: a building applying thousands of batches a minute clears its log a
+    chunk per group instead of in one long statement. Returns how many bodies went."""
+    session.flush()  # a snapshot saved in this transaction through the ORM is what the statement reads
+    snapshot_round = (
+        select(TrackerSnapshotRow.applied_round)
+        .where(TrackerSnapshotRow.building_id == building_id)
+        .scalar_subquery()
+    )
+    covered = (
+        BatchRow.building_id == building_id,
+        BatchRow.body.is_not(None),
+        BatchRow.applied_round.is_(None) | (BatchRow.applied_round <= snapshot_round),
+    )
+    if limit is None:
+        stmt = update(BatchRow).where(*covered)
+    else:
+        doomed = select(BatchRow.id).where(*covered).limit(limit).scalar_subquery()
+        stmt = update(BatchRow).where(BatchRow.id.in_(doomed))
+    return int(session.connection().execute(stmt.values(body=None)).rowcount or 0)
 
 
-def logged_batches(session: Session, building_id: str) -> list[LoggedBatch]:
-    """The applied batches not yet covered by the building's snapshot, in the order they were applied."""
+def logged_batches(session: Session, building_id: str, after_round: int | None = None) -> list[LoggedBatch]:
+    """The applied batches still logged, in the order they were applied: those of engine calls after
+    ``after_round`` (the round of the snapshot they are replayed onto; older bodies the snapshot covers may
+    not be cleared yet), or all when None."""
     stmt = (
         select(BatchRow.id, BatchRow.applied_round, BatchRow.body)
         .where(
@@ -97,6 +114,8 @@ def logged_batches(session: Session, building_id: str) -> list[LoggedBatch]:
         )
         .order_by(BatchRow.applied_round, BatchRow.id)
     )
+    if after_round is not None:
+        stmt = stmt.where(BatchRow.applied_round > after_round)
     return [
         LoggedBatch(int(i), int(r if r is not None else 0), bytes(b))
         for i, r, b in session.execute(stmt)

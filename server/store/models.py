@@ -19,6 +19,7 @@ from sqlalchemy import (
     String,
     UniqueConstraint,
     func,
+    text,
 )
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 
@@ -102,6 +103,14 @@ class BatchRow(Base):
         UniqueConstraint("building_id", "device_id", "batch_id", name="uq_batches_device_batch"),
         Index("ix_batches_device_seq", "building_id", "device_id", "seq"),
         Index("ix_batches_building_received", "building_id", "received_at"),
+        # the write-ahead log: the few rows that still hold a body, found without scanning the rest
+        Index(
+            "ix_batches_logged",
+            "building_id",
+            "applied_round",
+            sqlite_where=text("body IS NOT NULL"),
+            postgresql_where=text("body IS NOT NULL"),
+        ),
     )
 
     id: Mapped[int] = mapped_column(BigIntPk, primary_key=True, autoincrement=True)

@@ -14,7 +14,7 @@ from sqlalchemy import Engine, func, select
 from schemas.anchors import KnownAnchorIn
 from schemas.common import Position
 from server.app import load_calibration, tracker_params
-from server.session_types import Submission
+from server.session_types import Retention, Submission
 from server.settings import Settings
 from server.simulated_phones import KnownAnchor, known_anchors, simulated_batches
 from server.store.db import make_engine, make_session_factory
@@ -172,6 +172,37 @@ def test_a_snapshot_compressed_in_the_background_covers_its_own_engine_calls_onl
     assert _estimates(restarted) == _estimates(reference)
 
 
+def test_a_log_cleared_slower_than_it_grows_replays_from_the_snapshots_round_only(sqlite_url: str) -> None:
+    """Covered bodies are cleared a chunk per group; with a chunk smaller than a group some stay a while.
+    A crash then replays only the batches applied after the snapshot's round, and the restart is exact."""
+    groups = _groups(CROWD)[:10]
+    reference = _session(_fresh_building(sqlite_url.replace(".sqlite3", "-ref.sqlite3")))
+    for group in groups:
+        reference.process(group)
+    engine = _fresh_building(sqlite_url)
+    session = BuildingSession(
+        "hq",
+        make_session_factory(engine),
+        tracker_params(SETTINGS),
+        load_calibration(None),
+        SETTINGS.seed,
+        snapshot_period_s=0.0,
+        retention=Retention(log_clear_chunk=3),
+    )
+    for group in groups:
+        session.process(group)
+        session._background.wait()
+    after_snapshot = _logged_after(engine, _snapshot_round(engine))
+    assert session.counters.log_bodies_cleared > 0
+    assert _logged(engine) > after_snapshot  # covered bodies not cleared yet
+    del session  # as after kill -9
+    restarted = _session(engine, snapshot_period_s=0.0)
+    assert restarted.restore_problem is None
+    assert restarted.counters.replayed == after_snapshot
+    assert _estimates(restarted) == _estimates(reference)
+    assert _logged(engine) == 0  # the load snapshot covers the whole log
+
+
 def test_a_retried_batch_after_restart_is_still_a_duplicate(sqlite_url: str) -> None:
     engine = _fresh_building(sqlite_url)
     session = _session(engine)
@@ -227,7 +258,6 @@ def test_a_snapshot_taken_with_other_parameters_is_refused_and_the_sql_map_is_ke
 
 
 def test_the_batch_path_prunes_history_but_keeps_every_users_latest_position(sqlite_url: str) -> None:
-    from server.session_types import Retention
     from server.store import repositories as repo
     from server.store.models import PositionSnapshotRow
 
@@ -256,7 +286,6 @@ def test_the_batch_path_prunes_history_but_keeps_every_users_latest_position(sql
 
 
 def test_idle_users_are_forgotten_at_a_snapshot_and_stay_forgotten_after_a_restart(sqlite_url: str) -> None:
-    from server.session_types import Retention
 
     engine = _fresh_building(sqlite_url)
 

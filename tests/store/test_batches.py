@@ -9,9 +9,17 @@ import pytest
 from sqlalchemy import Engine, func, select
 from sqlalchemy.exc import IntegrityError
 
-from server.store.batches import AcceptedBatch, find_batch, insert_batch_once, logged_batches
+from server.store.batches import (
+    AcceptedBatch,
+    clear_covered_bodies,
+    find_batch,
+    insert_batch_once,
+    insert_batches_once,
+    logged_batches,
+)
 from server.store.db import make_session_factory
 from server.store.models import BatchRow, BuildingRow
+from server.store.repositories import save_tracker_snapshot
 
 
 def _batch(batch_id: str = "b-1", device_id: str = "phone-1", seq: int = 1) -> AcceptedBatch:
@@ -111,6 +119,29 @@ def test_a_late_batch_is_stored_but_not_logged_for_replay(migrated_engine: Engin
         assert not row.applied
         assert row.applied_round is None
         assert logged_batches(session, "hq") == []
+
+
+def test_the_log_is_cleared_a_chunk_at_a_time_up_to_the_snapshots_round_only(migrated_engine: Engine) -> None:
+    """Bodies the snapshot in SQL covers go, at most ``limit`` per call; those after its round stay (they
+    are what a restart replays), and without a snapshot no applied body goes."""
+    _with_building(migrated_engine)
+    sessions = make_session_factory(migrated_engine)
+    batches = [replace(_batch(f"b-{r}", seq=r), body=b"{}", applied_round=r) for r in range(1, 6)]
+    with sessions.begin() as session:
+        insert_batches_once(session, batches)
+        assert clear_covered_bodies(session, "hq") == 0  # no snapshot: nothing is covered
+        save_tracker_snapshot(session, "hq", 1, 3, b"state")
+    with sessions.begin() as session:
+        assert clear_covered_bodies(session, "hq", limit=2) == 2
+        assert clear_covered_bodies(session, "hq", limit=2) == 1
+        assert clear_covered_bodies(session, "hq", limit=2) == 0
+    with sessions() as session:
+        assert [b.applied_round for b in logged_batches(session, "hq")] == [4, 5]
+        assert [b.applied_round for b in logged_batches(session, "hq", after_round=4)] == [5]
+    with sessions.begin() as session:
+        save_tracker_snapshot(session, "hq", 1, 5, b"state")
+        assert clear_covered_bodies(session, "hq") == 2
+    assert _count(migrated_engine) == 5  # the ids stay: retries are still recognised
 
 
 def test_batch_for_unknown_building_violates_the_foreign_key(migrated_engine: Engine) -> None:
