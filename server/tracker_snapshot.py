@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from slam_core.encounters import Calibration
 from slam_core.tracker import BuildingTracker, TrackerParams
 
-FORMAT_VERSION = 6
+FORMAT_VERSION = 7
 """Bump when BuildingTracker's attributes change: old snapshots are then refused, not misread."""
 
 
@@ -53,12 +53,13 @@ def _compress(raw: bytes) -> bytes:
 class BackgroundSnapshots:
     """Periodic snapshots compressed off the batch path.
 
-    The state is pickled where it is consistent (the building's thread, between groups: ~0.05 s for 1,000
+    The state is pickled where it is consistent (the building's thread, between groups: ~0.07 s for 1,000
     load-test users), but compressing it took two to three times as long again, and far more with full
     particle maps: zlib releases the GIL, so it runs on a thread of its own while the building applies the
-    next groups. The blob is then written by a later group's transaction (``ready``), together with
-    dropping the logged batch bodies up to the snapshot's engine call only: the batches applied meanwhile
-    stay logged, and a crash in between restarts from the previous snapshot and the whole log."""
+    next groups. The blob is then written by a later group's transaction (``ready``); from then on the
+    logged batch bodies up to the snapshot's engine call are cleared a chunk per group: the batches
+    applied meanwhile stay logged, and a crash in between restarts from the previous snapshot and the
+    batches logged after it."""
 
     def __init__(self, building_id: str) -> None:
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"snapshot-{building_id}")
