@@ -57,9 +57,10 @@ class Retention:
     """Old rows are deleted at most this often, ``prune_chunk`` per table at a time: a building inserting
     3,000 position rows a second keeps up, and no group waits behind a long delete."""
     prune_chunk: int = 10_000
-    log_clear_chunk: int = 256
-    """Batch bodies a snapshot covers are cleared this many per group (at least a group's largest size,
-    ``ingestion.MAX_GROUP``, so the clearing keeps up with the batches logged)."""
+    log_clear_per_batch: float = 2.0
+    """Each group clears this many logged batch bodies per batch it holds, of those a snapshot covers: the
+    clearing outpaces the logging, and costs each group in proportion to its size (~0.1 ms a row on
+    SQLite here), where clearing a minute's log at once had held one group for ~0.6 s at 1,000 phones."""
     user_idle_s: float | None = 900.0
     """A user not heard from for this long is forgotten by the tracker (its slot, particles and maps freed;
     it needs a new fix when it comes back), at the next snapshot, so a restart's replay never spans an

@@ -209,14 +209,14 @@ class BuildingSession:
         self._background.take(self._session_state())
         return rows
 
-    def _clear_log(self, session: Session) -> None:
-        """In a group's transaction: clear a chunk of the logged bodies the snapshot in SQL covers. Clearing
-        them all at once held a group for ~0.6 s every snapshot at 1,000 phones. Should the transaction
-        roll back, what it cleared is cleared again after the next snapshot; a restart replays only the
-        batches after the snapshot's round, so covered bodies left a while are never applied twice."""
+    def _clear_log(self, session: Session, group_size: int) -> None:
+        """In a group's transaction: clear a chunk of the logged bodies the snapshot in SQL covers
+        (``Retention.log_clear_per_batch``). Should the transaction roll back, what it cleared is cleared
+        again after the next snapshot; a restart replays only the batches after the snapshot's round, so
+        covered bodies left a while are never applied twice."""
         if not self._log_to_clear:
             return
-        chunk = self.retention.log_clear_chunk
+        chunk = max(1, int(self.retention.log_clear_per_batch * group_size))
         cleared = clear_covered_bodies(session, self.building_id, limit=chunk)
         self.counters.log_bodies_cleared += cleared
         self._log_to_clear = cleared == chunk
@@ -392,7 +392,7 @@ class BuildingSession:
                 self._round = base + call
                 self._apply(session, group, converted, now, results, messages)
             device_rows += self._periodic_snapshot(session)
-            self._clear_log(session)
+            self._clear_log(session, len(group))
             if time.monotonic() - self._last_prune >= self.retention.prune_period_s:
                 self._prune(session)
         self.devices.saved(device_rows)

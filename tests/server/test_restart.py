@@ -173,7 +173,7 @@ def test_a_snapshot_compressed_in_the_background_covers_its_own_engine_calls_onl
 
 
 def test_a_log_cleared_slower_than_it_grows_replays_from_the_snapshots_round_only(sqlite_url: str) -> None:
-    """Covered bodies are cleared a chunk per group; with a chunk smaller than a group some stay a while.
+    """Covered bodies are cleared a chunk per group; when that is slower than the log grows, some stay.
     A crash then replays only the batches applied after the snapshot's round, and the restart is exact."""
     groups = _groups(CROWD)[:10]
     reference = _session(_fresh_building(sqlite_url.replace(".sqlite3", "-ref.sqlite3")))
@@ -187,7 +187,7 @@ def test_a_log_cleared_slower_than_it_grows_replays_from_the_snapshots_round_onl
         load_calibration(None),
         SETTINGS.seed,
         snapshot_period_s=0.0,
-        retention=Retention(log_clear_chunk=3),
+        retention=Retention(log_clear_per_batch=0.5),  # 2 bodies a group of 4: slower than the log grows
     )
     for group in groups:
         session.process(group)
