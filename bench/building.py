@@ -11,17 +11,26 @@ posts its fix first; the figures count the seconds after that. Prints one JSON o
 ``json_us_per_batch`` (that JSON alone), and what it ran on. Without the HTTP front, the load generator
 and the dashboards on the same cores, this is steadier than ``bench/load.py`` and says what a change to
 the batch path costs.
+
+It also reports the pauses that hold a group, and so every batch queued behind it, with the building at
+the end of the run: ``group_ms_p99`` and ``group_ms_max`` (per call of ``process``), ``snapshot_pickle_ms``
+(the state pickled in the building's thread when a periodic snapshot is taken) and ``full_gc_ms`` (one
+full pass of the cyclic collector, tuned as in the server: start-up objects frozen after the first second).
 """
 
 from __future__ import annotations
 
 import argparse
 import cProfile
+import gc
 import statistics
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
+
+import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -35,7 +44,8 @@ from load import Crowd, _body
 from report import emit
 
 from schemas.live import LIVE_MESSAGE_ADAPTER
-from server.app import load_calibration, tracker_params
+from server import tracker_snapshot
+from server.app import _tune_gc, load_calibration, tracker_params
 from server.batch_decoding import decode_batch
 from server.errors import ProblemError
 from server.recording import BuildingRecorder
@@ -67,6 +77,7 @@ def run(phones: int, seconds: int, group: int, profile: Path | None) -> dict[str
         start_ms = int(time.time() * 1000)
         per_second: list[float] = []
         json_per_second: list[float] = []
+        group_ms: list[float] = []
         profiler = cProfile.Profile() if profile is not None else None
         for second in range(seconds + 1):
             crowd.walk()
@@ -95,11 +106,17 @@ def run(phones: int, seconds: int, group: int, profile: Path | None) -> dict[str
                 done = time.perf_counter()
                 busy += done - started
                 json_busy += done - encoded
+                if second:
+                    group_ms.append((done - started) * 1e3)
             if second:  # the first second admits every phone (its fix): not measured
                 per_second.append(busy / phones * 1e6)
                 json_per_second.append(json_busy / phones * 1e6)
+            else:
+                _tune_gc()  # as the server does once its kernels are warm
         if profiler is not None and profile is not None:
             profiler.dump_stats(profile)
+        pickle_s = min(_timed(lambda: tracker_snapshot._pickle(session._session_state())) for _ in range(3))
+        gc_s = min(_timed(gc.collect) for _ in range(3))
         session.close()
         assert session.recorder is not None
         session.recorder.close()
@@ -112,9 +129,19 @@ def run(phones: int, seconds: int, group: int, profile: Path | None) -> dict[str
         "us_per_batch_min": round(min(per_second), 1),
         "json_us_per_batch": round(statistics.mean(json_per_second), 1),
         "batches_per_s_one_core": round(1e6 / statistics.mean(per_second)),
+        "group_ms_p99": round(float(np.percentile(group_ms, 99)), 1),
+        "group_ms_max": round(max(group_ms), 1),
+        "snapshot_pickle_ms": round(pickle_s * 1e3, 1),
+        "full_gc_ms": round(gc_s * 1e3, 1),
         "fingerprint_fixes": session.counters.fingerprint_fixes,
         "encounters": session.counters.encounters,
     }
+
+
+def _timed(work: Callable[[], object]) -> float:
+    started = time.perf_counter()
+    work()
+    return time.perf_counter() - started
 
 
 def main() -> int:
