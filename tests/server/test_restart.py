@@ -44,7 +44,10 @@ def _groups(subs: list[Submission], size: int = 4) -> list[list[Submission]]:
 
 
 def _session(
-    engine: Engine, snapshot_period_s: float = math.inf, n_particles: int | None = None
+    engine: Engine,
+    snapshot_period_s: float = math.inf,
+    n_particles: int | None = None,
+    retention: Retention | None = None,
 ) -> BuildingSession:
     tp = tracker_params(SETTINGS)
     if n_particles is not None:
@@ -56,6 +59,7 @@ def _session(
         load_calibration(None),
         SETTINGS.seed,
         snapshot_period_s=snapshot_period_s,
+        retention=retention,
     )
 
 
@@ -180,15 +184,8 @@ def test_a_log_cleared_slower_than_it_grows_replays_from_the_snapshots_round_onl
     for group in groups:
         reference.process(group)
     engine = _fresh_building(sqlite_url)
-    session = BuildingSession(
-        "hq",
-        make_session_factory(engine),
-        tracker_params(SETTINGS),
-        load_calibration(None),
-        SETTINGS.seed,
-        snapshot_period_s=0.0,
-        retention=Retention(log_clear_per_batch=0.5),  # 2 bodies a group of 4: slower than the log grows
-    )
+    # two bodies cleared a group of four: slower than the log grows
+    session = _session(engine, snapshot_period_s=0.0, retention=Retention(log_clear_per_batch=0.5))
     for group in groups:
         session.process(group)
         session._background.wait()
@@ -262,13 +259,8 @@ def test_the_batch_path_prunes_history_but_keeps_every_users_latest_position(sql
     from server.store.models import PositionSnapshotRow
 
     engine = _fresh_building(sqlite_url)
-    session = BuildingSession(
-        "hq",
-        make_session_factory(engine),
-        tracker_params(SETTINGS),
-        load_calibration(None),
-        SETTINGS.seed,
-        retention=Retention(position_history_days=1e-12, batch_ids_days=None, prune_period_s=0.0),
+    session = _session(
+        engine, retention=Retention(position_history_days=1e-12, batch_ids_days=None, prune_period_s=0.0)
     )
     groups = _groups(CROWD)[:12]
     for group in groups:
@@ -290,15 +282,7 @@ def test_idle_users_are_forgotten_at_a_snapshot_and_stay_forgotten_after_a_resta
     engine = _fresh_building(sqlite_url)
 
     def session() -> BuildingSession:
-        return BuildingSession(
-            "hq",
-            make_session_factory(engine),
-            tracker_params(SETTINGS),
-            load_calibration(None),
-            SETTINGS.seed,
-            snapshot_period_s=math.inf,
-            retention=Retention(user_idle_s=1e-9),
-        )
+        return _session(engine, retention=Retention(user_idle_s=1e-9))
 
     first = session()
     groups = _groups(CROWD)
