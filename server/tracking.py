@@ -87,9 +87,11 @@ class BuildingSession:
             restored = self._restore(session, params, calibration)
             logged = logged_batches(session, building_id, after_round=self._round if restored else None)
             if not restored:
-                # the filters start again, but the log still says which sequence numbers were applied
+                # the filters start again, but the log still says which sequence numbers were applied; the
+                # engine calls count on from the log's last, so the load snapshot covers the whole log
                 for item in logged:
                     self.devices.replayed(SensorBatch.model_validate_json(item.body))
+                self._round = max((item.applied_round for item in logged), default=self._round)
                 logged = []
                 self.tracker = BuildingTracker(params, calibration, seed=seed)
                 for row in repo.list_anchors(session, building_id):
@@ -105,8 +107,7 @@ class BuildingSession:
                     )
                     self._link(index, row.public_id, row.label)
         self._replay(logged)
-        # the whole log is cleared now: when the snapshot could not be used, rounds count again from here
-        self.snapshot(clear_log=True)
+        self.snapshot(clear_log=True)  # it covers the whole log now
 
     # ------------------------------------------------------------------ crash recovery
     def _restore(self, session: Session, params: TrackerParams, calibration: Calibration) -> bool:

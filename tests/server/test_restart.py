@@ -246,6 +246,9 @@ def test_a_snapshot_taken_with_other_parameters_is_refused_and_the_sql_map_is_ke
     assert other.counters.restore_failures == 1
     assert other.counters.replayed == 0
     assert other.tracker.users == []  # users start again from their next fix
+    assert _logged(engine) == 0  # the load snapshot covers the log it did not replay
+    other.process(_groups(CROWD)[20])
+    assert _logged_after(engine, _snapshot_round(engine)) == len(_groups(CROWD)[20])
     restored = {a.id: a for a in other.anchors()}
     assert restored.keys() == anchors.keys()
     for public_id, anchor in anchors.items():
