@@ -45,7 +45,7 @@ from report import emit
 
 from schemas.live import LIVE_MESSAGE_ADAPTER
 from server import tracker_snapshot
-from server.app import _tune_gc, load_calibration, tracker_params
+from server.app import load_calibration, tracker_params, tune_gc_for_serving
 from server.batch_decoding import decode_batch
 from server.errors import ProblemError
 from server.recording import BuildingRecorder
@@ -112,10 +112,10 @@ def run(phones: int, seconds: int, group: int, profile: Path | None) -> dict[str
                 per_second.append(busy / phones * 1e6)
                 json_per_second.append(json_busy / phones * 1e6)
             else:
-                _tune_gc()  # as the server does once its kernels are warm
+                tune_gc_for_serving()  # as the server does once its kernels are warm
         if profiler is not None and profile is not None:
             profiler.dump_stats(profile)
-        pickle_s = min(_timed(lambda: tracker_snapshot._pickle(session._session_state())) for _ in range(3))
+        pickle_s = min(_timed(lambda: tracker_snapshot.pickled(session.session_state())) for _ in range(3))
         gc_s = min(_timed(gc.collect) for _ in range(3))
         session.close()
         assert session.recorder is not None

@@ -102,7 +102,7 @@ def prepare_building_process(settings: Settings) -> None:
     """A building's own process (``server.building_process``): kernels warm and the GC tuned before its
     first batch, as the front's lifespan does for buildings in its own process."""
     _warm_kernels(tracker_params(settings), load_calibration(settings.encounter_calibration))
-    _tune_gc()
+    tune_gc_for_serving()
 
 
 def building_session(settings: Settings, building_id: str) -> BuildingSession:
@@ -122,7 +122,7 @@ def building_session(settings: Settings, building_id: str) -> BuildingSession:
     )
 
 
-def _tune_gc() -> None:
+def tune_gc_for_serving() -> None:
     """For a process that is the server: everything built so far (compiled kernels, SQLAlchemy and pydantic
     machinery) lives as long as the server, so it is kept out of the cyclic collector, whose full passes
     over it paused the event loop for up to 0.2 s under load; and young collections run every 10,000
@@ -135,7 +135,7 @@ def _tune_gc() -> None:
 
 def create_app(settings: Settings, tune_gc: bool = False) -> FastAPI:
     """The app; ``tune_gc`` when it is the process's only job (``crowdslam serve``, ``demo``): the garbage
-    collector is then tuned for its latency at the end of start-up (``_tune_gc``), process-wide."""
+    collector is then tuned for its latency at the end of start-up (``tune_gc_for_serving``), process-wide."""
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -186,7 +186,7 @@ def create_app(settings: Settings, tune_gc: bool = False) -> FastAPI:
             foxglove_live,
         )
         if tune_gc:
-            _tune_gc()
+            tune_gc_for_serving()
         revalidation = asyncio.get_running_loop().create_task(_revalidate_keys_forever(app.state.crowdslam))
         try:
             yield

@@ -162,7 +162,7 @@ class RecoverableSession:
             self.building_id,
             tracker_snapshot.FORMAT_VERSION,
             self._round,
-            tracker_snapshot.encode(self._session_state()),
+            tracker_snapshot.encode(self.session_state()),
         )
         self._log_to_clear = True
         self.counters.snapshots += 1
@@ -175,7 +175,8 @@ class RecoverableSession:
         self._last_snapshot = time.monotonic()
         return rows
 
-    def _session_state(self) -> tracker_snapshot.SessionState:
+    def session_state(self) -> tracker_snapshot.SessionState:
+        """What a snapshot holds: the tracker and the session's bookkeeping, as of the last engine call."""
         return tracker_snapshot.SessionState(
             self.tracker,
             dict(self.ids.public),
@@ -204,7 +205,7 @@ class RecoverableSession:
         if self._background.pending or time.monotonic() - self._last_snapshot < self.snapshot_period_s:
             return []
         rows = self._snapshot_start(session)
-        self._background.take(self._session_state())
+        self._background.take(self.session_state())
         return rows
 
     def _clear_log(self, session: Session, group_size: int) -> None:

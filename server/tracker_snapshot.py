@@ -39,10 +39,11 @@ class SessionState:
 
 
 def encode(state: SessionState) -> bytes:
-    return _compress(_pickle(state))
+    return _compress(pickled(state))
 
 
-def _pickle(state: SessionState) -> bytes:
+def pickled(state: SessionState) -> bytes:
+    """The state as bytes, before compression (the part of a snapshot that holds the building's thread)."""
     return pickle.dumps(state, protocol=pickle.HIGHEST_PROTOCOL)
 
 
@@ -73,7 +74,7 @@ class BackgroundSnapshots:
         """Pickle the state now and compress it in the background (at most one at a time)."""
         if self._pending is not None:
             raise RuntimeError("a snapshot is already being compressed")
-        raw = _pickle(state)
+        raw = pickled(state)
         self._pending = (state.applied_round, self._executor.submit(_compress, raw))
 
     def ready(self) -> tuple[int, bytes] | None:

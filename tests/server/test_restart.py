@@ -118,15 +118,16 @@ def test_an_abandoned_session_is_rebuilt_exactly_and_tracking_resumes(
     for group in groups[:cut]:
         crashed.process(group)
     assert _estimates(crashed) == at_crash
-    applied_since_snapshot = _logged(engine)
+    applied_since_snapshot = _logged_after(engine, _snapshot_round(engine))
     if snapshot_period_s == 0.0:
-        # a snapshot taken at every chance: compressed in the background and written by a later group,
-        # which leaves logged exactly the batches applied after the snapshot written last
+        # a snapshot taken at every chance: compressed in the background and written by a later group; the
+        # batches applied after the one written last are logged (and maybe some it covers, cleared a chunk
+        # per group, but never replayed)
         assert crashed.counters.snapshots >= 2
-        assert applied_since_snapshot == _logged_after(engine, _snapshot_round(engine))
+        assert _logged(engine) >= applied_since_snapshot
         assert applied_since_snapshot < sum(len(g) for g in groups[:cut])
     else:
-        assert applied_since_snapshot == sum(len(g) for g in groups[:cut])
+        assert _logged(engine) == applied_since_snapshot == sum(len(g) for g in groups[:cut])
     anchors_at_crash = crashed.anchors()
     del crashed  # no shutdown, no final snapshot: as after kill -9
 
