@@ -157,16 +157,16 @@ class RecoverableSession:
         ledger counts them saved once the transaction commits). Idle users are forgotten first."""
         self._background.discard()  # superseded by this one
         rows = self._snapshot_start(session)
+        self._write_snapshot(session, self._round, tracker_snapshot.encode(self.session_state()))
+        return rows
+
+    def _write_snapshot(self, session: Session, applied_round: int, blob: bytes) -> None:
+        """Store a snapshot taken at engine call ``applied_round``; the log it covers is cleared from now."""
         repo.save_tracker_snapshot(
-            session,
-            self.building_id,
-            tracker_snapshot.FORMAT_VERSION,
-            self._round,
-            tracker_snapshot.encode(self.session_state()),
+            session, self.building_id, tracker_snapshot.FORMAT_VERSION, applied_round, blob
         )
         self._log_to_clear = True
         self.counters.snapshots += 1
-        return rows
 
     def _snapshot_start(self, session: Session) -> list[dict[str, object]]:
         self._evict_idle_users()
@@ -195,12 +195,7 @@ class RecoverableSession:
             self.counters.snapshot_failures += 1
             ready = None
         if ready is not None:
-            applied_round, blob = ready
-            repo.save_tracker_snapshot(
-                session, self.building_id, tracker_snapshot.FORMAT_VERSION, applied_round, blob
-            )
-            self._log_to_clear = True
-            self.counters.snapshots += 1
+            self._write_snapshot(session, *ready)
             return []
         if self._background.pending or time.monotonic() - self._last_snapshot < self.snapshot_period_s:
             return []
@@ -208,17 +203,16 @@ class RecoverableSession:
         self._background.take(self.session_state())
         return rows
 
-    def _clear_log(self, session: Session, group_size: int) -> None:
-        """In a group's transaction: clear a chunk of the logged bodies the snapshot in SQL covers
-        (``Retention.log_clear_per_batch``). Should the transaction roll back, what it cleared is cleared
-        again after the next snapshot; a restart replays only the batches after the snapshot's round, so
-        covered bodies left a while are never applied twice."""
+    def _clear_log(self, session: Session, limit: int | None) -> None:
+        """Clear the logged bodies the snapshot in SQL covers: all (``None``), or at most ``limit`` (a group
+        clears a chunk, ``Retention.log_clear_per_batch`` per batch). Should the transaction roll back, what
+        it cleared is cleared again after the next snapshot; a restart replays only the batches after the
+        snapshot's round, so covered bodies left a while are never applied twice."""
         if not self._log_to_clear:
             return
-        chunk = max(1, int(self.retention.log_clear_per_batch * group_size))
-        cleared = clear_covered_bodies(session, self.building_id, limit=chunk)
+        cleared = clear_covered_bodies(session, self.building_id, limit=limit)
         self.counters.log_bodies_cleared += cleared
-        self._log_to_clear = cleared == chunk
+        self._log_to_clear = cleared == limit
 
     def close(self) -> None:
         """Snapshot now and stop the snapshot thread (a clean stop leaves nothing to replay)."""
@@ -231,6 +225,5 @@ class RecoverableSession:
         with self._sessions.begin() as session:
             rows = self._save_snapshot(session)
             if clear_log:
-                self.counters.log_bodies_cleared += clear_covered_bodies(session, self.building_id)
-                self._log_to_clear = False
+                self._clear_log(session, None)
         self.devices.saved(rows)

@@ -187,7 +187,7 @@ class BuildingSession(RecoverableSession):
                 self._round = base + call
                 self._apply(session, group, converted, now, results, messages)
             device_rows += self._periodic_snapshot(session)
-            self._clear_log(session, len(group))
+            self._clear_log(session, max(1, int(self.retention.log_clear_per_batch * len(group))))
             if time.monotonic() - self._last_prune >= self.retention.prune_period_s:
                 self._prune(session)
         self.devices.saved(device_rows)
