@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from slam_core.background_call import BackgroundCall
 from slam_core.encounters import (
     BluetoothParams,
     Calibration,
@@ -118,6 +119,20 @@ class RangedDetection(Detection):
     variance_m2: float
 
 
+@dataclass(frozen=True)
+class _PreparedScans:
+    """A call's kept scans as the scan store takes them (``EncounterDetector._prepared``)."""
+
+    t_ms: np.ndarray
+    user: np.ndarray
+    top_ap: np.ndarray
+    top_rss: np.ndarray
+    fresh_offsets: np.ndarray
+    fresh_ap: np.ndarray
+    fresh_rss: np.ndarray
+    n_aps: int
+
+
 def union_rms(a: dict[int, float], b: dict[int, float], floor_dbm: float) -> float:
     """RMS dB difference over the union of two scans' APs, a missing AP counting as ``floor_dbm``."""
     keys = a.keys() | b.keys()
@@ -151,11 +166,23 @@ class EncounterDetector:
         # phones, and every full collection a pass over them)
         self._bt: dict[tuple[str, str], tuple[tuple[int, float], ...]] = {}
         self._bt_newest_ms = 0
+        self._pending: BackgroundCall[DetectionArrays] | None = None  # scans compared on a thread
         if params.wifi_model == "wifi-fingerprint" and calibration.wifi_fingerprint is None:
             raise ValueError(
                 "the wifi-fingerprint encounter model needs its range model in the calibration "
                 "(fit it with `crowdslam calibrate`)"
             )
+
+    def __getstate__(self) -> dict[str, object]:
+        if self._pending is not None:
+            raise RuntimeError("cannot pickle a detector while scans are being compared")
+        state = dict(self.__dict__)
+        del state["_pending"]  # a thread handle; snapshots keep their format
+        return state
+
+    def __setstate__(self, state: dict[str, object]) -> None:
+        self.__dict__.update(state)
+        self._pending = None
 
     @property
     def n_candidates(self) -> int:
@@ -199,6 +226,46 @@ class EncounterDetector:
         """Index scans (in arrival order; scan c's entries are ``offsets[c]:offsets[c + 1]``) and return the
         encounters each completes with other users' earlier scans. ``last_seen_ms`` is -1 where the phone
         did not say. A scan without fresh APs is neither indexed nor compared."""
+        return self.start_scans(users, t_ms, offsets, bssids, rss, last_seen_ms, background=False).result()
+
+    def start_scans(
+        self,
+        users: Sequence[str],
+        t_ms: np.ndarray,
+        offsets: np.ndarray,
+        bssids: Sequence[str],
+        rss: np.ndarray,
+        last_seen_ms: np.ndarray,
+        background: bool,
+    ) -> BackgroundCall[DetectionArrays]:
+        """``add_scans``, with the comparison (the compiled kernel, which releases the GIL) on a thread of
+        its own when ``background``: the caller goes on with work that does not touch this detector and
+        collects the detections with ``result()``. The BSSIDs and users are interned here, in the caller's
+        thread, so the thread touches only the scan store, and the outcome is the same either way."""
+        if self._pending is not None:
+            raise RuntimeError("the previous scans' detections have not been collected")
+        prepared = self._prepared(users, t_ms, offsets, bssids, rss, last_seen_ms)
+        if prepared is None:
+            return BackgroundCall(DetectionArrays.empty, False, "wifi-encounters")
+        pending = BackgroundCall(
+            lambda: self._compare(prepared), background, "wifi-encounters", self._collected
+        )
+        self._pending = pending
+        return pending
+
+    def _collected(self) -> None:
+        self._pending = None
+
+    def _prepared(
+        self,
+        users: Sequence[str],
+        t_ms: np.ndarray,
+        offsets: np.ndarray,
+        bssids: Sequence[str],
+        rss: np.ndarray,
+        last_seen_ms: np.ndarray,
+    ) -> _PreparedScans | None:
+        """The kept scans as the scan store's arrays (None when no scan has a fresh AP)."""
         p = self.params
         by_fingerprint = p.wifi_model == "wifi-fingerprint"
         n_top = p.wifi.strongest_n
@@ -230,8 +297,8 @@ class EncounterDetector:
                 fresh_rss += fresh.values()
             fresh_offsets.append(len(fresh_ap))
         if not kept_t:
-            return DetectionArrays.empty()
-        out_t, out_new, other, feature = self._store.add(
+            return None
+        return _PreparedScans(
             np.array(kept_t, dtype=np.int64),
             np.array(kept_user, dtype=np.int64),
             np.array(tops),
@@ -240,12 +307,17 @@ class EncounterDetector:
             np.array(fresh_ap, dtype=np.int64),
             np.array(fresh_rss, dtype=np.float64),
             len(self._ap_ids),
-            p,
         )
-        model = MODEL_WIFI_FINGERPRINT if by_fingerprint else MODEL_WIFI
-        return DetectionArrays(
-            out_t, np.array(kept_user, dtype=np.int64)[out_new], other, np.full(out_t.size, model), feature
-        )
+
+    def _compare(self, scans: _PreparedScans) -> DetectionArrays:
+        """Store the prepared scans and compare each with the live ones before it (touches only the store)."""
+        p = self.params
+        out_t, out_new, other, feature = self._store.add(
+            scans.t_ms, scans.user, scans.top_ap, scans.top_rss, scans.fresh_offsets, scans.fresh_ap,
+            scans.fresh_rss, scans.n_aps, p,
+        )  # fmt: skip
+        model = MODEL_WIFI_FINGERPRINT if p.wifi_model == "wifi-fingerprint" else MODEL_WIFI
+        return DetectionArrays(out_t, scans.user[out_new], other, np.full(out_t.size, model), feature)
 
     def add_scan(
         self, user: str, t_ms: int, bssids: list[str], rss: np.ndarray, last_seen_ms: np.ndarray

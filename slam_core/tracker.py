@@ -195,9 +195,36 @@ class BuildingTracker:
                 self._users[b.user] = UserTrack()
             if b.ble_id is not None:
                 self._by_ble[b.ble_id] = b.user
-        changed: set[int] = set()
         rounds = self._plan(batches, reports)
         newest = max([self._users[b.user].last_t_ms for b in batches], default=-1)
+        # in a busy call the scans are compared on a thread while the rounds and the fingerprint fixes
+        # run: the detector depends on nothing they change
+        scans = radio.start_scan_detection(self.detector, batches)
+        try:
+            changed = self._observe(batches, rounds, reports, newest)
+            encounters, detections = radio.encounters(
+                self.engine,
+                self.detector,
+                self.selector,
+                self.params,
+                batches,
+                self._users,
+                self._by_ble,
+                scans,
+            )
+        finally:
+            scans.join()
+        for b in batches:
+            reports[b.user].status = "tracking" if self.is_tracking(b.user) else "awaiting_fix"
+        estimates = self._rows(sorted(b.user for b in batches if reports[b.user].status == "tracking"))
+        return TrackerOutcome(reports, estimates, encounters, sorted(changed), detections)
+
+    def _observe(
+        self, batches: list[UserBatch], rounds: list[Round], reports: dict[str, UserReport], newest: int
+    ) -> set[int]:
+        """The rounds of steps and anchor events, the crowd map's solve, and the fingerprint fixes; returns
+        the crowd anchors changed."""
+        changed: set[int] = set()
         crowd_size = len(self.crowd)
         for rnd in rounds:
             self._run_round(rnd, reports, changed)
@@ -222,13 +249,7 @@ class BuildingTracker:
             radio.fingerprint_fixes(
                 self.engine, self.fingerprints, self.params, batches, self._users, self._rows(names), reports
             )
-        encounters, detections = radio.encounters(
-            self.engine, self.detector, self.selector, self.params, batches, self._users, self._by_ble
-        )
-        for b in batches:
-            reports[b.user].status = "tracking" if self.is_tracking(b.user) else "awaiting_fix"
-        estimates = self._rows(sorted(b.user for b in batches if reports[b.user].status == "tracking"))
-        return TrackerOutcome(reports, estimates, encounters, sorted(changed), detections)
+        return changed
 
     def _dead_reckon(self, b: UserBatch, report: UserReport) -> UserBatch:
         """The batch with the steps the PDR front-end finds in its raw IMU (phones counting their own steps

@@ -14,6 +14,7 @@ import math
 
 import numpy as np
 
+from slam_core.background_call import BackgroundCall
 from slam_core.crowd_fingerprints import CrowdFingerprints, FingerprintParams, Place, Scan
 from slam_core.crowd_graph import CrowdGraph
 from slam_core.crowd_map import CrowdMapBuilder
@@ -147,23 +148,21 @@ def fingerprint_fixes(
         reports[name].fingerprint_fixes += int(fixed)
 
 
-def encounters(
-    engine: DynamicSlam,
-    detector: EncounterDetector,
-    selector: EncounterSelector,
-    params: TrackerParams,
-    batches: list[UserBatch],
-    users: dict[str, UserTrack],
-    by_ble: dict[str, str],
-) -> tuple[list[EncounterResult], int]:
-    """The encounters chosen among this call's detections, and how many detections there were. The
-    detections stay arrays until the few chosen ones are ranged (a busy building finds thousands)."""
+BACKGROUND_SCANS = 16
+"""A call with this many scans compares them on a thread of its own while the tracker runs the rounds and
+the fingerprint fixes: at 2,000 load-bench phones the comparison was ~9 % of the building's core, and the
+kernel releases the GIL. Below it, starting a thread (~0.1 ms) costs more than it hides."""
+
+
+def start_scan_detection(
+    detector: EncounterDetector, batches: list[UserBatch]
+) -> BackgroundCall[DetectionArrays]:
+    """Hand the call's WiFi scans to the detector (``EncounterDetector.start_scans``): in a busy call they
+    are compared on a thread of their own, and nothing else may use the detector until ``encounters`` has
+    collected them."""
     scan_users: list[str] = []
     scan_t, scan_offsets, scan_rss, scan_seen = [], [0], [], []
     bssids: list[str] = []
-    receivers: list[str] = []
-    senders: list[str] = []
-    peer_t, peer_rss = [], []
     for b in batches:
         if b.scan_t.size:
             scan_users += [b.user] * b.scan_t.size
@@ -172,6 +171,36 @@ def encounters(
             bssids += b.scan_bssid
             scan_rss.append(b.scan_rss)
             scan_seen.append(b.scan_last_seen)
+    if not scan_users:
+        return BackgroundCall(DetectionArrays.empty, False, "wifi-encounters")
+    return detector.start_scans(
+        scan_users,
+        np.concatenate(scan_t),
+        np.array(scan_offsets, dtype=np.int64),
+        bssids,
+        np.concatenate(scan_rss),
+        np.concatenate(scan_seen),
+        background=len(scan_users) >= BACKGROUND_SCANS,
+    )
+
+
+def encounters(
+    engine: DynamicSlam,
+    detector: EncounterDetector,
+    selector: EncounterSelector,
+    params: TrackerParams,
+    batches: list[UserBatch],
+    users: dict[str, UserTrack],
+    by_ble: dict[str, str],
+    scans: BackgroundCall[DetectionArrays],
+) -> tuple[list[EncounterResult], int]:
+    """The encounters chosen among this call's detections (its scans' from ``start_scan_detection``, and
+    its Bluetooth sightings'), and how many detections there were. The detections stay arrays until the
+    few chosen ones are ranged (a busy building finds thousands)."""
+    receivers: list[str] = []
+    senders: list[str] = []
+    peer_t, peer_rss = [], []
+    for b in batches:
         for k in range(b.peer_t.size):
             peer = by_ble.get(b.peer_id[k])
             if peer is not None:
@@ -179,21 +208,12 @@ def encounters(
                 senders.append(peer)
                 peer_t.append(int(b.peer_t[k]))
                 peer_rss.append(float(b.peer_rss[k]))
-    parts = []
-    if scan_users:
-        parts.append(
-            detector.add_scans(
-                scan_users,
-                np.concatenate(scan_t),
-                np.array(scan_offsets, dtype=np.int64),
-                bssids,
-                np.concatenate(scan_rss),
-                np.concatenate(scan_seen),
-            )
-        )
-    if receivers:
-        parts.append(detector.add_sightings(receivers, senders, np.array(peer_t), np.array(peer_rss)))
-    found = DetectionArrays.concatenate(parts)
+    sightings = (
+        detector.add_sightings(receivers, senders, np.array(peer_t), np.array(peer_rss))
+        if receivers
+        else DetectionArrays.empty()
+    )
+    found = DetectionArrays.concatenate([scans.result(), sightings])
     slot_a, slot_b = _slots_of(detector, users, found.user_a), _slots_of(detector, users, found.user_b)
     usable = np.flatnonzero((slot_a >= 0) & (slot_b >= 0))
     if usable.size == 0:

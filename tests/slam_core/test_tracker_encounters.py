@@ -7,7 +7,9 @@ import math
 from dataclasses import replace
 
 import numpy as np
+import pytest
 
+import slam_core.tracker_radio as radio
 from slam_core.encounters import Calibration, RangeModel
 from slam_core.params import FilterParams
 from slam_core.tracker import BuildingTracker, TrackerOutcome, TrackerParams, UserBatch
@@ -129,3 +131,50 @@ def test_forgotten_users_free_their_slots_and_are_no_longer_heard() -> None:
     tracker.apply([_fix("a", (1.0, 0.0), T0 + 2_000)])  # a new fix brings "a" back, in a free slot
     assert tracker.is_tracking("a")
     assert tracker.engine.active_users.size == slots - 1
+
+
+def _walk_with_scans(user: int, t_ms: int, rng: np.random.Generator) -> UserBatch:
+    """Two steps east and a scan of 8 of 12 APs whose levels follow the user's row (users on one row hear
+    alike, so their scans meet by Eq. 3)."""
+    levels = -45.0 - 3.0 * np.arange(12) - 2.0 * (user % 3) + rng.normal(0.0, 1.0, 12)
+    heard = np.sort(rng.choice(12, size=8, replace=False))
+    return UserBatch(
+        user=f"u{user}",
+        ble_id=f"ble-u{user}",
+        step_t=np.array([t_ms - 500, t_ms], dtype=np.int64),
+        step_length=np.array([0.7, 0.7]),
+        step_azimuth=np.array([math.pi / 2, math.pi / 2]),
+        step_turn=np.full(2, math.nan),
+        scan_t=np.array([t_ms], dtype=np.int64),
+        scan_offsets=np.array([0, heard.size], dtype=np.int64),
+        scan_bssid=tuple(f"ap{i:02d}" for i in heard),
+        scan_rss=np.round(levels[heard], 1),
+        scan_last_seen=np.full(heard.size, -1, dtype=np.int64),
+    )
+
+
+def _busy_building(background_scans: int, monkeypatch: pytest.MonkeyPatch) -> list[object]:
+    monkeypatch.setattr(radio, "BACKGROUND_SCANS", background_scans)
+    tracker = BuildingTracker(TrackerParams(), CAL, seed=3)
+    tracker.apply([_fix(f"u{k}", (2.0 * (k % 3), 1.5 * (k // 3)), T0) for k in range(24)])
+    rng = np.random.default_rng(7)
+    seen: list[object] = []
+    for second in range(1, 8):
+        outcome = tracker.apply([_walk_with_scans(k, T0 + 1_000 * second + 20 * k, rng) for k in range(24)])
+        seen.append(outcome.detections)
+        seen += [
+            (e.detection.user_a, e.detection.user_b, e.detection.feature, e.applied)
+            for e in outcome.encounters
+        ]
+        seen += [(u, r.x, r.y, *r.cov) for u, r in sorted(outcome.estimates.items())]
+    return seen
+
+
+def test_scans_compared_on_a_thread_change_nothing(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A busy call compares its scans on a thread beside the rounds and fixes: the same detections,
+    encounters and estimates, bit for bit, as compared inline."""
+    inline = _busy_building(10**9, monkeypatch)
+    threaded = _busy_building(1, monkeypatch)
+    assert sum(n for n in inline if isinstance(n, int)) > 50  # the rows' scans do meet
+    assert any(isinstance(x, tuple) and len(x) == 4 and x[3] for x in inline)  # and encounters are applied
+    assert threaded == inline

@@ -6,6 +6,7 @@ still remembered, inside the pair window, sharing one of the strongest N APs, co
 from __future__ import annotations
 
 import math
+import pickle
 from dataclasses import dataclass
 
 import numpy as np
@@ -101,8 +102,10 @@ def _brute_force(calls: list[list[Scan]], params: DetectionParams) -> list[tuple
 
 
 def _compiled(
-    calls: list[list[Scan]], params: DetectionParams, capacity: int
+    calls: list[list[Scan]], params: DetectionParams, capacity: int, background: bool = False
 ) -> list[tuple[int, str, str, float]]:
+    """``add_scans`` call by call; with ``background``, ``start_scans`` on a thread, collected after a
+    pickle round trip of the detector of the call before (what a snapshot between calls does)."""
     detector = EncounterDetector(params, CALIBRATION, scan_capacity=capacity)
     out = []
     kind = MODEL_WIFI_FINGERPRINT if params.wifi_model == "wifi-fingerprint" else MODEL_WIFI
@@ -110,7 +113,7 @@ def _compiled(
         if not call:
             continue
         offsets = np.cumsum([0] + [len(s.bssids) for s in call])
-        found = detector.add_scans(
+        args = (
             [s.user for s in call],
             np.array([s.t for s in call]),
             offsets,
@@ -118,6 +121,11 @@ def _compiled(
             np.concatenate([s.rss for s in call]),
             np.concatenate([s.last_seen for s in call]),
         )
+        if background:
+            detector = pickle.loads(pickle.dumps(detector))
+            found = detector.start_scans(*args, background=True).result()
+        else:
+            found = detector.add_scans(*args)
         assert np.all(found.model == kind)
         out += [(d.t_ms, d.user_a, d.user_b, d.feature) for d in detector.to_detections(found)]
     return out
@@ -125,12 +133,14 @@ def _compiled(
 
 @pytest.mark.parametrize("model", ["wifi-eq3", "wifi-fingerprint"])
 @pytest.mark.parametrize("seed", range(6))
-@pytest.mark.parametrize("capacity", [2, 1024])
-def test_compiled_search_equals_the_brute_force(model: str, seed: int, capacity: int) -> None:
+@pytest.mark.parametrize(("capacity", "background"), [(2, False), (1024, False), (2, True)])
+def test_compiled_search_equals_the_brute_force(
+    model: str, seed: int, capacity: int, background: bool
+) -> None:
     params = DetectionParams(wifi_model=model)
     calls = _stream(seed)
     expected = _brute_force(calls, params)
-    got = _compiled(calls, params, capacity)
+    got = _compiled(calls, params, capacity, background)
     assert len(expected) > 20  # the streams do meet
     assert [g[:3] for g in got] == [e[:3] for e in expected]
     np.testing.assert_allclose([g[3] for g in got], [e[3] for e in expected], rtol=1e-12, atol=1e-12)
@@ -151,3 +161,38 @@ def test_delayed_batches_meet_their_partners_and_old_scans_are_forgotten() -> No
     assert detector.n_indexed_scans == 9
     assert scan("d", T0 + 30_000) == []
     assert detector.n_indexed_scans == 1  # everything else fell behind the 10 s retention
+
+
+def test_scans_compared_on_a_thread_hold_the_detector_until_collected() -> None:
+    detector = EncounterDetector(DetectionParams(), CALIBRATION)
+    here = (["aa", "bb", "cc"], np.array([-50.0, -60.0, -70.0]), np.full(3, -1, dtype=np.int64))
+    assert detector.add_scan("a", T0, *here) == []
+    users, t, offsets = ["b", "c"], np.array([T0 + 100, T0 + 200]), np.array([0, 3, 6])
+    args = (users, t, offsets, here[0] * 2, np.tile(here[1], 2), np.tile(here[2], 2))
+    pending = detector.start_scans(*args, background=True)
+    with pytest.raises(RuntimeError, match="not been collected"):
+        detector.start_scans(*args, background=False)
+    with pytest.raises(RuntimeError, match="cannot pickle"):
+        pickle.dumps(detector)
+    found = detector.to_detections(pending.result())
+    assert [(d.user_a, d.user_b) for d in found] == [("b", "a"), ("c", "a"), ("c", "b")]
+    assert detector.n_indexed_scans == 3
+    restored = pickle.loads(pickle.dumps(detector))  # free again, and a snapshot keeps no thread
+    assert restored.add_scan("d", T0 + 300, *here) != []
+
+
+def test_a_failed_comparison_raises_in_the_caller_and_frees_the_detector(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    detector = EncounterDetector(DetectionParams(), CALIBRATION)
+    here = (["aa", "bb", "cc"], np.array([-50.0, -60.0, -70.0]), np.full(3, -1, dtype=np.int64))
+
+    def broken(*_: object) -> None:
+        raise MemoryError("no room for the scans")
+
+    monkeypatch.setattr(detector._store, "add", broken)
+    pending = detector.start_scans(["a"], np.array([T0]), np.array([0, 3]), *here, background=True)
+    with pytest.raises(MemoryError, match="no room"):
+        pending.result()
+    monkeypatch.undo()
+    assert detector.add_scan("b", T0 + 100, *here) == []  # the detector is usable again
