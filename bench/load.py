@@ -7,7 +7,14 @@ For each N (ascending) a fresh server (``crowdslam serve``, SQLite, recording on
 gets) is started in its own process. Each phone starts with a position fix, then posts every second: two
 steps (1.4 m/s, azimuth given), a WiFi scan every 2 s (15 strongest of 60 access points, log-distance path
 loss with 4 dB noise) and Bluetooth sightings of the phones within 8 m. Phones are spread evenly over each
-second, so the offered load is N batches per second.
+second, and their scans over every two (phones do not scan in step), so the offered load is N batches per
+second, half of them with a scan.
+
+The phones walk in during the first half of the warm-up (``_warmup_s``), evenly, as people enter a
+building; the second half lets the server settle before the measured window. (Admitting every phone in
+the same second is a burst of its own: a new user costs ~1 ms, several times a batch, and at 1,700 phones
+the backlog of that second took 8 s to drain. ``bench/building.py`` reports it as
+``admit_us_per_phone``.)
 
 Latency runs from the moment a post was due to its answer (a request queued behind a slow one counts its
 wait). ``ws_lag`` runs from a batch's last step to the dashboard receiving that position; the dashboards
@@ -138,7 +145,7 @@ def _body(crowd: Crowd, phone: int, seq: int, now_ms: int, near: np.ndarray, bui
         f',"steps":[{{"t_ms":{now_ms - 500},"length_m":0.7,"azimuth_rad":{az:.4f}}},'
         f'{{"t_ms":{now_ms},"length_m":0.7,"azimuth_rad":{az:.4f}}}]'
     )
-    if seq % 2 == 0:
+    if (seq + phone) % 2 == 0:  # every 2 s, half of the phones each second
         top, rss = crowd.scan(phone)
         aps = ",".join(
             f'{{"bssid":"02:00:00:00:00:{a:02x}","rssi_dbm":{r:.1f},"frequency_mhz":2437}}'
@@ -157,8 +164,15 @@ def _body(crowd: Crowd, phone: int, seq: int, now_ms: int, near: np.ndarray, bui
 
 
 def _warmup_s(duration_s: float) -> float:
-    """The first seconds of a run are not measured (connections open, the building loads)."""
-    return min(5.0, duration_s / 4)
+    """The first seconds of a run are not measured (connections open, the building loads, the phones walk
+    in during the first half)."""
+    return float(min(10, math.floor(duration_s / 3)))  # whole seconds: the measured window is too
+
+
+def _join_second(n: int, duration_s: float) -> np.ndarray:
+    """The second each phone walks in (sends its fix): evenly over the first half of the warm-up."""
+    ramp_s = max(1, math.floor(_warmup_s(duration_s) / 2))
+    return (np.arange(n) * ramp_s) // max(n, 1)
 
 
 class Connection:
@@ -318,6 +332,7 @@ async def _drive(
         finally:
             pool.put_nowait(conn)
 
+    joins = _join_second(n, duration_s)
     start = time.perf_counter()
     second = 0
     while second < duration_s:
@@ -333,14 +348,15 @@ async def _drive(
                 _cpu_seconds(dashboards.pid or 0),
             )
         for phone in np.argsort(phase):
+            seq = second - int(joins[phone])
+            if seq < 0:  # not in the building yet
+                continue
             due = base + phase[phone]
             delay = due - time.perf_counter()
             if delay > 0:
                 await asyncio.sleep(delay)
             now_ms = int(time.time() * 1000)
-            task = asyncio.create_task(
-                send(int(phone), second, due, bodies(int(phone), second, now_ms), measure)
-            )
+            task = asyncio.create_task(send(int(phone), seq, due, bodies(int(phone), seq, now_ms), measure))
             tasks.add(task)
             task.add_done_callback(tasks.discard)
             results.sent += measure
