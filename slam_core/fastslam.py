@@ -27,7 +27,7 @@ from slam_core.kernels.motion import (
 )
 from slam_core.kernels.resampling import SCHEME_CODES, resample_users, resample_users_serial
 from slam_core.kernels.serial import PARALLEL_MIN_USERS, pick
-from slam_core.kernels.summary import summarise, summarise_serial
+from slam_core.kernels.summary import summarise, summarise_serial, weighted_means, weighted_means_serial
 from slam_core.params import FilterParams
 from slam_core.state import FilterState, SlotAllocator, user_key
 
@@ -490,6 +490,17 @@ class DynamicSlam:
         s = self.state
         pick(summarise, summarise_serial, users.shape[0], self.parallel_min_users)(
             s.x, s.y, s.heading, s.logw, users, out
+        )
+        return out
+
+    def means(self, users: np.ndarray) -> np.ndarray:
+        """(n, 2) weighted means: ``summaries(users)[:, 0:2]``, exactly, at half the cost."""
+        users = np.ascontiguousarray(users, dtype=np.int64)
+        self._check_users(users, allow_repeats=True)
+        out = np.empty((users.shape[0], 2))
+        s = self.state
+        pick(weighted_means, weighted_means_serial, users.shape[0], self.parallel_min_users)(
+            s.x, s.y, s.logw, users, out
         )
         return out
 

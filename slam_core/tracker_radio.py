@@ -255,7 +255,7 @@ def _choose(
     """The selector's choice among detections of tracked users, from the filters' current estimates."""
     slots, index = np.unique(np.concatenate([slot_a, slot_b]), return_inverse=True)
     n = len(found)
-    means = engine.summaries(slots)[:, 0:2]
+    means = engine.means(slots)
     delta = means[index[:n]] - means[index[n:]]
     predicted = np.hypot(delta[:, 0], delta[:, 1])
     sigma = np.empty(n)

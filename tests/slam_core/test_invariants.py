@@ -245,6 +245,9 @@ def test_serial_twins_give_the_parallel_kernels_numbers() -> None:
         )
     users = parallel.active_users
     np.testing.assert_array_equal(parallel.summaries(users), serial.summaries(users))
+    # the means alone are the summaries' first columns, bit for bit, in both kernels
+    np.testing.assert_array_equal(parallel.means(users), parallel.summaries(users)[:, 0:2])
+    np.testing.assert_array_equal(serial.means(users), serial.summaries(users)[:, 0:2])
     assert parallel.state.n_resamples[users].min() >= 1  # every user observed something, and resampled
     assert parallel.state.map_n[users].min() >= 2  # the crowd's anchors were merged
 
@@ -257,6 +260,7 @@ def test_calls_under_the_threshold_take_the_serial_twins() -> None:
     assert pick("parallel", "serial", 256, 256) == "parallel"
     pairs: list[tuple[Any, Any]] = [
         (summary.summarise, summary.summarise_serial),
+        (summary.weighted_means, summary.weighted_means_serial),
         (motion.motion_update, motion.motion_update_serial),
         (resampling.resample_users, resampling.resample_users_serial),
         (human.human_anchor_update, human.human_anchor_update_serial),
