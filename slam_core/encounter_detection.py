@@ -120,6 +120,19 @@ class RangedDetection(Detection):
 
 
 @dataclass(frozen=True)
+class ScanBatch:
+    """WiFi scans in arrival order: scan c, of ``users[c]`` at ``t_ms[c]``, has the entries
+    ``offsets[c]:offsets[c + 1]`` of ``bssids``, ``rss`` and ``last_seen_ms`` (-1: the phone did not say)."""
+
+    users: Sequence[str]
+    t_ms: np.ndarray
+    offsets: np.ndarray
+    bssids: Sequence[str]
+    rss: np.ndarray
+    last_seen_ms: np.ndarray
+
+
+@dataclass(frozen=True)
 class _PreparedScans:
     """A call's kept scans as the scan store takes them (``EncounterDetector._prepared``)."""
 
@@ -226,25 +239,17 @@ class EncounterDetector:
         """Index scans (in arrival order; scan c's entries are ``offsets[c]:offsets[c + 1]``) and return the
         encounters each completes with other users' earlier scans. ``last_seen_ms`` is -1 where the phone
         did not say. A scan without fresh APs is neither indexed nor compared."""
-        return self.start_scans(users, t_ms, offsets, bssids, rss, last_seen_ms, background=False).result()
+        scans = ScanBatch(users, t_ms, offsets, bssids, rss, last_seen_ms)
+        return self.start_scans(scans, background=False).result()
 
-    def start_scans(
-        self,
-        users: Sequence[str],
-        t_ms: np.ndarray,
-        offsets: np.ndarray,
-        bssids: Sequence[str],
-        rss: np.ndarray,
-        last_seen_ms: np.ndarray,
-        background: bool,
-    ) -> BackgroundCall[DetectionArrays]:
+    def start_scans(self, scans: ScanBatch, background: bool) -> BackgroundCall[DetectionArrays]:
         """``add_scans``, with the comparison (the compiled kernel, which releases the GIL) on a thread of
         its own when ``background``: the caller goes on with work that does not touch this detector and
         collects the detections with ``result()``. The BSSIDs and users are interned here, in the caller's
         thread, so the thread touches only the scan store, and the outcome is the same either way."""
         if self._pending is not None:
             raise RuntimeError("the previous scans' detections have not been collected")
-        prepared = self._prepared(users, t_ms, offsets, bssids, rss, last_seen_ms)
+        prepared = self._prepared(scans)
         if prepared is None:
             return BackgroundCall(DetectionArrays.empty, False, "wifi-encounters")
         pending = BackgroundCall(
@@ -256,19 +261,13 @@ class EncounterDetector:
     def _collected(self) -> None:
         self._pending = None
 
-    def _prepared(
-        self,
-        users: Sequence[str],
-        t_ms: np.ndarray,
-        offsets: np.ndarray,
-        bssids: Sequence[str],
-        rss: np.ndarray,
-        last_seen_ms: np.ndarray,
-    ) -> _PreparedScans | None:
+    def _prepared(self, scans: ScanBatch) -> _PreparedScans | None:
         """The kept scans as the scan store's arrays (None when no scan has a fresh AP)."""
         p = self.params
         by_fingerprint = p.wifi_model == "wifi-fingerprint"
         n_top = p.wifi.strongest_n
+        users, t_ms, offsets, bssids = scans.users, scans.t_ms, scans.offsets, scans.bssids
+        rss, last_seen_ms = scans.rss, scans.last_seen_ms
         kept_t, kept_user, tops, top_rss = [], [], [], []
         fresh_ap: list[int] = []
         fresh_rss: list[float] = []

@@ -18,7 +18,7 @@ from slam_core.background_call import BackgroundCall
 from slam_core.crowd_fingerprints import CrowdFingerprints, FingerprintParams, Place, Scan
 from slam_core.crowd_graph import CrowdGraph
 from slam_core.crowd_map import CrowdMapBuilder
-from slam_core.encounter_detection import DetectionArrays, EncounterDetector
+from slam_core.encounter_detection import DetectionArrays, EncounterDetector, ScanBatch
 from slam_core.encounter_selection import EncounterSelector, pair_keys
 from slam_core.fastslam import DynamicSlam
 from slam_core.tracker_rounds import Round, UserTrack
@@ -173,15 +173,15 @@ def start_scan_detection(
             scan_seen.append(b.scan_last_seen)
     if not scan_users:
         return BackgroundCall(DetectionArrays.empty, False, "wifi-encounters")
-    return detector.start_scans(
+    scans = ScanBatch(
         scan_users,
         np.concatenate(scan_t),
         np.array(scan_offsets, dtype=np.int64),
         bssids,
         np.concatenate(scan_rss),
         np.concatenate(scan_seen),
-        background=len(scan_users) >= BACKGROUND_SCANS,
     )
+    return detector.start_scans(scans, background=len(scan_users) >= BACKGROUND_SCANS)
 
 
 def encounters(

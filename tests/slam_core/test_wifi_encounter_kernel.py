@@ -17,6 +17,7 @@ from slam_core.encounter_detection import (
     MODEL_WIFI_FINGERPRINT,
     DetectionParams,
     EncounterDetector,
+    ScanBatch,
     eq3_sparse,
     union_rms,
 )
@@ -123,7 +124,7 @@ def _compiled(
         )
         if background:
             detector = pickle.loads(pickle.dumps(detector))
-            found = detector.start_scans(*args, background=True).result()
+            found = detector.start_scans(ScanBatch(*args), background=True).result()
         else:
             found = detector.add_scans(*args)
         assert np.all(found.model == kind)
@@ -169,9 +170,9 @@ def test_scans_compared_on_a_thread_hold_the_detector_until_collected() -> None:
     assert detector.add_scan("a", T0, *here) == []
     users, t, offsets = ["b", "c"], np.array([T0 + 100, T0 + 200]), np.array([0, 3, 6])
     args = (users, t, offsets, here[0] * 2, np.tile(here[1], 2), np.tile(here[2], 2))
-    pending = detector.start_scans(*args, background=True)
+    pending = detector.start_scans(ScanBatch(*args), background=True)
     with pytest.raises(RuntimeError, match="not been collected"):
-        detector.start_scans(*args, background=False)
+        detector.start_scans(ScanBatch(*args), background=False)
     with pytest.raises(RuntimeError, match="cannot pickle"):
         pickle.dumps(detector)
     found = detector.to_detections(pending.result())
@@ -191,7 +192,7 @@ def test_a_failed_comparison_raises_in_the_caller_and_frees_the_detector(
         raise MemoryError("no room for the scans")
 
     monkeypatch.setattr(detector._store, "add", broken)
-    pending = detector.start_scans(["a"], np.array([T0]), np.array([0, 3]), *here, background=True)
+    pending = detector.start_scans(ScanBatch(["a"], np.array([T0]), np.array([0, 3]), *here), background=True)
     with pytest.raises(MemoryError, match="no room"):
         pending.result()
     monkeypatch.undo()
