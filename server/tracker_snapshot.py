@@ -13,6 +13,7 @@ parameters is refused (``SnapshotMismatchError``) and the building starts from i
 
 from __future__ import annotations
 
+import gc
 import pickle
 import zlib
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -43,8 +44,16 @@ def encode(state: SessionState) -> bytes:
 
 
 def pickled(state: SessionState) -> bytes:
-    """The state as bytes, before compression (the part of a snapshot that holds the building's thread)."""
-    return pickle.dumps(state, protocol=pickle.HIGHEST_PROTOCOL)
+    """The state as bytes, before compression (the part of a snapshot that holds the building's thread).
+    The cyclic collector is paused meanwhile: pickling makes many short-lived objects, and the collections
+    they set off had been ~4 of the ~30 ms of a 2,000-user snapshot."""
+    collecting = gc.isenabled()
+    gc.disable()
+    try:
+        return pickle.dumps(state, protocol=pickle.HIGHEST_PROTOCOL)
+    finally:
+        if collecting:
+            gc.enable()
 
 
 def _compress(raw: bytes) -> bytes:
