@@ -1,16 +1,21 @@
 """Building benchmark: one building's batch path without HTTP, the part of the server that holds one core.
 
-    python bench/building.py [--phones 1000] [--seconds 20] [--group 32] [--json OUT] [--profile OUT.prof]
+    python bench/building.py [--phones 1000] [--seconds 20] [--group 32] [--path process|thread]
+                             [--json OUT] [--profile OUT.prof]
 
 A ``BuildingSession`` on SQLite with recording on (the server's defaults) is fed the load benchmark's phones
 (``bench/load.py``: a batch per phone per second, two steps, a WiFi scan every 2 s, Bluetooth sightings) in
 groups of ``--group`` batches, the way the building's worker drains its queue under load. Every phone
 posts its fix first; the figures count the seconds after that. Prints one JSON object: ``us_per_batch``
 (wall time of ``process`` and of the JSON of its receipts and live messages, mean over the seconds;
-``_min``: the cheapest second),
-``json_us_per_batch`` (that JSON alone), and what it ran on. Without the HTTP front, the load generator
-and the dashboards on the same cores, this is steadier than ``bench/load.py`` and says what a change to
-the batch path costs.
+``_min``: the cheapest second; ``cpu_us_per_batch``: the process' CPU time over the same spans, which a
+shared machine's stolen time does not inflate),
+``json_us_per_batch`` (that JSON alone), and what it ran on. ``--path`` says which side of the front the
+batches arrive by: ``process`` (a building in its own process, ``CROWDSLAM_BUILDING_PROCESSES``: the front
+has validated, converted and packed each batch, and the building's time starts at unpickling it) or
+``thread`` (a building in the server's process: it decodes and converts each batch itself). Without the
+HTTP front, the load generator and the dashboards on the same cores, this is steadier than
+``bench/load.py`` and says what a change to the batch path costs.
 
 It also reports the pauses that hold a group, and so every batch queued behind it, with the building at
 the end of the run: ``group_ms_p99`` and ``group_ms_max`` (per call of ``process``), ``snapshot_pickle_ms``
@@ -23,6 +28,7 @@ from __future__ import annotations
 import argparse
 import cProfile
 import gc
+import pickle
 import statistics
 import sys
 import tempfile
@@ -44,12 +50,12 @@ from load import Crowd, _body
 from report import emit
 
 from schemas.live import LIVE_MESSAGE_ADAPTER
-from server import tracker_snapshot
+from server import batch_transport, convert, tracker_snapshot
 from server.app import load_calibration, tracker_params, tune_gc_for_serving
 from server.batch_decoding import decode_batch
 from server.errors import ProblemError
 from server.recording import BuildingRecorder
-from server.session_types import Submission
+from server.session_types import BatchHeader, Submission
 from server.settings import Settings
 from server.store.db import make_engine, make_session_factory
 from server.store.migrate import upgrade
@@ -57,7 +63,7 @@ from server.store.models import BuildingRow
 from server.tracking import BuildingSession
 
 
-def run(phones: int, seconds: int, group: int, profile: Path | None) -> dict[str, object]:
+def run(phones: int, seconds: int, group: int, path: str, profile: Path | None) -> dict[str, object]:
     settings = Settings()
     with tempfile.TemporaryDirectory() as tmp:
         engine = make_engine(f"sqlite:///{Path(tmp) / 'crowdslam.sqlite3'}")
@@ -76,6 +82,7 @@ def run(phones: int, seconds: int, group: int, profile: Path | None) -> dict[str
         crowd = Crowd.create(phones, seed=0)
         start_ms = int(time.time() * 1000)
         per_second: list[float] = []
+        cpu_per_second: list[float] = []
         json_per_second: list[float] = []
         group_ms: list[float] = []
         profiler = cProfile.Profile() if profile is not None else None
@@ -86,13 +93,17 @@ def run(phones: int, seconds: int, group: int, profile: Path | None) -> dict[str
             bodies = [
                 _body(crowd, p, second, now_ms + p * 1000 // phones, near[p], "load") for p in range(phones)
             ]
-            busy = json_busy = 0.0
+            busy = json_busy = cpu = 0.0
             for first in range(0, phones, group):
                 raws = bodies[first : first + group]
-                started = time.perf_counter()
+                frames = [_front(r) for r in raws] if path == "process" else []
+                started, cpu_started = time.perf_counter(), time.process_time()
                 if profiler is not None and second:
                     profiler.enable()
-                subs = [Submission(decode_batch(r, len(r)), r, time.time_ns()) for r in raws]
+                if path == "process":
+                    subs = [_building_side(f) for f in frames]
+                else:
+                    subs = [Submission.of(decode_batch(r, len(r)), r, time.time_ns()) for r in raws]
                 result = session.process(subs)
                 encoded = time.perf_counter()
                 for receipt in result.receipts:
@@ -105,11 +116,13 @@ def run(phones: int, seconds: int, group: int, profile: Path | None) -> dict[str
                     profiler.disable()
                 done = time.perf_counter()
                 busy += done - started
+                cpu += time.process_time() - cpu_started
                 json_busy += done - encoded
                 if second:
                     group_ms.append((done - started) * 1e3)
             if second:  # the first second admits every phone (its fix): reported apart
                 per_second.append(busy / phones * 1e6)
+                cpu_per_second.append(cpu / phones * 1e6)
                 json_per_second.append(json_busy / phones * 1e6)
             else:
                 admit_us = busy / phones * 1e6
@@ -125,9 +138,11 @@ def run(phones: int, seconds: int, group: int, profile: Path | None) -> dict[str
     return {
         "phones": phones,
         "group": group,
+        "path": path,
         "seconds": seconds,
         "us_per_batch": round(statistics.mean(per_second), 1),
         "us_per_batch_min": round(min(per_second), 1),
+        "cpu_us_per_batch": round(statistics.mean(cpu_per_second), 1),
         "admit_us_per_phone": round(admit_us, 1),
         "json_us_per_batch": round(statistics.mean(json_per_second), 1),
         "batches_per_s_one_core": round(1e6 / statistics.mean(per_second)),
@@ -138,6 +153,26 @@ def run(phones: int, seconds: int, group: int, profile: Path | None) -> dict[str
         "fingerprint_fixes": session.counters.fingerprint_fixes,
         "encounters": session.counters.encounters,
     }
+
+
+def _front(raw: bytes) -> bytes:
+    """What the front of a building process sends for a batch (``ProcessBuildingWorker.submit``)."""
+    batch = decode_batch(raw, len(raw))
+    converted = convert.without_context(batch)
+    packed = None if converted is None else batch_transport.pack(converted.user_batch)
+    return pickle.dumps(
+        (raw, time.time_ns(), BatchHeader.of(batch), packed), protocol=pickle.HIGHEST_PROTOCOL
+    )
+
+
+def _building_side(frame: bytes) -> Submission:
+    """The building process' side of ``_front`` (``building_process._BuildingLoop._flush``)."""
+    raw, received_ns, header, packed = pickle.loads(frame)
+    if packed is None:
+        return Submission(header, raw, received_ns, batch=decode_batch(raw, len(raw)))
+    return Submission(
+        header, raw, received_ns, converted=convert.Converted(batch_transport.unpack(packed), [])
+    )
 
 
 def _timed(work: Callable[[], object]) -> float:
@@ -155,12 +190,18 @@ def main() -> int:
         "--seconds", type=int, default=20, help="measured seconds of batches (after the fixes)"
     )
     parser.add_argument("--group", type=int, default=32, help="batches per call of BuildingSession.process")
+    parser.add_argument(
+        "--path",
+        choices=("process", "thread"),
+        default="process",
+        help="batches converted by the front of a building process, or by the building itself",
+    )
     parser.add_argument("--json", type=Path, help="also write the result here")
     parser.add_argument("--profile", type=Path, help="write a cProfile of the measured seconds here")
     args = parser.parse_args()
     if args.phones < 1 or args.seconds < 1 or args.group < 1:
         parser.error("--phones, --seconds and --group must be at least 1")
-    result = run(args.phones, args.seconds, args.group, args.profile)
+    result = run(args.phones, args.seconds, args.group, args.path, args.profile)
     emit(result, args.json)
     return 0
 

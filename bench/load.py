@@ -23,8 +23,9 @@ shares the machine with the server: it speaks HTTP/1.1 over a pool of keep-alive
 bodies so that it costs little next to the server.
 
 Prints one JSON object: per-N rows (``phones, batches_per_s, p50_ms, p99_ms, ws_lag_p99_ms, errors``, and
-the server's CPU time per batch and cores used, and the generator's cores, from /proc over the measured
-window: the steadiest figure of what a change costs) and ``sustained``: the largest N with p99 <= 100 ms,
+the server's CPU time per batch and cores used, split into its front's and its building processes' cores,
+and the generator's cores, from /proc over the measured window: the steadiest figure of what a change
+costs) and ``sustained``: the largest N with p99 <= 100 ms,
 the offered rate met within 5 % and no errors.
 """
 
@@ -210,6 +211,8 @@ class Results:
     dashboard_errors: list[str] = field(default_factory=list)
     server_cpu_s: float = math.nan
     """CPU seconds (user + system) the server used while the measured batches were due."""
+    front_cpu_s: float = math.nan
+    """Of which the server's own process (the HTTP front; with building processes, the rest is theirs)."""
     generator_cpu_s: float = math.nan
     dashboards_cpu_s: float = math.nan
     measured_wall_s: float = math.nan
@@ -346,6 +349,7 @@ async def _drive(
                 _cpu_seconds(os.getpid()),
                 time.perf_counter(),
                 _cpu_seconds(dashboards.pid or 0),
+                _cpu_seconds(server_pid),
             )
         for phone in np.argsort(phase):
             seq = second - int(joins[phone])
@@ -367,6 +371,7 @@ async def _drive(
     results.generator_cpu_s = _cpu_seconds(os.getpid()) - cpu_at[1]
     results.measured_wall_s = time.perf_counter() - cpu_at[2]
     results.dashboards_cpu_s = _cpu_seconds(dashboards.pid or 0) - cpu_at[3]
+    results.front_cpu_s = _cpu_seconds(server_pid) - cpu_at[4]
     stop.set()
     results.ws_lag_ms, results.dashboard_errors = receive_lags.recv()
     dashboards.join(timeout=30.0)
@@ -427,6 +432,8 @@ def run_one(
         "errors": results.errors + len(results.dashboard_errors),
         "server_cpu_ms_per_batch": round(1e3 * results.server_cpu_s / max(results.sent, 1), 3),
         "server_cores": round(results.server_cpu_s / results.measured_wall_s, 2),
+        "front_cores": round(results.front_cpu_s / results.measured_wall_s, 2),
+        "building_cores": round((results.server_cpu_s - results.front_cpu_s) / results.measured_wall_s, 2),
         "generator_cores": round(results.generator_cpu_s / results.measured_wall_s, 2),
         "dashboards_cores": round(results.dashboards_cpu_s / results.measured_wall_s, 2),
         "dashboard_errors": results.dashboard_errors[:3],

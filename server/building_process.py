@@ -4,8 +4,10 @@ each. The building process holds the same ``BuildingSession`` as the in-process 
 (``server.ingestion.BuildingWorker``); this module is both ends of the socket between them.
 
 Each frame is an 8-byte length and a pickle:
-- front -> building: ``("batch", id, raw body, received_ns)``, ``("call", id, name, args)``,
-  ``("close", id)``;
+- front -> building: ``("batch", id, raw body, received_ns, BatchHeader, packed UserBatch or None)``,
+  ``("call", id, name, args)``, ``("close", id)``. The front converts the batches it can convert without
+  the building (those without landmarks: nearly all) and sends them packed (``server.batch_transport``);
+  the building decodes the others from the raw body again;
 - building -> front: first ``("ready", geo)`` or ``("failed", error)``; then per group of batches
   ``("group", [(id, receipt JSON | ProblemError)], live messages as JSON, counters, seconds)``, and per call
   ``("result", id, ok, value or error)``.
@@ -34,11 +36,12 @@ import time
 from typing import Any
 
 from schemas.live import LIVE_MESSAGE_ADAPTER, LiveMessage
+from server import batch_transport, convert
 from server.batch_decoding import decode_batch
 from server.broadcast import Broadcaster
-from server.errors import ProblemError, ServiceUnavailableError
+from server.errors import InvalidInputError, ProblemError, ServiceUnavailableError
 from server.ingestion import CALLS, MAX_GROUP, LatencyWindow
-from server.session_types import Counters, Submission
+from server.session_types import BatchHeader, Counters, Submission
 from server.settings import Settings
 from server.tracking import BuildingSession
 from slam_core.geo import GeoFrame
@@ -122,7 +125,7 @@ class _BuildingLoop:
     def __init__(self, session: BuildingSession, sock: socket.socket) -> None:
         self.session = session
         self.sock = sock
-        self.batches: list[tuple[int, bytes, int]] = []
+        self.batches: list[tuple[int, bytes, int, BatchHeader, batch_transport.PackedBatch | None]] = []
 
     def run(self) -> None:
         while True:
@@ -137,7 +140,7 @@ class _BuildingLoop:
                 frames.append(more)
             for f in frames:
                 if f[0] == "batch":
-                    self.batches.append((f[1], f[2], f[3]))
+                    self.batches.append(f[1:])
                     continue
                 self._flush()
                 if f[0] == "close":
@@ -156,14 +159,19 @@ class _BuildingLoop:
         ids: list[int] = []
         group: list[Submission] = []
         answers: dict[int, bytes | Exception] = {}
-        for request, raw, received_ns in self.batches:
-            try:
-                batch = decode_batch(raw, max(len(raw), 1))  # validated by the front already
-            except ProblemError as exc:
-                answers[request] = exc
-                continue
+        for request, raw, received_ns, header, packed in self.batches:
+            if packed is None:
+                try:
+                    batch = decode_batch(raw, max(len(raw), 1))  # validated by the front already
+                except ProblemError as exc:
+                    answers[request] = exc
+                    continue
+                submission = Submission(header, raw, received_ns, batch=batch)
+            else:
+                converted = convert.Converted(batch_transport.unpack(packed), [])
+                submission = Submission(header, raw, received_ns, converted=converted)
             ids.append(request)
-            group.append(Submission(batch, raw, received_ns))
+            group.append(submission)
         self.batches = []
         messages: list[str] = []
         if group:
@@ -266,7 +274,16 @@ class ProcessBuildingWorker:
         return len(self._waiting)
 
     async def submit(self, submission: Submission) -> bytes:
-        answer: bytes = await self._ask(("batch", submission.raw, submission.received_ns))
+        packed = None
+        if submission.batch is not None:
+            try:
+                converted = convert.without_context(submission.batch)
+            except ValueError as exc:  # as the building would answer it
+                raise InvalidInputError(str(exc)) from None
+            if converted is not None:
+                packed = batch_transport.pack(converted.user_batch)
+        message = ("batch", submission.raw, submission.received_ns, submission.header, packed)
+        answer: bytes = await self._ask(message)
         return answer
 
     async def call(self, name: str, *args: Any) -> Any:

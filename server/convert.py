@@ -44,6 +44,10 @@ class BuildingContext:
     detection_sigma_m: float = 0.5
 
 
+_NO_CONTEXT = BuildingContext("", None, {})
+"""For batches without landmarks, the only part of a batch that needs its building to be converted."""
+
+
 @dataclass(frozen=True)
 class Converted:
     user_batch: UserBatch
@@ -52,6 +56,14 @@ class Converted:
 
 def anchor_type_index(anchor_type: AnchorType) -> int:
     return _TYPE_INDEX[anchor_type]
+
+
+def without_context(batch: SensorBatch) -> Converted | None:
+    """The batch as engine arrays when that needs nothing of its building (it has no landmarks to place),
+    else None. Raises ``ValueError`` as ``to_user_batch``."""
+    if batch.landmarks:
+        return None
+    return to_user_batch(batch, _NO_CONTEXT)
 
 
 def to_user_batch(batch: SensorBatch, ctx: BuildingContext) -> Converted:

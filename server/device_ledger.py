@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from schemas.sensors import SensorBatch
+from server.session_types import BatchHeader
 
 
 @dataclass
@@ -34,7 +34,7 @@ class DeviceLedger:
         device = self._devices.get(device_id)
         return None if device is None else device.last_seq
 
-    def plan(self, batches: list[SensorBatch]) -> list[int | None]:
+    def plan(self, batches: list[BatchHeader]) -> list[int | None]:
         """Per batch (in arrival order): the engine call of this group that applies it (1, 2, ...: a user's
         k-th batch here goes in the k-th call) or None when it is late. Nothing is recorded yet."""
         last: dict[str, int | None] = {}
@@ -51,7 +51,7 @@ class DeviceLedger:
             out.append(calls[user])
         return out
 
-    def applied(self, batch: SensorBatch) -> dict[str, object] | None:
+    def applied(self, batch: BatchHeader) -> dict[str, object] | None:
         """Record an applied batch; returns the device's row when SQL must learn it now (a new device, or
         a new user or Bluetooth id; a batch without a Bluetooth id keeps the stored one), else None."""
         device = self._devices.get(batch.device_id)
@@ -69,7 +69,7 @@ class DeviceLedger:
             return None
         return self._row(batch.device_id)
 
-    def replayed(self, batch: SensorBatch) -> None:
+    def replayed(self, batch: BatchHeader) -> None:
         """A logged batch re-applied after a restart: its device's last seq moves on (SQL learns it at the
         next snapshot)."""
         device = self._devices.get(batch.device_id)

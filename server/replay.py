@@ -80,7 +80,7 @@ def replay_offline(
                         batch.building_id, sessions, params, calibration, settings.seed
                     )
                     buildings[batch.building_id] = building
-                result = building.process([Submission(batch, recorded.raw, recorded.received_ns)])
+                result = building.process([Submission.of(batch, recorded.raw, recorded.received_ns)])
                 receipt = result.receipts[0]
                 if isinstance(receipt, ProblemError):
                     report.rejected += 1

@@ -22,7 +22,7 @@ from server import convert, tracker_snapshot
 from server.anchor_ids import AnchorIds
 from server.device_ledger import DeviceLedger
 from server.errors import NotFoundError
-from server.session_types import Counters, Retention
+from server.session_types import BatchHeader, Counters, Retention
 from server.store import repositories as repo
 from server.store.batches import LoggedBatch, clear_covered_bodies, logged_batches
 from slam_core.encounters import Calibration
@@ -74,7 +74,7 @@ class RecoverableSession:
                 # the filters start again, but the log still says which sequence numbers were applied; the
                 # engine calls count on from the log's last, so the load snapshot covers the whole log
                 for item in logged:
-                    self.devices.replayed(SensorBatch.model_validate_json(item.body))
+                    self.devices.replayed(BatchHeader.of(SensorBatch.model_validate_json(item.body)))
                 self._round = max((item.applied_round for item in logged), default=self._round)
                 logged = []
                 self.tracker = BuildingTracker(params, calibration, seed=seed)
@@ -130,7 +130,7 @@ class RecoverableSession:
             for item in items:
                 batch = SensorBatch.model_validate_json(item.body)
                 self._device_of_user[batch.effective_user_id] = batch.device_id
-                self.devices.replayed(batch)
+                self.devices.replayed(BatchHeader.of(batch))
                 batches.append(convert.to_user_batch(batch, ctx).user_batch)
             outcome = self.tracker.apply(batches)
             for index in outcome.anchors_changed:

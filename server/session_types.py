@@ -4,10 +4,12 @@ retention of history, one submitted batch, and a group's result."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 from schemas.api import BatchReceipt
 from schemas.live import LiveMessage
 from schemas.sensors import SensorBatch
+from server.convert import Converted
 from server.errors import ProblemError
 
 
@@ -67,11 +69,48 @@ class Retention:
     eviction. None keeps every user."""
 
 
+class BatchHeader(NamedTuple):
+    """What the batch path needs of a batch besides its sensor arrays: who sent it, and its place among
+    that device's batches (a plain tuple: it crosses the socket to a building's process with each batch)."""
+
+    device_id: str
+    effective_user_id: str
+    batch_id: str
+    seq: int
+    ble_advertised_id: str | None
+    span_ms: tuple[int, int] | None
+    """First and last sensor time in the batch, None for an empty batch."""
+
+    @classmethod
+    def of(cls, batch: SensorBatch) -> BatchHeader:
+        return cls(
+            batch.device_id,
+            batch.effective_user_id,
+            batch.batch_id,
+            batch.seq,
+            batch.ble_advertised_id,
+            batch.time_span_ms(),
+        )
+
+
 @dataclass(frozen=True)
 class Submission:
-    batch: SensorBatch
+    """One accepted batch for its building: the validated batch, or, from the front of a building's own
+    process, the batch converted already (``server.batch_transport``)."""
+
+    header: BatchHeader
     raw: bytes  # the body as posted, for the recording
     received_ns: int
+    batch: SensorBatch | None = None
+    converted: Converted | None = None
+
+    def __post_init__(self) -> None:
+        if (self.batch is None) == (self.converted is None):
+            raise ValueError("a submission carries either the batch or its conversion")
+
+    @classmethod
+    def of(cls, batch: SensorBatch, raw: bytes, received_ns: int) -> Submission:
+        return cls(BatchHeader.of(batch), raw, received_ns, batch=batch)
 
 
 @dataclass

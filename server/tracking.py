@@ -20,13 +20,12 @@ from schemas.anchors import BuildingAnchor, KnownAnchorIn
 from schemas.api import BatchReceipt
 from schemas.estimates import EncounterEvent, Estimate, EstimateSource
 from schemas.live import AnchorMessage, EncounterMessage, LiveMessage, PositionMessage
-from schemas.sensors import SensorBatch
 from server import convert
 from server.errors import ConflictError, InvalidInputError, NotFoundError, ProblemError
 from server.recording import BuildingRecorder
 from server.session_recovery import RecoverableSession
 from server.session_rows import anchor_row, position_row
-from server.session_types import GroupResult, Retention, Submission
+from server.session_types import BatchHeader, GroupResult, Retention, Submission
 from server.store import repositories as repo
 from server.store.batches import (
     AcceptedBatch,
@@ -146,24 +145,27 @@ class BuildingSession(RecoverableSession):
         results: list[BatchReceipt | ProblemError | None] = [None] * len(group)
         converted: dict[int, tuple[UserBatch, list[str]]] = {}
         for i, sub in enumerate(group):
-            try:
-                c = convert.to_user_batch(sub.batch, ctx)
-            except ValueError as exc:
-                results[i] = InvalidInputError(str(exc))
-                continue
+            c = sub.converted
+            if c is None:
+                assert sub.batch is not None  # a Submission holds one or the other
+                try:
+                    c = convert.to_user_batch(sub.batch, ctx)
+                except ValueError as exc:
+                    results[i] = InvalidInputError(str(exc))
+                    continue
             converted[i] = (c.user_batch, c.warnings)
         messages: list[LiveMessage] = []
         order = list(converted)
         # late or applied, and by which engine call, is decided before anything is written: each row goes
         # in with the call that applies it (a retry is recognised by the insert itself, and was late anyway)
-        calls = dict(zip(order, self.devices.plan([group[i].batch for i in order]), strict=True))
+        calls = dict(zip(order, self.devices.plan([group[i].header for i in order]), strict=True))
         base = self._round
         device_rows: list[dict[str, object]] = []
         with self._sessions.begin() as session:
             inserted = insert_batches_once(session, [self._accepted(group[i], calls[i], base) for i in order])
             by_call: dict[int, list[int]] = {}
             for i, row_id in zip(order, inserted, strict=True):
-                b = group[i].batch
+                b = group[i].header
                 if row_id is None:
                     self.counters.duplicates += 1
                     results[i] = self._receipt(b, "duplicate", converted[i][1])
@@ -235,7 +237,7 @@ class BuildingSession(RecoverableSession):
             if e.user_b != e.user_a:
                 by_user.setdefault(e.user_b, []).append(e)
         for i in now:
-            b = group[i].batch
+            b = group[i].header
             report = outcome.reports[converted[i][0].user]
             self.counters.steps_dropped += report.steps_dropped
             self.counters.steps_detected += report.steps_detected
@@ -272,12 +274,12 @@ class BuildingSession(RecoverableSession):
         self._last_prune = time.monotonic()
 
     def _accepted(self, sub: Submission, call: int | None, base: int) -> AcceptedBatch:
-        span = sub.batch.time_span_ms()
+        span = sub.header.span_ms
         return AcceptedBatch(
             self.building_id,
-            sub.batch.device_id,
-            sub.batch.batch_id,
-            sub.batch.seq,
+            sub.header.device_id,
+            sub.header.batch_id,
+            sub.header.seq,
             None if span is None else span[0],
             None if span is None else span[1],
             len(sub.raw),
@@ -287,7 +289,7 @@ class BuildingSession(RecoverableSession):
 
     def _receipt(
         self,
-        batch: SensorBatch,
+        batch: BatchHeader,
         status: Literal["applied", "duplicate", "late"],
         warnings: list[str],
         estimate: Estimate | None = None,

@@ -41,7 +41,7 @@ async def ingest(state: AppState, caller: Principal, building_id: str, body: byt
         )
     caller.require_device(building_id, batch.device_id)
     worker = await state.tracking.worker(building_id)
-    return await worker.submit(Submission(batch, body, time.time_ns()))
+    return await worker.submit(Submission.of(batch, body, time.time_ns()))
 
 
 _BATCHES_PATH = re.compile(r"/v1/buildings/([^/]+)/batches")

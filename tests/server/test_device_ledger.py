@@ -7,9 +7,10 @@ from typing import Any
 
 from schemas.sensors import SensorBatch
 from server.device_ledger import DeviceLedger
+from server.session_types import BatchHeader
 
 
-def _batch(device: str, seq: int, user: str | None = None, ble: str | None = None) -> SensorBatch:
+def _batch(device: str, seq: int, user: str | None = None, ble: str | None = None) -> BatchHeader:
     body: dict[str, Any] = {
         "building_id": "hq",
         "device_id": device,
@@ -20,7 +21,7 @@ def _batch(device: str, seq: int, user: str | None = None, ble: str | None = Non
         body["user_id"] = user
     if ble is not None:
         body["ble_advertised_id"] = ble
-    return SensorBatch.model_validate(body)
+    return BatchHeader.of(SensorBatch.model_validate(body))
 
 
 def test_plan_marks_late_batches_and_gives_each_user_one_batch_per_call() -> None:

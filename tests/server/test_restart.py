@@ -33,7 +33,7 @@ def _crowd() -> tuple[list[Submission], list[KnownAnchor]]:
     raw["users"]["walk_length_m"] = 50.0
     sim = simulate(Scenario.from_dict(raw), 2)
     batches = list(simulated_batches(sim, "hq"))
-    return [Submission(b, b.model_dump_json().encode(), 0) for b in batches], known_anchors(sim)
+    return [Submission.of(b, b.model_dump_json().encode(), 0) for b in batches], known_anchors(sim)
 
 
 CROWD, KNOWN = _crowd()
@@ -230,7 +230,7 @@ def test_a_batch_older_than_the_logged_ones_is_late_after_a_restart(
     assert (restarted.restore_problem is not None) == other_parameters
     old = next(s.batch for s in CROWD if s.batch.device_id == device and s.batch.seq == seq - 1)
     resent = old.model_copy(update={"batch_id": f"{old.batch_id}-again"})
-    receipt = restarted.process([Submission(resent, resent.model_dump_json().encode(), 0)]).receipts[0]
+    receipt = restarted.process([Submission.of(resent, resent.model_dump_json().encode(), 0)]).receipts[0]
     assert getattr(receipt, "status", None) == "late"
     engine.dispose()
 

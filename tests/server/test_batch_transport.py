@@ -1,0 +1,159 @@
+"""The packed form of a converted batch (front -> building process): every field comes back equal, with the
+dtype, shape and numba type a conversion gives (another type would compile the kernels anew), writable;
+batches with landmarks are left to the building, which alone can place them."""
+
+from __future__ import annotations
+
+import dataclasses
+import pickle
+from typing import Any
+
+import numba
+import numpy as np
+import pytest
+
+from schemas.sensors import SensorBatch
+from server import batch_transport, convert
+from server.session_types import BatchHeader, Submission
+from slam_core.pdr.frontend import ImuSamples
+from slam_core.tracker import UserBatch
+
+T0 = 1_700_000_000_000
+
+
+def _sensor_batch(**extra: Any) -> SensorBatch:
+    body: dict[str, Any] = {"building_id": "hq", "device_id": "phone-1", "batch_id": "b-1", "seq": 4}
+    return SensorBatch.model_validate(body | extra)
+
+
+def _walking() -> UserBatch:
+    batch = _sensor_batch(
+        ble_advertised_id="ble-1",
+        steps=[
+            {"t_ms": T0 + 100, "length_m": 0.7, "azimuth_rad": 0.5},
+            {"t_ms": T0 + 600, "length_m": 0.72, "heading_change_rad": -0.1},
+        ],
+        wifi_scans=[
+            {
+                "t_ms": T0 + 200,
+                "aps": [
+                    {"bssid": "02:00:00:00:00:01", "rssi_dbm": -61.5, "frequency_mhz": 2437},
+                    {"bssid": "02:00:00:00:00:02", "rssi_dbm": -70.0, "frequency_mhz": 5180,
+                     "last_seen_ms": T0 + 150},
+                ],
+            },
+            {
+                "t_ms": T0 + 900,
+                "aps": [{"bssid": "02:00:00:00:00:03", "rssi_dbm": -80.0, "frequency_mhz": 2412}],
+            },
+        ],
+        bluetooth=[
+            {"kind": "peer", "t_ms": T0 + 300, "peer_advertised_id": "ble-2", "rssi_dbm": -72.0},
+            {"kind": "beacon", "t_ms": T0 + 400, "mac": "aa:bb:cc:dd:ee:ff", "rssi_dbm": -66.0},
+        ],
+        anchor_detections=[{"t_ms": T0 + 500, "type": "stairs"}],
+    )  # fmt: skip
+    converted = convert.without_context(batch)
+    assert converted is not None
+    return converted.user_batch
+
+
+def _raw_imu() -> UserBatch:
+    n = 7
+    t = [T0 + 5 * i for i in range(n)]
+    axis = [0.1 * i for i in range(n)]
+    batch = _sensor_batch(
+        accelerometer={"t_ms": t, "x": axis, "y": axis, "z": [9.8] * n},
+        gyroscope={"t_ms": t, "x": axis, "y": axis, "z": axis},
+        rotation_vector={"t_ms": t, "x": [0.0] * n, "y": [0.0] * n, "z": [0.1] * n},  # no w: NaN
+        pressure={"t_ms": t[:3], "value": [1000.0, 1000.1, 1000.2]},
+    )
+    converted = convert.without_context(batch)
+    assert converted is not None
+    assert converted.user_batch.imu is not None
+    return converted.user_batch
+
+
+def _with_signatures() -> UserBatch:
+    return UserBatch(
+        user="u",
+        fix_t=np.array([T0], dtype=np.int64),
+        fix_xy=np.array([[1.0, 2.0]]),
+        fix_sigma=np.array([0.5]),
+        fix_azimuth=np.array([np.nan]),
+        step_t=np.array([T0 + 1], dtype=np.int64),
+        step_length=np.array([0.7]),
+        step_azimuth=np.array([0.1]),
+        step_turn=np.array([np.nan]),
+        step_heading_offset=np.array([0.25]),
+        detect_t=np.array([T0 + 2, T0 + 3], dtype=np.int64),
+        detect_type=np.array([5, 6], dtype=np.int64),
+        detect_signature=("beacon:aa", ""),
+        detect_observed_t=np.array([T0 + 1, T0 + 3], dtype=np.int64),
+    )
+
+
+CASES = {
+    "walking": _walking,
+    "raw imu": _raw_imu,
+    "signatures": _with_signatures,
+    "empty": lambda: UserBatch("u"),
+}
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_an_unpacked_batch_equals_the_packed_one_in_value_and_type(case: str) -> None:
+    original = CASES[case]()
+    packed = pickle.loads(pickle.dumps(batch_transport.pack(original), protocol=pickle.HIGHEST_PROTOCOL))
+    restored = batch_transport.unpack(packed)
+    assert isinstance(restored, UserBatch)
+    pairs = [
+        (f.name, getattr(original, f.name), getattr(restored, f.name)) for f in dataclasses.fields(UserBatch)
+    ]
+    if original.imu is not None:
+        assert isinstance(restored.imu, ImuSamples)
+        pairs += [
+            (f"imu.{f.name}", getattr(original.imu, f.name), getattr(restored.imu, f.name))
+            for f in dataclasses.fields(ImuSamples)
+        ]
+    for name, want, got in pairs:
+        if isinstance(want, np.ndarray):
+            assert got.dtype == want.dtype, name
+            assert got.shape == want.shape, name
+            assert np.array_equal(got, want, equal_nan=True), name
+            assert numba.typeof(got) == numba.typeof(want), name
+            assert got.flags.writeable, name
+        elif name != "imu":
+            assert got == want, name
+    assert (restored.imu is None) == (original.imu is None)
+
+
+def test_unpacked_arrays_do_not_share_memory_with_the_message() -> None:
+    """The building may keep a batch's arrays: they must not be views of a buffer the socket reuses."""
+    packed = batch_transport.pack(_walking())
+    restored = batch_transport.unpack(packed)
+    before = bytes(packed.floats)
+    restored.step_length[0] = 99.0
+    assert packed.floats == before
+
+
+def test_only_batches_without_landmarks_convert_without_their_building() -> None:
+    fix = {"kind": "fix", "t_ms": T0, "position": {"x_m": 1.0, "y_m": 2.0}, "sigma_m": 1.0}
+    assert convert.without_context(_sensor_batch(landmarks=[fix])) is None
+    plain = convert.without_context(_sensor_batch(steps=[{"t_ms": T0, "length_m": 0.7, "azimuth_rad": 0.0}]))
+    assert plain is not None
+    assert plain.warnings == []
+    assert plain.user_batch.step_t.tolist() == [T0]
+
+
+def test_a_submission_holds_the_batch_or_its_conversion() -> None:
+    batch = _sensor_batch()
+    header = BatchHeader.of(batch)
+    assert header == ("phone-1", "phone-1", "b-1", 4, None, None)
+    converted = convert.without_context(batch)
+    assert converted is not None
+    with pytest.raises(ValueError, match="either the batch or its conversion"):
+        Submission(header, b"{}", 0)
+    with pytest.raises(ValueError, match="either the batch or its conversion"):
+        Submission(header, b"{}", 0, batch=batch, converted=converted)
+    assert Submission.of(batch, b"{}", 0).header == header
