@@ -237,20 +237,33 @@ def estimate(
     )
 
 
+_ENCOUNTER_MODELS = {
+    MODEL_BLUETOOTH: EncounterModelName.BLUETOOTH,
+    MODEL_WIFI_FINGERPRINT: EncounterModelName.WIFI_FINGERPRINT,
+}
+
+
 def encounter_event(result: EncounterResult, building_id: str) -> EncounterEvent:
+    """The wire event of a chosen detection. Built without pydantic's validation, as ``estimate`` (the ids
+    and time come from validated batches; the range and its sigma are held to the schema's bounds here);
+    tested equal to the validated model."""
     d = result.detection
-    return EncounterEvent(
+    distance = min(float(d.distance_m), 200.0)
+    sigma = min(math.sqrt(d.variance_m2), 200.0) if d.variance_m2 > 0.0 else math.nan
+    if not (distance >= 0.0 and sigma > 0.0):  # NaN fails both
+        raise ValueError(
+            f"the encounter of {d.user_a!r} and {d.user_b!r} has no valid range: "
+            f"{d.distance_m} m, variance {d.variance_m2} m^2"
+        )
+    return EncounterEvent.model_construct(
         building_id=building_id,
-        t_ms=d.t_ms,
+        t_ms=int(d.t_ms),
         user_a=d.user_a,
         user_b=d.user_b,
-        model={
-            MODEL_BLUETOOTH: EncounterModelName.BLUETOOTH,
-            MODEL_WIFI_FINGERPRINT: EncounterModelName.WIFI_FINGERPRINT,
-        }.get(d.model, EncounterModelName.WIFI_EQ3),
-        distance_m=min(d.distance_m, 200.0),
-        distance_sigma_m=min(math.sqrt(d.variance_m2), 200.0),
-        applied=result.applied,
+        model=_ENCOUNTER_MODELS.get(d.model, EncounterModelName.WIFI_EQ3),
+        distance_m=distance,
+        distance_sigma_m=sigma,
+        applied=bool(result.applied),
     )
 
 

@@ -1,5 +1,6 @@
-"""The engine's estimate rows become wire ``Estimate``s without pydantic's validation (the batch path's
-hottest conversion); they must equal the validated model, and break the schema's rules never."""
+"""The engine's estimate rows and chosen encounters become wire ``Estimate``s and ``EncounterEvent``s
+without pydantic's validation (the batch path's hottest conversions); they must equal the validated
+models, and break the schema's rules never."""
 
 from __future__ import annotations
 
@@ -10,10 +11,11 @@ from typing import Any
 import numpy as np
 import pytest
 
-from schemas.estimates import Estimate, EstimateSource
-from server.convert import estimate
+from schemas.estimates import EncounterEvent, Estimate, EstimateSource
+from server.convert import encounter_event, estimate
+from slam_core.encounter_detection import MODEL_BLUETOOTH, MODEL_WIFI, MODEL_WIFI_FINGERPRINT, RangedDetection
 from slam_core.geo import GeoFrame
-from slam_core.tracker import EstimateRow
+from slam_core.tracker import EncounterResult, EstimateRow
 
 GEO = GeoFrame(47.6, -122.3, 0.3)
 
@@ -56,3 +58,40 @@ def test_an_estimate_breaking_the_schema_is_refused(change: dict[str, Any], mess
     row = replace(_row(np.random.default_rng(0)), **change)
     with pytest.raises(ValueError, match=message):
         estimate(row, "hq", "user-1", "phone-1", None, EstimateSource.DYNAMICSLAM)
+
+
+def _encounter(rng: np.random.Generator, **change: Any) -> EncounterResult:
+    fields: dict[str, Any] = {
+        "t_ms": int(1_700_000_000_000 + rng.integers(0, 10**9)),
+        "user_a": "user-1",
+        "user_b": "user-2",
+        "model": int(rng.choice([MODEL_WIFI, MODEL_WIFI_FINGERPRINT, MODEL_BLUETOOTH])),
+        "feature": float(rng.uniform(-90.0, 10.0)),
+        "distance_m": float(rng.exponential(5.0)),
+        "variance_m2": float(rng.exponential(4.0)) + 1e-9,
+    }
+    return EncounterResult(RangedDetection(**(fields | change)), bool(rng.integers(0, 2)))
+
+
+def test_constructed_encounters_equal_validated_ones() -> None:
+    rng = np.random.default_rng(5)
+    results = [_encounter(rng) for _ in range(200)]
+    results += [_encounter(rng, distance_m=np.float64(350.0), variance_m2=np.float64(9e4))]  # clamped to 200
+    models = set()
+    for result in results:
+        built = encounter_event(result, "hq")
+        validated = EncounterEvent.model_validate(built.model_dump())
+        assert validated == built
+        assert validated.model_dump_json() == built.model_dump_json()
+        models.add(built.model)
+    assert len(models) == 3
+    assert built.distance_m == built.distance_sigma_m == 200.0
+
+
+@pytest.mark.parametrize(
+    "change",
+    [{"distance_m": math.nan}, {"distance_m": -0.5}, {"variance_m2": 0.0}, {"variance_m2": math.nan}],
+)
+def test_an_encounter_breaking_the_schema_is_refused(change: dict[str, Any]) -> None:
+    with pytest.raises(ValueError, match="has no valid range"):
+        encounter_event(_encounter(np.random.default_rng(0), **change), "hq")
