@@ -21,6 +21,7 @@ from schemas.sensors import (
     SensorBatch,
     TagReading,
     Vector3Stream,
+    WifiScan,
 )
 from slam_core.encounter_detection import MODEL_BLUETOOTH, MODEL_WIFI_FINGERPRINT
 from slam_core.geo import GeoFrame
@@ -103,7 +104,7 @@ def to_user_batch(batch: SensorBatch, ctx: BuildingContext) -> Converted:
         detect_t=_ints([d.t_ms for d in detections]),
         detect_type=_ints([anchor_type_index(d.type) for d in detections]),
         scan_t=_ints([s.t_ms for s in scans]),
-        scan_offsets=np.cumsum([0, *(len(s.aps) for s in scans)], dtype=np.int64),  # [0] without scans
+        scan_offsets=_offsets(scans),
         scan_bssid=tuple(ap.bssid for ap in aps),
         scan_rss=_floats([ap.rssi_dbm for ap in aps]),
         scan_last_seen=_ints([-1 if ap.last_seen_ms is None else ap.last_seen_ms for ap in aps]),
@@ -132,6 +133,15 @@ def _ints(values: list[int]) -> np.ndarray:
 
 def _floats(values: list[float]) -> np.ndarray:
     return np.array(values, dtype=np.float64) if values else _NO_FLOATS
+
+
+def _offsets(scans: list[WifiScan]) -> np.ndarray:
+    """Where each scan's APs start among all of them, and their total last ([0] without scans). Summed
+    here: ``np.cumsum`` of a list took its slow path, ~7 us of a batch's conversion."""
+    offsets = [0]
+    for scan in scans:
+        offsets.append(offsets[-1] + len(scan.aps))
+    return np.array(offsets, dtype=np.int64)
 
 
 def _nan_if_none(value: float | None) -> float:
