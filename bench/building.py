@@ -50,12 +50,13 @@ from load import Crowd, _body
 from report import emit
 
 from schemas.live import LIVE_MESSAGE_ADAPTER
-from server import batch_transport, convert, tracker_snapshot
+from server import tracker_snapshot
 from server.app import load_calibration, tracker_params, tune_gc_for_serving
 from server.batch_decoding import decode_batch
+from server.building_process import batch_fields, received_batch
 from server.errors import ProblemError
 from server.recording import BuildingRecorder
-from server.session_types import BatchHeader, Submission
+from server.session_types import Submission
 from server.settings import Settings
 from server.store.db import make_engine, make_session_factory
 from server.store.migrate import upgrade
@@ -157,22 +158,13 @@ def run(phones: int, seconds: int, group: int, path: str, profile: Path | None) 
 
 def _front(raw: bytes) -> bytes:
     """What the front of a building process sends for a batch (``ProcessBuildingWorker.submit``)."""
-    batch = decode_batch(raw, len(raw))
-    converted = convert.without_context(batch)
-    packed = None if converted is None else batch_transport.pack(converted.user_batch)
-    return pickle.dumps(
-        (raw, time.time_ns(), BatchHeader.of(batch), packed), protocol=pickle.HIGHEST_PROTOCOL
-    )
+    submission = Submission.of(decode_batch(raw, len(raw)), raw, time.time_ns())
+    return pickle.dumps(batch_fields(submission), protocol=pickle.HIGHEST_PROTOCOL)
 
 
 def _building_side(frame: bytes) -> Submission:
     """The building process' side of ``_front`` (``building_process._BuildingLoop._flush``)."""
-    raw, received_ns, header, packed = pickle.loads(frame)
-    if packed is None:
-        return Submission(header, raw, received_ns, batch=decode_batch(raw, len(raw)))
-    return Submission(
-        header, raw, received_ns, converted=convert.Converted(batch_transport.unpack(packed), [])
-    )
+    return received_batch(*pickle.loads(frame))
 
 
 def _timed(work: Callable[[], object]) -> float:

@@ -4,7 +4,8 @@ each. The building process holds the same ``BuildingSession`` as the in-process 
 (``server.ingestion.BuildingWorker``); this module is both ends of the socket between them.
 
 Each frame is an 8-byte length and a pickle:
-- front -> building: ``("batch", id, raw body, received_ns, BatchHeader, packed UserBatch or None)``,
+- front -> building: ``("batch", id, raw body, received_ns, BatchHeader, packed UserBatch or None)`` (the
+  last two as plain tuples),
   ``("call", id, name, args)``, ``("close", id)``. The front converts the batches it can convert without
   the building (those without landmarks: nearly all) and sends them packed (``server.batch_transport``);
   the building decodes the others from the raw body again;
@@ -125,7 +126,7 @@ class _BuildingLoop:
     def __init__(self, session: BuildingSession, sock: socket.socket) -> None:
         self.session = session
         self.sock = sock
-        self.batches: list[tuple[int, bytes, int, BatchHeader, batch_transport.PackedBatch | None]] = []
+        self.batches: list[tuple[int, BatchFields]] = []
 
     def run(self) -> None:
         while True:
@@ -140,7 +141,7 @@ class _BuildingLoop:
                 frames.append(more)
             for f in frames:
                 if f[0] == "batch":
-                    self.batches.append(f[1:])
+                    self.batches.append((f[1], f[2:]))
                     continue
                 self._flush()
                 if f[0] == "close":
@@ -159,17 +160,12 @@ class _BuildingLoop:
         ids: list[int] = []
         group: list[Submission] = []
         answers: dict[int, bytes | Exception] = {}
-        for request, raw, received_ns, header, packed in self.batches:
-            if packed is None:
-                try:
-                    batch = decode_batch(raw, max(len(raw), 1))  # validated by the front already
-                except ProblemError as exc:
-                    answers[request] = exc
-                    continue
-                submission = Submission(header, raw, received_ns, batch=batch)
-            else:
-                converted = convert.Converted(batch_transport.unpack(packed), [])
-                submission = Submission(header, raw, received_ns, converted=converted)
+        for request, fields in self.batches:
+            try:
+                submission = received_batch(*fields)
+            except ProblemError as exc:
+                answers[request] = exc
+                continue
             ids.append(request)
             group.append(submission)
         self.batches = []
@@ -197,6 +193,39 @@ class _BuildingLoop:
             _send(self.sock, ("result", request, False, _transportable(exc)))
             return
         _send(self.sock, ("result", request, True, value))
+
+
+BatchFields = tuple[bytes, int, tuple[Any, ...], tuple[Any, ...] | None]
+"""A batch on the socket: raw body, received_ns, its ``BatchHeader`` and its packed conversion (None: the
+building decodes the raw body), the last two as plain tuples (a named tuple pickles by its class, which
+had cost ~10 us a batch on both sides)."""
+
+
+def batch_fields(submission: Submission) -> BatchFields:
+    """The front's side: a batch as it crosses to its building, converted when that needs nothing of the
+    building. Raises ``InvalidInputError`` where the building's conversion would have answered it."""
+    packed = None
+    if submission.batch is not None:
+        try:
+            converted = convert.without_context(submission.batch)
+        except ValueError as exc:
+            raise InvalidInputError(str(exc)) from None
+        if converted is not None:
+            packed = tuple(batch_transport.pack(converted.user_batch))
+    return submission.raw, submission.received_ns, tuple(submission.header), packed
+
+
+def received_batch(
+    raw: bytes, received_ns: int, header: tuple[Any, ...], packed: tuple[Any, ...] | None
+) -> Submission:
+    """The building's side of ``batch_fields``."""
+    if packed is None:
+        batch = decode_batch(raw, max(len(raw), 1))  # validated by the front already
+        return Submission(BatchHeader._make(header), raw, received_ns, batch=batch)
+    user_batch = batch_transport.unpack(batch_transport.PackedBatch._make(packed))
+    return Submission(
+        BatchHeader._make(header), raw, received_ns, converted=convert.Converted(user_batch, [])
+    )
 
 
 def _transportable(exc: Exception) -> Exception:
@@ -274,16 +303,7 @@ class ProcessBuildingWorker:
         return len(self._waiting)
 
     async def submit(self, submission: Submission) -> bytes:
-        packed = None
-        if submission.batch is not None:
-            try:
-                converted = convert.without_context(submission.batch)
-            except ValueError as exc:  # as the building would answer it
-                raise InvalidInputError(str(exc)) from None
-            if converted is not None:
-                packed = batch_transport.pack(converted.user_batch)
-        message = ("batch", submission.raw, submission.received_ns, submission.header, packed)
-        answer: bytes = await self._ask(message)
+        answer: bytes = await self._ask(("batch", *batch_fields(submission)))
         return answer
 
     async def call(self, name: str, *args: Any) -> Any:

@@ -14,6 +14,8 @@ import pytest
 
 from schemas.sensors import SensorBatch
 from server import batch_transport, convert
+from server.building_process import batch_fields, received_batch
+from server.errors import InvalidInputError
 from server.session_types import BatchHeader, Submission
 from slam_core.pdr.frontend import ImuSamples
 from slam_core.tracker import UserBatch
@@ -157,3 +159,31 @@ def test_a_submission_holds_the_batch_or_its_conversion() -> None:
     with pytest.raises(ValueError, match="either the batch or its conversion"):
         Submission(header, b"{}", 0, batch=batch, converted=converted)
     assert Submission.of(batch, b"{}", 0).header == header
+
+
+def test_a_batch_crosses_to_its_building_process_converted_or_raw() -> None:
+    """``batch_fields`` (the front) and ``received_batch`` (the building), through pickle as on the socket."""
+    steps = [{"t_ms": T0, "length_m": 0.7, "azimuth_rad": 0.0}]
+    fix = {"kind": "fix", "t_ms": T0, "position": {"x_m": 1.0, "y_m": 2.0}, "sigma_m": 1.0}
+    for extra, converted_by_front in (
+        ({"steps": steps}, True),
+        ({"steps": steps, "landmarks": [fix]}, False),
+    ):
+        batch = _sensor_batch(**extra)
+        raw = batch.model_dump_json().encode()
+        fields = pickle.loads(pickle.dumps(batch_fields(Submission.of(batch, raw, 7)), protocol=5))
+        received = received_batch(*fields)
+        assert received.header == BatchHeader.of(batch)
+        assert (received.raw, received.received_ns) == (raw, 7)
+        assert (received.converted is not None) == converted_by_front
+        assert (received.batch == batch) != converted_by_front
+
+
+def test_a_batch_the_front_cannot_convert_is_refused_there(monkeypatch: pytest.MonkeyPatch) -> None:
+    def refuse(batch: SensorBatch) -> None:
+        raise ValueError("user batch of 'phone-1': inconsistent array shapes")
+
+    monkeypatch.setattr(convert, "without_context", refuse)
+    batch = _sensor_batch()
+    with pytest.raises(InvalidInputError, match="inconsistent array shapes"):
+        batch_fields(Submission.of(batch, b"{}", 0))
