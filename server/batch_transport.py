@@ -78,18 +78,18 @@ def unpack(packed: PackedBatch) -> UserBatch:
     ints = np.frombuffer(packed.ints, dtype=np.int64).copy()
     at = 0
     for name, size in zip(_INTS, packed.int_sizes, strict=True):
-        fields[name] = ints[at : at + size]
-        at += size
+        if size:
+            fields[name] = ints[at : at + size]
+            at += size
+        else:
+            fields[name] = _NO_INTS
     floats = np.frombuffer(packed.floats, dtype=np.float64).copy()
-    at = 0
-    for name, rows in zip(_FLOATS, packed.float_rows, strict=True):
-        at = _cut(fields, name, floats, at, rows)
+    at = _cut(fields, _FLOATS, packed.float_rows, floats, 0)
     if packed.imu_rows is None:
         fields["imu"] = None
     else:
         streams: dict[str, object] = {}
-        for name, rows in zip(_IMU, packed.imu_rows, strict=True):
-            at = _cut(streams, name, floats, at, rows)
+        _cut(streams, _IMU, packed.imu_rows, floats, at)
         imu = ImuSamples.__new__(ImuSamples)
         imu.__dict__.update(streams)
         fields["imu"] = imu
@@ -99,6 +99,13 @@ def unpack(packed: PackedBatch) -> UserBatch:
     return batch
 
 
+# Most of a batch's fields are empty (no fix, no detection, no beacon): one shared empty array each, as the
+# conversion does (``server.convert``): slicing them out one by one had been half of unpacking. Nothing can
+# be written into an empty array.
+_NO_INTS = np.zeros(0, dtype=np.int64)
+_NO_ROWS = {width: np.zeros((0, width)) if width > 1 else np.zeros(0) for width in (1, 2, 4, 5)}
+
+
 def _joined(arrays: list[np.ndarray], dtype: type) -> bytes:
     non_empty = [a.ravel() for a in arrays if a.size]
     if not non_empty:
@@ -106,10 +113,18 @@ def _joined(arrays: list[np.ndarray], dtype: type) -> bytes:
     return np.concatenate(non_empty).astype(dtype, copy=False).tobytes()
 
 
-def _cut(into: dict[str, object], name: str, values: np.ndarray, at: int, rows: int) -> int:
-    width = _WIDTH.get(name)
-    if width is None:
-        into[name] = values[at : at + rows]
-        return at + rows
-    into[name] = values[at : at + rows * width].reshape(rows, width)
-    return at + rows * width
+def _cut(
+    into: dict[str, object], names: tuple[str, ...], rows: tuple[int, ...], values: np.ndarray, at: int
+) -> int:
+    """Cut ``names`` (``rows[i]`` rows each) from ``values`` at ``at`` into ``into``; where they end."""
+    for name, n in zip(names, rows, strict=True):
+        width = _WIDTH.get(name, 1)
+        if not n:
+            into[name] = _NO_ROWS[width]
+        elif width == 1:
+            into[name] = values[at : at + n]
+            at += n
+        else:
+            into[name] = values[at : at + n * width].reshape(n, width)
+            at += n * width
+    return at
