@@ -214,7 +214,8 @@ def encounters(
         else DetectionArrays.empty()
     )
     found = DetectionArrays.concatenate([scans.result(), sightings])
-    slot_a, slot_b = _slots_of(detector, users, found.user_a), _slots_of(detector, users, found.user_b)
+    slots = _slots_of(detector, users, np.concatenate([found.user_a, found.user_b]))  # one pass for both
+    slot_a, slot_b = slots[: len(found)], slots[len(found) :]
     usable = np.flatnonzero((slot_a >= 0) & (slot_b >= 0))
     if usable.size == 0:
         return [], len(found)
