@@ -1,6 +1,6 @@
 """Building benchmark: one building's batch path without HTTP, the part of the server that holds one core.
 
-    python bench/building.py [--phones 1000] [--seconds 20] [--group 32] [--path process|thread]
+    python bench/building.py [--phones 1000] [--seconds 20] [--group 32] [--path process|thread|both]
                              [--json OUT] [--profile OUT.prof]
 
 A ``BuildingSession`` on SQLite with recording on (the server's defaults) is fed the load benchmark's phones
@@ -9,11 +9,13 @@ groups of ``--group`` batches, the way the building's worker drains its queue un
 posts its fix first; the figures count the seconds after that. Prints one JSON object: ``us_per_batch``
 (wall time of ``process`` and of the JSON of its receipts and live messages, mean over the seconds;
 ``_min``: the cheapest second; ``cpu_us_per_batch``: the process' CPU time over the same spans, which a
-shared machine's stolen time does not inflate),
+shared machine's stolen time inflates less),
 ``json_us_per_batch`` (that JSON alone), and what it ran on. ``--path`` says which side of the front the
 batches arrive by: ``process`` (a building in its own process, ``CROWDSLAM_BUILDING_PROCESSES``: the front
 has validated, converted and packed each batch, and the building's time starts at unpickling it) or
-``thread`` (a building in the server's process: it decodes and converts each batch itself). Without the
+``thread`` (a building in the server's process: it decodes and converts each batch itself); ``both``
+alternates the two group by group and reports each (``us_per_batch_process``, ``_thread`` and their
+ratio): on a shared machine whose speed drifts, only runs interleaved like this compare. Without the
 HTTP front, the load generator and the dashboards on the same cores, this is steadier than
 ``bench/load.py`` and says what a change to the batch path costs.
 
@@ -86,6 +88,7 @@ def run(phones: int, seconds: int, group: int, path: str, profile: Path | None) 
         cpu_per_second: list[float] = []
         json_per_second: list[float] = []
         group_ms: list[float] = []
+        by_path = {"process": [0.0, 0], "thread": [0.0, 0]}  # seconds, batches
         profiler = cProfile.Profile() if profile is not None else None
         for second in range(seconds + 1):
             crowd.walk()
@@ -97,11 +100,12 @@ def run(phones: int, seconds: int, group: int, path: str, profile: Path | None) 
             busy = json_busy = cpu = 0.0
             for first in range(0, phones, group):
                 raws = bodies[first : first + group]
-                frames = [_front(r) for r in raws] if path == "process" else []
+                use = path if path != "both" else ("process", "thread")[(first // group + second) % 2]
+                frames = [_front(r) for r in raws] if use == "process" else []
                 started, cpu_started = time.perf_counter(), time.process_time()
                 if profiler is not None and second:
                     profiler.enable()
-                if path == "process":
+                if use == "process":
                     subs = [_building_side(f) for f in frames]
                 else:
                     subs = [Submission.of(decode_batch(r, len(r)), r, time.time_ns()) for r in raws]
@@ -121,6 +125,8 @@ def run(phones: int, seconds: int, group: int, path: str, profile: Path | None) 
                 json_busy += done - encoded
                 if second:
                     group_ms.append((done - started) * 1e3)
+                    by_path[use][0] += done - started
+                    by_path[use][1] += len(raws)
             if second:  # the first second admits every phone (its fix): reported apart
                 per_second.append(busy / phones * 1e6)
                 cpu_per_second.append(cpu / phones * 1e6)
@@ -136,11 +142,17 @@ def run(phones: int, seconds: int, group: int, path: str, profile: Path | None) 
         assert session.recorder is not None
         session.recorder.close()
         engine.dispose()
+    paths = {}
+    if path == "both":
+        us = {p: by_path[p][0] / by_path[p][1] * 1e6 for p in by_path}
+        paths = {f"us_per_batch_{p}": round(v, 1) for p, v in us.items()}
+        paths["process_over_thread"] = round(us["process"] / us["thread"], 3)
     return {
         "phones": phones,
         "group": group,
         "path": path,
         "seconds": seconds,
+        **paths,
         "us_per_batch": round(statistics.mean(per_second), 1),
         "us_per_batch_min": round(min(per_second), 1),
         "cpu_us_per_batch": round(statistics.mean(cpu_per_second), 1),
@@ -184,7 +196,7 @@ def main() -> int:
     parser.add_argument("--group", type=int, default=32, help="batches per call of BuildingSession.process")
     parser.add_argument(
         "--path",
-        choices=("process", "thread"),
+        choices=("process", "thread", "both"),
         default="process",
         help="batches converted by the front of a building process, or by the building itself",
     )
