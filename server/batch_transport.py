@@ -2,10 +2,11 @@
 
 The front of a building process validates every batch anyway; converting it there too (``server.convert``)
 takes the re-validation and the conversion off the building's core, the one a busy building is short of
-(together ~75 us of a ~480 us batch at 2,000 phones). Pickled as it is, a ``UserBatch`` is ~25 small
-arrays that unpickle one by one more slowly than the JSON decodes, so it travels as one buffer of its
-integers, one of its floats, their lengths, and its strings; the building cuts the buffers back into
-arrays (views, aligned and writable: the numba kernels see the types a conversion gives them).
+(they had been ~18 % of it under ``bench/load.py``; ``bench/building.py --path both``: 12-15 % less per
+batch). Pickled as it is, a ``UserBatch`` is ~25 small arrays that unpickle one by one more slowly than
+the JSON decodes, so it travels as one buffer of its integers, one of its floats, their lengths, and its
+strings; the building cuts the buffers back into arrays (views of one aligned, writable copy: the numba
+kernels see the types a conversion gives them).
 """
 
 from __future__ import annotations
