@@ -25,8 +25,8 @@ bodies so that it costs little next to the server.
 Prints one JSON object: per-N rows (``phones, batches_per_s, p50_ms, p99_ms, ws_lag_p99_ms, errors``, and
 the server's CPU time per batch and cores used, split into its front's and its building processes' cores,
 and the generator's cores, from /proc over the measured window: the steadiest figure of what a change
-costs) and ``sustained``: the largest N with p99 <= 100 ms,
-the offered rate met within 5 % and no errors.
+costs) and ``sustained``: the largest N with p99 <= 100 ms, the offered rate met within 5 % and no
+errors.
 """
 
 from __future__ import annotations
