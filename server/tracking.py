@@ -141,13 +141,14 @@ class BuildingSession(RecoverableSession):
 
     def process(self, group: list[Submission]) -> GroupResult:
         """Apply a group of batches: dedupe, order, convert, track, persist, in one transaction."""
-        ctx = self.context()
+        ctx: convert.BuildingContext | None = None  # only for batches not converted by the front
         results: list[BatchReceipt | ProblemError | None] = [None] * len(group)
         converted: dict[int, tuple[UserBatch, list[str]]] = {}
         for i, sub in enumerate(group):
             c = sub.converted
             if c is None:
                 assert sub.batch is not None  # a Submission holds one or the other
+                ctx = ctx or self.context()
                 try:
                     c = convert.to_user_batch(sub.batch, ctx)
                 except ValueError as exc:
