@@ -77,20 +77,14 @@ def unpack(packed: PackedBatch) -> UserBatch:
     when it was converted in the front and are not run again."""
     fields: dict[str, object] = {"user": packed.user, "ble_id": packed.ble_id}
     ints = np.frombuffer(packed.ints, dtype=np.int64).copy()
-    at = 0
-    for name, size in zip(_INTS, packed.int_sizes, strict=True):
-        if size:
-            fields[name] = ints[at : at + size]
-            at += size
-        else:
-            fields[name] = _NO_INTS
+    _cut(fields, _INTS, packed.int_sizes, ints, 0, _NO_INTS)
     floats = np.frombuffer(packed.floats, dtype=np.float64).copy()
-    at = _cut(fields, _FLOATS, packed.float_rows, floats, 0)
+    at = _cut(fields, _FLOATS, packed.float_rows, floats, 0, _NO_FLOATS)
     if packed.imu_rows is None:
         fields["imu"] = None
     else:
         streams: dict[str, object] = {}
-        _cut(streams, _IMU, packed.imu_rows, floats, at)
+        _cut(streams, _IMU, packed.imu_rows, floats, at, _NO_FLOATS)
         imu = ImuSamples.__new__(ImuSamples)
         imu.__dict__.update(streams)
         fields["imu"] = imu
@@ -100,11 +94,11 @@ def unpack(packed: PackedBatch) -> UserBatch:
     return batch
 
 
-# Most of a batch's fields are empty (no fix, no detection, no beacon): one shared empty array each, as the
-# conversion does (``server.convert``): slicing them out one by one had been half of unpacking. Nothing can
-# be written into an empty array.
-_NO_INTS = np.zeros(0, dtype=np.int64)
-_NO_ROWS = {width: np.zeros((0, width)) if width > 1 else np.zeros(0) for width in (1, 2, 4, 5)}
+# Most of a batch's fields are empty (no fix, no detection, no beacon): one shared empty array each (by row
+# width), as the conversion does (``server.convert``): slicing them out one by one had been half of
+# unpacking. Nothing can be written into an empty array.
+_NO_INTS = {1: np.zeros(0, dtype=np.int64)}
+_NO_FLOATS = {width: np.zeros((0, width)) if width > 1 else np.zeros(0) for width in (1, 2, 4, 5)}
 
 
 def _joined(arrays: list[np.ndarray], dtype: type) -> bytes:
@@ -115,13 +109,19 @@ def _joined(arrays: list[np.ndarray], dtype: type) -> bytes:
 
 
 def _cut(
-    into: dict[str, object], names: tuple[str, ...], rows: tuple[int, ...], values: np.ndarray, at: int
+    into: dict[str, object],
+    names: tuple[str, ...],
+    rows: tuple[int, ...],
+    values: np.ndarray,
+    at: int,
+    empty: dict[int, np.ndarray],
 ) -> int:
-    """Cut ``names`` (``rows[i]`` rows each) from ``values`` at ``at`` into ``into``; where they end."""
+    """Cut ``names`` (``rows[i]`` rows each) from ``values`` at ``at`` into ``into``, an empty one as
+    ``empty[its width]``; where they end."""
     for name, n in zip(names, rows, strict=True):
         width = _WIDTH.get(name, 1)
         if not n:
-            into[name] = _NO_ROWS[width]
+            into[name] = empty[width]
         elif width == 1:
             into[name] = values[at : at + n]
             at += n
