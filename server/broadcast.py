@@ -1,37 +1,89 @@
 """Live fan-out of a building's events to its WebSocket subscribers. A slow subscriber never slows the
-building: its bounded queue drops the oldest message and the next heartbeat says how many it lost."""
+building: its bounded queue drops the oldest messages and the next heartbeat says how many it lost.
+
+A publish (one building group's messages) reaches each subscriber as one ``Chunk``: its messages'
+JSON texts, and the same texts joined, built once for every subscriber, so that a batched frame
+(``?batch=true``) is a join of a few chunks rather than of every message, and a busy building costs
+each subscriber a queue entry per group rather than per phone."""
 
 from __future__ import annotations
 
 import asyncio
 import logging
-from collections import defaultdict
+from collections import defaultdict, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
-from schemas.live import LIVE_MESSAGE_ADAPTER, LiveMessage
+from schemas.live import LIVE_MESSAGE_ADAPTER, MAX_LIVE_BATCH, LiveMessage
 
 QUEUE_SIZE = 2_000
+"""Messages a subscriber may have waiting; beyond it the oldest are dropped (whole chunks)."""
 Sink = Callable[[str, list[LiveMessage]], None]
 """Something else that sees every building's messages (the Foxglove live server)."""
 log = logging.getLogger(__name__)
 
 
+class Chunk(NamedTuple):
+    """Consecutive messages of one publish, at most ``MAX_LIVE_BATCH``."""
+
+    texts: list[str]
+    """One JSON text per message."""
+    joined: str
+    """The texts joined by commas: a piece of a ``LiveBatch`` frame's ``messages`` array."""
+
+
+def chunks_of(texts: list[str]) -> list[Chunk]:
+    """``texts`` cut into chunks of at most ``MAX_LIVE_BATCH``, so that a frame of whole chunks stays
+    within it."""
+    return [
+        Chunk(part, ",".join(part))
+        for part in (texts[i : i + MAX_LIVE_BATCH] for i in range(0, len(texts), MAX_LIVE_BATCH))
+    ]
+
+
 @dataclass(eq=False)
 class Subscription:
     building_id: str
-    queue: asyncio.Queue[str] = field(default_factory=lambda: asyncio.Queue(maxsize=QUEUE_SIZE))
-    """Messages as JSON text, serialised once for every subscriber."""
     dropped: int = 0
+    """Messages dropped because this subscriber was slow (never reset; the endpoint reports the change)."""
+    queued: int = 0
+    """Messages waiting."""
+    _chunks: deque[Chunk] = field(default_factory=deque)
+    _ready: asyncio.Event = field(default_factory=asyncio.Event)
 
-    def offer(self, message: str) -> None:
-        while True:
+    def offer(self, chunk: Chunk) -> None:
+        self._chunks.append(chunk)
+        self.queued += len(chunk.texts)
+        while self.queued > QUEUE_SIZE:
+            oldest = self._chunks.popleft()
+            self.queued -= len(oldest.texts)
+            self.dropped += len(oldest.texts)
+        self._ready.set()
+
+    def take(self) -> list[Chunk]:
+        """The oldest waiting chunks, whole, up to ``MAX_LIVE_BATCH`` messages in all (at least one chunk
+        when any waits)."""
+        taken: list[Chunk] = []
+        count = 0
+        while self._chunks and (not taken or count + len(self._chunks[0].texts) <= MAX_LIVE_BATCH):
+            chunk = self._chunks.popleft()
+            taken.append(chunk)
+            count += len(chunk.texts)
+        self.queued -= count
+        if not self._chunks:
+            self._ready.clear()
+        return taken
+
+    async def next(self, timeout_s: float) -> list[Chunk]:
+        """``take`` once something waits; an empty list when nothing came within ``timeout_s``."""
+        if not self._chunks:
             try:
-                self.queue.put_nowait(message)
-                return
-            except asyncio.QueueFull:
-                self.queue.get_nowait()
-                self.dropped += 1
+                async with asyncio.timeout(timeout_s):
+                    await self._ready.wait()
+            except TimeoutError:
+                return []
+        return self.take()
 
 
 class Broadcaster:
@@ -75,13 +127,13 @@ class Broadcaster:
                 log.exception("live sink failed on %d messages of %s", len(messages), building_id)
 
     def _offer(self, building_id: str, texts: list[str]) -> None:
-        """Each text to every subscriber of the building (serialised once for all of them)."""
+        """The texts to every subscriber of the building, serialised and joined once for all of them."""
         subs = self._subs.get(building_id)
-        if not subs:
+        if not subs or not texts:
             return
-        for text in texts:
+        for chunk in chunks_of(texts):
             for sub in subs:
-                sub.offer(text)
+                sub.offer(chunk)
         self.published += len(texts)
 
     def subscribers(self, building_id: str | None = None) -> int:
@@ -90,4 +142,4 @@ class Broadcaster:
         return len(self._subs.get(building_id, ()))
 
     def queue_depths(self) -> list[int]:
-        return [sub.queue.qsize() for subs in self._subs.values() for sub in subs]
+        return [sub.queued for subs in self._subs.values() for sub in subs]

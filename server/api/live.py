@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import asyncio
 import time
 
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
-from schemas.live import LIVE_MESSAGE_ADAPTER, MAX_LIVE_BATCH, HeartbeatMessage
+from schemas.live import LIVE_MESSAGE_ADAPTER, HeartbeatMessage
 from server.app import AppState
+from server.broadcast import Chunk
 from server.deps import token_principal
 from server.errors import ProblemError
 from server.store import repositories as repo
@@ -38,18 +38,20 @@ async def live(websocket: WebSocket, building_id: str, token: str | None = None,
     reported = 0
     try:
         while True:
-            try:
-                texts = [await asyncio.wait_for(sub.queue.get(), timeout=HEARTBEAT_S)]
-            except TimeoutError:
+            chunks = await sub.next(HEARTBEAT_S)
+            if not chunks:
                 heartbeat = HeartbeatMessage(t_ms=int(time.time() * 1000), dropped=sub.dropped - reported)
                 reported = sub.dropped
-                texts = [LIVE_MESSAGE_ADAPTER.dump_json(heartbeat).decode()]
-            if not batch:
-                await websocket.send_text(texts[0])
+                text = LIVE_MESSAGE_ADAPTER.dump_json(heartbeat).decode()
+                chunks = [Chunk([text], text)]
+            if batch:
+                await websocket.send_text(
+                    '{"type":"batch","messages":[' + ",".join(c.joined for c in chunks) + "]}"
+                )
                 continue
-            while len(texts) < MAX_LIVE_BATCH and not sub.queue.empty():
-                texts.append(sub.queue.get_nowait())
-            await websocket.send_text('{"type":"batch","messages":[' + ",".join(texts) + "]}")
+            for chunk in chunks:
+                for text in chunk.texts:
+                    await websocket.send_text(text)
     except (WebSocketDisconnect, RuntimeError):
         return
     finally:
