@@ -209,6 +209,7 @@ def create_app(settings: Settings, tune_gc: bool = False) -> FastAPI:
             401: {"model": Problem, "description": "Missing or unknown key"},
             403: {"model": Problem, "description": "The key's scope does not allow this"},
         },
+        telemetry=None if settings.fastapi_telemetry else {"tracing": False, "metrics": False, "logs": False},
     )
     _install_error_handlers(app)
     from server.api import anchors, batches, buildings, health, live, positions, signal_maps

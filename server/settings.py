@@ -104,6 +104,13 @@ class Settings(BaseSettings):
         "dashboard; under load it was 7 % of the server's CPU with ten dashboards. Turn it on for "
         "dashboards on slow links.",
     )
+    fastapi_telemetry: bool = Field(
+        default=False,
+        description="FastAPI's native OpenTelemetry: request spans, metrics and logs sent to the "
+        "providers an OpenTelemetry SDK configures (FASTAPI_OTEL_AUTO_CONFIGURE=true adds OTLP "
+        "exporters from the OTEL_* environment). Off, the server's own metrics are at /metrics; on, "
+        "every request looks its providers up in the environment first (~4-8 us).",
+    )
 
     @property
     def recordings_dir(self) -> Path:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import json
+from pathlib import Path
 from typing import Any
 
 from sqlalchemy import func, select
@@ -407,3 +408,16 @@ def test_phones_stream_batches_over_a_websocket_with_the_same_answers(sqlite_api
             ws.receive_text()
         assert closed.value.code == 4401
     assert _count(api, BatchRow) == 2
+
+
+def test_fastapi_telemetry_is_off_unless_asked_for(tmp_path: Path) -> None:
+    """Off by default (each request would otherwise look its OpenTelemetry providers up in the environment);
+    the setting hands FastAPI its own defaults back."""
+    from server.app import create_app
+    from server.settings import Settings
+
+    quiet = create_app(Settings(data_dir=tmp_path))
+    assert not quiet._native_telemetry.enabled()
+    assert not any(quiet._telemetry[k] for k in ("tracing", "metrics", "logs"))
+    traced = create_app(Settings(data_dir=tmp_path, fastapi_telemetry=True))
+    assert all(traced._telemetry[k] for k in ("tracing", "metrics", "logs"))
