@@ -3,10 +3,12 @@ distance) and the engine's robust position fix it feeds."""
 
 from __future__ import annotations
 
+import pickle
+
 import numpy as np
 import pytest
 
-from slam_core.crowd_fingerprints import CrowdFingerprints, FingerprintParams, Scan
+from slam_core.crowd_fingerprints import STALE_BOUND, CrowdFingerprints, FingerprintParams, Scan
 from slam_core.fastslam import DynamicSlam
 from slam_core.params import FilterParams
 from slam_core.signal_map.maps import FingerprintGrid, localise_knn
@@ -124,7 +126,20 @@ def test_the_inverted_index_matches_brute_force_through_evictions_and_compaction
         assert len(db) == len(kept)
         live = sum(int(np.isfinite(r).sum()) for _, _, r in kept)
         assert db.postings <= 3 * live + 4 * n_aps
+        assert 0 <= db.stale_postings <= (STALE_BOUND - 1) * live + 4
+        stale = sum(
+            int(db._serial[db._post_row[p]] != db._post_serial[p])
+            for c in range(len(db._columns))
+            for p in range(db._start[c], db._start[c] + db._length[c])
+        )
+        assert stale == db.stale_postings
     assert checked > 100
+    # a map pickled before the stale count existed (a format-7 snapshot) counts its stale postings on load
+    older = {k: v for k, v in db.__dict__.items() if k != "_posted"}
+    restored = CrowdFingerprints.__new__(CrowdFingerprints)
+    restored.__setstate__(older)
+    assert restored.stale_postings == db.stale_postings
+    assert pickle.loads(pickle.dumps(db)).stale_postings == db.stale_postings
 
 
 def test_fingerprint_params_are_checked() -> None:
