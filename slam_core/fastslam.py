@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from slam_core.dense_ids import unique_ints
 from slam_core.kernels.building import (
     building_anchor_update,
     building_anchor_update_serial,
@@ -382,7 +383,7 @@ class DynamicSlam:
             raise ValueError("distances must be >= 0 and variances > 0")
         if n == 0:
             return EncounterOutcome(np.zeros(0, bool), np.zeros(0))
-        involved = np.unique(np.concatenate([user_a, user_b]))
+        involved = unique_ints(np.concatenate([user_a, user_b]))
         summary = self.summaries(involved)
         row = {int(u): i for i, u in enumerate(involved)}
         ia = np.array([row[int(u)] for u in user_a])
@@ -407,7 +408,7 @@ class DynamicSlam:
         confidence = cov[peers, 0] + cov[peers, 2]
         for batch in self._peer_rounds(targets, confidence):
             self._human_update(targets[batch], mean[peers[batch]], cov[peers[batch]], z[batch], r[batch])
-        self._resample(np.unique(targets))
+        self._resample(unique_ints(targets))
         return EncounterOutcome(applied, mahalanobis)
 
     def _peer_rounds(self, targets: np.ndarray, confidence: np.ndarray) -> list[np.ndarray]:
@@ -511,5 +512,5 @@ class DynamicSlam:
             return
         if users.min() < 0 or users.max() >= self.state.capacity or not np.all(self.state.active[users]):
             raise ValueError(f"unknown user slot in {users.tolist()[:10]}")
-        if not allow_repeats and np.unique(users).size != users.size:
+        if not allow_repeats and unique_ints(users).size != users.size:
             raise ValueError("a user may appear only once per call")

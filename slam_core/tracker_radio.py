@@ -18,6 +18,7 @@ from slam_core.background_call import BackgroundCall
 from slam_core.crowd_fingerprints import CrowdFingerprints, FingerprintParams, Place, Scan
 from slam_core.crowd_graph import CrowdGraph
 from slam_core.crowd_map import CrowdMapBuilder
+from slam_core.dense_ids import unique_ints, unique_ints_inverse
 from slam_core.encounter_detection import DetectionArrays, EncounterDetector, ScanBatch
 from slam_core.encounter_selection import EncounterSelector, pair_keys
 from slam_core.fastslam import DynamicSlam
@@ -235,7 +236,7 @@ def encounters(
 
 def _slots_of(detector: EncounterDetector, users: dict[str, UserTrack], user_ids: np.ndarray) -> np.ndarray:
     """Each detector user id's filter slot, -1 for users not being tracked."""
-    ids, inverse = np.unique(user_ids, return_inverse=True)
+    ids, inverse = unique_ints_inverse(user_ids)
     slots = np.full(ids.size, -1, dtype=np.int64)
     for k, ident in enumerate(ids.tolist()):
         u = users.get(detector.user_name(ident))
@@ -254,13 +255,13 @@ def _choose(
     slot_b: np.ndarray,
 ) -> np.ndarray:
     """The selector's choice among detections of tracked users, from the filters' current estimates."""
-    slots, index = np.unique(np.concatenate([slot_a, slot_b]), return_inverse=True)
+    slots, index = unique_ints_inverse(np.concatenate([slot_a, slot_b]))
     n = len(found)
     means = engine.means(slots)
     delta = means[index[:n]] - means[index[n:]]
     predicted = np.hypot(delta[:, 0], delta[:, 1])
     sigma = np.empty(n)
-    for model in np.unique(found.model):
+    for model in unique_ints(found.model):
         at = found.model == model
         sigma[at] = np.sqrt(detector.range_model(int(model)).variance_at_distance(predicted[at]))
     keys = pair_keys(found.user_a, found.user_b, found.model)
