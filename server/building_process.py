@@ -59,23 +59,66 @@ def _send(sock: socket.socket, message: object) -> None:
     sock.sendall(_HEADER.pack(len(data)) + data)
 
 
-def _receive(sock: socket.socket) -> Any | None:
-    """The next frame, or None when the other end has gone."""
-    header = _receive_exactly(sock, _HEADER.size)
-    if header is None:
-        return None
-    body = _receive_exactly(sock, _HEADER.unpack(header)[0])
-    return None if body is None else pickle.loads(body)
+class FrameReader:
+    """Frames from a blocking socket, read in large chunks: one ``recv`` brings every frame the front has
+    sent since the last (reading each frame's header and body apart, with a ``select`` between frames, had
+    cost three system calls a batch)."""
 
+    CHUNK = 1 << 20
 
-def _receive_exactly(sock: socket.socket, n: int) -> bytes | None:
-    chunks = bytearray()
-    while len(chunks) < n:
-        chunk = sock.recv(n - len(chunks))
-        if not chunk:
+    def __init__(self, sock: socket.socket) -> None:
+        self.sock = sock
+        self._buffer = bytearray()
+        self._offset = 0
+        self._closed = False
+
+    def next(self) -> Any | None:
+        """The next frame, waiting for it; None when the other end has gone."""
+        while True:
+            frame = self._buffered()
+            if frame is not _NONE:
+                return frame
+            if not self._read(wait=True):
+                return None
+
+    def ready(self) -> Any | None:
+        """The next frame if one has arrived (buffered, or waiting in the socket), else ``_NONE``; None when
+        the other end has gone."""
+        frame = self._buffered()
+        if frame is not _NONE:
+            return frame
+        if not self._read(wait=False):
             return None
-        chunks += chunk
-    return bytes(chunks)
+        return self._buffered()
+
+    def _buffered(self) -> Any:
+        start = self._offset + _HEADER.size
+        if len(self._buffer) < start:
+            return _NONE
+        end = start + _HEADER.unpack_from(self._buffer, self._offset)[0]
+        if len(self._buffer) < end:
+            return _NONE
+        self._offset = end
+        return pickle.loads(self._buffer[start:end])
+
+    def _read(self, wait: bool) -> bool:
+        """Append what the socket holds (``wait``: once something does); False when the other end has gone."""
+        if self._closed:
+            return False
+        if not wait and not select.select([self.sock], [], [], 0)[0]:
+            return True
+        chunk = self.sock.recv(self.CHUNK)
+        if not chunk:
+            self._closed = True
+            return False
+        del self._buffer[: self._offset]
+        self._offset = 0
+        self._buffer += chunk
+        return True
+
+
+_NONE: Any = object()
+"""``FrameReader``'s "no complete frame yet" (a frame itself is never this object)."""
 
 
 async def _read_frame(reader: asyncio.StreamReader) -> Any | None:
@@ -129,15 +172,18 @@ class _BuildingLoop:
         self.batches: list[tuple[int, BatchFields]] = []
 
     def run(self) -> None:
+        reader = FrameReader(self.sock)
         while True:
-            frame = _receive(self.sock)
+            frame = reader.next()
             if frame is None:  # the front is gone without closing us: a crash, nothing more to write
                 return
             frames = [frame]
-            while len(self.batches) + len(frames) < MAX_GROUP and select.select([self.sock], [], [], 0)[0]:
-                more = _receive(self.sock)
+            while len(self.batches) + len(frames) < MAX_GROUP:
+                more = reader.ready()
                 if more is None:
                     return
+                if more is _NONE:
+                    break
                 frames.append(more)
             for f in frames:
                 if f[0] == "batch":
