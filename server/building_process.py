@@ -302,6 +302,7 @@ class ProcessBuildingWorker:
         self._broadcaster = broadcaster
         self._ids = itertools.count()
         self._waiting: dict[int, asyncio.Future[Any]] = {}
+        self._outbox: list[bytes] = []
         self.counters = Counters()
         self.latency = LatencyWindow()
         self.group_sizes = LatencyWindow()
@@ -366,8 +367,16 @@ class ProcessBuildingWorker:
         request = next(self._ids)
         future: asyncio.Future[Any] = asyncio.get_running_loop().create_future()
         self._waiting[request] = future
-        self._writer.write(_frame((message[0], request, *message[1:])))
+        self._outbox.append(_frame((message[0], request, *message[1:])))
+        if len(self._outbox) == 1:
+            asyncio.get_running_loop().call_soon(self._send_outbox)
         return await future
+
+    def _send_outbox(self) -> None:
+        """The frames of one turn of the event loop in one write: under load the front reads many requests a
+        turn, and a write each was a system call each (and a wake-up of the building when it waited)."""
+        frames, self._outbox = self._outbox, []
+        self._writer.write(b"".join(frames))
 
     async def _listen(self) -> None:
         while True:
