@@ -12,6 +12,7 @@ kernels see the types a conversion gives them).
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
 from typing import NamedTuple
 
 import numpy as np
@@ -69,6 +70,37 @@ def pack(batch: UserBatch) -> PackedBatch:
         tuple(a.shape[0] for a in float_arrays[: len(_FLOATS)]),
         imu_rows,
         tuple(getattr(batch, name) for name in _STRINGS),
+    )
+
+
+def pack_lists(
+    user: str,
+    ble_id: str | None,
+    ints: Mapping[str, list[int]],
+    floats: Mapping[str, list[float]],
+    strings: Mapping[str, tuple[str, ...]],
+) -> PackedBatch:
+    """``pack`` of a batch without raw IMU given as lists by field name (a field not named is empty; a field
+    of rows, such as ``fix_xy``, flat), for a front that reads them straight off the wire model
+    (``server.convert.packed_without_context``)."""
+    unknown = set(ints) - set(_INTS) | set(floats) - set(_FLOATS) | set(strings) - set(_STRINGS)
+    if unknown:
+        raise ValueError(f"not fields of a packed batch: {sorted(unknown)}")
+    int_values: list[int] = []
+    for name in _INTS:
+        int_values += ints.get(name, ())
+    float_values: list[float] = []
+    for name in _FLOATS:
+        float_values += floats.get(name, ())
+    return PackedBatch(
+        user,
+        ble_id,
+        np.array(int_values, dtype=np.int64).tobytes(),
+        np.array(float_values, dtype=np.float64).tobytes(),
+        tuple(len(ints.get(name, ())) for name in _INTS),
+        tuple(len(floats.get(name, ())) // _WIDTH.get(name, 1) for name in _FLOATS),
+        None,
+        tuple(strings.get(name, ()) for name in _STRINGS),
     )
 
 

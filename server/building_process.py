@@ -253,12 +253,13 @@ def batch_fields(submission: Submission) -> BatchFields:
     packed = None
     if submission.batch is not None:
         try:
-            converted = convert.without_context(submission.batch)
+            packed = convert.packed_without_context(submission.batch)  # most batches: straight to the bytes
+            if packed is None and (converted := convert.without_context(submission.batch)) is not None:
+                packed = batch_transport.pack(converted.user_batch)  # raw IMU
         except ValueError as exc:
             raise InvalidInputError(str(exc)) from None
-        if converted is not None:
-            packed = tuple(batch_transport.pack(converted.user_batch))
-    return submission.raw, submission.received_ns, tuple(submission.header), packed
+    fields = None if packed is None else tuple(packed)
+    return submission.raw, submission.received_ns, tuple(submission.header), fields
 
 
 def received_batch(

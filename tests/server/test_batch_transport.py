@@ -5,12 +5,15 @@ batches with landmarks are left to the building, which alone can place them."""
 from __future__ import annotations
 
 import dataclasses
+import math
 import pickle
 from typing import Any
 
 import numba
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from schemas.sensors import SensorBatch
 from server import batch_transport, convert
@@ -28,8 +31,8 @@ def _sensor_batch(**extra: Any) -> SensorBatch:
     return SensorBatch.model_validate(body | extra)
 
 
-def _walking() -> UserBatch:
-    batch = _sensor_batch(
+def _walking_batch() -> SensorBatch:
+    return _sensor_batch(
         ble_advertised_id="ble-1",
         steps=[
             {"t_ms": T0 + 100, "length_m": 0.7, "azimuth_rad": 0.5},
@@ -55,7 +58,10 @@ def _walking() -> UserBatch:
         ],
         anchor_detections=[{"t_ms": T0 + 500, "type": "stairs"}],
     )  # fmt: skip
-    converted = convert.without_context(batch)
+
+
+def _walking() -> UserBatch:
+    converted = convert.without_context(_walking_batch())
     assert converted is not None
     return converted.user_batch
 
@@ -179,11 +185,93 @@ def test_a_batch_crosses_to_its_building_process_converted_or_raw() -> None:
         assert (received.batch == batch) != converted_by_front
 
 
-def test_a_batch_the_front_cannot_convert_is_refused_there(monkeypatch: pytest.MonkeyPatch) -> None:
+@pytest.mark.parametrize("refuser", ["packed_without_context", "without_context"])
+def test_a_batch_the_front_cannot_convert_is_refused_there(
+    monkeypatch: pytest.MonkeyPatch, refuser: str
+) -> None:
     def refuse(batch: SensorBatch) -> None:
         raise ValueError("user batch of 'phone-1': inconsistent array shapes")
 
-    monkeypatch.setattr(convert, "without_context", refuse)
+    monkeypatch.setattr(convert, refuser, refuse)
+    if refuser == "without_context":  # reached for raw IMU only
+        monkeypatch.setattr(convert, "packed_without_context", lambda batch: None)
     batch = _sensor_batch()
     with pytest.raises(InvalidInputError, match="inconsistent array shapes"):
         batch_fields(Submission.of(batch, b"{}", 0))
+
+
+_MACS = [f"02:00:00:00:00:{i:02x}" for i in range(40)]
+
+
+@st.composite
+def _phone_batches(draw: st.DrawFn) -> SensorBatch:
+    """Batches of a phone that counts its own steps: any mix of steps (with a heading, a turn or both), scans
+    (cached APs too), peers, beacons and anchor detections."""
+
+    def times(n: int) -> list[int]:
+        return sorted(draw(st.lists(st.integers(0, 900), min_size=n, max_size=n, unique=True)))
+
+    n_steps, n_scans, n_bt, n_det = (draw(st.integers(0, 4)) for _ in range(4))
+    angle = st.floats(-3.1, 3.1)
+    steps = []
+    for t in times(n_steps):
+        azimuth, turn = draw(st.sampled_from([(True, False), (False, True), (True, True)]))
+        steps.append({
+            "t_ms": T0 + t, "length_m": draw(st.floats(0.01, 3.0)),
+            "azimuth_rad": draw(angle) if azimuth else None,
+            "heading_change_rad": draw(angle) if turn else None,
+        })  # fmt: skip
+    scans = []
+    for t in times(n_scans):
+        macs = draw(st.lists(st.sampled_from(_MACS), min_size=1, max_size=6, unique=True))
+        scans.append({"t_ms": T0 + t, "aps": [
+            {"bssid": m, "rssi_dbm": draw(st.floats(-100.0, -20.0)), "frequency_mhz": 2437,
+             "last_seen_ms": draw(st.one_of(st.none(), st.integers(T0 - 5_000, T0 + t)))}
+            for m in macs
+        ]})  # fmt: skip
+    bluetooth = [
+        {"kind": "peer", "t_ms": T0 + t, "peer_advertised_id": f"ble-{t}", "rssi_dbm": -70.0 - t % 20}
+        if draw(st.booleans())
+        else {"kind": "beacon", "t_ms": T0 + t, "mac": _MACS[t % 40], "rssi_dbm": -80.0 + t % 7}
+        for t in times(n_bt)
+    ]
+    detections = [
+        {"t_ms": T0 + t, "type": draw(st.sampled_from(["stairs", "elevator", "turn"]))} for t in times(n_det)
+    ]
+    return _sensor_batch(
+        ble_advertised_id=draw(st.one_of(st.none(), st.just("ble-me"))),
+        steps=steps, wifi_scans=scans, bluetooth=bluetooth, anchor_detections=detections,
+    )  # fmt: skip
+
+
+@settings(max_examples=150, deadline=None)
+@given(_phone_batches())
+def test_the_front_packs_straight_what_converting_then_packing_gives(batch: SensorBatch) -> None:
+    converted = convert.without_context(batch)
+    assert converted is not None
+    assert convert.packed_without_context(batch) == batch_transport.pack(converted.user_batch)
+
+
+def test_batches_with_landmarks_or_raw_imu_are_not_packed_straight() -> None:
+    fix = {"kind": "fix", "t_ms": T0, "position": {"x_m": 1.0, "y_m": 2.0}, "sigma_m": 1.0}
+    assert convert.packed_without_context(_sensor_batch(landmarks=[fix])) is None
+    raw = _sensor_batch(gyroscope={"t_ms": [T0], "x": [0.0], "y": [0.0], "z": [0.1]})
+    assert convert.packed_without_context(raw) is None
+    assert convert.packed_without_context(_walking_batch()) == batch_transport.pack(_walking())
+
+
+def test_values_the_engine_refuses_are_refused_when_packed_straight() -> None:
+    """The wire model's bounds keep these out; were one to slip in, the front answers as ``UserBatch``."""
+    for field, value in (("length_m", math.nan), ("length_m", -0.5)):
+        step = {"t_ms": T0, "length_m": 0.7, "azimuth_rad": 0.0}
+        batch = _sensor_batch(steps=[step])
+        broken = batch.model_copy(update={"steps": [batch.steps[0].model_copy(update={field: value})]})
+        with pytest.raises(ValueError, match="non-finite values, sigma <= 0 or negative lengths"):
+            convert.packed_without_context(broken)
+        with pytest.raises(ValueError, match="non-finite values, sigma <= 0 or negative lengths"):
+            convert.without_context(broken)
+
+
+def test_pack_lists_refuses_unknown_fields() -> None:
+    with pytest.raises(ValueError, match="not fields of a packed batch"):
+        batch_transport.pack_lists("u", None, {"steps": [1]}, {}, {})
