@@ -186,7 +186,7 @@ class BuildingTracker:
         if len(set(names)) != len(names):
             raise ValueError("at most one batch per user per call")
         for b in batches:
-            if np.any((b.detect_type < 0) | (b.detect_type >= self.n_types)):
+            if b.detect_type.size and np.any((b.detect_type < 0) | (b.detect_type >= self.n_types)):
                 raise ValueError(f"user batch of {b.user!r}: anchor type outside [0, {self.n_types})")
         reports = {b.user: UserReport() for b in batches}
         batches = [self._dead_reckon(b, reports[b.user]) for b in batches]

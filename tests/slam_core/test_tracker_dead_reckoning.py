@@ -68,6 +68,26 @@ def test_offsets_must_match_the_steps() -> None:
         UserBatch(**{**batch.__dict__, "step_heading_offset": np.zeros(2)})
 
 
+@pytest.mark.parametrize("bad_type", [-1, 99])
+def test_a_batch_with_an_unknown_anchor_type_is_refused_and_changes_nothing(bad_type: int) -> None:
+    tracker = BuildingTracker(TrackerParams(), CAL, seed=0)
+    tracker.apply([_steps(T0, 3, 0.0, None, fix=True)])
+    before = _dr(tracker).copy()
+    later = _steps(T0 + 5_000, 3, 0.0, None, fix=False)
+    bad = UserBatch(
+        **{
+            **later.__dict__,
+            "detect_t": np.array([T0 + 5_100], dtype=np.int64),
+            "detect_type": np.array([bad_type]),
+        }
+    )
+    with pytest.raises(ValueError, match="anchor type outside"):
+        tracker.apply([bad])
+    np.testing.assert_array_equal(_dr(tracker), before)
+    tracker.apply([later])  # the same steps without the detection are taken
+    assert not np.array_equal(_dr(tracker), before)
+
+
 def _estimate(tracker: BuildingTracker) -> np.ndarray:
     row = tracker.estimate("u")
     assert row is not None
