@@ -104,30 +104,37 @@ class Crowd:
         return top, np.clip(rss[top], -99.0, -20.0)
 
     def neighbours(self) -> list[np.ndarray]:
-        """Phones within Bluetooth range of each phone (a grid, not an N x N matrix)."""
+        """Up to three phones within Bluetooth range of each phone, the nearest cells' first (a grid, not an
+        N x N matrix; plain floats: the generator shares the machine with the server)."""
+        keys = np.floor(self.xy / BLUETOOTH_RANGE_M).astype(int).tolist()
         cells: dict[tuple[int, int], list[int]] = {}
-        keys = np.floor(self.xy / BLUETOOTH_RANGE_M).astype(int)
         for i, (cx, cy) in enumerate(keys):
-            cells.setdefault((int(cx), int(cy)), []).append(i)
+            cells.setdefault((cx, cy), []).append(i)
+        xy = self.xy.tolist()
         result = []
         for i, (cx, cy) in enumerate(keys):
-            near = [
-                j
-                for dx in (-1, 0, 1)
-                for dy in (-1, 0, 1)
-                for j in cells.get((int(cx) + dx, int(cy) + dy), ())
-                if j != i
-            ]
-            arr = np.array(near, dtype=int)
-            if arr.size:
-                arr = arr[np.hypot(*(self.xy[arr] - self.xy[i]).T) <= BLUETOOTH_RANGE_M][:3]
-            result.append(arr)
+            x, y = xy[i]
+            near: list[int] = []
+            for dx, dy in _AROUND:
+                for j in cells.get((cx + dx, cy + dy), ()):
+                    if j != i and math.hypot(xy[j][0] - x, xy[j][1] - y) <= BLUETOOTH_RANGE_M:
+                        near.append(j)
+                if len(near) >= 3:
+                    break
+            result.append(np.array(near[:3], dtype=int))
         return result
+
+
+_AROUND = [(dx, dy) for dx in (-1, 0, 1) for dy in (-1, 0, 1)]
 
 
 def _building(phone: int, buildings: int) -> str:
     """Phones are dealt round the buildings; one building is called ``load``."""
     return "load" if buildings == 1 else f"load-{phone % buildings}"
+
+
+_AP_JSON = [f'{{"bssid":"02:00:00:00:00:{a:02x}","rssi_dbm":' for a in range(N_APS)]
+"""Each access point's entry up to its RSSI: the generator shares the machine with the server."""
 
 
 def _body(crowd: Crowd, phone: int, seq: int, now_ms: int, near: np.ndarray, building: str) -> bytes:
@@ -136,7 +143,7 @@ def _body(crowd: Crowd, phone: int, seq: int, now_ms: int, near: np.ndarray, bui
         f'{{"building_id":"{building}","device_id":"{device}","batch_id":"{device}-{seq}","seq":{seq},'
         f'"ble_advertised_id":"ble-{phone:05d}"'
     ]
-    x, y = crowd.xy[phone]
+    x, y = crowd.xy[phone].tolist()
     az = float(crowd.azimuth[phone])
     az = (az + math.pi) % (2 * math.pi) - math.pi
     if seq == 0:
@@ -150,16 +157,14 @@ def _body(crowd: Crowd, phone: int, seq: int, now_ms: int, near: np.ndarray, bui
     )
     if (seq + phone) % 2 == 0:  # every 2 s, half of the phones each second
         top, rss = crowd.scan(phone)
-        aps = ",".join(
-            f'{{"bssid":"02:00:00:00:00:{a:02x}","rssi_dbm":{r:.1f},"frequency_mhz":2437}}'
-            for a, r in zip(top, rss, strict=True)
-        )
+        entries = zip(top.tolist(), rss.tolist(), strict=True)
+        aps = ",".join(f'{_AP_JSON[a]}{r:.1f},"frequency_mhz":2437}}' for a, r in entries)
         parts.append(f',"wifi_scans":[{{"t_ms":{now_ms - 200},"aps":[{aps}]}}]')
     if near.size:
         sightings = ",".join(
             f'{{"kind":"peer","t_ms":{now_ms - 100},"peer_advertised_id":"ble-{j:05d}",'
-            f'"rssi_dbm":{-60.0 - 3.0 * float(np.hypot(*(crowd.xy[j] - crowd.xy[phone]))):.1f}}}'
-            for j in near
+            f'"rssi_dbm":{-60.0 - 3.0 * math.hypot(xj - x, yj - y):.1f}}}'
+            for j, (xj, yj) in zip(near.tolist(), crowd.xy[near].tolist(), strict=True)
         )
         parts.append(f',"bluetooth":[{sightings}]')
     parts.append("}")
