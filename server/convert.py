@@ -24,8 +24,7 @@ from schemas.sensors import (
     Vector3Stream,
     WifiScan,
 )
-from server import batch_transport
-from server.batch_transport import PackedBatch
+from server.batch_transport import PackedBatch, pack_lists
 from slam_core.encounter_detection import MODEL_BLUETOOTH, MODEL_WIFI_FINGERPRINT
 from slam_core.geo import GeoFrame
 from slam_core.pdr.frontend import ImuSamples
@@ -119,7 +118,7 @@ def packed_without_context(batch: SensorBatch) -> PackedBatch | None:
         raise ValueError(
             f"user batch of {batch.effective_user_id!r}: non-finite values, sigma <= 0 or negative lengths"
         )
-    return batch_transport.pack_lists(batch.effective_user_id, batch.ble_advertised_id, ints, floats, strings)
+    return pack_lists(batch.effective_user_id, batch.ble_advertised_id, ints, floats, strings)
 
 
 def _sensor_columns(

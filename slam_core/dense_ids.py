@@ -20,31 +20,35 @@ _TABLE_SLACK = 65_536
 
 def unique_ints(values: np.ndarray) -> np.ndarray:
     """``np.unique(values)`` for a 1-D integer array."""
-    if not _tabulable(values):
+    size = _table_size(values)
+    if size is None:
         return np.unique(values)
-    return _present(values).astype(values.dtype, copy=False)
+    return _present(values, size).astype(values.dtype, copy=False)
 
 
 def unique_ints_inverse(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``np.unique(values, return_inverse=True)`` for a 1-D integer array."""
-    if not _tabulable(values):
+    size = _table_size(values)
+    if size is None:
         uniques, inverse = np.unique(values, return_inverse=True)
         return uniques, inverse.reshape(-1)
-    uniques = _present(values)
-    position = np.empty(int(uniques[-1]) + 1, dtype=np.intp)
+    uniques = _present(values, size)
+    position = np.empty(size, dtype=np.intp)
     position[uniques] = np.arange(uniques.size)
     return uniques.astype(values.dtype, copy=False), position[values]
 
 
-def _tabulable(values: np.ndarray) -> bool:
+def _table_size(values: np.ndarray) -> int | None:
+    """The table's length (the largest value + 1), or None when ``np.unique`` is the better way."""
     if values.ndim != 1 or values.dtype.kind not in "iu":
         raise ValueError(f"expected a 1-D integer array, got {values.dtype} of shape {values.shape}")
-    if values.size < _MIN_SIZE:
-        return False
-    return int(values.min()) >= 0 and int(values.max()) < 4 * values.size + _TABLE_SLACK
+    if values.size < _MIN_SIZE or int(values.min()) < 0:
+        return None
+    size = int(values.max()) + 1
+    return size if size <= 4 * values.size + _TABLE_SLACK else None
 
 
-def _present(values: np.ndarray) -> np.ndarray:
-    present = np.zeros(int(values.max()) + 1, dtype=bool)
+def _present(values: np.ndarray, size: int) -> np.ndarray:
+    present = np.zeros(size, dtype=bool)
     present[values] = True
     return np.flatnonzero(present)
