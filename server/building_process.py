@@ -36,10 +36,10 @@ import sys
 import time
 from typing import Any
 
-from schemas.live import LIVE_MESSAGE_ADAPTER, LiveMessage
+from schemas.live import LiveMessage
 from server import batch_transport, convert
 from server.batch_decoding import decode_batch
-from server.broadcast import Broadcaster
+from server.broadcast import Broadcaster, live_json
 from server.errors import InvalidInputError, ProblemError, ServiceUnavailableError
 from server.ingestion import CALLS, MAX_GROUP, LatencyWindow
 from server.session_types import BatchHeader, Counters, Submission
@@ -226,7 +226,7 @@ class _BuildingLoop:
                     answers[request] = (
                         receipt if isinstance(receipt, ProblemError) else receipt.model_dump_json().encode()
                     )
-                messages = [LIVE_MESSAGE_ADAPTER.dump_json(m).decode() for m in result.messages]
+                messages = [live_json(m) for m in result.messages]
         seconds = time.perf_counter() - started
         _send(self.sock, ("group", list(answers.items()), messages, self.session.counters, seconds))
 

@@ -8,8 +8,19 @@ import json
 
 import pytest
 
-from schemas.live import LIVE_MESSAGE_ADAPTER, MAX_LIVE_BATCH, HeartbeatMessage, LiveBatch
-from server.broadcast import QUEUE_SIZE, Broadcaster, Chunk, chunks_of
+from schemas.anchors import ANCHOR_EXAMPLE, BuildingAnchor
+from schemas.estimates import ESTIMATE_EXAMPLE, EncounterEvent, Estimate
+from schemas.live import (
+    LIVE_MESSAGE_ADAPTER,
+    MAX_LIVE_BATCH,
+    AnchorMessage,
+    EncounterMessage,
+    HeartbeatMessage,
+    LiveBatch,
+    LiveMessage,
+    PositionMessage,
+)
+from server.broadcast import QUEUE_SIZE, Broadcaster, Chunk, chunks_of, live_json
 
 
 def _texts(n: int, start: int = 0) -> list[str]:
@@ -109,3 +120,21 @@ def test_counts_stay_consistent(n: int) -> None:
     while sub.queued:
         taken += sum(len(c.texts) for c in sub.take())
     assert taken == n
+
+
+def test_live_json_is_what_the_union_adapter_gives_for_every_message_type() -> None:
+    estimate = Estimate.model_validate(ESTIMATE_EXAMPLE)
+    encounter = EncounterEvent(
+        building_id="hq", t_ms=1_767_225_600_000, user_a="a", user_b="b", model="bluetooth",
+        distance_m=2.5, distance_sigma_m=1.1, applied=True,
+    )  # fmt: skip
+    messages: list[LiveMessage] = [
+        PositionMessage(estimate=estimate),
+        PositionMessage(estimate=estimate.model_copy(update={"best_particle": None, "lat_deg": None})),
+        EncounterMessage(encounter=encounter),
+        AnchorMessage(anchor=BuildingAnchor.model_validate(ANCHOR_EXAMPLE), deleted=True),
+        HeartbeatMessage(t_ms=1_767_225_600_000, dropped=3),
+    ]
+    for message in messages:
+        assert live_json(message) == LIVE_MESSAGE_ADAPTER.dump_json(message).decode()
+        assert LIVE_MESSAGE_ADAPTER.validate_json(live_json(message)) == message
