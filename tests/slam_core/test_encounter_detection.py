@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import pickle
 
 import numpy as np
 import pytest
@@ -110,3 +111,25 @@ def test_bluetooth_pairs_not_heard_within_the_retention_are_forgotten() -> None:
     assert ("u30", "v30") in detector._bt
     # u0-v0 is detected on its new reading alone (-75 dBm, above the cut-off); w-x at -95 dBm is not
     assert found.feature.tolist() == [-75.0]
+
+
+def test_bluetooth_pairs_keep_their_order_through_a_snapshot() -> None:
+    """Pairs run from the least recently heard (a pair heard again moves to the end); a snapshot stores them
+    as a plain dict in that order (the format snapshots had), and the restored detector forgets the same
+    pairs as the original."""
+    params = DetectionParams()
+    detector = EncounterDetector(params, Calibration(EQ3, BT))
+    for k in range(20):
+        detector.add_sightings([f"u{k}"], [f"v{k}"], np.array([T0 + 100 * k]), np.array([-70.0]))
+    detector.add_sightings(["v3"], ["u3"], np.array([T0 + 2_500]), np.array([-72.0]))  # heard again
+    order = list(detector._bt)
+    assert order == [(f"u{k}", f"v{k}") for k in range(20) if k != 3] + [("u3", "v3")]
+    state = detector.__getstate__()
+    assert type(state["_bt"]) is dict
+    assert list(state["_bt"]) == order
+    restored = pickle.loads(pickle.dumps(detector))
+    assert list(restored._bt) == order
+    later = T0 + 100 * 10 + params.retention_ms  # u0..u9 (but u3) are past the retention
+    for d in (detector, restored):
+        d.add_sightings(["a"], ["b"], np.array([later]), np.array([-95.0]))
+    assert list(restored._bt) == list(detector._bt) == [*order[9:], ("a", "b")]
