@@ -55,8 +55,7 @@ CLOSE_TIMEOUT_S = 120.0
 
 # --------------------------------------------------------------------------------------------- framing
 def _send(sock: socket.socket, message: object) -> None:
-    data = pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL)
-    sock.sendall(_HEADER.pack(len(data)) + data)
+    sock.sendall(_frame(message))
 
 
 class FrameReader:

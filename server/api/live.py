@@ -6,9 +6,9 @@ import time
 
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
-from schemas.live import LIVE_MESSAGE_ADAPTER, HeartbeatMessage
+from schemas.live import HeartbeatMessage
 from server.app import AppState
-from server.broadcast import Chunk
+from server.broadcast import Chunk, live_json
 from server.deps import token_principal
 from server.errors import ProblemError
 from server.store import repositories as repo
@@ -42,7 +42,7 @@ async def live(websocket: WebSocket, building_id: str, token: str | None = None,
             if not chunks:
                 heartbeat = HeartbeatMessage(t_ms=int(time.time() * 1000), dropped=sub.dropped - reported)
                 reported = sub.dropped
-                text = LIVE_MESSAGE_ADAPTER.dump_json(heartbeat).decode()
+                text = live_json(heartbeat)
                 chunks = [Chunk([text], text)]
             if batch:
                 await websocket.send_text(
