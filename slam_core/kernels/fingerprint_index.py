@@ -132,29 +132,38 @@ def union_nearest(
     those that share an AP with it: their rows and distances, nearest first, and how many shared one.
     ``cols`` and ``gains`` are the query's APs known to the index; ``query_norm`` and ``query_count`` are over
     all of its APs. ``dot`` and ``shared`` are per-row scratch, zero on entry and left zero."""
-    touched = np.empty(row_serial.size, dtype=np.int64)
+    # The walk is branch-free: whether a posting is live, and whether it is its row's first, are as good as
+    # random, and their mispredicted branches cost a quarter of the walk (69 -> 51 us a query on
+    # bench/fingerprints.py's map, 10,500 postings; identical results). A stale posting adds nothing, and
+    # ``touched`` always takes the row but keeps it only when it counts. A user's own rows are skipped after.
+    touched = np.empty(row_serial.size + 1, dtype=np.int64)
     n_touched = 0
     for j in range(cols.size):
         q = float(gains[j])
         c = cols[j]
         for p in range(start[c], start[c] + length[c]):
             r = post_row[p]
-            if row_serial[r] != post_serial[p] or row_owner[r] == owner:
-                continue
-            if shared[r] == 0:
-                touched[n_touched] = r
-                n_touched += 1
-            shared[r] += 1
-            dot[r] += float(post_gain[p]) * q
+            live = row_serial[r] == post_serial[p]
+            seen = shared[r]
+            touched[n_touched] = r
+            n_touched += live and seen == 0
+            shared[r] = seen + live
+            dot[r] += float(post_gain[p]) * q * live
     best_row = np.full(k, -1, dtype=np.int64)
     best = np.full(k, math.inf)
+    candidates = 0
     for i in range(n_touched):
         r = touched[i]
-        squared = row_norm[r] + query_norm - 2.0 * dot[r]
-        union = row_count[r] + query_count - shared[r]
-        d = math.sqrt(max(squared, 0.0) / max(union, 1.0))
+        n_shared = shared[r]
+        product = dot[r]
         dot[r] = 0.0
         shared[r] = 0
+        if row_owner[r] == owner:
+            continue
+        candidates += 1
+        squared = row_norm[r] + query_norm - 2.0 * product
+        union = row_count[r] + query_count - n_shared
+        d = math.sqrt(max(squared, 0.0) / max(union, 1.0))
         if d < best[k - 1]:  # insert into the sorted top k (earlier rows win ties)
             j = k - 1
             while j > 0 and best[j - 1] > d:
@@ -163,8 +172,8 @@ def union_nearest(
                 j -= 1
             best[j] = d
             best_row[j] = r
-    n = min(k, n_touched)
-    return best_row[:n].copy(), best[:n].copy(), n_touched
+    n = min(k, candidates)
+    return best_row[:n].copy(), best[:n].copy(), candidates
 
 
 @njit(cache=True, nogil=True)
