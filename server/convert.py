@@ -8,9 +8,10 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from pydantic import ValidationError
 
 from schemas.anchors import AnchorType, BuildingAnchor
-from schemas.common import Position, check_covariance
+from schemas.common import Position
 from schemas.estimates import EncounterEvent, EncounterModelName, Estimate, EstimateSource
 from schemas.sensors import (
     AnchorReading,
@@ -261,36 +262,39 @@ def estimate(
     geo: GeoFrame | None,
     source: EstimateSource,
 ) -> Estimate:
-    """The wire estimate of an engine row. Built without pydantic's validation (``model_construct``: it
-    cost 27 us per estimate, a fifth of a busy building's batch path): the ids and time come from validated
-    batches, and the engine's numbers are held to the schema's rules here (finite, heading within the
-    wrapped range, covariance symmetric positive semi-definite); tested equal to the validated model."""
+    """The wire estimate of an engine row, validated by the schema (finite numbers, heading within the
+    wrapped range, a symmetric positive semi-definite covariance, WGS-84 bounds): a ``ValueError`` naming the
+    user when the engine's numbers break it. One validation of a plain dict (pydantic-core) cost 6.2 us an
+    estimate, less than ``model_construct`` of the three models (10.8 us, pydantic 2.14) with the same checks
+    written out here."""
     lat = lon = None
     if geo is not None:
         lat, lon = geo.to_wgs84(row.x, row.y)
     xx, xy, yy = row.cov
-    heading = (row.heading + math.pi) % (2 * math.pi) - math.pi
-    numbers = (row.x, row.y, xx, xy, yy, row.best[0], row.best[1], heading)
-    if not all(math.isfinite(v) for v in numbers):
-        raise ValueError(f"the engine's estimate of {user_id!r} is not finite: {numbers}")
-    covariance = check_covariance([[xx, xy], [xy, yy]])
-    if lat is not None and lon is not None and not (abs(lat) <= 90.0 and abs(lon) <= 180.0):
-        raise ValueError(f"the estimate of {user_id!r} maps outside WGS-84: {lat}, {lon}")
-    return Estimate.model_construct(
-        building_id=building_id,
-        user_id=user_id,
-        device_id=device_id,
-        t_ms=row.t_ms,
-        position=Position.model_construct(x_m=float(row.x), y_m=float(row.y)),
-        covariance_m2=covariance,
-        best_particle=Position.model_construct(x_m=float(row.best[0]), y_m=float(row.best[1])),
-        heading_rad=heading,
-        floor=0,
-        source=source,
-        lat_deg=lat,
-        lon_deg=lon,
-    )
+    try:
+        built: Estimate = _validate_estimate(
+            {
+                "building_id": building_id,
+                "user_id": user_id,
+                "device_id": device_id,
+                "t_ms": row.t_ms,
+                "position": {"x_m": row.x, "y_m": row.y},
+                "covariance_m2": [[xx, xy], [xy, yy]],
+                "best_particle": {"x_m": row.best[0], "y_m": row.best[1]},
+                "heading_rad": (row.heading + math.pi) % (2 * math.pi) - math.pi,
+                "floor": 0,
+                "source": source,
+                "lat_deg": lat,
+                "lon_deg": lon,
+            }
+        )
+    except ValidationError as exc:
+        raise ValueError(f"the engine's estimate of {user_id!r} breaks the schema: {exc}") from None
+    return built
 
+
+_validate_estimate = Estimate.__pydantic_validator__.validate_python
+_validate_encounter = EncounterEvent.__pydantic_validator__.validate_python
 
 _ENCOUNTER_MODELS = {
     MODEL_BLUETOOTH: EncounterModelName.BLUETOOTH,
@@ -299,27 +303,28 @@ _ENCOUNTER_MODELS = {
 
 
 def encounter_event(result: EncounterResult, building_id: str) -> EncounterEvent:
-    """The wire event of a chosen detection. Built without pydantic's validation, as ``estimate`` (the ids
-    and time come from validated batches; the range and its sigma are held to the schema's bounds here);
-    tested equal to the validated model."""
+    """The wire event of a chosen detection, its range and sigma clamped to the schema's 200 m and validated
+    by it (as ``estimate``)."""
     d = result.detection
-    distance = min(float(d.distance_m), 200.0)
-    sigma = min(math.sqrt(d.variance_m2), 200.0) if d.variance_m2 > 0.0 else math.nan
-    if not (distance >= 0.0 and sigma > 0.0):  # NaN fails both
+    try:
+        event: EncounterEvent = _validate_encounter(
+            {
+                "building_id": building_id,
+                "t_ms": int(d.t_ms),
+                "user_a": d.user_a,
+                "user_b": d.user_b,
+                "model": _ENCOUNTER_MODELS.get(d.model, EncounterModelName.WIFI_EQ3),
+                "distance_m": min(float(d.distance_m), 200.0),
+                "distance_sigma_m": min(math.sqrt(d.variance_m2), 200.0) if d.variance_m2 > 0.0 else math.nan,
+                "applied": bool(result.applied),
+            }
+        )
+    except ValidationError as exc:
         raise ValueError(
             f"the encounter of {d.user_a!r} and {d.user_b!r} has no valid range: "
-            f"{d.distance_m} m, variance {d.variance_m2} m^2"
-        )
-    return EncounterEvent.model_construct(
-        building_id=building_id,
-        t_ms=int(d.t_ms),
-        user_a=d.user_a,
-        user_b=d.user_b,
-        model=_ENCOUNTER_MODELS.get(d.model, EncounterModelName.WIFI_EQ3),
-        distance_m=distance,
-        distance_sigma_m=sigma,
-        applied=bool(result.applied),
-    )
+            f"{d.distance_m} m, variance {d.variance_m2} m^2 ({exc.error_count()} schema errors)"
+        ) from None
+    return event
 
 
 def building_anchor(
