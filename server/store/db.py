@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping, Sequence
 from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
-from sqlalchemy import Engine, create_engine, event, func
+from sqlalchemy import Dialect, Engine, create_engine, event, func
 from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.engine import make_url
 from sqlalchemy.orm import InstrumentedAttribute, Session, sessionmaker
@@ -103,7 +104,44 @@ def upsert(
     stmt = _upsert_statement(
         _dialect_name(session), mapped, tuple(values[0]), tuple(conflict_columns), tuple(keep_when_null)
     )
-    session.connection().execute(stmt, values)
+    execute_many(session, stmt, values)
+
+
+def execute_many(session: Session, stmt: Any, rows: Sequence[Mapping[str, Any]]) -> None:
+    """``executemany`` of a statement built once (a module constant or a cached builder's), rows of the same
+    columns, without SQLAlchemy's per-row parameter processing, which had cost half of a position-history
+    insert (12.5 against 22.5 us a row, SQLite): the statement is compiled once per dialect and columns,
+    and the rows go to the driver as tuples or mappings (by the dialect's parameter style), each value
+    through the column type's conversion when it has one. Statements that return rows need ``execute``."""
+    if not rows:
+        return
+    compiled = _compiled(session.get_bind().dialect, stmt, tuple(rows[0]))
+    if compiled is None:
+        session.connection().execute(stmt, list(rows))
+        return
+    sql, columns, positional = compiled
+    if positional:
+        params: list[Any] = [tuple(r[k] if f is None else f(r[k]) for k, f in columns) for r in rows]
+    else:
+        params = [{k: r[k] if f is None else f(r[k]) for k, f in columns} for r in rows]
+    session.connection().exec_driver_sql(sql, params)
+
+
+_Conversion = Callable[[Any], Any] | None
+
+
+@lru_cache(maxsize=64)
+def _compiled(
+    dialect: Dialect, stmt: Any, columns: tuple[str, ...]
+) -> tuple[str, tuple[tuple[str, _Conversion], ...], bool] | None:
+    """The statement's SQL for this dialect, its parameters in order with their conversions, and whether
+    they are positional; None when this SQLAlchemy does not say (the caller falls back to ``execute``)."""
+    compiled = stmt.compile(dialect=dialect, column_keys=list(columns))
+    conversions = getattr(compiled, "_bind_processors", None)
+    if conversions is None or set(compiled.binds) != set(columns) or compiled.effective_returning:
+        return None
+    order = compiled.positiontup if compiled.positional else list(compiled.binds)
+    return str(compiled), tuple((k, conversions.get(k)) for k in order), bool(compiled.positional)
 
 
 @lru_cache(maxsize=64)

@@ -10,7 +10,7 @@ from datetime import UTC, datetime
 from sqlalchemy import ColumnElement, delete, insert, select
 from sqlalchemy.orm import Session
 
-from server.store.db import insert_once, upsert
+from server.store.db import execute_many, insert_once, upsert
 from server.store.models import (
     AnchorRow,
     ApiKeyRow,
@@ -162,8 +162,9 @@ def delete_anchor(session: Session, building_id: str, public_id: str) -> bool:
 # ----------------------------------------------------------------------------- positions
 
 
-# executed on the connection, as Core: the ORM's bulk path cost more than the rows
-_POSITIONS_INSERT = insert(PositionSnapshotRow)
+# executed on the driver (``execute_many``): the ORM's bulk path, and Core's per-row parameters, cost more
+# than the rows; inline: nothing is fetched back (PostgreSQL would otherwise return each row's id)
+_POSITIONS_INSERT = insert(PositionSnapshotRow).inline()
 
 
 def add_positions(session: Session, rows: Sequence[dict[str, object]]) -> None:
@@ -171,7 +172,7 @@ def add_positions(session: Session, rows: Sequence[dict[str, object]]) -> None:
     out of the latest-position rows), and each user's latest one kept apart (rows in time order per user)."""
     if not rows:
         return
-    session.connection().execute(_POSITIONS_INSERT, list(rows))
+    execute_many(session, _POSITIONS_INSERT, rows)
     latest = {str(r["user_id"]): {k: v for k, v in r.items() if k != "stored_at_ms"} for r in rows}
     upsert(session, LatestPositionRow, list(latest.values()), ["building_id", "user_id"])
 
