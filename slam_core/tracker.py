@@ -440,14 +440,7 @@ class BuildingTracker:
         if not users:
             return {}
         summary = self.engine.summaries(np.array([self._users[n].slot for n in users], dtype=np.int64))
-        return {
-            n: EstimateRow(
-                self._users[n].last_t_ms,
-                float(row[0]),
-                float(row[1]),
-                (float(row[2]), float(row[3]), float(row[4])),
-                (float(row[5]), float(row[6])),
-                float(row[7]),
-            )
-            for n, row in zip(users, summary, strict=True)
+        return {  # rows as Python floats at once: indexing each numpy row cost more than the row
+            n: EstimateRow(self._users[n].last_t_ms, x, y, (xx, xy, yy), (bx, by), heading)
+            for n, (x, y, xx, xy, yy, bx, by, heading) in zip(users, summary.tolist(), strict=True)
         }
