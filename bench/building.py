@@ -13,7 +13,8 @@ shared machine's stolen time inflates less),
 ``json_us_per_batch`` (that JSON alone), and what it ran on. ``--path`` says which side of the front the
 batches arrive by: ``process`` (a building in its own process, ``CROWDSLAM_BUILDING_PROCESSES``: the front
 has validated, converted and packed each batch, and the building's time starts at unpickling it) or
-``thread`` (a building in the server's process: it decodes and converts each batch itself); ``both``
+``thread`` (a building in the server's process: it decodes and converts each batch itself; numba's
+kernels on every core, where a building process runs them on one thread as the server does); ``both``
 alternates the two group by group and reports each (``us_per_batch_process``, ``_thread`` and their
 ratio): on a shared machine whose speed drifts, only runs interleaved like this compare. Without the
 HTTP front, the load generator and the dashboards on the same cores, this is steadier than
@@ -48,6 +49,7 @@ from server.numba_cache import configure_numba_cache
 
 configure_numba_cache()
 
+import numba
 from load import Crowd, _body
 from report import emit
 
@@ -64,6 +66,10 @@ from server.store.db import make_engine, make_session_factory
 from server.store.migrate import upgrade
 from server.store.models import BuildingRow
 from server.tracking import BuildingSession
+
+THREADS = numba.get_num_threads()
+"""numba's threads in the server's own process; a building process runs its kernels on one
+(``server.building_process.serve_building``), and so does this benchmark on the ``process`` path."""
 
 
 def run(phones: int, seconds: int, group: int, path: str, profile: Path | None) -> dict[str, object]:
@@ -101,6 +107,7 @@ def run(phones: int, seconds: int, group: int, path: str, profile: Path | None) 
             for first in range(0, phones, group):
                 raws = bodies[first : first + group]
                 use = path if path != "both" else ("process", "thread")[(first // group + second) % 2]
+                numba.set_num_threads(1 if use == "process" else THREADS)  # as each kind of building runs
                 frames = [_front(r) for r in raws] if use == "process" else []
                 started, cpu_started = time.perf_counter(), time.process_time()
                 if profiler is not None and second:
