@@ -222,6 +222,15 @@ class EncounterDetector:
     def user_name(self, ident: int) -> str:
         return self._user_names[ident]
 
+    @property
+    def n_user_ids(self) -> int:
+        """User ids interned so far (ids are ``0 .. n_user_ids - 1``, never reused)."""
+        return len(self._user_names)
+
+    def known_user_id(self, user: str) -> int | None:
+        """``user``'s id if it has one (unlike ``user_id``, never interns)."""
+        return self._user_ids.get(user)
+
     def to_detections(self, found: DetectionArrays) -> list[Detection]:
         names = self._user_names
         return [

@@ -88,6 +88,15 @@ class BuildingTracker:
         self._started = 0
         self.n_types = fp.anchors.type_posterior.shape[0]
 
+    _detector_slots: radio.DetectorSlots | None = (
+        None  # built on first use (snapshots from before it lack it)
+    )
+
+    def _slot_table(self) -> radio.DetectorSlots:
+        if self._detector_slots is None:
+            self._detector_slots = radio.DetectorSlots()
+        return self._detector_slots
+
     # ------------------------------------------------------------------ users and anchors
     @property
     def users(self) -> list[str]:
@@ -115,6 +124,7 @@ class BuildingTracker:
             self.front_end.forget(name)
             if u.slot >= 0:
                 self.engine.remove_user(u.slot)
+                self._slot_table().set(self.detector, name, -1)
         gone = set(users)
         self._by_ble = {k: v for k, v in self._by_ble.items() if v not in gone}
 
@@ -211,6 +221,7 @@ class BuildingTracker:
                 self._users,
                 self._by_ble,
                 scans,
+                self._slot_table(),
             )
         finally:
             scans.join()
@@ -362,6 +373,7 @@ class BuildingTracker:
             u.heading = heading
         sigma = max(sigma, self.params.start_sigma_floor_m)
         u.slot = self.engine.add_user(float(xy[0]), float(xy[1]), heading, sigma, self.crowd.snapshot())
+        self._slot_table().set(self.detector, user, u.slot)
         u.number = self._started
         u.origin = np.asarray(xy, dtype=float).copy()
         self._started += 1

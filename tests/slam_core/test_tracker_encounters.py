@@ -178,3 +178,49 @@ def test_scans_compared_on_a_thread_change_nothing(monkeypatch: pytest.MonkeyPat
     assert sum(n for n in inline if isinstance(n, int)) > 50  # the rows' scans do meet
     assert any(isinstance(x, tuple) and len(x) == 4 and x[3] for x in inline)  # and encounters are applied
     assert threaded == inline
+
+
+def _looked_up(tracker: BuildingTracker) -> list[int]:
+    """Each detector user id's slot, looked up afresh (what ``DetectorSlots`` keeps)."""
+    tracks = [tracker._users.get(tracker.detector.user_name(i)) for i in range(tracker.detector.n_user_ids)]
+    return [u.slot if u is not None and u.slot >= 0 else -1 for u in tracks]
+
+
+def test_detector_slots_follow_starts_removals_and_returns() -> None:
+    """The slots kept for the detector's user ids between calls equal a fresh lookup after every change:
+    users heard before their fix, removed (their slot freed and reused), back again, and a tracker restored
+    from a pickle, including one written before the table existed."""
+    import pickle
+
+    tracker = _tracker()
+    everyone = np.arange(0)
+
+    def check() -> None:
+        nonlocal everyone
+        everyone = np.arange(tracker.detector.n_user_ids)
+        assert tracker._slot_table().of(tracker.detector, tracker._users, everyone).tolist() == _looked_up(
+            tracker
+        )
+
+    tracker.apply([_sighting("a", "b", T0 + 1_000, 3.0), _sighting("d", "a", T0 + 1_000, 3.0)])
+    check()  # 'd' is heard and named before it has a slot
+    tracker.apply([_fix("d", (8.0, 0.0), T0 + 1_500)])
+    check()  # 'd' started after its id was interned
+    tracker.remove_users(["a", "c"])
+    tracker.apply([_fix("e", (2.0, 0.0), T0 + 2_000)])  # takes a freed slot
+    tracker.apply([_sighting("e", "b", T0 + 2_500, 3.0), _sighting("b", "d", T0 + 2_500, 3.0)])
+    check()
+    a = tracker.detector.known_user_id("a")
+    assert a is not None
+    assert _looked_up(tracker)[a] == -1  # removed
+    tracker.apply([_fix("a", (1.0, 0.0), T0 + 3_000)])  # back, in another slot
+    tracker.apply([_sighting("a", "e", T0 + 3_500, 3.0)])
+    check()
+    assert -1 not in _looked_up(tracker)  # 'c' never had an id; everyone named is tracked again
+
+    restored = pickle.loads(pickle.dumps(tracker))
+    old = pickle.loads(pickle.dumps(tracker))
+    del old.__dict__["_detector_slots"]  # a snapshot from before the table: built again on first use
+    for t in (restored, old):
+        ids = np.arange(t.detector.n_user_ids)
+        assert t._slot_table().of(t.detector, t._users, ids).tolist() == _looked_up(tracker)
