@@ -109,6 +109,7 @@ class DynamicSlam:
         if grow_to is not None:
             self.state = self.state.grown(grow_to)
         s = self.state
+        self._moved(np.array([slot]))
         s.rng_key[slot] = user_key(self.seed, self._admitted)
         s.rng_ctr[slot] = 0
         self._admitted += 1
@@ -173,6 +174,7 @@ class DynamicSlam:
         if not finite or np.any(lengths < 0):
             raise ValueError("step lengths must be finite and >= 0, headings finite")
         s = self.state
+        self._moved(users)
         motion = self.params.motion
         pick(motion_update, motion_update_serial, users.shape[0], self.parallel_min_users)(
             s.x,
@@ -215,6 +217,7 @@ class DynamicSlam:
         if users.size == 0:
             return
         s = self.state
+        self._moved(users)
         a = self.params.anchors
         used_slot = np.full((users.size, s.n_particles), -1, dtype=np.int64)
         pick(building_anchor_update, building_anchor_update_serial, users.shape[0], self.parallel_min_users)(
@@ -234,6 +237,7 @@ class DynamicSlam:
         self._check_users(users)
         if dxy.shape != (users.size, 2) or not np.all(np.isfinite(dxy)):
             raise ValueError("one finite shift (dx, dy) per user")
+        self._moved(users)
         self.state.x[users] += dxy[:, :1]
         self.state.y[users] += dxy[:, 1:]
 
@@ -253,6 +257,7 @@ class DynamicSlam:
         if not (np.all(np.isfinite(xy)) and np.all(np.isfinite(sigma))) or np.any(sigma <= 0):
             raise ValueError("fixes must be finite with sigma > 0")
         s = self.state
+        self._moved(users)
         recentred = np.zeros(users.size, dtype=bool)
         for i, u in enumerate(users):
             d2 = (s.x[u] - xy[i, 0]) ** 2 + (s.y[u] - xy[i, 1]) ** 2
@@ -293,6 +298,7 @@ class DynamicSlam:
         if not (sigma > 0 and outlier_radius_m > 0 and 0.0 <= outlier_probability < 1.0):
             raise ValueError("sigma and outlier_radius_m must be positive, outlier_probability in [0, 1)")
         s = self.state
+        self._moved(users)
         var = sigma**2
         log_keep = math.log1p(-outlier_probability) - math.log(2 * math.pi * var)
         log_out = (
@@ -375,6 +381,8 @@ class DynamicSlam:
         if not (user_b.shape == distance.shape == distance_var.shape == (n,)):
             raise ValueError("user_a, user_b, distance and distance_var must have the same length")
         self._check_users(np.concatenate([user_a, user_b]), allow_repeats=True)
+        self._moved(user_a)
+        self._moved(user_b)
         if np.any(user_a == user_b):
             raise ValueError("a user cannot encounter itself")
         if not (np.all(np.isfinite(distance)) and np.all(np.isfinite(distance_var))):
@@ -455,6 +463,7 @@ class DynamicSlam:
 
     def _resample(self, users: np.ndarray) -> None:
         s = self.state
+        self._moved(users)
         rs = self.params.resampling
         bias_scale = self.params.motion.model == "bias-scale"  # the paper model has no bias or scale
         pick(resample_users, resample_users_serial, users.shape[0], self.parallel_min_users)(
@@ -495,15 +504,40 @@ class DynamicSlam:
         return out
 
     def means(self, users: np.ndarray) -> np.ndarray:
-        """(n, 2) weighted means: ``summaries(users)[:, 0:2]``, exactly, at half the cost."""
+        """(n, 2) weighted means: ``summaries(users)[:, 0:2]``, exactly. A user's mean is kept until its
+        particles change (``_moved``): the encounter selection asks for the means of every user a call's
+        detections name, most of whom this call did not touch (~0.9 ms a group at 2,000 phones)."""
         users = np.ascontiguousarray(users, dtype=np.int64)
         self._check_users(users, allow_repeats=True)
-        out = np.empty((users.shape[0], 2))
         s = self.state
-        pick(weighted_means, weighted_means_serial, users.shape[0], self.parallel_min_users)(
-            s.x, s.y, s.logw, users, out
-        )
-        return out
+        if self._mean_known is None or self._mean_known.size != s.capacity:  # new, grown, or an old snapshot
+            self._mean = np.empty((s.capacity, 2))
+            self._mean_known = np.zeros(s.capacity, dtype=bool)
+        assert self._mean is not None
+        stale = unique_ints(users[~self._mean_known[users]])
+        if stale.size:
+            out = np.empty((stale.size, 2))
+            pick(weighted_means, weighted_means_serial, stale.shape[0], self.parallel_min_users)(
+                s.x, s.y, s.logw, stale, out
+            )
+            self._mean[stale] = out
+            self._mean_known[stale] = True
+        result: np.ndarray = self._mean[users]
+        return result
+
+    _mean: np.ndarray | None = None
+    _mean_known: np.ndarray | None = None
+    """``means``' kept rows (capacity x 2) and which slots hold a current one; None until first asked (and in
+    engines pickled before they existed)."""
+
+    def _moved(self, users: np.ndarray) -> None:
+        """These users' particles (positions or weights) are about to change: their kept means are stale.
+        Every method that changes ``x``, ``y`` or ``logw`` calls it first."""
+        known = self._mean_known
+        if known is not None and known.size != self.state.capacity:  # the state grew: start afresh
+            self._mean_known = None
+        elif known is not None:
+            known[users] = False
 
     def _check_users(self, users: np.ndarray, allow_repeats: bool = False) -> None:
         if users.ndim != 1:

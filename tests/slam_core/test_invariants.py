@@ -274,3 +274,49 @@ def test_calls_under_the_threshold_take_the_serial_twins() -> None:
         assert twin.py_func.__code__ is kernel.py_func.__code__
         # numba's cache files are named after the qualified name: the two compilations must not share one
         assert twin.py_func.__qualname__ == kernel.py_func.__qualname__ + "_serial"
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.lists(st.integers(0, 8), min_size=1, max_size=25), st.integers(0, 2**32 - 1))
+def test_kept_means_follow_every_change_of_the_particles(operations: list[int], seed: int) -> None:
+    """``means`` keeps each user's mean until its particles change: after any sequence of every kind of
+    update, admission (the state growing), removal and pickling, it equals the summaries' first columns,
+    bit for bit."""
+    import pickle
+
+    rng = np.random.default_rng(seed)
+    engine = DynamicSlam(FilterParams(n_particles=16), seed=1, initial_capacity=2)
+    users = [engine.add_user(0.0, 0.0), engine.add_user(3.0, 1.0)]
+
+    def check() -> None:
+        slots = np.array(users, dtype=np.int64)
+        np.testing.assert_array_equal(engine.means(slots), engine.summaries(slots)[:, 0:2])
+
+    check()
+    for op in operations:
+        some = np.array(sorted(set(rng.choice(users, size=min(len(users), 2), replace=False).tolist())))
+        if op == 0:
+            users.append(engine.add_user(*rng.uniform(-5, 5, 2)))  # the state grows past two
+        elif op == 1:
+            engine.step(
+                some, np.arange(some.size + 1), np.full(some.size, 0.7), rng.uniform(-3, 3, some.size)
+            )
+        elif op == 2:
+            engine.observe_building_anchors(some, rng.integers(0, 5, some.size))
+        elif op == 3:
+            engine.shift(some, rng.uniform(-1, 1, (some.size, 2)))
+        elif op == 4:
+            engine.observe_position(some, rng.uniform(-50, 50, (some.size, 2)), np.full(some.size, 1.0))
+        elif op == 5:
+            engine.observe_position_robust(some, rng.uniform(-5, 5, (some.size, 2)), 3.0, 0.2, 30.0)
+        elif op == 6 and some.size == 2:
+            engine.observe_encounters(some[:1], some[1:], np.array([2.0]), np.array([1.0]))
+        elif op == 7 and len(users) > 2:
+            engine.remove_user(users.pop(0))
+            users.append(engine.add_user(1.0, 1.0))  # the freed slot, reused
+        elif op == 8:
+            engine = pickle.loads(pickle.dumps(engine))
+            if rng.integers(0, 2):  # as pickled before the means were kept
+                engine.__dict__.pop("_mean", None)
+                engine.__dict__.pop("_mean_known", None)
+        check()
