@@ -381,8 +381,6 @@ class DynamicSlam:
         if not (user_b.shape == distance.shape == distance_var.shape == (n,)):
             raise ValueError("user_a, user_b, distance and distance_var must have the same length")
         self._check_users(np.concatenate([user_a, user_b]), allow_repeats=True)
-        self._moved(user_a)
-        self._moved(user_b)
         if np.any(user_a == user_b):
             raise ValueError("a user cannot encounter itself")
         if not (np.all(np.isfinite(distance)) and np.all(np.isfinite(distance_var))):
@@ -392,6 +390,7 @@ class DynamicSlam:
         if n == 0:
             return EncounterOutcome(np.zeros(0, bool), np.zeros(0))
         involved = unique_ints(np.concatenate([user_a, user_b]))
+        self._moved(involved)
         summary = self.summaries(involved)
         row = {int(u): i for i, u in enumerate(involved)}
         ia = np.array([row[int(u)] for u in user_a])
@@ -510,19 +509,19 @@ class DynamicSlam:
         users = np.ascontiguousarray(users, dtype=np.int64)
         self._check_users(users, allow_repeats=True)
         s = self.state
-        if self._mean_known is None or self._mean_known.size != s.capacity:  # new, grown, or an old snapshot
-            self._mean = np.empty((s.capacity, 2))
-            self._mean_known = np.zeros(s.capacity, dtype=bool)
-        assert self._mean is not None
-        stale = unique_ints(users[~self._mean_known[users]])
+        kept, known = self._mean, self._mean_known
+        if kept is None or known is None or known.size != s.capacity:  # new, grown, or an old snapshot
+            kept, known = np.empty((s.capacity, 2)), np.zeros(s.capacity, dtype=bool)
+            self._mean, self._mean_known = kept, known
+        stale = unique_ints(users[~known[users]])
         if stale.size:
             out = np.empty((stale.size, 2))
             pick(weighted_means, weighted_means_serial, stale.shape[0], self.parallel_min_users)(
                 s.x, s.y, s.logw, stale, out
             )
-            self._mean[stale] = out
-            self._mean_known[stale] = True
-        result: np.ndarray = self._mean[users]
+            kept[stale] = out
+            known[stale] = True
+        result: np.ndarray = kept[users]
         return result
 
     _mean: np.ndarray | None = None

@@ -88,9 +88,8 @@ class BuildingTracker:
         self._started = 0
         self.n_types = fp.anchors.type_posterior.shape[0]
 
-    _detector_slots: radio.DetectorSlots | None = (
-        None  # built on first use (snapshots from before it lack it)
-    )
+    # built on first use (snapshots from before it lack it)
+    _detector_slots: radio.DetectorSlots | None = None
 
     def _slot_table(self) -> radio.DetectorSlots:
         if self._detector_slots is None:
