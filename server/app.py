@@ -34,6 +34,7 @@ from server.settings import Settings
 from server.signal_maps import SignalMapService
 from server.store.db import make_engine, make_session_factory
 from server.store.migrate import current_revision, head_revision
+from server.store.wal_checkpoints import checkpoint_in_background
 from server.tracking import BuildingSession
 from slam_core.crowd_fingerprints import FingerprintParams
 from slam_core.encounter_detection import DetectionParams
@@ -108,7 +109,9 @@ def prepare_building_process(settings: Settings) -> None:
 def building_session(settings: Settings, building_id: str) -> BuildingSession:
     """A building's session as the settings describe it, on its own database engine (a building's
     process); raises NotFoundError for an unknown building."""
-    sessions = make_session_factory(make_engine(settings.resolved_database_url))
+    engine = make_engine(settings.resolved_database_url)
+    checkpoint_in_background(engine, settings.sqlite_checkpoint_period_s)  # stops when the process does
+    sessions = make_session_factory(engine)
     recorder = BuildingRecorder(settings.recordings_dir, building_id) if settings.record else None
     return BuildingSession(
         building_id,
@@ -141,6 +144,7 @@ def create_app(settings: Settings, tune_gc: bool = False) -> FastAPI:
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         url = settings.resolved_database_url
         engine = make_engine(url)
+        checkpoint_in_background(engine, settings.sqlite_checkpoint_period_s)  # stops with engine.dispose()
         current, head = current_revision(engine), head_revision(engine)
         if current != head:
             engine.dispose()

@@ -37,6 +37,13 @@ class Settings(BaseSettings):
         description="How often each building's tracker is snapshotted to SQL. After a crash, the batches "
         "acknowledged since the snapshot are replayed from the batch log, so this bounds restart time.",
     )
+    sqlite_checkpoint_period_s: float = Field(
+        default=1.0,
+        ge=0.0,
+        description="SQLite only: how often a background thread checkpoints the write-ahead log into the "
+        "database file, so that no batch's commit does it (server/store/wal_checkpoints.py). 0 leaves it to "
+        "SQLite's own checkpoints in the commits.",
+    )
     position_history_days: float = Field(
         default=7.0,
         ge=0.0,
