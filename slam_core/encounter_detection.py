@@ -20,6 +20,7 @@ estimates (``slam_core.encounter_selection``), as in the simulated evaluation, a
 from __future__ import annotations
 
 import math
+import struct
 from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -65,10 +66,22 @@ class DetectionParams:
     fingerprint: WifiFingerprintParams = field(default_factory=WifiFingerprintParams)
 
     def __post_init__(self) -> None:
+        if self.bt_smoothing_ms <= 0:
+            raise ValueError("bt_smoothing_ms must be > 0")
         if self.wifi_model not in WIFI_MODELS:
             raise ValueError(
                 f"unknown WiFi encounter model {self.wifi_model!r}; valid: {', '.join(WIFI_MODELS)}"
             )
+
+
+_SIGHTING = struct.Struct("<dd")
+"""A Bluetooth sighting in a pair's history: its time (ms, exact as a double) and RSS (dBm)."""
+_SIGHTING_T = struct.Struct("<d")
+
+
+def _pair_key(a: int, b: int) -> int:
+    """Two interned user ids as one int, the same either way round (ids stay below 2**32)."""
+    return (a << 32) | b if a < b else (b << 32) | a
 
 
 @dataclass(frozen=True)
@@ -175,12 +188,15 @@ class EncounterDetector:
         self._user_ids: dict[str, int] = {}
         self._user_names: list[str] = []
         self._store = ScanStore(params.wifi.strongest_n, scan_capacity)
-        # per pair, its sightings within the smoothing window: tuples of numbers, which the garbage
-        # collector stops tracking and pickle writes natively (deques had cost a snapshot ~0.1 s at 1,000
-        # phones, and every full collection a pass over them). Least recently heard first: an OrderedDict,
-        # whose first key is found at once (a dict's first key, after the deletions of pairs moved to its
-        # end, is found by skipping every deleted slot before it: ~10 us a sighting with 60,000 pairs).
-        self._bt: OrderedDict[tuple[str, str], tuple[tuple[int, float], ...]] = OrderedDict()
+        # per pair (``_pair_key``), its sightings within the smoothing window as packed (t_ms, rss) doubles
+        # (``_SIGHTING``). Neither ints nor bytes are objects the garbage collector tracks, and pickle
+        # writes both natively: tuples of (t, rss) tuples, replaced at every sighting, had been ~85,000 new
+        # tracked objects between two young collections at 2,000 phones (each collection then took 30-50
+        # ms), and a third of a snapshot's pickling (deques before them ~0.1 s at 1,000 phones). Least
+        # recently heard first: an OrderedDict, whose first key is found at once (a dict's first key, after
+        # the deletions of pairs moved to its end, is found by skipping every deleted slot before it: ~10
+        # us a sighting with 60,000 pairs).
+        self._bt: OrderedDict[int, bytes] = OrderedDict()
         self._bt_newest_ms = 0
         self._pending: BackgroundCall[DetectionArrays] | None = None  # scans compared on a thread
         if params.wifi_model == "wifi-fingerprint" and calibration.wifi_fingerprint is None:
@@ -221,6 +237,11 @@ class EncounterDetector:
 
     def user_name(self, ident: int) -> str:
         return self._user_names[ident]
+
+    def bluetooth_pairs(self) -> list[tuple[str, str]]:
+        """The pairs whose sightings are kept, least recently heard first (each by its users' names, the
+        earlier interned first)."""
+        return [(self._user_names[k >> 32], self._user_names[k & 0xFFFF_FFFF]) for k in self._bt]
 
     @property
     def n_user_ids(self) -> int:
@@ -355,21 +376,26 @@ class EncounterDetector:
         """Phones heard other phones (in arrival order); an encounter each time a pair's RSS, averaged over
         both directions and ``bt_smoothing_ms``, passes the cut-off."""
         rows = []
+        smoothing_ms = self.params.bt_smoothing_ms
         for receiver, sender, t, rss in zip(receivers, senders, t_ms.tolist(), rss_dbm.tolist(), strict=True):
             if receiver == sender:
                 continue
             self._advance_bluetooth(t)
-            pair = (min(receiver, sender), max(receiver, sender))
-            history = (*self._bt.get(pair, ()), (t, rss))
-            start = 0
-            while start < len(history) and t - history[start][0] >= self.params.bt_smoothing_ms:
-                start += 1
-            history = history[start:]
+            a, b = self.user_id(receiver), self.user_id(sender)
+            pair = _pair_key(a, b)
+            sighting = _SIGHTING.pack(t, rss)
+            earlier = self._bt.get(pair)
+            history = sighting if earlier is None else earlier + sighting
+            start = 0  # the sightings that left the window (the new one never has: smoothing_ms > 0)
+            while t - _SIGHTING_T.unpack_from(history, start)[0] >= smoothing_ms:
+                start += _SIGHTING.size
+            if start:
+                history = history[start:]
             self._bt[pair] = history
             self._bt.move_to_end(pair)  # the pairs run from the least recently heard
-            smoothed = sum(r for _, r in history) / len(history)
+            smoothed = sum(r for _, r in _SIGHTING.iter_unpack(history)) / (len(history) // _SIGHTING.size)
             if smoothed >= self.params.bluetooth.cutoff_dbm:
-                rows.append((t, self.user_id(receiver), self.user_id(sender), smoothed))
+                rows.append((t, a, b, smoothed))
         if not rows:
             return DetectionArrays.empty()
         t_col, a_col, b_col, f_col = zip(*rows, strict=True)
@@ -392,7 +418,8 @@ class EncounterDetector:
         horizon = t_ms - self.params.retention_ms
         while self._bt:
             oldest = next(iter(self._bt))
-            if self._bt[oldest][-1][0] >= horizon:
+            history = self._bt[oldest]
+            if _SIGHTING_T.unpack_from(history, len(history) - _SIGHTING.size)[0] >= horizon:
                 return
             self._bt.popitem(last=False)
 

@@ -107,8 +107,8 @@ def test_bluetooth_pairs_not_heard_within_the_retention_are_forgotten() -> None:
         ["u0", "w"], ["v0", "x"], np.array([later, later]), np.array([-75.0, -95.0])
     )
     assert len(detector._bt) == 50 - 30 + 2  # u0..u29 went; u0-v0 came back and w-x joined
-    assert ("u29", "v29") not in detector._bt
-    assert ("u30", "v30") in detector._bt
+    assert ("u29", "v29") not in detector.bluetooth_pairs()
+    assert ("u30", "v30") in detector.bluetooth_pairs()
     # u0-v0 is detected on its new reading alone (-75 dBm, above the cut-off); w-x at -95 dBm is not
     assert found.feature.tolist() == [-75.0]
 
@@ -122,14 +122,86 @@ def test_bluetooth_pairs_keep_their_order_through_a_snapshot() -> None:
     for k in range(20):
         detector.add_sightings([f"u{k}"], [f"v{k}"], np.array([T0 + 100 * k]), np.array([-70.0]))
     detector.add_sightings(["v3"], ["u3"], np.array([T0 + 2_500]), np.array([-72.0]))  # heard again
-    order = list(detector._bt)
+    order = detector.bluetooth_pairs()
     assert order == [(f"u{k}", f"v{k}") for k in range(20) if k != 3] + [("u3", "v3")]
     state = detector.__getstate__()
     assert type(state["_bt"]) is dict
-    assert list(state["_bt"]) == order
+    assert list(state["_bt"]) == list(detector._bt)
     restored = pickle.loads(pickle.dumps(detector))
-    assert list(restored._bt) == order
+    assert restored.bluetooth_pairs() == order
     later = T0 + 100 * 10 + params.retention_ms  # u0..u9 (but u3) are past the retention
     for d in (detector, restored):
         d.add_sightings(["a"], ["b"], np.array([later]), np.array([-95.0]))
-    assert list(restored._bt) == list(detector._bt) == [*order[9:], ("a", "b")]
+    assert restored.bluetooth_pairs() == detector.bluetooth_pairs() == [*order[9:], ("a", "b")]
+
+
+class _TupleHistories:
+    """The Bluetooth smoothing as it was first written (tuples of (t, rss) per pair of names): the oracle
+    for the packed histories."""
+
+    def __init__(self, params: DetectionParams) -> None:
+        self.params = params
+        self.bt: dict[tuple[str, str], tuple[tuple[int, float], ...]] = {}
+        self.newest = 0
+
+    def add(self, receiver: str, sender: str, t: int, rss: float) -> float | None:
+        if t > self.newest:
+            self.newest = t
+            horizon = t - self.params.retention_ms
+            while self.bt:  # from the least recently heard (the dict's order), as the detector does
+                oldest = next(iter(self.bt))
+                if self.bt[oldest][-1][0] >= horizon:
+                    break
+                del self.bt[oldest]
+        pair = (min(receiver, sender), max(receiver, sender))
+        history = (*self.bt.pop(pair, ()), (t, rss))
+        start = 0
+        while start < len(history) and t - history[start][0] >= self.params.bt_smoothing_ms:
+            start += 1
+        self.bt[pair] = history[start:]
+        smoothed = sum(r for _, r in self.bt[pair]) / len(self.bt[pair])
+        return smoothed if smoothed >= self.params.bluetooth.cutoff_dbm else None
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_bluetooth_smoothing_matches_the_tuple_oracle(seed: int) -> None:
+    """Random sightings among 12 phones (times mostly increasing, some late, some repeated; RSS around the
+    cut-off): the same detections with bit-identical averages, and the same pairs kept, as the oracle."""
+    rng = np.random.default_rng(seed)
+    params = DetectionParams()
+    detector = EncounterDetector(params, Calibration(EQ3, BT))
+    oracle = _TupleHistories(params)
+    names = [f"p{k}" for k in range(12)]
+    t = T0
+    for _ in range(60):
+        n = int(rng.integers(1, 30))
+        t += int(rng.integers(0, 1_500))
+        times = t + rng.integers(-1_200, 400, n)  # a batch's sightings, some before the newest seen
+        rss = rng.normal(-88.0, 6.0, n)
+        receivers = [names[i] for i in rng.integers(0, 12, n)]
+        senders = [names[i] for i in rng.integers(0, 12, n)]
+        found = detector.add_sightings(receivers, senders, times, rss)
+        expected = []
+        for rx, tx, ti, ri in zip(receivers, senders, times.tolist(), rss.tolist(), strict=True):
+            if rx == tx:
+                continue
+            smoothed = oracle.add(rx, tx, ti, ri)
+            if smoothed is not None:
+                expected.append((ti, rx, tx, smoothed))
+        got = [
+            (ti, detector.user_name(a), detector.user_name(b), f)
+            for ti, a, b, f in zip(
+                found.t_ms.tolist(),
+                found.user_a.tolist(),
+                found.user_b.tolist(),
+                found.feature.tolist(),
+                strict=True,
+            )
+        ]
+        assert got == expected
+        assert [tuple(sorted(p)) for p in detector.bluetooth_pairs()] == list(oracle.bt)
+
+
+def test_bluetooth_smoothing_needs_a_window() -> None:
+    with pytest.raises(ValueError, match="bt_smoothing_ms"):
+        DetectionParams(bt_smoothing_ms=0)
