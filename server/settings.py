@@ -38,11 +38,11 @@ class Settings(BaseSettings):
         "acknowledged since the snapshot are replayed from the batch log, so this bounds restart time.",
     )
     sqlite_checkpoint_period_s: float = Field(
-        default=1.0,
+        default=0.1,
         ge=0.0,
-        description="SQLite only: how often a background thread checkpoints the write-ahead log into the "
-        "database file, so that no batch's commit does it (server/store/wal_checkpoints.py). 0 leaves it to "
-        "SQLite's own checkpoints in the commits.",
+        description="SQLite only: how often a background thread copies the write-ahead log into the "
+        "database file, so that the commit which checkpoints finds little left to copy "
+        "(server/store/wal_checkpoints.py). 0 leaves it all to the commits' checkpoints.",
     )
     position_history_days: float = Field(
         default=7.0,

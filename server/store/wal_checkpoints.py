@@ -1,12 +1,16 @@
-"""SQLite's write-ahead log checkpointed on a thread of its own, not in a batch's commit.
+"""SQLite's write-ahead log copied into the database file by a thread of its own, ahead of the commits.
 
-By default SQLite checkpoints in the commit that takes the log past 1,000 pages: that commit copies the
-log's pages into the database file and syncs both. A building applying 2,000 batches a second fills that
-log about once a second, and the group whose commit did it stalled for 10-19 ms (measured under
-``bench/load.py``), every tracked phone's answer with it. Here the serving engines' connections checkpoint
-only past a far larger backstop (``BACKSTOP_PAGES``) while a daemon thread runs a ``PASSIVE`` checkpoint
-every ``period_s``: it waits for no reader or writer, and the sqlite3 module releases the GIL while it
-copies and syncs. Should the thread fall behind or die, the backstop bounds the log as SQLite always did.
+SQLite checkpoints in the commit that takes the log past 1,000 pages: that commit copies every page the
+log holds into the database file (a read and a write each), syncs, and the next transaction starts the log
+again from its beginning. A building applying 2,000 batches a second fills that log about once a second,
+and the group whose commit did the copying stalled 10-19 ms (measured under ``bench/load.py``; the syncs
+take ~1 ms of it on this machine). Here a daemon thread runs a ``PASSIVE`` checkpoint every ``period_s``:
+it waits for no reader or writer, and the sqlite3 module releases the GIL while it copies, so the copying
+runs beside the batch path, and the commit that crosses 1,000 pages finds all but the last ``period_s``
+of pages copied already. The commits keep SQLite's own threshold: the log is started again only by a
+writer that finds it wholly copied, which a checkpoint running beside a busy writer never leaves it (with
+the commits' checkpoints moved to a far larger threshold, the log grew to that threshold and the reads
+slowed as it did).
 """
 
 from __future__ import annotations
@@ -14,15 +18,10 @@ from __future__ import annotations
 import logging
 import threading
 from dataclasses import dataclass
-from typing import Any
 
 from sqlalchemy import Engine, event
 
 logger = logging.getLogger(__name__)
-
-BACKSTOP_PAGES = 16_000
-"""``wal_autocheckpoint`` of the engine's connections (SQLite's default is 1,000): ~64 MB of log with 4 KiB
-pages, reached only when the background checkpoints do not keep up."""
 
 
 @dataclass
@@ -38,10 +37,9 @@ class CheckpointStatus:
 
 class BackgroundCheckpoints:
     """Checkpoint ``engine``'s database every ``period_s`` seconds until the engine is disposed (or
-    ``stop``). Install it before the engine opens its first connection: the backstop is set per connection.
-    """
+    ``stop``)."""
 
-    def __init__(self, engine: Engine, period_s: float = 1.0) -> None:
+    def __init__(self, engine: Engine, period_s: float = 0.1) -> None:
         if period_s <= 0:
             raise ValueError("period_s must be > 0")
         if engine.dialect.name != "sqlite":
@@ -50,7 +48,6 @@ class BackgroundCheckpoints:
         self.period_s = period_s
         self.status = CheckpointStatus()
         self._stop = threading.Event()
-        event.listen(engine, "connect", _set_backstop)
         event.listen(engine, "engine_disposed", self._on_dispose)
         self._thread = threading.Thread(target=self._run, name="sqlite-checkpoints", daemon=True)
         self._thread.start()
@@ -80,7 +77,7 @@ class BackgroundCheckpoints:
         while not self._stop.wait(self.period_s):
             try:
                 self.checkpoint()
-            except Exception:  # the next period tries again; meanwhile the backstop bounds the log
+            except Exception:  # the next period tries again; the commits checkpoint as they always did
                 self.status.failures += 1
                 logger.exception("checkpointing the SQLite write-ahead log failed")
 
@@ -92,9 +89,3 @@ def checkpoint_in_background(engine: Engine, period_s: float) -> BackgroundCheck
     if period_s == 0 or engine.dialect.name != "sqlite" or not database or database == ":memory:":
         return None
     return BackgroundCheckpoints(engine, period_s)
-
-
-def _set_backstop(dbapi_connection: Any, _record: Any) -> None:
-    cursor = dbapi_connection.cursor()
-    cursor.execute(f"PRAGMA wal_autocheckpoint={BACKSTOP_PAGES}")
-    cursor.close()
