@@ -101,7 +101,6 @@ class BatchRow(Base):
     __table_args__ = (
         ForeignKeyConstraint(["building_id"], ["buildings.id"], ondelete="CASCADE"),
         UniqueConstraint("building_id", "device_id", "batch_id", name="uq_batches_device_batch"),
-        Index("ix_batches_device_seq", "building_id", "device_id", "seq"),
         Index("ix_batches_building_received", "building_id", "received_at"),
         # the write-ahead log: the few rows that still hold a body, found without scanning the rest
         Index(

@@ -54,17 +54,17 @@ def test_a_checkpoint_copies_the_whole_log(tmp_path: Path) -> None:
 def test_the_log_stays_bounded_while_the_thread_copies_it(tmp_path: Path) -> None:
     """A writer that never pauses, with the thread copying beside it: the commits still start the log
     again at SQLite's threshold. (Had the commits left checkpointing to the thread alone, the log would
-    hold all 3,000 pages: a checkpoint beside a busy writer never leaves the log wholly copied, which is
-    when a writer starts it again.)"""
+    hold all 6,000 pages: a checkpoint beside a busy writer never leaves the log wholly copied, which is
+    when a writer starts it again.) The file keeps its high-water mark: ~1,050-2,250 pages in 40 runs
+    here, as a commit's checkpoint that meets the thread's gives way to a later commit's."""
     path = tmp_path / "db.sqlite3"
     engine = make_engine(f"sqlite:///{path}")
     checkpoints = BackgroundCheckpoints(engine, period_s=0.005)
     try:
-        _fill(engine, 3000, per_commit=50)
+        _fill(engine, 6000, per_commit=50)
         assert checkpoints.status.checkpoints > 0
         assert checkpoints.status.failures == 0
-        # a commit's checkpoint that meets the thread's gives way, and a later commit's starts the log again
-        assert _log_pages(path) < 2000
+        assert _log_pages(path) < 4000
     finally:
         engine.dispose()
 
