@@ -1,21 +1,39 @@
-"""A call that runs on a thread of its own while its caller goes on, for compiled kernels that release the
-GIL (``nogil``): a building's busy tracker call compares its WiFi scans on the machine's other core while it
-runs the rounds of its filters and the fingerprint fixes. The result is the same as run inline;
-only the time it takes changes."""
+"""A call that runs on another thread while its caller goes on, for compiled kernels that release the GIL
+(``nogil``): a building's busy tracker call compares its WiFi scans on the machine's other core while it
+runs the rounds of its filters and the fingerprint fixes. The result is the same as run inline; only the
+time it takes changes.
+
+The calls run on a few threads kept for the process's life (``WORKERS``): starting a thread for each
+call had cost its caller ~0.3 ms under load, 1.5 % of a building's thread at 2,000 phones (50 calls a
+second)."""
 
 from __future__ import annotations
 
 import threading
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Generic, TypeVar
 
 T = TypeVar("T")
 
+WORKERS = 4
+"""Calls running at once in a process (one per building at a time: its next call waits for this one)."""
+_pool: ThreadPoolExecutor | None = None
+_pool_lock = threading.Lock()
+
+
+def _workers() -> ThreadPoolExecutor:
+    global _pool
+    with _pool_lock:
+        if _pool is None:
+            _pool = ThreadPoolExecutor(max_workers=WORKERS, thread_name_prefix="background-call")
+        return _pool
+
 
 class BackgroundCall(Generic[T]):
-    """``function()`` on a thread of its own when ``background``, else now. ``result()`` waits and returns
-    its value or raises its error in the caller's thread; ``join()`` only waits (for a caller that failed
-    before collecting it). ``on_done`` runs once, in the caller's thread, after the call has ended."""
+    """``function()`` on a worker thread when ``background``, else now. ``result()`` waits and returns its
+    value or raises its error in the caller's thread; ``join()`` only waits (for a caller that failed before
+    collecting it). ``on_done`` runs once, in the caller's thread, after the call has ended."""
 
     def __init__(
         self,
@@ -24,14 +42,14 @@ class BackgroundCall(Generic[T]):
         name: str,
         on_done: Callable[[], None] | None = None,
     ) -> None:
+        self.name = name
         self._function = function
         self._on_done = on_done
         self._value: T | None = None
         self._error: BaseException | None = None
-        self._thread: threading.Thread | None = None
+        self._future: Future[None] | None = None
         if background:
-            self._thread = threading.Thread(target=self._run, name=name, daemon=True)
-            self._thread.start()
+            self._future = _workers().submit(self._run)
         else:
             self._run()
 
@@ -42,9 +60,9 @@ class BackgroundCall(Generic[T]):
             self._error = exc
 
     def join(self) -> None:
-        if self._thread is not None:
-            self._thread.join()
-            self._thread = None
+        if self._future is not None:
+            self._future.result()  # _run catches everything: this only waits
+            self._future = None
         if self._on_done is not None:
             on_done, self._on_done = self._on_done, None
             on_done()
