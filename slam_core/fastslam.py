@@ -85,7 +85,8 @@ class DynamicSlam:
         self.parallel_min_users = parallel_min_users
         """Calls over fewer users run the kernels' serial twins (``slam_core.kernels.serial``)."""
         self.seed = seed
-        self.state = FilterState.empty(initial_capacity, params.n_particles, params.anchors.capacity)
+        start_room = min(self.MAP_START, params.anchors.capacity)
+        self.state = FilterState.empty(initial_capacity, params.n_particles, start_room)
         self._slots = SlotAllocator(initial_capacity)
         self._admitted = 0
         self._type_posterior = params.anchors.type_posterior
@@ -143,6 +144,24 @@ class DynamicSlam:
         if crowd_map is not None:
             self.merge_crowd_map(np.array([slot]), crowd_map)  # seeding is a merge into an empty map
         return slot
+
+    # Particle maps sized by use. The maps hold up to ``anchors.capacity`` anchors a particle (48), but a
+    # state allocated for all of them costs ~0.2 MB a user however few anchors the building has, and every
+    # doubling of the user slots copied all of it: ~0.4 GB at 2,048 slots, which stalled a building
+    # 0.1-0.5 s while a crowd walked in. So the maps start with room for ``MAP_START`` anchors, and before
+    # a kernel that may add anchors the room grows (doubling, up to the capacity) to what that call could
+    # need. The kernels overflow only at the capacity, as before: the filters are the same bit for bit.
+    MAP_START = 4
+
+    def _map_room(self, users: np.ndarray, new_anchors: int) -> None:
+        """Room in the particle maps of ``users`` for ``new_anchors`` more anchors (up to the capacity)."""
+        s = self.state
+        limit = self.params.anchors.capacity
+        if s.map_capacity >= limit or users.size == 0:
+            return
+        need = min(limit, int(s.map_n[users].max()) + new_anchors)
+        if need > s.map_capacity:
+            self.state = s.with_map_capacity(min(limit, max(need, 2 * s.map_capacity)))
 
     def _check_crowd_map(self, crowd: CrowdMap) -> None:
         if np.any((crowd.type < 0) | (crowd.type >= self._n_types)):
@@ -216,6 +235,7 @@ class DynamicSlam:
                 raise ValueError("one crowd id (or -1) per user")
         if users.size == 0:
             return
+        self._map_room(users, 1)  # one detection a user: at most one new anchor a particle
         s = self.state
         self._moved(users)
         a = self.params.anchors
@@ -357,6 +377,7 @@ class DynamicSlam:
         self._check_crowd_map(crowd)
         if crowd.mean.shape[0] == 0 or users.size == 0:
             return
+        self._map_room(users, crowd.mean.shape[0])
         s = self.state
         known_var = self.params.anchors.known_sigma_m**2
         cov = crowd.cov.copy()

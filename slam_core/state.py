@@ -113,6 +113,24 @@ class FilterState:
                 value = getattr(full, name)
             setattr(self, name, value)
 
+    def with_map_capacity(self, map_capacity: int) -> FilterState:
+        """The same state with room for ``map_capacity`` anchors a particle map (at least the current
+        room), the new room at the empty state's defaults; the other arrays are shared, not copied."""
+        if map_capacity < self.map_capacity:
+            raise ValueError("particle maps only grow")
+        roomier = FilterState.empty(1, self.n_particles, map_capacity)  # its map fields: the defaults
+        k = self.map_capacity
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if f.name in _MAP_FIELDS:
+                default = getattr(roomier, f.name)
+                bigger = np.empty((self.capacity, *default.shape[1:]), dtype=value.dtype)
+                bigger[:, :, k:] = default[:, :, k:]
+                bigger[:, :, :k] = value
+                value = bigger
+            setattr(roomier, f.name, value)
+        return roomier
+
     def grown(self, capacity: int) -> FilterState:
         """A copy with more user slots; existing slots keep their contents."""
         bigger = FilterState.empty(capacity, self.n_particles, self.map_capacity)

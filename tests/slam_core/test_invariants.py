@@ -320,3 +320,74 @@ def test_kept_means_follow_every_change_of_the_particles(operations: list[int], 
                 engine.__dict__.pop("_mean", None)
                 engine.__dict__.pop("_mean_known", None)
         check()
+
+
+class _FullMaps(DynamicSlam):
+    MAP_START = 1 << 20  # room for every anchor from the start, as the state was allocated before
+
+
+@settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.lists(st.integers(0, 5), min_size=4, max_size=30), st.integers(0, 2**32 - 1))
+def test_maps_sized_by_use_change_no_filter(operations: list[int], seed: int) -> None:
+    """Particle maps that start with room for a few anchors and grow before each call that may add some
+    give the same filters, bit for bit, as maps with room for all from the start: summaries, every
+    particle's map up to its length, and the overflow counts at the capacity; through anchor observations,
+    crowd-map merges, steps, new users (the slots growing) and pickling."""
+    import pickle
+
+    rng = np.random.default_rng(seed)
+    params = replace(PARAMS, anchors=replace(PARAMS.anchors, capacity=6))
+    crowd = CrowdMap(
+        rng.uniform(-5, 5, (3, 2)), np.tile([0.3, 0.0, 0.3], (3, 1)), np.array([1, 2, 3]),
+        np.array([True, False, False]), np.array([7, 8, 9]),
+    )  # fmt: skip
+    lazy, full = (
+        DynamicSlam(params, seed=5, initial_capacity=2),
+        _FullMaps(params, seed=5, initial_capacity=2),
+    )
+    assert lazy.state.map_capacity == DynamicSlam.MAP_START < 6 == full.state.map_capacity
+    users: list[int] = []
+    for op in [0, 0, *operations]:
+        some = np.array(sorted(set(rng.choice(users, size=min(len(users), 2), replace=False).tolist())))
+        start, headings, types = (
+            rng.uniform(-5, 5, 2),
+            rng.uniform(-3, 3, some.size),
+            rng.integers(0, 5, some.size),
+        )
+        for engine in (lazy, full):
+            if op == 0:
+                slot = engine.add_user(
+                    float(start[0]), float(start[1]), crowd_map=crowd if len(users) % 2 else None
+                )
+            elif op == 1 and some.size:
+                engine.step(some, np.arange(some.size + 1), np.full(some.size, 0.7), headings)
+            elif op in (2, 3) and some.size:
+                engine.observe_building_anchors(some, types)
+            elif op == 4 and some.size:
+                engine.merge_crowd_map(some, crowd)
+        if op == 0:
+            users.append(slot)
+        if op == 5:
+            lazy = pickle.loads(pickle.dumps(lazy))
+        _same_filters(lazy, full, users)
+    for k in range(8):  # every user walks past eight new anchors (five types): maps fill up and overflow
+        slots = np.array(users, dtype=np.int64)
+        for engine in (lazy, full):
+            engine.step(slots, np.arange(slots.size + 1), np.full(slots.size, 3.0), np.full(slots.size, 0.5))
+            engine.observe_building_anchors(slots, np.full(slots.size, k % 5))
+        _same_filters(lazy, full, users)
+    assert full.state.n_map_overflow.sum() > 0
+    assert lazy.state.map_capacity == 6
+
+
+def _same_filters(lazy: DynamicSlam, full: DynamicSlam, users: list[int]) -> None:
+    slots = np.array(users, dtype=np.int64)
+    np.testing.assert_array_equal(lazy.summaries(slots), full.summaries(slots))
+    a, b = lazy.state, full.state
+    np.testing.assert_array_equal(a.map_n[slots], b.map_n[slots])
+    np.testing.assert_array_equal(a.n_map_overflow[slots], b.n_map_overflow[slots])
+    for u in users:
+        for m in range(a.n_particles):
+            n = a.map_n[u, m]
+            np.testing.assert_array_equal(a.map_mu[u, m, :n], b.map_mu[u, m, :n])
+            np.testing.assert_array_equal(a.map_crowd_id[u, m, :n], b.map_crowd_id[u, m, :n])
