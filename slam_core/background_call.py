@@ -39,10 +39,8 @@ class BackgroundCall(Generic[T]):
         self,
         function: Callable[[], T],
         background: bool,
-        name: str,
         on_done: Callable[[], None] | None = None,
     ) -> None:
-        self.name = name
         self._function = function
         self._on_done = on_done
         self._value: T | None = None

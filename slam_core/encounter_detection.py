@@ -286,10 +286,8 @@ class EncounterDetector:
             raise RuntimeError("the previous scans' detections have not been collected")
         prepared = self._prepared(scans)
         if prepared is None:
-            return BackgroundCall(DetectionArrays.empty, False, "wifi-encounters")
-        pending = BackgroundCall(
-            lambda: self._compare(prepared), background, "wifi-encounters", self._collected
-        )
+            return BackgroundCall(DetectionArrays.empty, False)
+        pending = BackgroundCall(lambda: self._compare(prepared), background, self._collected)
         self._pending = pending
         return pending
 

@@ -173,7 +173,7 @@ def start_scan_detection(
             scan_rss.append(b.scan_rss)
             scan_seen.append(b.scan_last_seen)
     if not scan_users:
-        return BackgroundCall(DetectionArrays.empty, False, "wifi-encounters")
+        return BackgroundCall(DetectionArrays.empty, False)
     scans = ScanBatch(
         scan_users,
         np.concatenate(scan_t),
