@@ -102,33 +102,22 @@ class FilterState:
 
     def __setstate__(self, state: dict[str, object]) -> None:
         map_capacity = state.pop("map_capacity")
-        x = state["x"]
         assert isinstance(map_capacity, int)
-        assert isinstance(x, np.ndarray)
-        full = FilterState.empty(x.shape[0], x.shape[1], map_capacity)
-        for name, value in state.items():
-            if name in _MAP_FIELDS:
-                assert isinstance(value, np.ndarray)
-                getattr(full, name)[:, :, : value.shape[2]] = value
-                value = getattr(full, name)
-            setattr(self, name, value)
+        self.__dict__.update(state)  # the maps as long as the longest in use, then widened to their room
+        self.__dict__.update(self.with_map_capacity(map_capacity).__dict__)
 
     def with_map_capacity(self, map_capacity: int) -> FilterState:
         """The same state with room for ``map_capacity`` anchors a particle map (at least the current
         room), the new room at the empty state's defaults; the other arrays are shared, not copied."""
         if map_capacity < self.map_capacity:
             raise ValueError("particle maps only grow")
-        roomier = FilterState.empty(1, self.n_particles, map_capacity)  # its map fields: the defaults
-        k = self.map_capacity
+        roomier = FilterState.empty(self.capacity, self.n_particles, map_capacity)
         for f in fields(self):
             value = getattr(self, f.name)
             if f.name in _MAP_FIELDS:
-                default = getattr(roomier, f.name)
-                bigger = np.empty((self.capacity, *default.shape[1:]), dtype=value.dtype)
-                bigger[:, :, k:] = default[:, :, k:]
-                bigger[:, :, :k] = value
-                value = bigger
-            setattr(roomier, f.name, value)
+                getattr(roomier, f.name)[:, :, : self.map_capacity] = value
+            else:
+                setattr(roomier, f.name, value)
         return roomier
 
     def grown(self, capacity: int) -> FilterState:
