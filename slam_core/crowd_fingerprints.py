@@ -38,6 +38,7 @@ class Scan:
     bssids: list[str]
     rss: np.ndarray
     shift: np.ndarray  # (2,) displacement from the scan to now
+    t_ms: int
 
 
 @dataclass(frozen=True)
@@ -48,6 +49,7 @@ class Place:
     xy: np.ndarray
     bssids: list[str]
     rss: np.ndarray
+    t_ms: int
 
 
 @dataclass(frozen=True)
@@ -82,6 +84,13 @@ class FingerprintParams:
     finer than WiFi tells places apart (kNN errs by ~5 m); on msindoor site1 F1 16, 8 and 4 per cell gave
     the same replay within the seeds' spread, and a query costs the postings of its APs, ~4x fewer at 4
     than at 16 on a dense floor."""
+    cell_refresh_ms: int = 30_000
+    """A full cell takes a new scan (in place of its oldest) only once its newest is this old. A busy floor
+    would otherwise turn every cell over within seconds (2,000 load-bench phones on 600 cells: one scan a
+    cell every ~0.6 s), so that the map held only the last few seconds' walkers, whose errors are alike,
+    and the building spent ~6 % of its core storing scans it dropped again. At 30 s a full cell holds
+    scans at least that far apart in time, most from different walks; a quiet floor, whose cells fill
+    slower than that, keeps every scan as before."""
     min_aps: int = 3
     """A scan with fewer fresh APs is neither stored nor localised."""
     floor_dbm: float = -100.0
@@ -97,6 +106,8 @@ class FingerprintParams:
             raise ValueError("min_aps must be >= 1")
         if not self.cell_m > 0 or self.per_cell < 1:
             raise ValueError("fingerprint cells need cell_m > 0 and per_cell >= 1")
+        if self.cell_refresh_ms < 0:
+            raise ValueError("cell_refresh_ms must be >= 0")
 
 
 class CrowdFingerprints:
@@ -112,6 +123,7 @@ class CrowdFingerprints:
         self._norm = np.zeros(n)  # sum of squared gains per row
         self._count = np.zeros(n, dtype=np.int64)  # APs heard per row
         self._serial = np.full(n, -1, dtype=np.int64)  # which scan a row holds (stale postings differ)
+        self._t = np.zeros(n, dtype=np.int64)  # when each row's scan was taken (ms)
         self._dot = np.zeros(n)  # query scratch, kept zero between queries
         self._shared = np.zeros(n, dtype=np.int64)
         self._per_owner: dict[int, int] = {}
@@ -138,6 +150,8 @@ class CrowdFingerprints:
         self.__dict__.update(state)
         if "_posted" not in state:  # pickled before the stale bound (tracker snapshots of format 7)
             self._posted = int(self._length[: len(self._columns)].sum())
+        if "_t" not in state:  # pickled before the cells' refresh (format 8): any full cell may take a scan
+            self._t = np.full(self._xy.shape[0], np.iinfo(np.int64).min // 2, dtype=np.int64)
 
     @property
     def postings(self) -> int:
@@ -166,18 +180,23 @@ class CrowdFingerprints:
             bssids, gains = list(strongest), np.fromiter(strongest.values(), float, len(strongest))
         return bssids, gains.astype(np.float32)
 
-    def add(self, owner: int, xy: np.ndarray, bssids: list[str], rss: np.ndarray) -> bool:
-        """Store one scan (fresh entries only) at ``xy``; False when it has too few APs."""
-        if len(bssids) < self.params.min_aps:
+    def add(self, owner: int, xy: np.ndarray, bssids: list[str], rss: np.ndarray, t_ms: int) -> bool:
+        """Store one scan (fresh entries only) taken at ``t_ms`` at ``xy``; False when it has too few APs, or
+        when its cell is full and took a scan less than ``cell_refresh_ms`` before."""
+        p = self.params
+        if len(bssids) < p.min_aps:
+            return False
+        cell = (math.floor(float(xy[0]) / p.cell_m), math.floor(float(xy[1]) / p.cell_m))
+        rows = self._cells.get(cell)
+        if rows is not None and len(rows) >= p.per_cell and t_ms - self._t[rows[-1]] < p.cell_refresh_ms:
             return False
         heard, gains = self._gains(bssids, rss)
-        if len(heard) < self.params.min_aps:
+        if len(heard) < p.min_aps:
             return False
         cols = np.fromiter(
             (self._columns.setdefault(b, len(self._columns)) for b in heard), np.int64, len(heard)
         )
         self._grow_columns(len(self._columns))
-        cell = (math.floor(float(xy[0]) / self.params.cell_m), math.floor(float(xy[1]) / self.params.cell_m))
         row = self._free_row(cell)
         self._serial_next += 1
         serial = self._serial_next
@@ -189,6 +208,7 @@ class CrowdFingerprints:
             self._post_row, self._post_serial, self._post_gain, self._pool_end,
         )  # fmt: skip
         self._serial[row] = serial
+        self._t[row] = t_ms
         self._norm[row] = float(gains.astype(float) @ gains.astype(float))
         self._count[row] = cols.size
         self._xy[row] = xy
@@ -245,7 +265,7 @@ class CrowdFingerprints:
     def _grow_rows(self) -> None:
         rows = self._xy.shape[0]
         new_rows = min(2 * rows, self.params.max_references)
-        for name in ("_xy", "_owner", "_norm", "_count", "_serial", "_dot", "_shared"):
+        for name in ("_xy", "_owner", "_norm", "_count", "_serial", "_t", "_dot", "_shared"):
             old = getattr(self, name)
             fill = -1 if name in ("_owner", "_serial") else 0
             longer = np.full((new_rows, *old.shape[1:]), fill, dtype=old.dtype)
@@ -332,4 +352,4 @@ class CrowdFingerprints:
         largest = half_trace + math.sqrt(half_gap * half_gap + cov[0, 1] * cov[1, 0])  # of a 2x2 SPD matrix
         if largest > self.params.max_reference_std_m**2:
             return fix, []
-        return fix, [Place(owner, xy - scan.shift, scan.bssids, scan.rss) for scan in scans]
+        return fix, [Place(owner, xy - scan.shift, scan.bssids, scan.rss, scan.t_ms) for scan in scans]

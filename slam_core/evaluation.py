@@ -465,7 +465,8 @@ def _fingerprint_fixes(
         heard = np.flatnonzero(np.isfinite(rss))
         position = int(np.searchsorted(tr.t, tr.scan_t[c], side="right")) - 1
         shift = displacement[u] - dead_reckoned[u][max(position, 0)]
-        scans.setdefault(u, []).append(Scan([ap_names[i] for i in heard], rss[heard], shift))
+        t_ms = round(float(tr.scan_t[c]) * 1000.0)
+        scans.setdefault(u, []).append(Scan([ap_names[i] for i in heard], rss[heard], shift, t_ms))
     if not scans:
         return 0
     users = sorted(scans)

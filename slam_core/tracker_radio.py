@@ -112,7 +112,7 @@ def apply_fingerprint_fixes(
             params.outlier_radius_m,
         )  # fmt: skip
     for place in places:
-        fingerprints.add(place.owner, place.xy, place.bssids, place.rss)
+        fingerprints.add(place.owner, place.xy, place.bssids, place.rss, place.t_ms)
     return got
 
 
@@ -140,7 +140,7 @@ def fingerprint_fixes(
             fresh = fresh_mask(t, b.scan_last_seen[lo:hi], stale)
             bssids = [str(x) for x, f in zip(b.scan_bssid[lo:hi], fresh, strict=True) if f]
             then, _ = u.at(t)
-            scans.append(Scan(bssids, b.scan_rss[lo:hi][fresh], u.displacement - then))
+            scans.append(Scan(bssids, b.scan_rss[lo:hi][fresh], u.displacement - then, t))
         cov = np.array([[row.cov[0], row.cov[1]], [row.cov[1], row.cov[2]]])
         names.append(b.user)
         located.append((u.slot, u.number, np.array([row.x, row.y]), cov, scans))

@@ -24,11 +24,17 @@ def _scans(rng: np.random.Generator, n: int, aps: int = 12) -> tuple[np.ndarray,
     return xy, np.where(rss > -90.0, rss, np.nan)
 
 
+MINUTE_MS = 60_000
+"""Scans a minute apart: a full cell always takes the next (``cell_refresh_ms`` is 30 s)."""
+
+
 def _add_all(db: CrowdFingerprints, owners: np.ndarray, xy: np.ndarray, rss: np.ndarray) -> list[str]:
     names = [f"ap{i}" for i in range(rss.shape[1])]
-    for o, p, row in zip(owners, xy, rss, strict=True):
+    for i, (o, p, row) in enumerate(zip(owners, xy, rss, strict=True)):
         heard = np.isfinite(row)
-        db.add(int(o), p, [n for n, h in zip(names, heard, strict=True) if h], row[heard])
+        assert db.add(
+            int(o), p, [n for n, h in zip(names, heard, strict=True) if h], row[heard], i * MINUTE_MS
+        )
     return names
 
 
@@ -116,7 +122,7 @@ def test_the_inverted_index_matches_brute_force_through_evictions_and_compaction
             if found is not None:
                 np.testing.assert_allclose(found, expected, atol=1e-9)
                 checked += 1
-        assert db.add(owner, xy, [names[i] for i in heard], row[heard])
+        assert db.add(owner, xy, [names[i] for i in heard], row[heard], t * MINUTE_MS)
         same_cell = [i for i, r in enumerate(kept) if np.array_equal(r[1] // cell_m, xy // cell_m)]
         if len(same_cell) >= per_cell:
             del kept[same_cell[0]]
@@ -142,6 +148,32 @@ def test_the_inverted_index_matches_brute_force_through_evictions_and_compaction
     assert pickle.loads(pickle.dumps(db)).stale_postings == db.stale_postings
 
 
+def test_a_full_cell_takes_a_scan_only_once_its_newest_is_cell_refresh_ms_old() -> None:
+    """A cell fills freely; full, it refuses scans until its newest is ``cell_refresh_ms`` old, then the new
+    scan replaces its oldest. Other cells are not held back, and a refusal changes nothing."""
+    params = FingerprintParams(k=1, min_references=1, per_cell=2, cell_refresh_ms=10_000, max_spread_m=1e9)
+    db = CrowdFingerprints(params)
+    aps = ["a", "b", "c"]
+
+    def add(x: float, t_ms: int, rss: float) -> bool:
+        return db.add(1, np.array([x, 1.0]), aps, np.full(3, rss), t_ms)
+
+    assert add(1.0, 0, -50.0)  # the cell [0, 4) fills
+    assert add(2.0, 1_000, -60.0)
+    before = (len(db), db.postings, db._xy.copy())
+    assert not add(3.0, 10_999, -70.0)  # full, and its newest is 9.999 s old
+    assert (len(db), db.postings) == before[:2]
+    np.testing.assert_array_equal(db._xy, before[2])
+    assert add(5.0, 5_000, -70.0)  # another cell
+    assert add(3.0, 11_000, -80.0)  # 10 s after the newest: replaces the oldest (x = 1, -50 dBm)
+    assert len(db) == 3
+    at = db.locate(2, aps, np.full(3, -50.0))
+    assert at is not None
+    assert at[0] == 2.0  # the -50 dBm scan is gone: the nearest is now the -60 dBm one
+    unlimited = CrowdFingerprints(FingerprintParams(per_cell=1, cell_refresh_ms=0))
+    assert all(unlimited.add(1, np.array([1.0, 1.0]), aps, np.full(3, -50.0), 0) for _ in range(3))
+
+
 def test_fingerprint_params_are_checked() -> None:
     for bad, message in (
         ({"k": 0}, "k <="),
@@ -152,6 +184,7 @@ def test_fingerprint_params_are_checked() -> None:
         ({"min_aps": 0}, "min_aps"),
         ({"cell_m": 0.0}, "cell_m"),
         ({"per_cell": 0}, "per_cell"),
+        ({"cell_refresh_ms": -1}, "cell_refresh_ms"),
     ):
         with pytest.raises(ValueError, match=message):
             FingerprintParams(**bad)  # type: ignore[arg-type]
@@ -213,7 +246,8 @@ def test_fix_and_places_carries_the_latest_fix_and_keeps_only_confident_scans() 
     scans = []
     for row, shift in zip(q_rss, ([3.0, 0.0], [1.0, -1.0]), strict=True):
         heard = np.isfinite(row)
-        scans.append(Scan([n for n, h in zip(names, heard, strict=True) if h], row[heard], np.array(shift)))
+        heard_names = [n for n, h in zip(names, heard, strict=True) if h]
+        scans.append(Scan(heard_names, row[heard], np.array(shift), 200 * MINUTE_MS + len(scans)))
     latest = db.locate(2, scans[1].bssids, scans[1].rss)
     assert latest is not None
     here = np.array([10.0, 10.0])
@@ -222,6 +256,7 @@ def test_fix_and_places_carries_the_latest_fix_and_keeps_only_confident_scans() 
     np.testing.assert_allclose(fix, latest + np.array([1.0, -1.0]))  # the latest scan, carried to now
     assert [p.owner for p in places] == [2, 2]
     np.testing.assert_allclose([p.xy for p in places], [here - [3.0, 0.0], here - [1.0, -1.0]])
+    assert [p.t_ms for p in places] == [s.t_ms for s in scans]
     # an estimate whose larger axis' sigma exceeds max_reference_std_m (3 m) adds nothing to the map
     tilted = np.array([[5.0, 4.5], [4.5, 5.0]])  # eigenvalues 0.5 and 9.5
     assert db.fix_and_places(2, here, tilted, scans)[1] == []
@@ -238,7 +273,7 @@ def test_bssids_no_stored_scan_hears_are_forgotten() -> None:
     scans = []
     for t in range(2_000):
         scan = (t % 5, rng.uniform(0, 50, 2), ["fixed-a", "fixed-b", "fixed-c", f"hotspot-{t}"])
-        scans.append((*scan, rng.uniform(-90.0, -50.0, 4)))
+        scans.append((*scan, rng.uniform(-90.0, -50.0, 4), t * MINUTE_MS))
         db.add(*scans[-1])
     assert len(db) == 40
     assert len(db._columns) <= 3 + 3 * 40  # fixed APs, and hotspots of stored scans and a little slack
