@@ -85,12 +85,13 @@ class FingerprintParams:
     the same replay within the seeds' spread, and a query costs the postings of its APs, ~4x fewer at 4
     than at 16 on a dense floor."""
     cell_refresh_ms: int = 30_000
-    """A full cell takes a new scan (in place of its oldest) only once its newest is this old. A busy floor
-    would otherwise turn every cell over within seconds (2,000 load-bench phones on 600 cells: one scan a
-    cell every ~0.6 s), so that the map held only the last few seconds' walkers, whose errors are alike,
-    and the building spent ~6 % of its core storing scans it dropped again. At 30 s a full cell holds
-    scans at least that far apart in time, most from different walks; a quiet floor, whose cells fill
-    slower than that, keeps every scan as before."""
+    """A full cell takes a new scan (in place of its oldest) only once its newest is this old (by the phones'
+    clocks; a newest as far in the future counts as old, so that no clock running ahead holds a cell). A
+    busy floor would otherwise turn every cell over within seconds (2,000 load-bench phones on 600 cells: a
+    scan a cell every ~0.6 s), so that the map held only the last few seconds' walkers, whose errors are
+    alike, and the building spent ~6 % of its core storing scans it dropped again. At 30 s a full cell
+    holds scans at least that far apart, most from different walks; a quiet floor, whose cells fill slower
+    than that, keeps every scan as before."""
     min_aps: int = 3
     """A scan with fewer fresh APs is neither stored nor localised."""
     floor_dbm: float = -100.0
@@ -182,13 +183,14 @@ class CrowdFingerprints:
 
     def add(self, owner: int, xy: np.ndarray, bssids: list[str], rss: np.ndarray, t_ms: int) -> bool:
         """Store one scan (fresh entries only) taken at ``t_ms`` at ``xy``; False when it has too few APs, or
-        when its cell is full and took a scan less than ``cell_refresh_ms`` before."""
+        when its cell is full and its newest scan was taken less than ``cell_refresh_ms`` before or after."""
         p = self.params
         if len(bssids) < p.min_aps:
             return False
         cell = (math.floor(float(xy[0]) / p.cell_m), math.floor(float(xy[1]) / p.cell_m))
         rows = self._cells.get(cell)
-        if rows is not None and len(rows) >= p.per_cell and t_ms - self._t[rows[-1]] < p.cell_refresh_ms:
+        # either way round: a phone whose clock runs far ahead must not hold a cell for everyone else
+        if rows is not None and len(rows) >= p.per_cell and abs(t_ms - self._t[rows[-1]]) < p.cell_refresh_ms:
             return False
         heard, gains = self._gains(bssids, rss)
         if len(heard) < p.min_aps:

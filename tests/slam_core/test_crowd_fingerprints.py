@@ -178,6 +178,13 @@ def test_a_full_cell_takes_a_scan_only_once_its_newest_is_cell_refresh_ms_old() 
     at = db.locate(2, aps, np.full(3, -50.0))
     assert at is not None
     assert at[0] == 2.0  # the -50 dBm scan is gone: the nearest is now the -60 dBm one
+    assert not add(3.0, 1_001, -50.0)  # 9.999 s before the newest is as near in time
+    assert add(3.0, 3_600_000 + 11_000, -90.0)  # a clock an hour ahead replaces the oldest (x = 2)...
+    assert add(3.5, 12_000, -55.0)  # ...and holds the cell for nobody: the others' next scan still lands
+    assert len(db) == 3
+    at = db.locate(2, aps, np.full(3, -50.0))
+    assert at is not None
+    assert at[0] == 3.5
     unlimited = CrowdFingerprints(FingerprintParams(per_cell=1, cell_refresh_ms=0))
     assert all(unlimited.add(1, np.array([1.0, 1.0]), aps, np.full(3, -50.0), 0) for _ in range(3))
 
