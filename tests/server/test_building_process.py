@@ -2,10 +2,11 @@
 in-process buildings (the end-to-end test compares live estimates with the offline engine in both modes);
 an unknown building never starts a process; a building process that dies fails its waiting requests with
 503 and is started again on the next request, restored from its snapshot and batch log; a clean shutdown
-snapshots it."""
+snapshots it; the front compiles the kernels into numba's cache once, in a child, before it serves."""
 
 from __future__ import annotations
 
+import logging
 import os
 import signal
 import time
@@ -16,6 +17,7 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
+from server import app as app_module
 from server.app import create_app
 from server.settings import Settings
 from server.store.db import make_engine, make_session_factory
@@ -133,3 +135,33 @@ def test_a_clean_shutdown_snapshots_every_building_process(tmp_path: Path) -> No
         worker = client.app.state.crowdslam.tracking.workers["hq"]  # type: ignore[attr-defined]
     assert _logged_and_snapshots(url) == (0, 1)
     assert not worker._process.is_alive()
+
+
+def test_the_kernels_are_compiled_once_in_a_child_before_the_server_takes_requests(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    url = f"sqlite:///{tmp_path / 'db.sqlite3'}"
+    migrate_with_operator(url)
+    settings = Settings(data_dir=tmp_path, database_url=url, building_processes=True)
+    with caplog.at_level(logging.INFO, logger="server.app"), TestClient(create_app(settings)) as client:
+        assert client.get("/healthz").status_code == 200
+        assert any(r.getMessage().startswith("kernels compiled into the cache in") for r in caplog.records)
+        assert client.app.state.crowdslam.tracking.workers == {}  # type: ignore[attr-defined]
+
+
+def _exit_three(_: Settings) -> None:
+    raise SystemExit(3)
+
+
+def test_a_server_whose_kernels_fail_to_compile_does_not_start(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    url = f"sqlite:///{tmp_path / 'db.sqlite3'}"
+    migrate_with_operator(url)
+    monkeypatch.setattr(app_module, "_warm_kernels_for", _exit_three)  # what the child runs
+    settings = Settings(data_dir=tmp_path, database_url=url, building_processes=True)
+    with (
+        pytest.raises(RuntimeError, match=r"compiling the kernels failed .*exit code 3"),
+        TestClient(create_app(settings)),
+    ):
+        pass
