@@ -28,6 +28,7 @@ from server.auth import KeyCache
 from server.broadcast import Broadcaster
 from server.errors import InvalidInputError, ProblemError, problem_response_parts
 from server.ingestion import TrackingService
+from server.kernel_warmup import warm_kernels
 from server.metrics import Metrics
 from server.recording import BuildingRecorder
 from server.session_types import Retention
@@ -126,7 +127,7 @@ def compile_kernels_in_child(settings: Settings) -> None:
 
 
 def _warm_kernels_for(settings: Settings) -> None:
-    _warm_kernels(tracker_params(settings), load_calibration(settings.encounter_calibration))
+    warm_kernels(tracker_params(settings), load_calibration(settings.encounter_calibration))
 
 
 def building_session(settings: Settings, building_id: str) -> BuildingSession:
@@ -187,7 +188,7 @@ def create_app(settings: Settings, tune_gc: bool = False) -> FastAPI:
         if settings.building_processes:
             await asyncio.to_thread(compile_kernels_in_child, settings)
         else:
-            _warm_kernels(params, calibration)
+            warm_kernels(params, calibration)
         recordings = settings.recordings_dir if settings.record else None
         tracking = TrackingService(
             sessions,
@@ -285,53 +286,6 @@ def _document_raw_bodies(app: FastAPI) -> None:
         return app.openapi_schema
 
     app.openapi = openapi  # type: ignore[method-assign]
-
-
-def _warm_kernels(params: TrackerParams, calibration: Calibration) -> None:
-    """Compile (or load from cache) every kernel the batch path uses before the first request: the serial
-    twins that groups of phones use and the parallel kernels of calls over a whole building
-    (``slam_core.kernels.serial``)."""
-    import numpy as np
-
-    from slam_core.kernels.serial import PARALLEL_MIN_USERS
-
-    for parallel_min_users in (1, PARALLEL_MIN_USERS):
-        _warm_tracker(params, calibration, parallel_min_users)
-    from slam_core.pdr.frontend import ImuSamples, PdrState, pdr_steps
-
-    t = np.arange(3_000.0, 4_000.0, 20.0)
-    gravity = np.column_stack([t, np.zeros(t.size), np.zeros(t.size), np.full(t.size, 9.81)])
-    pdr_steps(PdrState(), ImuSamples(acc=gravity, gyr=gravity * [1, 0, 0, 0], mag=gravity), params.pdr)
-
-
-def _warm_tracker(params: TrackerParams, calibration: Calibration, parallel_min_users: int) -> None:
-    import numpy as np
-
-    from slam_core.tracker import BuildingTracker, UserBatch
-
-    tracker = BuildingTracker(params, calibration, seed=0)
-    tracker.engine.parallel_min_users = parallel_min_users
-    tracker.pin_anchor(np.array([1.0, 0.0]), 0)
-    for name in ("a", "b"):
-        tracker.apply(
-            [
-                UserBatch(
-                    user=name,
-                    fix_t=np.array([1_000], dtype=np.int64),
-                    fix_xy=np.zeros((1, 2)),
-                    fix_sigma=np.array([0.5]),
-                    fix_azimuth=np.array([np.pi / 2]),
-                    step_t=np.array([1_500, 2_000], dtype=np.int64),
-                    step_length=np.array([0.5, 0.5]),
-                    step_azimuth=np.array([np.pi / 2, np.nan]),
-                    step_turn=np.array([np.nan, 0.0]),
-                    detect_t=np.array([2_000], dtype=np.int64),
-                    detect_type=np.array([0], dtype=np.int64),
-                )
-            ]
-        )
-    tracker.engine.observe_encounters(np.array([0]), np.array([1]), np.array([1.0]), np.array([1.0]))
-    tracker.engine.observe_position(np.array([0]), np.array([[1.0, 0.0]]), np.array([0.5]))
 
 
 def _install_error_handlers(app: FastAPI) -> None:
