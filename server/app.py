@@ -185,10 +185,14 @@ def create_app(settings: Settings, tune_gc: bool = False) -> FastAPI:
             broadcaster.add_sink(foxglove_live.publish)
         params = tracker_params(settings)
         calibration = load_calibration(settings.encounter_calibration)
-        if settings.building_processes:
-            await asyncio.to_thread(compile_kernels_in_child, settings)
-        else:
-            warm_kernels(params, calibration)
+        try:
+            if settings.building_processes:
+                await asyncio.to_thread(compile_kernels_in_child, settings)
+            else:
+                warm_kernels(params, calibration)
+        except BaseException:
+            engine.dispose()  # and its checkpoint thread: a server that cannot compile does not start
+            raise
         recordings = settings.recordings_dir if settings.record else None
         tracking = TrackingService(
             sessions,

@@ -9,6 +9,7 @@ from __future__ import annotations
 import logging
 import os
 import signal
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -159,9 +160,18 @@ def test_a_server_whose_kernels_fail_to_compile_does_not_start(
     url = f"sqlite:///{tmp_path / 'db.sqlite3'}"
     migrate_with_operator(url)
     monkeypatch.setattr(app_module, "_warm_kernels_for", _exit_three)  # what the child runs
+    before = set(_checkpoint_threads())
     settings = Settings(data_dir=tmp_path, database_url=url, building_processes=True)
     with (
         pytest.raises(RuntimeError, match=r"compiling the kernels failed .*exit code 3"),
         TestClient(create_app(settings)),
     ):
         pass
+    deadline = time.monotonic() + 10  # the database engine was disposed, its checkpoint thread with it
+    while set(_checkpoint_threads()) - before and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert set(_checkpoint_threads()) - before == set()
+
+
+def _checkpoint_threads() -> list[threading.Thread]:
+    return [t for t in threading.enumerate() if t.name == "sqlite-checkpoints"]
