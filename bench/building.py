@@ -3,9 +3,11 @@
     python bench/building.py [--phones 1000] [--seconds 20] [--group 32] [--path process|thread|both]
                              [--json OUT] [--profile OUT.prof]
 
-A ``BuildingSession`` on SQLite with recording on (the server's defaults) is fed the load benchmark's phones
-(``bench/load.py``: a batch per phone per second, two steps, a WiFi scan every 2 s, Bluetooth sightings) in
-groups of ``--group`` batches, the way the building's worker drains its queue under load. Every phone
+A building's session as its own process builds it (``server.app.building_session``: SQLite, its write-ahead
+log checkpointed by a thread beside the batch path, recording on: the server's defaults) is fed the load
+benchmark's phones (``bench/load.py``: a batch per phone per second, two steps, a WiFi scan every 2 s,
+Bluetooth sightings) in groups of ``--group`` batches, the way the building's worker drains its queue
+under load. Every phone
 posts its fix first; the figures count the seconds after that. Prints one JSON object: ``us_per_batch``
 (wall time of ``process`` and of the JSON of its receipts and live messages, mean over the seconds;
 ``_min``: the cheapest second; ``cpu_us_per_batch``: the process' CPU time over the same spans, which a
@@ -55,17 +57,15 @@ from report import emit
 
 from schemas.live import LIVE_MESSAGE_ADAPTER
 from server import tracker_snapshot
-from server.app import load_calibration, tracker_params, tune_gc_for_serving
+from server.app import building_session, tune_gc_for_serving
 from server.batch_decoding import decode_batch
 from server.building_process import batch_fields, received_batch
 from server.errors import ProblemError
-from server.recording import BuildingRecorder
 from server.session_types import Submission
 from server.settings import Settings
 from server.store.db import make_engine, make_session_factory
 from server.store.migrate import upgrade
 from server.store.models import BuildingRow
-from server.tracking import BuildingSession
 
 THREADS = numba.get_num_threads()
 """numba's threads in the server's own process; a building process runs its kernels on one
@@ -73,21 +73,15 @@ THREADS = numba.get_num_threads()
 
 
 def run(phones: int, seconds: int, group: int, path: str, profile: Path | None) -> dict[str, object]:
-    settings = Settings()
     with tempfile.TemporaryDirectory() as tmp:
-        engine = make_engine(f"sqlite:///{Path(tmp) / 'crowdslam.sqlite3'}")
+        settings = Settings(data_dir=Path(tmp), database_url=f"sqlite:///{Path(tmp) / 'crowdslam.sqlite3'}")
+        engine = make_engine(settings.resolved_database_url)
         upgrade(engine)
         with make_session_factory(engine).begin() as s:
             s.add(BuildingRow(id="load", name="Load test", rotation_rad=0.0))
-        session = BuildingSession(
-            "load",
-            make_session_factory(engine),
-            tracker_params(settings),
-            load_calibration(settings.encounter_calibration),
-            settings.seed,
-            recorder=BuildingRecorder(Path(tmp) / "recordings", "load"),
-            snapshot_period_s=settings.snapshot_period_s,
-        )
+        # the session a building's process serves with: its own engine with the write-ahead log
+        # checkpointed by a thread beside the batch path, recording, snapshots and retention as configured
+        session = building_session(settings, "load", engine)
         crowd = Crowd.create(phones, seed=0)
         start_ms = int(time.time() * 1000)
         per_second: list[float] = []
@@ -148,7 +142,7 @@ def run(phones: int, seconds: int, group: int, path: str, profile: Path | None) 
         session.close()
         assert session.recorder is not None
         session.recorder.close()
-        engine.dispose()
+        engine.dispose()  # and its checkpoint thread
     paths = {}
     if path == "both":
         us = {p: by_path[p][0] / by_path[p][1] * 1e6 for p in by_path}

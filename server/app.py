@@ -130,10 +130,11 @@ def _warm_kernels_for(settings: Settings) -> None:
     warm_kernels(tracker_params(settings), load_calibration(settings.encounter_calibration))
 
 
-def building_session(settings: Settings, building_id: str) -> BuildingSession:
+def building_session(settings: Settings, building_id: str, engine: Engine | None = None) -> BuildingSession:
     """A building's session as the settings describe it, on its own database engine (a building's
-    process); raises NotFoundError for an unknown building."""
-    engine = make_engine(settings.resolved_database_url)
+    process; ``engine``: that engine, made by the caller, who disposes of it), its write-ahead log
+    checkpointed beside the batch path; raises NotFoundError for an unknown building."""
+    engine = engine or make_engine(settings.resolved_database_url)
     checkpoint_in_background(engine, settings.sqlite_checkpoint_period_s)  # stops when the process does
     sessions = make_session_factory(engine)
     recorder = BuildingRecorder(settings.recordings_dir, building_id) if settings.record else None
