@@ -1,14 +1,15 @@
 """Load benchmark: a real server on loopback, N virtual phones posting one batch per second each, and live
 dashboards on the WebSocket.
 
-    python bench/load.py [--phones 250,500,1000,2000] [--duration 30] [--dashboards 10] [--json OUT]
+    python bench/load.py [--phones 250,500,1000,2000] [--duration 30] [--dashboards 10] [--buildings 1]
+                         [--postgres URL] [--json OUT]
 
 For each N (ascending) a fresh server (``crowdslam serve``, SQLite, recording on: the defaults a newcomer
-gets) is started in its own process. Each phone starts with a position fix, then posts every second: two
-steps (1.4 m/s, azimuth given), a WiFi scan every 2 s (15 strongest of 60 access points, log-distance path
-loss with 4 dB noise) and Bluetooth sightings of the phones within 8 m. Phones are spread evenly over each
-second, and their scans over every two (phones do not scan in step), so the offered load is N batches per
-second, half of them with a scan.
+gets; with ``--postgres``, a new database on that PostgreSQL server) is started in its own process. Each
+phone starts with a position fix, then posts every second: two steps (1.4 m/s, azimuth given), a WiFi scan
+every 2 s (15 strongest of 60 access points, log-distance path loss with 4 dB noise) and Bluetooth sightings
+of the phones within 8 m. Phones are spread evenly over each second, and their scans over every two (phones
+do not scan in step), so the offered load is N batches per second, half of them with a scan.
 
 The phones walk in during the first half of the warm-up (``_warmup_s``), evenly, as people enter a
 building; the second half lets the server settle before the measured window. (Admitting every phone in
@@ -34,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import json
 import math
 import multiprocessing
@@ -42,6 +44,7 @@ import re
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -56,6 +59,7 @@ from server.numba_cache import configure_numba_cache
 configure_numba_cache()
 
 from report import emit
+from sqlalchemy.engine import make_url
 from websockets.asyncio.client import connect
 
 from schemas.api import KeyScope
@@ -393,9 +397,28 @@ async def _drive(
     return results
 
 
-def _prepare(data_dir: Path, n: int, buildings: int) -> tuple[list[str], list[str]]:
+@contextlib.contextmanager
+def _database(data_dir: Path, postgres: str | None) -> Iterator[str]:
+    """The run's database: SQLite in its data folder (the default), or with ``postgres`` (a server URL
+    whose databases the bench may create and drop) a new database on that server, dropped after the run."""
+    if postgres is None:
+        yield f"sqlite:///{data_dir / 'crowdslam.sqlite3'}"
+        return
+    name = f"crowdslam_load_{os.getpid()}_{time.monotonic_ns()}"
+    admin = make_engine(postgres, isolation_level="AUTOCOMMIT")
+    try:
+        with admin.connect() as conn:
+            conn.exec_driver_sql(f'CREATE DATABASE "{name}"')
+        yield make_url(postgres).set(database=name).render_as_string(hide_password=False)
+    finally:
+        with admin.connect() as conn:
+            conn.exec_driver_sql(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)')
+        admin.dispose()
+
+
+def _prepare(database_url: str, n: int, buildings: int) -> tuple[list[str], list[str]]:
     """The buildings, a device key per phone (for its building) and a dashboard key per building."""
-    engine = make_engine(f"sqlite:///{data_dir / 'crowdslam.sqlite3'}")
+    engine = make_engine(database_url)
     upgrade(engine)
     with make_session_factory(engine).begin() as session:
         for b in range(buildings):
@@ -412,13 +435,18 @@ def _prepare(data_dir: Path, n: int, buildings: int) -> tuple[list[str], list[st
 
 
 def run_one(
-    n: int, duration_s: float, n_dashboards: int, connections: int, buildings: int = 1
+    n: int,
+    duration_s: float,
+    n_dashboards: int,
+    connections: int,
+    buildings: int = 1,
+    postgres: str | None = None,
 ) -> dict[str, Any]:
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory() as tmp, _database(Path(tmp), postgres) as database_url:
         data_dir = Path(tmp)
-        keys, dashboards = _prepare(data_dir, n, buildings)
+        keys, dashboards = _prepare(database_url, n, buildings)
         port = free_port()
-        env = {**os.environ, "CROWDSLAM_DATA_DIR": str(data_dir)}
+        env = {**os.environ, "CROWDSLAM_DATA_DIR": str(data_dir), "CROWDSLAM_DATABASE_URL": database_url}
         server = serve_process(env, port, data_dir / "server.log", log_level="warning")
         try:
             started = time.perf_counter()
@@ -435,6 +463,7 @@ def run_one(
     return {
         "phones": n,
         "buildings": buildings,
+        "database": "sqlite" if postgres is None else "postgresql",
         "offered_per_s": n,
         "batches_per_s": round(len(results.latencies_ms) / measured_s, 1),
         "p50_ms": round(float(np.percentile(lat, 50)), 1),
@@ -478,11 +507,17 @@ def main() -> int:
     parser.add_argument(
         "--connections", type=int, default=256, help="keep-alive sockets shared by the phones"
     )
+    parser.add_argument(
+        "--postgres",
+        metavar="URL",
+        help="serve from PostgreSQL instead of SQLite: each run in a new database on this server (e.g. "
+        "postgresql+psycopg://postgres@127.0.0.1:5432/test), dropped after it",
+    )
     parser.add_argument("--json", type=Path, help="also write the result here")
     args = parser.parse_args()
     rows = []
     for n in sorted(int(p) for p in args.phones.split(",")):
-        row = run_one(n, args.duration, args.dashboards, args.connections, args.buildings)
+        row = run_one(n, args.duration, args.dashboards, args.connections, args.buildings, args.postgres)
         print(json.dumps(row), file=sys.stderr)
         rows.append(row)
     ok = [
