@@ -31,6 +31,7 @@ from server.store.batches import (
     AcceptedBatch,
     insert_batches_once,
 )
+from server.store.writer_lock import writer_turns
 from slam_core.encounters import Calibration
 from slam_core.tracker import EstimateRow, TrackerParams, UserBatch
 
@@ -52,6 +53,8 @@ class BuildingSession(RecoverableSession):
         self.recorder = recorder
         self._last_prune = -math.inf
         super().__init__(building_id, sessions, params, calibration, seed, snapshot_period_s, retention)
+        with sessions() as session:
+            self._writer_turns = writer_turns(session.get_bind().engine)
 
     # ------------------------------------------------------------------ anchors
     def anchor(self, index: int) -> BuildingAnchor:
@@ -162,7 +165,7 @@ class BuildingSession(RecoverableSession):
         calls = dict(zip(order, self.devices.plan([group[i].header for i in order]), strict=True))
         base = self._round
         device_rows: list[dict[str, object]] = []
-        with self._sessions.begin() as session:
+        with self._writer_turns, self._sessions.begin() as session:  # see server.store.writer_lock
             inserted = insert_batches_once(session, [self._accepted(group[i], calls[i], base) for i in order])
             by_call: dict[int, list[int]] = {}
             for i, row_id in zip(order, inserted, strict=True):

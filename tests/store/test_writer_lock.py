@@ -1,0 +1,97 @@
+"""Buildings sharing a SQLite file take turns at its write lock through a ``flock`` beside it: held for the
+whole of a group's transaction, released after it, exclusive between two buildings of one process; nothing
+for PostgreSQL or an in-memory database."""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import threading
+from pathlib import Path
+
+import pytest
+
+from server.store.db import make_engine, make_session_factory
+from server.store.migrate import upgrade
+from server.store.models import BuildingRow
+from server.store.writer_lock import WriterTurns, writer_turns
+from tests.server.test_restart import CROWD, _session
+
+
+def _taken(path: Path) -> bool:
+    """Whether another holder has the turn (a non-blocking try from a file of our own)."""
+    with path.open("ab") as probe:
+        try:
+            fcntl.flock(probe.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return True
+        fcntl.flock(probe.fileno(), fcntl.LOCK_UN)
+        return False
+
+
+def test_a_turn_is_held_inside_and_free_after(tmp_path: Path) -> None:
+    turns = WriterTurns(tmp_path / "db.sqlite3-writers.lock")
+    assert not _taken(turns.path)
+    with turns:
+        assert _taken(turns.path)
+        with pytest.raises(RuntimeError, match="already held"):  # a session never waits on itself
+            turns.__enter__()
+        assert _taken(turns.path)
+    assert not _taken(turns.path)
+    with pytest.raises(RuntimeError), turns:  # released on an error as well
+        raise RuntimeError("the transaction failed")
+    assert not _taken(turns.path)
+
+
+def test_two_buildings_in_one_process_take_turns(tmp_path: Path) -> None:
+    path = tmp_path / "db.sqlite3-writers.lock"
+    first, second = WriterTurns(path), WriterTurns(path)
+    entered = threading.Event()
+
+    def take_second() -> None:
+        with second:
+            entered.set()
+
+    with first:
+        waiter = threading.Thread(target=take_second)
+        waiter.start()
+        assert not entered.wait(0.3)  # blocked while the first holds its turn
+    assert entered.wait(10.0)  # and given the turn once it is released
+    waiter.join()
+
+
+def test_only_a_sqlite_file_has_turns(tmp_path: Path) -> None:
+    file_engine = make_engine(f"sqlite:///{tmp_path / 'db.sqlite3'}")
+    turns = writer_turns(file_engine)
+    assert isinstance(turns, WriterTurns)
+    assert turns.path == tmp_path / "db.sqlite3-writers.lock"
+    assert isinstance(writer_turns(make_engine("sqlite://")), contextlib.nullcontext)
+    postgres = make_engine("postgresql+psycopg://postgres@127.0.0.1:5432/test")
+    assert isinstance(writer_turns(postgres), contextlib.nullcontext)
+    for engine in (file_engine, postgres):
+        engine.dispose()
+
+
+def test_a_group_of_batches_waits_for_its_turn(tmp_path: Path) -> None:
+    path = tmp_path / "db.sqlite3"
+    engine = make_engine(f"sqlite:///{path}")
+    upgrade(engine)
+    with make_session_factory(engine).begin() as session:
+        session.add(BuildingRow(id="hq", name="HQ", rotation_rad=0.0))
+    building = _session(engine)
+    other = WriterTurns(path.with_name(path.name + "-writers.lock"))  # another building's
+    done = threading.Event()
+
+    def process() -> None:
+        building.process(CROWD[:4])
+        done.set()
+
+    with other:
+        worker = threading.Thread(target=process)
+        worker.start()
+        assert not done.wait(0.5)  # the group waits while the other building writes
+    assert done.wait(30.0)
+    worker.join()
+    assert building.counters.batches == 4
+    building.close()
+    engine.dispose()
