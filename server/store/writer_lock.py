@@ -9,7 +9,8 @@ sleeper wakes: two buildings of 500 load-bench phones each had p99 458 ms where 
 13 ms. Here each building's batch transaction first takes an exclusive ``flock`` on a file beside the
 database, which the kernel hands to a waiter as soon as it is released; the groups still take turns (one
 writer at a time is SQLite's), but none sleeps past its turn. Other writers (the operator API, snapshot
-compression) are rare and keep SQLite's busy handler. PostgreSQL locks rows, and needs none of this.
+compression) are rare and keep SQLite's busy handler. A process killed while it holds a turn gives it up
+with its open files. PostgreSQL locks rows, and needs none of this.
 """
 
 from __future__ import annotations
