@@ -6,21 +6,19 @@
 A building's session as its own process builds it (``server.app.building_session``: SQLite, its write-ahead
 log checkpointed by a thread beside the batch path, recording on: the server's defaults) is fed the load
 benchmark's phones (``bench/load.py``: a batch per phone per second, two steps, a WiFi scan every 2 s,
-Bluetooth sightings) in groups of ``--group`` batches, the way the building's worker drains its queue
-under load. Every phone
-posts its fix first; the figures count the seconds after that. Prints one JSON object: ``us_per_batch``
-(wall time of ``process`` and of the JSON of its receipts and live messages, mean over the seconds;
-``_min``: the cheapest second; ``cpu_us_per_batch``: the process' CPU time over the same spans, which a
-shared machine's stolen time inflates less),
-``json_us_per_batch`` (that JSON alone), and what it ran on. ``--path`` says which side of the front the
-batches arrive by: ``process`` (a building in its own process, ``CROWDSLAM_BUILDING_PROCESSES``: the front
-has validated, converted and packed each batch, and the building's time starts at unpickling it) or
-``thread`` (a building in the server's process: it decodes and converts each batch itself; numba's
-kernels on every core, where a building process runs them on one thread as the server does); ``both``
-alternates the two group by group and reports each (``us_per_batch_process``, ``_thread`` and their
-ratio): on a shared machine whose speed drifts, only runs interleaved like this compare. Without the
-HTTP front, the load generator and the dashboards on the same cores, this is steadier than
-``bench/load.py`` and says what a change to the batch path costs.
+Bluetooth sightings) in groups of ``--group`` batches, the way the building's worker drains its queue under
+load. Every phone posts its fix first; the figures count the seconds after that. Prints one JSON object:
+``us_per_batch`` (wall time of ``process`` and of the JSON of its receipts and live messages, mean over the
+seconds; ``_min``: the cheapest second; ``cpu_us_per_batch``: the process' CPU time over the same spans,
+which a shared machine's stolen time inflates less), ``json_us_per_batch`` (that JSON alone), and what it
+ran on. ``--path`` says which side of the front the batches arrive by: ``process`` (a building in its own
+process, ``CROWDSLAM_BUILDING_PROCESSES``: the front has validated, converted and packed each batch, and the
+building's time starts at unpickling it) or ``thread`` (a building in the server's process: it decodes and
+converts each batch itself; numba's kernels on every core, where a building process runs them on one thread
+as the server does); ``both`` alternates the two group by group and reports each (``us_per_batch_process``,
+``_thread`` and their ratio): on a shared machine whose speed drifts, only runs interleaved like this
+compare. Without the HTTP front, the load generator and the dashboards on the same cores, this is steadier
+than ``bench/load.py`` and says what a change to the batch path costs.
 
 It also reports the pauses that hold a group, and so every batch queued behind it, with the building at
 the end of the run: ``group_ms_p99`` and ``group_ms_max`` (per call of ``process``), ``snapshot_pickle_ms``
