@@ -17,11 +17,14 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import logging
 from pathlib import Path
 from types import TracebackType
 from typing import BinaryIO
 
 from sqlalchemy import Engine
+
+logger = logging.getLogger(__name__)
 
 
 class WriterTurns:
@@ -33,13 +36,25 @@ class WriterTurns:
     def __init__(self, path: Path) -> None:
         self.path = path
         self._file: BinaryIO | None = None
+        self.supported = True
+        """False once the file system refused ``flock`` (some network file systems): the transactions then
+        wait in SQLite's busy handler, as they did before the turns."""
 
     def __enter__(self) -> WriterTurns:
         if self._file is not None:
             raise RuntimeError(f"a turn at {self.path} is already held by this session")
+        if not self.supported:
+            return self
         file = self.path.open("ab")
         try:
             fcntl.flock(file.fileno(), fcntl.LOCK_EX)  # releases the GIL while it waits
+        except OSError as exc:
+            file.close()
+            self.supported = False
+            logger.warning(
+                "no writer turns at %s (%s): SQLite's busy handler decides who writes", self.path, exc
+            )
+            return self
         except BaseException:
             file.close()
             raise

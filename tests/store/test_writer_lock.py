@@ -5,7 +5,9 @@ for PostgreSQL or an in-memory database."""
 from __future__ import annotations
 
 import contextlib
+import errno
 import fcntl
+import logging
 import threading
 from pathlib import Path
 
@@ -95,3 +97,24 @@ def test_a_group_of_batches_waits_for_its_turn(tmp_path: Path) -> None:
     assert building.counters.batches == 4
     building.close()
     engine.dispose()
+
+
+def test_a_file_system_without_flock_falls_back_to_the_busy_handler(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    turns = WriterTurns(tmp_path / "db.sqlite3-writers.lock")
+    calls = []
+
+    def refuse(fd: int, operation: int) -> None:
+        calls.append(operation)
+        raise OSError(errno.ENOLCK, "No locks available")
+
+    monkeypatch.setattr(fcntl, "flock", refuse)
+    with caplog.at_level(logging.WARNING, logger="server.store.writer_lock"):
+        with turns:
+            pass
+        with turns:  # not tried again
+            pass
+    assert calls == [fcntl.LOCK_EX]
+    assert not turns.supported
+    assert any("no writer turns" in r.getMessage() for r in caplog.records)
