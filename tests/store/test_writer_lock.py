@@ -13,11 +13,9 @@ from pathlib import Path
 
 import pytest
 
-from server.store.db import make_engine, make_session_factory
-from server.store.migrate import upgrade
-from server.store.models import BuildingRow
+from server.store.db import make_engine
 from server.store.writer_lock import WriterTurns, writer_turns
-from tests.server.test_restart import CROWD, _session
+from tests.server.test_restart import CROWD, _fresh_building, _session
 
 
 def _taken(path: Path) -> bool:
@@ -76,10 +74,7 @@ def test_only_a_sqlite_file_has_turns(tmp_path: Path) -> None:
 
 def test_a_group_of_batches_waits_for_its_turn(tmp_path: Path) -> None:
     path = tmp_path / "db.sqlite3"
-    engine = make_engine(f"sqlite:///{path}")
-    upgrade(engine)
-    with make_session_factory(engine).begin() as session:
-        session.add(BuildingRow(id="hq", name="HQ", rotation_rad=0.0))
+    engine = _fresh_building(f"sqlite:///{path}")
     building = _session(engine)
     other = WriterTurns(path.with_name(path.name + "-writers.lock"))  # another building's
     done = threading.Event()
