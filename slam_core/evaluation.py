@@ -8,7 +8,7 @@ calibrated its models by experiment before deployment.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -27,6 +27,7 @@ from slam_core.encounters import (
     wifi_eq3_similarity,
 )
 from slam_core.fastslam import DynamicSlam
+from slam_core.map_quality import map_quality
 from slam_core.metrics import error_summary
 from slam_core.params import FilterParams, HumanAnchorParams, MotionParams
 from slam_core.simulate import Scenario, Simulation, UserTrace, simulate
@@ -251,6 +252,7 @@ def run_scenario_with_errors(
         "encounters_chosen_per_user": 0.0 if run is None else 2 * run.chosen / n_users,
         "encounters_applied_per_user": 0.0 if run is None else 2 * run.applied.size / n_users,
         "fingerprint_fixes_per_user": 0.0 if run is None else run.fingerprint_fixes / n_users,
+        **({} if run is None else run.map_scores),
         "expected_anchors_passed_per_user": scenario.raw.get("expected_statistics", {}).get(
             "building_anchors_passed_per_user"
         ),
@@ -290,6 +292,7 @@ class FilterRun:
     chosen: int  # encounters chosen by the selector
     applied: np.ndarray  # indices (into the detections) of the encounters applied
     fingerprint_fixes: int = 0  # scans localised on the crowd fingerprint map and applied
+    map_scores: dict[str, float] = field(default_factory=dict)  # the learned map against the truth
 
 
 def _filter_errors(
@@ -327,6 +330,11 @@ def _filter_errors(
     anchor_at = [
         dict(zip(tr.anchor_step.tolist(), tr.anchor_detected_type.tolist(), strict=True)) for tr in sim.users
     ]
+    true_anchor_at = [
+        dict(zip(tr.anchor_step.tolist(), tr.anchor_true.tolist(), strict=True)) for tr in sim.users
+    ]
+    detection_crowd_ids: list[int] = []
+    detection_true_anchors: list[int] = []
     enc_tick = (
         np.floor(encounters.t / TICK_S).astype(np.int64) if encounters is not None else np.zeros(0, np.int64)
     )
@@ -379,6 +387,7 @@ def _filter_errors(
                 if k in anchor_at[u]:
                     det_users.append(int(u))
                     det_types.append(anchor_at[u][k])
+                    detection_true_anchors.append(true_anchor_at[u][k])
             if det_users:
                 # each detection feeds the crowd map with the user's pre-update estimate, then the filter
                 before = engine.summaries(slots[det_users])
@@ -391,6 +400,7 @@ def _filter_errors(
                     ]
                 )
                 engine.observe_building_anchors(slots[det_users], np.array(det_types), ids)
+                detection_crowd_ids += ids.tolist()
                 if crowd_solver == "graph":
                     for u, c in zip(det_users, ids, strict=True):
                         graph.add_detection(u, int(c), displacement[u], float(walked[u]))
@@ -439,6 +449,13 @@ def _filter_errors(
         chosen,
         np.concatenate(applied) if applied else np.zeros(0, dtype=np.int64),
         fingerprint_fixes,
+        map_quality(
+            np.array(detection_crowd_ids, dtype=np.int64),
+            np.array(detection_true_anchors, dtype=np.int64),
+            crowd.means(),
+            {k for k in crowd.means() if crowd.anchor(k)[3]},
+            sim.world.anchor_xy,
+        ),
     )
 
 

@@ -58,6 +58,21 @@ def test_human_anchors_cut_the_median_and_the_tail_across_seeds(
     assert not any(results[("semanticslam", s)]["fingerprint_fixes_per_user"] for s in SEEDS)
 
 
+def test_human_anchors_give_the_crowd_a_better_map(results: dict[tuple[str, int], dict[str, Any]]) -> None:
+    """Users placed by human anchors associate their detections better, so the crowd's joint solve places
+    the anchors better. Seeds 0-2 measured: map error median 0.54 / 0.55 / 0.55 m (dynamicslam) against
+    0.76 / 0.98 / 0.99 m, misassociated detections 0.8 / 5.1 / 2.8 % against 3.8 / 7.3 / 7.7 %."""
+    for seed in SEEDS:
+        dyn, sem = results[("dynamicslam", seed)], results[("semanticslam", seed)]
+        assert dyn["map_error_median_m"] < 0.85 * sem["map_error_median_m"]
+        assert dyn["map_misassociated_fraction"] < sem["map_misassociated_fraction"]
+        assert dyn["map_error_median_m"] < 0.8
+        # 27 anchors to learn; 12-23 duplicates measured: a regression in association shows here first
+        assert 20 <= dyn["map_anchors_learned"] <= 55
+        assert dyn["map_duplicate_anchors"] <= 25
+    assert "map_error_median_m" not in results[("pdr", 0)]
+
+
 def test_the_issue_targets_hold_on_seed_0(results: dict[tuple[str, int], dict[str, Any]]) -> None:
     """The paper's figures (Table 3): median 1.1 m, p90 2.3 m; measured 0.78 / 1.84 m."""
     assert results[("dynamicslam", 0)]["median_m"] <= 1.0
