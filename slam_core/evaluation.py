@@ -292,7 +292,7 @@ class FilterRun:
     chosen: int  # encounters chosen by the selector
     applied: np.ndarray  # indices (into the detections) of the encounters applied
     fingerprint_fixes: int = 0  # scans localised on the crowd fingerprint map and applied
-    map_scores: dict[str, float] = field(default_factory=dict)  # the learned map against the truth
+    map_scores: dict[str, float | None] = field(default_factory=dict)  # the learned map against the truth
 
 
 def _filter_errors(

@@ -21,14 +21,14 @@ def map_quality(
     crowd_means: dict[int, np.ndarray],
     known_crowd_ids: set[int],
     true_anchor_xy: np.ndarray,
-) -> dict[str, float]:
+) -> dict[str, float | None]:
     """Scores of a learned map: ``detection_crowd_id[i]`` is the crowd anchor detection i was associated
     with, ``detection_true_anchor[i]`` the true anchor it was of; ``crowd_means`` the map's final means
     (live anchors), ``known_crowd_ids`` the operator-known ones (exact, not scored for position).
 
     - ``map_anchors_learned``: crowd anchors learned from detections (known ones left out);
     - ``map_error_median_m`` / ``map_error_p90_m``: distance of each learned anchor's final mean to its
-      majority anchor (NaN when none was learned);
+      majority anchor (None when none was learned: JSON's null, where NaN is not JSON);
     - ``map_duplicate_anchors``: crowd anchors beyond the first standing for the same true anchor (the crowd
       learned it twice);
     - ``map_misassociated_fraction``: detections whose crowd anchor stands for another true anchor.
@@ -54,8 +54,8 @@ def map_quality(
     )
     return {
         "map_anchors_learned": float(errors.size),
-        "map_error_median_m": float(np.median(errors)) if errors.size else float("nan"),
-        "map_error_p90_m": float(np.percentile(errors, 90)) if errors.size else float("nan"),
+        "map_error_median_m": float(np.median(errors)) if errors.size else None,
+        "map_error_p90_m": float(np.percentile(errors, 90)) if errors.size else None,
         "map_duplicate_anchors": float(sum(n - 1 for n in stands_for.values())),
         "map_misassociated_fraction": wrong / ids.size if ids.size else 0.0,
     }
