@@ -2,11 +2,15 @@
 crowd-sourcing, which converges to the true anchor location over time", Section 4.1.1).
 
 Each detection contributes the detecting user's position estimate (cloud mean, cloud covariance plus the
-detection's R). A contribution is associated with the crowd anchor that minimises the Mahalanobis distance
-minus twice the log type posterior p(f | f_hat), inside a 99 % chi-square gate; otherwise it starts a new
-anchor. An anchor's estimate is the information-weighted fusion of its contributors, each user counted once
-(its latest contribution), because one user's repeated passes share that user's drift and are not
-independent. Operator-known anchors never move.
+detection's R). A contribution is associated as each particle associates its own detections (Eq. 15-16): with
+the crowd anchor n that maximises N(d_n; 0, S_n) p(f_n | f_hat), d_n its offset and S_n the anchor's
+covariance plus the contribution's, unless a new anchor's p0 p(f_hat | f_hat) is larger; a 99 % chi-square
+gate bounds the offsets considered. An earlier rule (least Mahalanobis distance minus twice the log type
+posterior, anchors of a type with p(f | f_hat) < 0.05 left out) let each type confusion start a duplicate: on
+the paper testbed (seeds 0-4) DynamicSLAM's map held 12-23 duplicates of its 27 anchors, 3-11 with this rule
+(``slam_core.map_quality`` scores it). An anchor's estimate is the information-weighted fusion of its
+contributors, each user counted once (its latest contribution), because one user's repeated passes share that
+user's drift and are not independent. Operator-known anchors never move.
 
 Beyond the paper: *signature anchors* (a fixed beacon or WiFi AP heard strongly, ``slam_core.detectors``)
 carry an identity, so a contribution joins the anchor with its signature whatever its position, and these
@@ -52,15 +56,18 @@ class CrowdMapBuilder:
         self,
         type_posterior: np.ndarray,
         detection_sigma_m: float,
-        min_type_probability: float = 0.05,
+        new_anchor_likelihood: float = 1e-3,
         fuse: bool = True,
     ):
-        """``fuse=False``: contributions only associate (and create anchors); positions come from
-        ``set_estimate`` (the joint solve of ``slam_core.crowd_graph``)."""
+        """``new_anchor_likelihood``: p0 of Eq. 16 (per m^2), as the particles' own maps use it
+        (``BuildingAnchorParams``). ``fuse=False``: contributions only associate (and create anchors);
+        positions come from ``set_estimate`` (the joint solve of ``slam_core.crowd_graph``)."""
+        if not (new_anchor_likelihood > 0 and math.isfinite(new_anchor_likelihood)):
+            raise ValueError("new_anchor_likelihood must be a finite number > 0")
         self._fuse = fuse
         self._posterior = np.asarray(type_posterior, dtype=float)
         self._r = detection_sigma_m**2
-        self._min_type = min_type_probability
+        self._log_p0 = math.log(new_anchor_likelihood)
         self._anchors: list[_CrowdAnchor] = []
         self._by_signature: dict[str, int] = {}
 
@@ -148,19 +155,21 @@ class CrowdMapBuilder:
     def contribute(self, user: int, mean: np.ndarray, cov: np.ndarray, detected_type: int, t: float) -> int:
         """Fuse one detection; returns the crowd anchor's index."""
         mean, cov = _contribution(mean, cov, self._r)
-        best, best_score = -1, math.inf
+        # Eq. 16: a new anchor; Eq. 15: each existing one (log likelihoods, eta cancels)
+        best, best_score = -1, self._log_p0 + math.log(self._posterior[detected_type, detected_type])
         for k, anchor in enumerate(self._anchors):
             if anchor.removed or anchor.signature:
                 continue
             type_p = self._posterior[anchor.type, detected_type]
-            if type_p < self._min_type:
+            if type_p <= 0.0:
                 continue
             d = mean - anchor.mean
-            m2 = float(d @ np.linalg.solve(anchor.cov + cov, d))
+            s = anchor.cov + cov
+            m2 = float(d @ np.linalg.solve(s, d))
             if m2 > GATE_CHI2_99:
                 continue
-            score = m2 - 2.0 * math.log(type_p)
-            if score < best_score:
+            score = -0.5 * m2 - 0.5 * math.log(float(np.linalg.det(2.0 * math.pi * s))) + math.log(type_p)
+            if score > best_score:
                 best, best_score = k, score
         if best < 0:
             best = self._new_anchor(mean, cov, detected_type)

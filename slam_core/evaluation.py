@@ -184,7 +184,12 @@ def filter_params(mode: str, sampling: str, particles: int, motion_model: str) -
 
 
 def crowd_with_known_anchors(sim: Simulation, params: FilterParams, fuse: bool = True) -> CrowdMapBuilder:
-    crowd = CrowdMapBuilder(params.anchors.type_posterior, params.anchors.detection_sigma_m, fuse=fuse)
+    crowd = CrowdMapBuilder(
+        params.anchors.type_posterior,
+        params.anchors.detection_sigma_m,
+        params.anchors.new_anchor_likelihood,
+        fuse=fuse,
+    )
     for k in np.flatnonzero(sim.world.anchor_known):
         crowd.add_known(sim.world.anchor_xy[k], int(sim.world.anchor_type[k]))
     return crowd

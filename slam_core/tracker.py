@@ -74,7 +74,10 @@ class BuildingTracker:
         fp = params.filter
         self.engine = DynamicSlam(fp, seed=seed)
         self.crowd = CrowdMapBuilder(
-            fp.anchors.type_posterior, fp.anchors.detection_sigma_m, fuse=params.crowd_solver == "fusion"
+            fp.anchors.type_posterior,
+            fp.anchors.detection_sigma_m,
+            fp.anchors.new_anchor_likelihood,
+            fuse=params.crowd_solver == "fusion",
         )
         self.graph = CrowdGraph(GraphParams(detection_sigma_m=fp.anchors.detection_sigma_m))
         self.detector = EncounterDetector(params.detection, calibration)

@@ -71,3 +71,32 @@ def test_signature_survives_merge_restore_and_remove() -> None:
     assert crowd.find_signature("beacon:aa") is None
     restored = crowd.restore(np.zeros(2), np.eye(2), 2, False, 3, 5.0, signature="wifi:cc")
     assert crowd.find_signature("wifi:cc") == restored
+
+
+def test_association_weighs_type_confusion_against_a_new_anchor_as_eq_15_16_do() -> None:
+    """An elevator (type 0) learned at the origin with covariance I; detections of covariance I (S = 2I).
+    Eq. 16's new anchor scores log(p0 p(door | door)) = log(1e-3 * 0.8) = -7.13. A door detection (type 2;
+    p(elevator | door) = 0.04) 0.5 m away scores log N + log 0.04 = -2.59 - 3.22 = -5.81 and joins; 2.5 m
+    away (inside the 99 % gate) -7.31 and starts a new anchor, where an elevator detection there scores
+    -4.32 and joins. (The earlier rule left out every anchor with p(f | f_hat) < 0.05: a duplicate each
+    time.)"""
+    crowd = CrowdMapBuilder(POSTERIOR, detection_sigma_m=1e-3)
+    elevator = crowd.contribute(0, np.zeros(2), np.eye(2), 0, 0.0)
+    assert crowd.contribute(1, np.array([0.5, 0.0]), np.eye(2), 2, 1.0) == elevator
+    fresh = CrowdMapBuilder(POSTERIOR, detection_sigma_m=1e-3)
+    elevator = fresh.contribute(0, np.zeros(2), np.eye(2), 0, 0.0)
+    door = fresh.contribute(1, np.array([2.5, 0.0]), np.eye(2), 2, 1.0)
+    assert door != elevator
+    again = CrowdMapBuilder(POSTERIOR, detection_sigma_m=1e-3)
+    elevator = again.contribute(0, np.zeros(2), np.eye(2), 0, 0.0)
+    assert again.contribute(1, np.array([2.5, 0.0]), np.eye(2), 0, 1.0) == elevator
+    # a larger p0 makes new anchors cheaper: the near door detection then starts one too
+    eager = CrowdMapBuilder(POSTERIOR, detection_sigma_m=1e-3, new_anchor_likelihood=0.05)
+    elevator = eager.contribute(0, np.zeros(2), np.eye(2), 0, 0.0)
+    assert eager.contribute(1, np.array([0.5, 0.0]), np.eye(2), 2, 1.0) != elevator
+
+
+@pytest.mark.parametrize("p0", [0.0, -1.0, float("nan"), float("inf")])
+def test_new_anchor_likelihood_must_be_positive_and_finite(p0: float) -> None:
+    with pytest.raises(ValueError, match="new_anchor_likelihood"):
+        CrowdMapBuilder(POSTERIOR, detection_sigma_m=0.5, new_anchor_likelihood=p0)
