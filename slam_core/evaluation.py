@@ -35,6 +35,10 @@ from slam_core.tracker_radio import apply_fingerprint_fixes
 
 MODES = ("pdr", "semanticslam", "dynamicslam")
 CALIBRATION_SEED_OFFSET = 10_007
+CALIBRATION_MIN_USERS = 23
+"""The labelled-pair experiment that fits the range models walks at least the paper testbed's 23 phones:
+the models belong to the radio environment, not to how many users the evaluated world holds (the density
+sweep's sparsest world has 2, whose twin gave no WiFi pair to fit)."""
 SCAN_PAIR_WINDOW_S = 1.0
 MEETING_GAP_S = 30.0
 """Detections of a pair less than 30 s apart belong to one meeting (``encounters_per_user`` counts
@@ -127,7 +131,8 @@ def calibrate(scenario: Scenario, seed: int, selection: SelectionParams | None =
     readings the tracker will apply: those passing the model's detection rule from pairs within the
     selection range (the calibration world's stand-in for 'the filters place them that close')."""
     selection = selection or SelectionParams()
-    sim = simulate(scenario, seed + CALIBRATION_SEED_OFFSET)
+    users = max(int(scenario["users"]["count"]), CALIBRATION_MIN_USERS)
+    sim = simulate(_with_users(scenario, users), seed + CALIBRATION_SEED_OFFSET)
     wifi = wifi_candidates(sim, WifiEq3Params(), threshold=math.inf)
     bt = bluetooth_candidates(sim, BluetoothParams(), cutoff=-math.inf)
     wifi_model = fit_range_model(wifi.feature, wifi.true_distance, "wifi-log", FIT_MAX_DISTANCE_M)
@@ -541,12 +546,24 @@ def sweep_values(kind: str) -> list[float]:
 
 def swept_scenario(scenario: Scenario, kind: str, value: float) -> Scenario:
     """The scenario with one quantity changed, as the paper's sweeps do (the rest stays as given)."""
-    raw = {k: dict(v) if isinstance(v, dict) else v for k, v in scenario.raw.items()}
-    area = raw["floor"]["width_m"] * raw["floor"]["height_m"]
+    area = scenario["floor"]["width_m"] * scenario["floor"]["height_m"]
     if kind == "density":
-        raw["users"]["count"] = max(2, round(area / value))
-    elif kind == "anchor-density":
+        return _with_users(scenario, max(2, round(area / value)))
+    raw = _raw_copy(scenario)
+    if kind == "anchor-density":
         raw["building_anchors"]["count"] = max(
             raw["building_anchors"]["known_positions"], round(area / value)
         )
     return Scenario.from_dict(raw)
+
+
+def _with_users(scenario: Scenario, count: int) -> Scenario:
+    """The scenario with ``count`` users (the rest as given)."""
+    raw = _raw_copy(scenario)
+    raw["users"]["count"] = count
+    return Scenario.from_dict(raw)
+
+
+def _raw_copy(scenario: Scenario) -> dict[str, Any]:
+    """The scenario's settings, each section copied so that changing one leaves the scenario as it was."""
+    return {k: dict(v) if isinstance(v, dict) else v for k, v in scenario.raw.items()}

@@ -78,12 +78,16 @@ def run(args: argparse.Namespace) -> int:
         print(f"crowdslam evaluate: cannot use scenario {args.scenario}: {error}")
         return 2
     plot = args.plot or args.json.with_suffix(".png")
-    if args.sweep:
-        result = _sweep(scenario, args, plot)
-    elif args.compare:
-        result = _compare(scenario, args, plot)
-    else:
-        result = _single(scenario, args, plot)
+    try:
+        if args.sweep:
+            result = _sweep(scenario, args, plot)
+        elif args.compare:
+            result = _compare(scenario, args, plot)
+        else:
+            result = _single(scenario, args, plot)
+    except ValueError as error:  # a world the models cannot be calibrated or run on
+        print(f"crowdslam evaluate: cannot evaluate scenario {args.scenario}: {error}")
+        return 2
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(result, indent=2) + "\n")
     print(json.dumps(result, indent=2))

@@ -59,3 +59,17 @@ def test_unreadable_scenario_is_a_clear_error(tmp_path: Path, capsys: pytest.Cap
     bad.write_text("{")
     assert main(["evaluate", "--scenario", str(bad), "--json", str(tmp_path / "x.json")]) == 2
     assert "cannot use scenario" in capsys.readouterr().out
+
+
+def test_a_scenario_that_cannot_be_calibrated_is_a_clear_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    raw = json.loads(TESTBED.read_text())
+    raw["wifi"]["access_points"] = 0  # no WiFi pair to fit the Eq. 3 range model on
+    raw["users"]["walk_length_m"] = 20.0
+    path = tmp_path / "no-wifi.json"
+    path.write_text(json.dumps(raw))
+    out = tmp_path / "x.json"
+    assert main(["evaluate", "--scenario", str(path), "--mode", "dynamicslam", "--json", str(out)]) == 2
+    assert "cannot evaluate scenario" in capsys.readouterr().out
+    assert not out.exists()

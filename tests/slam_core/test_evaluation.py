@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from slam_core.evaluation import run_scenario
+from slam_core.evaluation import calibrate, run_scenario, swept_scenario
 from slam_core.simulate import Scenario
 
 TESTBED = Path(__file__).resolve().parents[3] / "shared" / "scenarios" / "paper-testbed.json"
@@ -88,3 +88,17 @@ def test_every_step_is_scored(results: dict[tuple[str, int], dict[str, Any]]) ->
         assert r["n_estimates"] > 23 * 340
         assert np.isfinite(r["max_m"])
         assert r["max_m"] < 40.0
+
+
+def test_a_sparse_world_is_calibrated_on_enough_phones() -> None:
+    """The density sweep's sparsest world (1,500 m^2 per user: 2 users) used to calibrate on a 2-user twin,
+    which had no WiFi pair within the fit's range, and the sweep failed at its last value."""
+    scenario = Scenario.from_dict(json.loads(TESTBED.read_text()))
+    sparse = swept_scenario(scenario, "density", 1500)
+    assert sparse["users"]["count"] == 2
+    assert scenario["users"]["count"] == 23  # the sweep left the given scenario as it was
+    calibration = calibrate(sparse, 0)
+    for model in (calibration.wifi, calibration.bluetooth):
+        assert model.bin_mse  # R floors measured on the calibration world's labelled pairs
+        assert np.all(np.isfinite(model.coefficients))
+    assert calibration == calibrate(scenario, 0)  # the same 23-phone experiment as the testbed's own
