@@ -76,7 +76,11 @@ def _run_scenario(args: argparse.Namespace) -> int:
     except (OSError, ValueError, KeyError) as error:
         print(f"crowdslam calibrate: {args.scenario}: {error}")
         return 2
-    calibration = calibrate(scenario, args.seed)
+    try:
+        calibration = calibrate(scenario, args.seed)
+    except ValueError as error:  # e.g. a world with too few labelled pairs to fit a range model
+        print(f"crowdslam calibrate: {args.scenario}: {error}")
+        return 2
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(calibration.to_dict(), indent=1) + "\n")
     print(f"wrote {args.out}")

@@ -73,3 +73,6 @@ def test_a_scenario_that_cannot_be_calibrated_is_a_clear_error(
     assert main(["evaluate", "--scenario", str(path), "--mode", "dynamicslam", "--json", str(out)]) == 2
     assert "cannot evaluate scenario" in capsys.readouterr().out
     assert not out.exists()
+    assert main(["calibrate", "--scenario", str(path), "--out", str(out)]) == 2
+    assert "labelled pairs to fit the wifi-log model" in capsys.readouterr().out
+    assert not out.exists()
