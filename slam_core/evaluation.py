@@ -452,6 +452,7 @@ def _filter_errors(
             errors += np.linalg.norm(summary[:, 0:2] - truth, axis=1).tolist()
             error_users += us.tolist()
             best_errors += np.linalg.norm(summary[:, 5:7] - truth, axis=1).tolist()
+    final_map = crowd.means()
     return FilterRun(
         np.array(errors),
         np.array(best_errors),
@@ -462,8 +463,8 @@ def _filter_errors(
         map_quality(
             np.array(detection_crowd_ids, dtype=np.int64),
             np.array(detection_true_anchors, dtype=np.int64),
-            crowd.means(),
-            {k for k in crowd.means() if crowd.anchor(k)[3]},
+            final_map,
+            {k for k in final_map if crowd.anchor(k)[3]},
             sim.world.anchor_xy,
         ),
     )
