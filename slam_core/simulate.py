@@ -40,6 +40,14 @@ class Scenario:
     def __getitem__(self, key: str) -> Any:
         return self.raw[key]
 
+    def with_setting(self, section: str, key: str, value: Any) -> Scenario:
+        """The scenario with one setting changed (a copy: this scenario stays as it is)."""
+        raw = {k: dict(v) if isinstance(v, dict) else v for k, v in self.raw.items()}
+        if section not in raw or not isinstance(raw[section], dict):
+            raise KeyError(f"scenario has no section {section!r}")
+        raw[section][key] = value
+        return Scenario.from_dict(raw)
+
 
 @dataclass(frozen=True)
 class World:

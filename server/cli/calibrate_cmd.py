@@ -68,8 +68,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run_scenario(args: argparse.Namespace) -> int:
-    from slam_core.evaluation import calibrate
     from slam_core.simulate import Scenario
+    from slam_core.simulated_encounters import calibrate
 
     try:
         scenario = Scenario.from_dict(json.loads(args.scenario.read_text()))

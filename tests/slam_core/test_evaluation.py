@@ -10,8 +10,9 @@ from typing import Any
 import numpy as np
 import pytest
 
-from slam_core.evaluation import calibrate, run_scenario, swept_scenario
+from slam_core.evaluation import run_scenario, swept_scenario
 from slam_core.simulate import Scenario
+from slam_core.simulated_encounters import calibrate
 
 TESTBED = Path(__file__).resolve().parents[3] / "shared" / "scenarios" / "paper-testbed.json"
 SEEDS = (0, 1, 2)

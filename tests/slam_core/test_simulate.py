@@ -86,3 +86,14 @@ def test_bad_scenarios_are_rejected(patch, message: str) -> None:  # type: ignor
     patch(raw)
     with pytest.raises(ValueError, match=message):
         Scenario.from_dict(raw)
+
+
+def test_one_setting_changes_in_a_copy(scenario: Scenario) -> None:
+    fewer = scenario.with_setting("users", "count", 2)
+    assert fewer["users"]["count"] == 2
+    assert scenario["users"]["count"] == 23  # the given scenario is untouched
+    assert fewer["wifi"] == scenario["wifi"]
+    with pytest.raises(KeyError, match="no section 'lobby'"):
+        scenario.with_setting("lobby", "count", 2)
+    with pytest.raises(ValueError, match="corridor"):  # the copy is validated like any scenario
+        scenario.with_setting("floor", "corridors", "ring")
