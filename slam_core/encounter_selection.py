@@ -79,9 +79,7 @@ class EncounterSelector:
             return chosen
         p = self.params
         keys = pair_keys if isinstance(pair_keys, np.ndarray) else _codes(pair_keys)
-        backwards = np.argsort(t_ms, kind="stable")[::-1]
-        _, first = np.unique(keys[backwards], return_index=True)
-        latest = np.sort(backwards[first])  # each pair's latest reading in this call
+        latest = latest_per_pair(t_ms, keys)
         self.n_considered += int(latest.size)
         gated = latest[
             (predicted_m[latest] <= p.select_range_m) & (sigma_at_prediction_m[latest] <= p.max_sigma_m)
@@ -104,6 +102,15 @@ class EncounterSelector:
         """Drop cooldowns that ended before ``t_ms`` (bounded memory in a long-running building)."""
         horizon = t_ms - self.params.pair_cooldown_ms
         self._last_applied = {k: v for k, v in self._last_applied.items() if v >= horizon}
+
+
+def latest_per_pair(t_ms: np.ndarray, keys: np.ndarray) -> np.ndarray:
+    """Indices, in increasing order, of each pair's latest reading (the last of equal times): the only
+    reading of a pair ``EncounterSelector.choose`` considers, so a caller may narrow its input to them."""
+    backwards = np.argsort(np.asarray(t_ms), kind="stable")[::-1]
+    _, first = np.unique(np.asarray(keys)[backwards], return_index=True)
+    latest: np.ndarray = np.sort(backwards[first])
+    return latest
 
 
 def _codes(keys: Sequence[Hashable]) -> np.ndarray:

@@ -27,6 +27,7 @@ from slam_core.params import FilterParams, HumanAnchorParams, MotionParams
 from slam_core.simulate import Scenario, Simulation, UserTrace, simulate
 from slam_core.simulated_encounters import Encounters, calibrate, detect_encounters, meetings_per_user
 from slam_core.tracker_radio import apply_fingerprint_fixes
+from slam_core.tracker_rounds import carry_variance
 
 MODES = ("pdr", "semanticslam", "dynamicslam")
 TICK_S = 0.5
@@ -213,6 +214,8 @@ def _filter_errors(
     if fp is None:
         scan_tick = np.zeros(0, np.int64)
     dead_reckoned = [_dead_reckoned(tr) for tr in sim.users]
+    walked_at = [np.concatenate([[0.0], np.cumsum(tr.step_length_obs)]) for tr in sim.users]
+    steps_done = np.zeros(len(sim.users), dtype=np.int64)
     ap_names = [f"ap{i}" for i in range(sim.world.ap_xy.shape[0])]
     errors: list[float] = []
     best_errors: list[float] = []
@@ -252,6 +255,7 @@ def _filter_errors(
             for u, k, length, heading in zip(users_sorted, step_index[sel], lengths, headings, strict=True):
                 displacement[u] += length * np.array([np.cos(heading), np.sin(heading)])
                 walked[u] += length
+                steps_done[u] = k
                 if k in anchor_at[u]:
                     det_users.append(int(u))
                     det_types.append(anchor_at[u][k])
@@ -292,14 +296,17 @@ def _filter_errors(
             e = np.flatnonzero(enc_tick == tick)
             e = e[(slots[encounters.a[e]] >= 0) & (slots[encounters.b[e]] >= 0)]
             if e.size:
-                e = e[_choose(engine, selector, slots, encounters, e, calibration)]
+                offset, drift_var = _placed(sim, encounters, e, dead_reckoned, walked_at, steps_done)
+                keep = _choose(engine, selector, slots, encounters, e, calibration, offset)
+                e, offset, drift_var = e[keep], offset[keep], drift_var[keep]
                 chosen += e.size
             if e.size:
                 outcome = engine.observe_encounters(
                     slots[encounters.a[e]],
                     slots[encounters.b[e]],
                     encounters.distance[e],
-                    encounters.variance[e],
+                    encounters.variance[e] + drift_var,
+                    offset,
                 )
                 applied.append(e[outcome.applied])
         if sel.size:
@@ -364,6 +371,29 @@ def _fingerprint_fixes(
     return sum(apply_fingerprint_fixes(engine, fp, params, located))
 
 
+def _placed(
+    sim: Simulation,
+    encounters: Encounters,
+    e: np.ndarray,
+    dead_reckoned: list[np.ndarray],
+    walked_at: list[np.ndarray],
+    steps_done: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """For detections ``e`` of this tick, as the tracker places a batch's encounters through its users'
+    trails: user a's dead-reckoned displacement from the detection to its last applied step (``steps_done``)
+    minus user b's, and the variance of that carry (``carry_variance`` of the distances walked)."""
+    offset = np.zeros((e.size, 2))
+    carried = np.zeros((2, e.size))
+    for side, users in enumerate((encounters.a[e], encounters.b[e])):
+        for k, (u, t) in enumerate(zip(users.tolist(), encounters.t[e].tolist(), strict=True)):
+            now = int(steps_done[u])
+            then = min(max(int(np.searchsorted(sim.users[u].t, t, side="right")) - 1, 0), now)
+            shift = dead_reckoned[u][now] - dead_reckoned[u][then]
+            offset[k] += shift if side == 0 else -shift
+            carried[side, k] = walked_at[u][now] - walked_at[u][then]
+    return offset, carry_variance(carried[0]) + carry_variance(carried[1])
+
+
 def _choose(
     engine: DynamicSlam,
     selector: EncounterSelector,
@@ -371,11 +401,13 @@ def _choose(
     encounters: Encounters,
     e: np.ndarray,
     calibration: Calibration,
+    offset: np.ndarray,
 ) -> np.ndarray:
-    """Mask over detections ``e`` (one tick) of those the selector applies, from the filters' estimates."""
+    """Mask over detections ``e`` (one tick) of those the selector applies, from the filters' estimates
+    (placed at the detections' times by ``offset``, as ``_placed`` gives it)."""
     mean_a = engine.summaries(slots[encounters.a[e]])[:, 0:2]
     mean_b = engine.summaries(slots[encounters.b[e]])[:, 0:2]
-    predicted = np.hypot(*(mean_a - mean_b).T)
+    predicted = np.hypot(*(mean_a - mean_b - offset).T)
     sigma = np.empty(e.size)
     for code, model in ((MODEL_WIFI, calibration.wifi), (MODEL_BLUETOOTH, calibration.bluetooth)):
         m = encounters.model[e] == code

@@ -389,11 +389,21 @@ class DynamicSlam:
         )  # fmt: skip
 
     def observe_encounters(
-        self, user_a: np.ndarray, user_b: np.ndarray, distance: np.ndarray, distance_var: np.ndarray
+        self,
+        user_a: np.ndarray,
+        user_b: np.ndarray,
+        distance: np.ndarray,
+        distance_var: np.ndarray,
+        offset: np.ndarray | None = None,
     ) -> EncounterOutcome:
         """Human anchors (Algorithm 1). Both users of each encounter are updated from their pre-encounter
         summaries. A user in several encounters uses the most confident peer (Section 5.1) or, with
-        ``peer_selection='all'``, each in turn. Encounters failing the Mahalanobis gate are not applied."""
+        ``peer_selection='all'``, each in turn. Encounters failing the Mahalanobis gate are not applied.
+
+        ``offset`` (E, 2): for an encounter measured before the users' latest steps, user a's dead-reckoned
+        displacement since the encounter minus user b's. The distance was between the users as they were
+        then, so b's summary is moved by it when it is a's anchor, and a's by its opposite when it is b's
+        (the caller adds the dead reckoning's own uncertainty to ``distance_var``). None: measured now."""
         user_a = np.ascontiguousarray(user_a, dtype=np.int64)
         user_b = np.ascontiguousarray(user_b, dtype=np.int64)
         distance = np.ascontiguousarray(distance, dtype=np.float64)
@@ -401,11 +411,20 @@ class DynamicSlam:
         n = user_a.shape[0]
         if not (user_b.shape == distance.shape == distance_var.shape == (n,)):
             raise ValueError("user_a, user_b, distance and distance_var must have the same length")
+        if offset is None:
+            offset = np.zeros((n, 2))
+        offset = np.ascontiguousarray(offset, dtype=np.float64)
+        if offset.shape != (n, 2):
+            raise ValueError(f"offset must have shape ({n}, 2), got {offset.shape}")
         self._check_users(np.concatenate([user_a, user_b]), allow_repeats=True)
         if np.any(user_a == user_b):
             raise ValueError("a user cannot encounter itself")
-        if not (np.all(np.isfinite(distance)) and np.all(np.isfinite(distance_var))):
-            raise ValueError("distances and variances must be finite")
+        if not (
+            np.all(np.isfinite(distance))
+            and np.all(np.isfinite(distance_var))
+            and np.all(np.isfinite(offset))
+        ):
+            raise ValueError("distances, variances and offsets must be finite")
         if np.any(distance < 0) or np.any(distance_var <= 0):
             raise ValueError("distances must be >= 0 and variances > 0")
         if n == 0:
@@ -419,7 +438,7 @@ class DynamicSlam:
         mean = summary[:, 0:2]
         cov = summary[:, 2:5]
         # user-level gate: |z - ||mu_a - mu_b||| against J (Sigma_a + Sigma_b) J^T + R
-        delta = mean[ia] - mean[ib]
+        delta = mean[ia] - mean[ib] - offset  # a's position relative to b's, both as at the encounter
         d = np.hypot(delta[:, 0], delta[:, 1])
         safe = np.where(d > 1e-9, d, 1.0)
         jx = np.where(d > 1e-9, delta[:, 0] / safe, 1.0)
@@ -431,11 +450,13 @@ class DynamicSlam:
         # directed updates (target, peer row) from pre-encounter summaries
         targets = np.concatenate([user_a[applied], user_b[applied]])
         peers = np.concatenate([ib[applied], ia[applied]])
+        # each target's anchor: the peer's summary where the target's own dead reckoning since puts it now
+        anchor = mean[peers] + np.concatenate([offset[applied], -offset[applied]])
         z = np.concatenate([distance[applied], distance[applied]])
         r = np.concatenate([distance_var[applied], distance_var[applied]])
         confidence = cov[peers, 0] + cov[peers, 2]
         for batch in self._peer_rounds(targets, confidence):
-            self._human_update(targets[batch], mean[peers[batch]], cov[peers[batch]], z[batch], r[batch])
+            self._human_update(targets[batch], anchor[batch], cov[peers[batch]], z[batch], r[batch])
         self._resample(unique_ints(targets))
         return EncounterOutcome(applied, mahalanobis)
 

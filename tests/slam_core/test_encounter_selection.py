@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from slam_core.encounter_selection import EncounterSelector, SelectionParams, pair_key
+from slam_core.encounter_selection import EncounterSelector, SelectionParams, latest_per_pair, pair_key
 from slam_core.encounters import RangeModel, fit_range_model
 
 PHYSICAL_BT = RangeModel("bt-quadratic", (-60.0, -22.0 / math.log(10.0), 0.0), 2.8)
@@ -118,3 +118,19 @@ def test_fitting_where_the_model_is_used_avoids_the_sensitivity_cut() -> None:
     truth = PHYSICAL_BT.feature_at(grid)
     assert np.max(np.abs(near.feature_at(grid) - truth)) < 0.45  # 0.27-0.32 dB over seeds 0-3
     assert np.max(np.abs(everywhere.feature_at(grid) - truth)) > 0.65  # 0.79-0.82 dB
+
+
+def test_each_pairs_latest_reading_is_found_and_the_last_of_equal_times() -> None:
+    t = np.array([5, 9, 7, 9, 1, 3], dtype=np.int64)
+    keys = np.array([10, 10, 20, 10, 30, 20], dtype=np.int64)
+    assert latest_per_pair(t, keys).tolist() == [2, 3, 4]  # pair 10 read twice at 9: its last reading
+    assert latest_per_pair(np.zeros(0, np.int64), np.zeros(0, np.int64)).tolist() == []
+    # choose considers exactly these: narrowing its input to them changes nothing
+    predicted = np.array([3.0, 3.0, 30.0, 4.0, 2.0, 3.0])
+    sigma = np.sqrt(PHYSICAL_BT.variance_at_distance(predicted))
+    whole = EncounterSelector(SelectionParams()).choose(t, keys, predicted, sigma)
+    latest = latest_per_pair(t, keys)
+    narrowed = EncounterSelector(SelectionParams()).choose(
+        t[latest], keys[latest], predicted[latest], sigma[latest]
+    )
+    assert np.flatnonzero(whole).tolist() == latest[narrowed].tolist() == [3, 4]

@@ -120,6 +120,18 @@ def test_map_overflow_is_counted_not_silent() -> None:
             lambda e, u: e.observe_encounters(np.array([u]), np.array([0]), np.full(1, np.inf), np.ones(1)),
             "finite",
         ),
+        (
+            lambda e, u: e.observe_encounters(
+                np.array([u]), np.array([0]), np.ones(1), np.ones(1), np.ones(2)
+            ),
+            "offset must have shape",
+        ),
+        (
+            lambda e, u: e.observe_encounters(
+                np.array([u]), np.array([0]), np.ones(1), np.ones(1), np.array([[np.nan, 0.0]])
+            ),
+            "offsets must be finite",
+        ),
         (lambda e, u: e.add_user(np.nan, 0.0), "finite"),
     ],
 )
@@ -391,3 +403,26 @@ def _same_filters(lazy: DynamicSlam, full: DynamicSlam, users: list[int]) -> Non
             n = a.map_n[u, m]
             np.testing.assert_array_equal(a.map_mu[u, m, :n], b.map_mu[u, m, :n])
             np.testing.assert_array_equal(a.map_crowd_id[u, m, :n], b.map_crowd_id[u, m, :n])
+
+
+def test_an_encounter_offset_is_the_peer_moved_by_it() -> None:
+    """``offset`` carries an encounter to now: a's update against b with offset o is a's update against b
+    standing o further along, and b's is the same with b translated back by o (same seeds: same draws)."""
+    offset = np.array([[1.5, -2.0]])
+
+    def run(b_xy: tuple[float, float], o: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        engine = DynamicSlam(PARAMS, seed=4)
+        a = engine.add_user(0.0, 0.0, 0.0, 1.0)
+        b = engine.add_user(*b_xy, 0.0, 1.5)
+        outcome = engine.observe_encounters(np.array([a]), np.array([b]), np.array([3.0]), np.array([1.0]), o)
+        s = engine.state
+        return np.stack([s.x[a], s.y[a]]), np.stack([s.x[b], s.y[b]]), outcome.mahalanobis
+
+    a_placed, b_placed, m_placed = run((4.0, 1.0), offset)
+    a_moved, b_moved, m_moved = run((4.0 + 1.5, 1.0 - 2.0), None)
+    np.testing.assert_allclose(a_placed, a_moved, atol=1e-9)
+    np.testing.assert_allclose(b_placed + offset.T, b_moved, atol=1e-9)
+    np.testing.assert_allclose(m_placed, m_moved)
+    a_now, _, m_now = run((4.0, 1.0), None)
+    assert not np.allclose(a_now, a_placed)  # the offset does change the update
+    assert m_now[0] != m_placed[0]

@@ -133,9 +133,9 @@ def test_forgotten_users_free_their_slots_and_are_no_longer_heard() -> None:
     assert tracker.engine.active_users.size == slots - 1
 
 
-def _walk_with_scans(user: int, t_ms: int, rng: np.random.Generator) -> UserBatch:
-    """Two steps east and a scan of 8 of 12 APs whose levels follow the user's row (users on one row hear
-    alike, so their scans meet by Eq. 3)."""
+def _walk_with_scans(user: int, t_ms: int, rng: np.random.Generator, scan_lag_ms: int = 0) -> UserBatch:
+    """Two steps east and a scan (``scan_lag_ms`` before the second step) of 8 of 12 APs whose levels follow
+    the user's row (users on one row hear alike, so their scans meet by Eq. 3)."""
     levels = -45.0 - 3.0 * np.arange(12) - 2.0 * (user % 3) + rng.normal(0.0, 1.0, 12)
     heard = np.sort(rng.choice(12, size=8, replace=False))
     return UserBatch(
@@ -145,7 +145,7 @@ def _walk_with_scans(user: int, t_ms: int, rng: np.random.Generator) -> UserBatc
         step_length=np.array([0.7, 0.7]),
         step_azimuth=np.array([math.pi / 2, math.pi / 2]),
         step_turn=np.full(2, math.nan),
-        scan_t=np.array([t_ms], dtype=np.int64),
+        scan_t=np.array([t_ms - scan_lag_ms], dtype=np.int64),
         scan_offsets=np.array([0, heard.size], dtype=np.int64),
         scan_bssid=tuple(f"ap{i:02d}" for i in heard),
         scan_rss=np.round(levels[heard], 1),
@@ -153,14 +153,18 @@ def _walk_with_scans(user: int, t_ms: int, rng: np.random.Generator) -> UserBatc
     )
 
 
-def _busy_building(background_scans: int, monkeypatch: pytest.MonkeyPatch) -> list[object]:
+def _busy_building(
+    background_scans: int, monkeypatch: pytest.MonkeyPatch, scan_lag_ms: int = 0
+) -> list[object]:
     monkeypatch.setattr(radio, "BACKGROUND_SCANS", background_scans)
     tracker = BuildingTracker(TrackerParams(), CAL, seed=3)
     tracker.apply([_fix(f"u{k}", (2.0 * (k % 3), 1.5 * (k // 3)), T0) for k in range(24)])
     rng = np.random.default_rng(7)
     seen: list[object] = []
     for second in range(1, 8):
-        outcome = tracker.apply([_walk_with_scans(k, T0 + 1_000 * second + 20 * k, rng) for k in range(24)])
+        outcome = tracker.apply(
+            [_walk_with_scans(k, T0 + 1_000 * second + 20 * k, rng, scan_lag_ms) for k in range(24)]
+        )
         seen.append(outcome.detections)
         seen += [
             (e.detection.user_a, e.detection.user_b, e.detection.feature, e.applied)
@@ -224,3 +228,106 @@ def test_detector_slots_follow_starts_removals_and_returns() -> None:
     for t in (restored, old):
         ids = np.arange(t.detector.n_user_ids)
         assert t._slot_table().of(t.detector, t._users, ids).tolist() == _looked_up(tracker)
+
+
+def _walk_north_after_sighting(
+    user: str, peer: str, sighting_ms: int, steps: int, distance_m: float
+) -> UserBatch:
+    """One batch: a sighting of ``peer`` at ``sighting_ms``, then ``steps`` steps of 0.7 m north, one a
+    second, all after it."""
+    sighting = _sighting(user, peer, sighting_ms, distance_m)
+    times = sighting_ms + 1_000 * np.arange(1, steps + 1)
+    return replace(
+        sighting,
+        step_t=times.astype(np.int64),
+        step_length=np.full(steps, 0.7),
+        step_azimuth=np.zeros(steps),
+        step_turn=np.full(steps, math.nan),
+    )
+
+
+def test_an_encounter_early_in_a_long_batch_is_placed_at_its_time() -> None:
+    """'a' reads 'b' 4 m away (true: a at (0, 0), b at (4, 0)), then walks 7 m north in the same batch. The
+    encounter is applied after the batch's steps, so it is carried back through a's dead reckoning: a is
+    not pulled toward b (applied to where a is now, a 4 m range would pull it ~2.5 m toward b, if the
+    filters' 8 m apart let it be chosen at all), and its uncertainty across the pair's axis shrinks."""
+    tracker = _tracker()
+    outcome = tracker.apply([_walk_north_after_sighting("a", "b", T0 + 1_000, 10, 4.0)])
+    assert _applied(outcome) == [("a", "b", True)]
+    dead_reckoned = tracker.dead_reckoning("a")
+    estimate = tracker.estimate("a")
+    assert dead_reckoned is not None
+    assert estimate is not None
+    assert np.allclose(dead_reckoned, [0.0, 7.0], atol=1e-9)
+    assert math.hypot(estimate.x, estimate.y - 7.0) < 0.5
+    alone = _tracker()
+    alone.apply([_walk_north_after_sighting("a", "nobody", T0 + 1_000, 10, 4.0)])
+    unmeasured = alone.estimate("a")
+    assert unmeasured is not None
+    assert estimate.cov[0] < 0.9 * unmeasured.cov[0]  # x, the pair's axis then, is measured
+
+
+def test_an_encounter_older_than_the_trail_is_not_applied() -> None:
+    """A batch of 40 s whose sighting is at its start, 'a' walking 20 steps north and 20 back: a's steps kept
+    reach back 30 s, so the reading's time cannot be placed. It is detected, not applied (where a is now, the
+    filters' 4 m apart would have let it be chosen), and b's filter is untouched."""
+    tracker = _tracker()
+    before = tracker.estimate("b")
+    there_and_back = _walk_north_after_sighting("a", "b", T0 + 1_000, 40, 4.0)
+    there_and_back = replace(there_and_back, step_azimuth=np.repeat([0.0, math.pi], 20))
+    outcome = tracker.apply([there_and_back])
+    dead_reckoned = tracker.dead_reckoning("a")
+    assert dead_reckoned is not None
+    assert np.allclose(dead_reckoned, [0.0, 0.0], atol=1e-9)
+    assert outcome.detections == 1
+    assert outcome.encounters == []
+    assert tracker.estimate("b") == before
+
+
+def test_narrowing_the_readings_before_carrying_them_chooses_as_carrying_all(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """``_choose`` carries only the readings the selector could choose; a reference that carries every
+    reading and lets the selector (a copy, with the same cooldowns) choose among them all picks the same
+    readings with the same offsets, call after call of a busy building."""
+    import copy
+
+    from slam_core.dense_ids import unique_ints_inverse
+    from slam_core.encounter_selection import pair_keys
+    from slam_core.tracker_rounds import carried_since
+
+    calls: list[int] = []
+    narrowed = radio._choose
+
+    def checked(engine, detector, selector, users, found, slot_a, slot_b):  # type: ignore[no-untyped-def]
+        reference = copy.deepcopy(selector)
+        got, offset, carry_var = narrowed(engine, detector, selector, users, found, slot_a, slot_b)
+        n = len(found)
+        ids, who = unique_ints_inverse(np.concatenate([found.user_a, found.user_b]))
+        tracks = [users[detector.user_name(i)] for i in ids.tolist()]
+        shift, walked, placeable = carried_since(tracks, who, np.concatenate([found.t_ms, found.t_ms]))
+        ok = np.flatnonzero(placeable[:n] & placeable[n:])
+        slots, index = unique_ints_inverse(np.concatenate([slot_a, slot_b]))
+        means = engine.means(slots)
+        delta = means[index[:n]] - means[index[n:]] - (shift[:n] - shift[n:])
+        predicted = np.hypot(delta[ok, 0], delta[ok, 1])
+        sigma = np.sqrt(np.array([detector.range_model(int(m)).variance_at_distance(np.array([d]))[0]
+                                  for m, d in zip(found.model[ok], predicted, strict=True)]))  # fmt: skip
+        keys = pair_keys(found.user_a, found.user_b, found.model)
+        want = ok[reference.choose(found.t_ms[ok], keys[ok], predicted, sigma)]
+        assert got.tolist() == want.tolist()
+        np.testing.assert_allclose(offset, (shift[:n] - shift[n:])[want], atol=1e-12)
+        np.testing.assert_allclose(carry_var, 0.01 * (walked[:n] ** 2 + walked[n:] ** 2)[want], atol=1e-12)
+        calls.append(int(got.size))
+        far.append(int(np.sum(predicted > selector.params.select_range_m)))
+        moved.append(float(np.abs(offset).sum()))
+        return got, offset, carry_var
+
+    far: list[int] = []
+    moved: list[float] = []
+    monkeypatch.setattr(radio, "_choose", checked)
+    _busy_building(10**9, monkeypatch, scan_lag_ms=700)  # scans before each batch's last step
+    assert len(calls) >= 7
+    assert sum(calls) > 0
+    assert sum(moved) > 0  # the chosen readings were carried
+    assert sum(far) > 0  # and some readings were out of range, for the narrowing to leave out

@@ -9,7 +9,7 @@ import pickle
 
 import numpy as np
 
-from slam_core.tracker_rounds import TRAIL_MS, UserTrack
+from slam_core.tracker_rounds import TRAIL_MS, UserTrack, carried_since, carry_variance, trail_lookup
 
 
 def _walk(seconds: int) -> tuple[UserTrack, list[tuple[int, float, float, float]]]:
@@ -81,3 +81,48 @@ def test_a_track_pickled_before_the_flat_tuple_is_restored() -> None:
     for name in UserTrack._VECTORS:
         assert getattr(restored, name).dtype == np.float64
         assert np.array_equal(getattr(restored, name), getattr(track, name), equal_nan=True), name
+
+
+def _at_by_hand(track: UserTrack, t_ms: int) -> tuple[tuple[float, float], float]:
+    """``at`` as its docstring says it, from the trail as a plain list."""
+    rows = [track.trail[i : i + 4].tolist() for i in range(0, len(track.trail), 4)]
+    before = [r for r in rows if r[0] <= t_ms]
+    if before:
+        return (before[-1][1], before[-1][2]), before[-1][3]
+    if not rows or t_ms >= track.last_t_ms:
+        return (float(track.displacement[0]), float(track.displacement[1])), track.walked
+    return (rows[0][1], rows[0][2]), rows[0][3]
+
+
+def test_many_users_times_at_once_answer_as_one_at_a_time() -> None:
+    """``trail_lookup`` searches several users' trails in one pass: each answer is the user's own, at a
+    time inside, before and after its trail, and for a user with no steps yet."""
+    long, _ = _walk(60)
+    short, steps = _walk(3)
+    empty = UserTrack()
+    empty.displacement = np.array([5.0, 6.0])
+    tracks = [long, empty, short]
+    times = [0, 500, 31_000, 45_250, 60_000, 70_000, steps[0][0] - 1, steps[1][0]]
+    which = np.array([w for w in range(3) for _ in times], dtype=np.int64)
+    t = np.array(times * 3, dtype=np.int64)
+    displacement, walked = trail_lookup(tracks, which, t)
+    for k, (w, query) in enumerate(zip(which.tolist(), t.tolist(), strict=True)):
+        (x, y), distance = _at_by_hand(tracks[w], query)
+        assert displacement[k].tolist() == [x, y], (w, query)
+        assert walked[k] == distance
+        one, one_walked = tracks[w].at(query)
+        assert one.tolist() == [x, y]
+        assert one_walked == distance
+    long.lay([99_000], [1.0], [0.0], [1.0], (1.0, 0.0), (1.0, 0.0), math.nan)  # the trails still grow
+
+
+def test_carrying_a_time_to_now_follows_the_steps_since_and_grows_with_the_distance() -> None:
+    track, steps = _walk(60)
+    t = np.array([steps[-3][0], steps[-1][0], steps[-1][0] - TRAIL_MS - 1], dtype=np.int64)
+    shift, walked, placeable = carried_since([track], np.zeros(3, np.int64), t)
+    assert np.allclose(shift[0], np.array(steps[-1][1:3]) - np.array(steps[-3][1:3]), atol=1e-9)
+    assert np.array_equal(shift[1], np.zeros(2))
+    assert walked[1] == 0.0
+    assert math.isclose(walked[0], steps[-1][3] - steps[-3][3])
+    assert math.isclose(float(carry_variance(walked[0])), (0.1 * walked[0]) ** 2)
+    assert placeable.tolist() == [True, True, False]  # older than the trail cannot be carried
