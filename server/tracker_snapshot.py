@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from slam_core.encounters import Calibration
 from slam_core.tracker import BuildingTracker, TrackerParams
 
-FORMAT_VERSION = 9
+FORMAT_VERSION = 10
 """Bump when BuildingTracker's attributes change: old snapshots are then refused, not misread."""
 
 

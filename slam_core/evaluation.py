@@ -2,8 +2,8 @@
 
 Encounters are detected and their range models calibrated as ``slam_core.simulated_encounters`` does (the
 paper's models on the simulated scans and RSS, never ground-truth distances); which of them are applied is
-chosen during the run from the filters' own estimates, as the live tracker does (``slam_core.evaluation_radio``
-holds that stage and the fingerprint fixes).
+chosen during the run from the filters' own estimates, as the live tracker does
+(``slam_core.evaluation_radio`` holds that stage and the fingerprint fixes).
 """
 
 from __future__ import annotations

@@ -14,7 +14,7 @@ from slam_core.fastslam import DynamicSlam
 from slam_core.simulate import Simulation
 from slam_core.simulated_encounters import Encounters
 from slam_core.tracker_radio import apply_fingerprint_fixes
-from slam_core.tracker_rounds import carry_variance
+from slam_core.tracker_rounds import MAX_SPEED_M_PER_MS, VELOCITY_WINDOW_MS, carry_variance
 
 
 def fingerprint_fixes(
@@ -62,18 +62,28 @@ def carried(
     steps_done: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
     """For detections ``e`` of this tick, as the tracker places a batch's encounters through its users'
-    trails: user a's dead-reckoned displacement from the detection to its last applied step (``steps_done``)
-    minus user b's, and the variance of that carry (``carry_variance`` of the distances walked)."""
+    trails (``slam_core.tracker_rounds.carried_since`` and ``extrapolated``): user a's dead-reckoned
+    displacement from the detection to its last applied step (``steps_done``), or minus its guessed walk
+    from that step to a later detection, minus user b's; and the variance of both carries."""
     offset = np.zeros((e.size, 2))
-    carried = np.zeros((2, e.size))
+    variance = np.zeros(e.size)
+    window_s, max_speed = VELOCITY_WINDOW_MS / 1000.0, MAX_SPEED_M_PER_MS * 1000.0
     for side, users in enumerate((encounters.a[e], encounters.b[e])):
         for k, (u, t) in enumerate(zip(users.tolist(), encounters.t[e].tolist(), strict=True)):
-            now = int(steps_done[u])
-            then = min(max(int(np.searchsorted(sim.users[u].t, t, side="right")) - 1, 0), now)
-            shift = dead_reckoned[u][now] - dead_reckoned[u][then]
+            times, now = sim.users[u].t, int(steps_done[u])
+            if t > times[now]:  # after the last step: guessed at the user's recent velocity
+                recent = max(int(np.searchsorted(times, times[now] - window_s, side="right")) - 1, 0)
+                velocity = (dead_reckoned[u][now] - dead_reckoned[u][recent]) / window_s
+                speed = float(np.hypot(*velocity))
+                ahead = velocity * min(speed, max_speed) / max(speed, 1e-12) * (t - times[now])
+                shift = -ahead
+                variance[k] += 0.25 * float(ahead @ ahead)
+            else:
+                then = max(int(np.searchsorted(times, t, side="right")) - 1, 0)
+                shift = dead_reckoned[u][now] - dead_reckoned[u][then]
+                variance[k] += float(carry_variance(walked_at[u][now] - walked_at[u][then]))
             offset[k] += shift if side == 0 else -shift
-            carried[side, k] = walked_at[u][now] - walked_at[u][then]
-    return offset, carry_variance(carried[0]) + carry_variance(carried[1])
+    return offset, variance
 
 
 def choose(

@@ -45,7 +45,7 @@ from slam_core.encounter_selection import EncounterSelector
 from slam_core.encounters import Calibration
 from slam_core.fastslam import DynamicSlam
 from slam_core.front_end import FrontEnd, RadioArrays
-from slam_core.tracker_rounds import Round, UserTrack, lay_steps, round_at
+from slam_core.tracker_rounds import Round, SlotColumns, UserTrack, lay_steps, round_at
 from slam_core.tracker_types import (
     CROWD_SOLVERS,
     EncounterResult,
@@ -90,6 +90,7 @@ class BuildingTracker:
         self._graph_users: list[int] = []
         self._started = 0
         self.n_types = fp.anchors.type_posterior.shape[0]
+        self._columns = SlotColumns()
 
     # built on first use (snapshots from before it lack it)
     _detector_slots: radio.DetectorSlots | None = None
@@ -207,6 +208,8 @@ class BuildingTracker:
                 self._users[b.user] = UserTrack()
             if b.ble_id is not None:
                 self._by_ble[b.ble_id] = b.user
+        callers = [self._users[b.user] for b in batches]
+        self._columns.begin(callers)
         rounds = self._plan(batches, reports)
         newest = max([self._users[b.user].last_t_ms for b in batches], default=-1)
         # in a busy call the scans are compared on a thread while the rounds and the fingerprint fixes
@@ -214,6 +217,7 @@ class BuildingTracker:
         scans = radio.start_scan_detection(self.detector, batches)
         try:
             changed = self._observe(batches, rounds, reports, newest)
+            self._columns.update(callers, [_heard_until(b) for b in batches])
             encounters, detections = radio.encounters(
                 self.engine,
                 self.detector,
@@ -224,6 +228,7 @@ class BuildingTracker:
                 self._by_ble,
                 scans,
                 self._slot_table(),
+                self._columns,
             )
         finally:
             scans.join()
@@ -375,6 +380,7 @@ class BuildingTracker:
             u.heading = heading
         sigma = max(sigma, self.params.start_sigma_floor_m)
         u.slot = self.engine.add_user(float(xy[0]), float(xy[1]), heading, sigma, self.crowd.snapshot())
+        self._columns.reset(u.slot)
         self._slot_table().set(self.detector, user, u.slot)
         u.number = self._started
         u.origin = np.asarray(xy, dtype=float).copy()
@@ -458,3 +464,12 @@ class BuildingTracker:
             n: EstimateRow(self._users[n].last_t_ms, x, y, (xx, xy, yy), (bx, by), heading)
             for n, (x, y, xx, xy, yy, bx, by, heading) in zip(users, summary.tolist(), strict=True)
         }
+
+
+def _heard_until(b: UserBatch) -> int:
+    """The latest time a batch reports anything at (-1: nothing timed)."""
+    latest = -1
+    for times in (b.fix_t, b.step_t, b.detect_t, b.scan_t, b.peer_t, b.beacon_t):
+        if times.size:  # a list's max: numpy's costs more than these few numbers
+            latest = max(latest, max(times.tolist()))
+    return int(latest)

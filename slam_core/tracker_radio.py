@@ -22,7 +22,14 @@ from slam_core.dense_ids import unique_ints, unique_ints_inverse
 from slam_core.encounter_detection import DetectionArrays, EncounterDetector, ScanBatch
 from slam_core.encounter_selection import EncounterSelector, latest_per_pair, pair_keys
 from slam_core.fastslam import DynamicSlam
-from slam_core.tracker_rounds import Round, UserTrack, carried_since, carry_variance
+from slam_core.tracker_rounds import (
+    Round,
+    SlotColumns,
+    TrackTable,
+    UserTrack,
+    carried_since,
+    carry_variance,
+)
 from slam_core.tracker_types import EncounterResult, EstimateRow, TrackerParams, UserBatch, UserReport
 from slam_core.wifi_pairs import fresh_mask
 
@@ -136,7 +143,9 @@ def fingerprint_fixes(
     counts = [b.scan_t.size for b in scanning]
     # every scan carried to now at once (``carried_since``: a search per scan had cost ~60 us)
     carried, _, _ = carried_since(
-        tracks, np.repeat(np.arange(len(tracks)), counts), np.concatenate([b.scan_t for b in scanning])
+        TrackTable.of(tracks),
+        np.repeat(np.arange(len(tracks)), counts),
+        np.concatenate([b.scan_t for b in scanning]),
     )
     first = 0
     for b, u in zip(scanning, tracks, strict=True):
@@ -203,6 +212,7 @@ def encounters(
     by_ble: dict[str, str],
     scans: BackgroundCall[DetectionArrays],
     detector_slots: DetectorSlots,
+    columns: SlotColumns,
 ) -> tuple[list[EncounterResult], int]:
     """The encounters chosen among this call's detections (its scans' from ``start_scan_detection``, and
     its Bluetooth sightings'), and how many detections there were. The detections stay arrays until the
@@ -230,7 +240,7 @@ def encounters(
     if usable.size == 0:
         return [], len(found)
     mask, offset, carry_var = _choose(
-        engine, detector, selector, users, found.subset(usable), slot_a[usable], slot_b[usable]
+        engine, detector, selector, users, columns, found.subset(usable), slot_a[usable], slot_b[usable]
     )
     keep = usable[mask]
     chosen = detector.ranged(detector.to_detections(found.subset(keep)))
@@ -279,6 +289,7 @@ def _choose(
     detector: EncounterDetector,
     selector: EncounterSelector,
     users: dict[str, UserTrack],
+    columns: SlotColumns,
     found: DetectionArrays,
     slot_a: np.ndarray,
     slot_b: np.ndarray,
@@ -290,31 +301,44 @@ def _choose(
     Beyond the paper, which applies an encounter as it happens: a batch may span up to a minute and its
     encounters are applied after its steps, so each is carried from its time to now through both users'
     dead reckoning (``slam_core.tracker_rounds.carried_since``); one older than either user's trail is left
-    out. A busy call has ~12,000 readings from ~1,100 users, and carrying each one had cost 5-10 % of the
-    building's batch path: the readings are first narrowed to those the selector would consider (each pair's
-    latest) and could choose (within its range of each other once either user's walk since the earliest of
-    them is allowed for), which are few, and only those are carried."""
+    out. A peer whose phone has not yet reported up to the reading (its batch comes later: one reading in
+    two on the simulated crowd, ~0.5 s behind) is guessed there at its recent velocity, with half the guess
+    as its sigma (``SlotColumns.extrapolated``; not at all after 5 s of silence). A busy call has ~12,000
+    readings from ~1,100 users: the readings are first narrowed, on the slots' columns, to those the selector
+    would consider (each pair's latest) and could choose (within its range of each other once either user's
+    walk since, or its guessed walk beyond its last report, is allowed for), and only the users of those who
+    walked after them are carried back step by step."""
     n = len(found)
     slots, index = unique_ints_inverse(np.concatenate([slot_a, slot_b]))
     means = engine.means(slots)
     delta_now = means[index[:n]] - means[index[n:]]
     keys = pair_keys(found.user_a, found.user_b, found.model)
     latest = latest_per_pair(found.t_ms, keys)
-    ids, who = unique_ints_inverse(np.concatenate([found.user_a[latest], found.user_b[latest]]))
-    tracks = [users[detector.user_name(i)] for i in ids.tolist()]
-    m = latest.size
-    everyone = np.arange(len(tracks))
-    _, reach, _ = carried_since(tracks, everyone, np.full(len(tracks), found.t_ms[latest].min()))
-    bound = np.hypot(delta_now[latest, 0], delta_now[latest, 1]) - reach[who[:m]] - reach[who[m:]]
-    near = np.flatnonzero(bound <= selector.params.select_range_m)
+    t = found.t_ms[latest]
+    sa, sb = slot_a[latest], slot_b[latest]
+    ahead_a, guess_a, heard_a = columns.extrapolated(sa, t)
+    ahead_b, guess_b, heard_b = columns.extrapolated(sb, t)
+    bound = np.hypot(delta_now[latest, 0], delta_now[latest, 1])
+    bound -= columns.reach(sa, t) + np.hypot(ahead_a[:, 0], ahead_a[:, 1])
+    bound -= columns.reach(sb, t) + np.hypot(ahead_b[:, 0], ahead_b[:, 1])
+    near = np.flatnonzero((bound <= selector.params.select_range_m) & heard_a & heard_b)
     c = near.size
-    shift, walked, placeable = carried_since(
-        tracks, np.concatenate([who[:m][near], who[m:][near]]), np.concatenate([found.t_ms[latest[near]]] * 2)
+    # only users who reported steps after a reading are carried back, their tracks looked up by name
+    t2 = np.concatenate([t[near], t[near]])
+    rows = np.flatnonzero(columns.last_t_ms[np.concatenate([sa[near], sb[near]])] > t2)
+    ids, who = unique_ints_inverse(
+        np.concatenate([found.user_a[latest[near]], found.user_b[latest[near]]])[rows]
     )
-    ok = placeable[:c] & placeable[c:]
-    candidates = latest[near][ok]
-    offset = (shift[:c] - shift[c:])[ok]
+    shift, walked, placeable = np.zeros((2 * c, 2)), np.zeros(2 * c), np.ones(2 * c, dtype=bool)
+    if rows.size:
+        table = TrackTable.of([users[detector.user_name(i)] for i in ids.tolist()])
+        shift[rows], walked[rows], placeable[rows] = carried_since(table, who, t2[rows])
+    ok = np.flatnonzero(placeable[:c] & placeable[c:])
+    candidates = latest[near[ok]]
+    # a user's position then is where it is now minus its walk since, or plus its guessed walk beyond
+    offset = (shift[:c] - shift[c:])[ok] - (ahead_a - ahead_b)[near[ok]]
     carry_var = (carry_variance(walked[:c]) + carry_variance(walked[c:]))[ok]
+    carry_var += (guess_a + guess_b)[near[ok]]
     delta = delta_now[candidates] - offset
     predicted = np.hypot(delta[:, 0], delta[:, 1])
     sigma = np.empty(candidates.size)

@@ -22,6 +22,13 @@ def carry_variance(walked_m: np.ndarray | float) -> np.ndarray:
     return np.square(CARRY_DRIFT * np.asarray(walked_m, dtype=np.float64))
 
 
+VELOCITY_WINDOW_MS = 2_000
+"""A user's recent velocity is its dead-reckoned displacement over its last two seconds of steps."""
+MAX_SPEED_M_PER_MS = 0.003
+"""3 m/s: no pedestrian is extrapolated faster (a run; walking is ~1.4 m/s), which also bounds how far any
+user can be guessed to have gone in a given time."""
+
+
 @dataclass
 class UserTrack:
     number: int = -1  # start order: the crowd graph's user id
@@ -43,6 +50,10 @@ class UserTrack:
     walked after it. A flat array of doubles: the garbage collector does not walk it and a snapshot writes
     it as one block (a list of small tuples and lists had cost a 1,000-user building ~100,000 objects in
     every full collection and ~75 ms of pickling in the building's thread)."""
+    velocity_x: float = 0.0
+    velocity_y: float = 0.0
+    """The dead-reckoned velocity over the ``VELOCITY_WINDOW_MS`` before the last step (m per ms, at most
+    ``MAX_SPEED_M_PER_MS``), kept by ``lay``: how ``SlotColumns.extrapolated`` guesses an unheard user."""
 
     # A user travels in a snapshot as one flat tuple, its fields in declaration order and its 2-vectors as
     # plain floats: thousands of tiny arrays, or of dicts naming every field, pickle slowly one by one (a
@@ -55,7 +66,7 @@ class UserTrack:
         return (
             self.number, self.slot, self.last_t_ms, self.heading, self.walked, self.heading_offset,
             self.trail, float(d[0]), float(d[1]), float(o[0]), float(o[1]), float(g[0]), float(g[1]),
-            float(sg[0]), float(sg[1]), float(sl[0]), float(sl[1]),
+            float(sg[0]), float(sg[1]), float(sl[0]), float(sl[1]), self.velocity_x, self.velocity_y,
         )  # fmt: skip
 
     def __setstate__(self, state: tuple[object, ...] | dict[str, object]) -> None:
@@ -63,10 +74,11 @@ class UserTrack:
             self.__dict__.update(state)
             for name in self._VECTORS:
                 self.__dict__[name] = np.array(state[name], dtype=np.float64)
+            self.velocity_x, self.velocity_y = self._recent_velocity()
             return
         (
             self.number, self.slot, self.last_t_ms, self.heading, self.walked, self.heading_offset,
-            self.trail, dx, dy, ox, oy, gx, gy, sgx, sgy, slx, sly,
+            self.trail, dx, dy, ox, oy, gx, gy, sgx, sgy, slx, sly, self.velocity_x, self.velocity_y,
         ) = state  # type: ignore[assignment]  # fmt: skip
         self.displacement = np.array([dx, dy])
         self.origin = np.array([ox, oy])
@@ -101,11 +113,29 @@ class UserTrack:
         del trail[:old]
         self.displacement = np.array(trail[-3:-1])
         self.walked = trail[-1]
+        self.velocity_x, self.velocity_y = self._recent_velocity()
         self.gyro_displacement = self.gyro_displacement + gyro
         self.since_gyro = self.since_gyro + gyro
         self.since_laid = self.since_laid + laid
         if math.isfinite(heading_offset):
             self.heading_offset = heading_offset
+
+    def _recent_velocity(self) -> tuple[float, float]:
+        """Displacement from the last step at least ``VELOCITY_WINDOW_MS`` before the latest one (the oldest
+        kept when the trail is shorter) to the latest, over that window, capped at ``MAX_SPEED_M_PER_MS``."""
+        trail = self.trail
+        if not trail:
+            return 0.0, 0.0
+        horizon = trail[-4] - VELOCITY_WINDOW_MS
+        i = len(trail) - 4
+        while i > 0 and trail[i] > horizon:
+            i -= 4
+        vx = (trail[-3] - trail[i + 1]) / VELOCITY_WINDOW_MS
+        vy = (trail[-2] - trail[i + 2]) / VELOCITY_WINDOW_MS
+        speed = math.hypot(vx, vy)
+        if speed > MAX_SPEED_M_PER_MS:
+            vx, vy = vx * MAX_SPEED_M_PER_MS / speed, vy * MAX_SPEED_M_PER_MS / speed
+        return vx, vy
 
     def revision(self) -> np.ndarray:
         """How far the path since the last absolute observation moves when all of it takes the latest north
@@ -126,40 +156,66 @@ class UserTrack:
     def at(self, t_ms: int) -> tuple[np.ndarray, float]:
         """Dead-reckoned displacement and distance walked at ``t_ms`` (its last step then; the oldest kept
         when older than the trail)."""
-        displacement, walked = trail_lookup([self], np.zeros(1, np.int64), np.array([t_ms], np.int64))
+        one = TrackTable.of([self])
+        displacement, walked = trail_lookup(one, np.zeros(1, np.int64), np.array([t_ms], np.int64))
         return displacement[0], float(walked[0])
+
+
+@dataclass(frozen=True)
+class TrackTable:
+    """Some users' tracks with the columns the vectorised lookups below need, read once per call (a list
+    comprehension per column per lookup had made them cost as much as the arithmetic)."""
+
+    tracks: list[UserTrack]
+    last_t_ms: np.ndarray  # (n,) int64
+    walked: np.ndarray  # (n,)
+    displacement: np.ndarray  # (n, 2)
+    velocity: np.ndarray  # (n, 2) m per ms
+
+    @classmethod
+    def of(cls, tracks: list[UserTrack]) -> TrackTable:
+        rows = np.array(
+            [(u.last_t_ms, u.walked, *u.displacement.tolist(), u.velocity_x, u.velocity_y) for u in tracks],
+            dtype=np.float64,
+        ).reshape(-1, 6)  # epoch ms are exact in a double
+        return cls(tracks, rows[:, 0].astype(np.int64), rows[:, 1], rows[:, 2:4], rows[:, 4:6])
+
+    def subset(self, index: np.ndarray) -> TrackTable:
+        return TrackTable(
+            [self.tracks[i] for i in index.tolist()],
+            self.last_t_ms[index],
+            self.walked[index],
+            self.displacement[index],
+            self.velocity[index],
+        )
 
 
 _SEGMENT = np.int64(1) << np.int64(41)
 """Users' trails searched at once are told apart by multiples of 2^41 ms (~70 years) added to the times."""
 
 
-def trail_lookup(
-    tracks: list[UserTrack], which: np.ndarray, t_ms: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """``UserTrack.at`` of user ``tracks[which[i]]`` at ``t_ms[i]`` for every i: (n, 2) displacements and
-    (n,) distances walked. One search over all the users' trails at once: a pass per user had cost ~30 us,
-    13 ms a call for the encounters of a 2,000-phone building."""
+def trail_lookup(table: TrackTable, which: np.ndarray, t_ms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``UserTrack.at`` of user ``which[i]`` of the table at ``t_ms[i]`` for every i: (n, 2) displacements
+    and (n,) distances walked. One search over all the table's trails at once: a pass per user had cost
+    ~30 us, 13 ms a call for the encounters of a 2,000-phone building."""
     which = np.asarray(which, dtype=np.int64)
     t = np.asarray(t_ms, dtype=np.int64)
-    displacement = np.array([u.displacement for u in tracks], dtype=np.float64).reshape(-1, 2)[which]
-    walked = np.array([u.walked for u in tracks], dtype=np.float64)[which]
-    sizes = np.array([len(u.trail) // 4 for u in tracks], dtype=np.int64)
+    displacement = table.displacement[which]
+    walked = table.walked[which]
+    sizes = np.array([len(u.trail) // 4 for u in table.tracks], dtype=np.int64)
     if not which.size or not sizes.any():
         return displacement, walked
-    last = np.array([u.last_t_ms for u in tracks], dtype=np.int64)[which]
+    last = table.last_t_ms[which]
     # frombuffer's views only live inside the concatenation: a trail exporting its buffer cannot grow
-    trail = np.concatenate([np.frombuffer(u.trail, dtype=np.float64) for u in tracks if u.trail]).reshape(
-        -1, 4
-    )
+    parts = [np.frombuffer(u.trail, dtype=np.float64) for u in table.tracks if u.trail]
+    trail = np.concatenate(parts).reshape(-1, 4)
+    del parts
     trail_t = trail[:, 0].astype(np.int64)
     base = min(int(trail_t.min()), int(t.min()))
     segment = np.repeat(np.arange(sizes.size, dtype=np.int64), sizes)
     start = np.cumsum(sizes) - sizes  # each user's first row
-    k = (
-        np.searchsorted(segment * _SEGMENT + (trail_t - base), which * _SEGMENT + (t - base), side="right")
-        - 1
-    )
+    keys = segment * _SEGMENT + (trail_t - base)
+    k = np.searchsorted(keys, which * _SEGMENT + (t - base), side="right") - 1
     own = start[which]
     has_trail = sizes[which] > 0
     in_trail = has_trail & (k >= own)
@@ -172,25 +228,108 @@ def trail_lookup(
 
 
 def carried_since(
-    tracks: list[UserTrack], which: np.ndarray, t_ms: np.ndarray
+    table: TrackTable, which: np.ndarray, t_ms: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """From ``t_ms[i]`` to now along user ``tracks[which[i]]``'s own steps: (n, 2) displacement, (n,) the
-    distance walked (``carry_variance`` gives the carry's variance), and (n,) whether the time can be placed
-    at all (the user's trail reaches back to it). Only users with steps after a time are searched."""
+    """From ``t_ms[i]`` to now along user ``which[i]``'s own steps: (n, 2) displacement, (n,) the distance
+    walked (``carry_variance`` gives the carry's variance), and (n,) whether the time can be placed at all
+    (the user's trail reaches back to it). Only users with steps after a time are searched."""
     which = np.asarray(which, dtype=np.int64)
     t = np.asarray(t_ms, dtype=np.int64)
-    last = np.array([u.last_t_ms for u in tracks], dtype=np.int64)[which]
+    last = table.last_t_ms[which]
     shift, walked = np.zeros((t.size, 2)), np.zeros(t.size)
     behind = np.flatnonzero(t < last)
     if behind.size:
         walkers, local = np.unique(which[behind], return_inverse=True)
-        moved = [tracks[w] for w in walkers.tolist()]
+        moved = table.subset(walkers)
         then, walked_then = trail_lookup(moved, local, t[behind])
-        now = np.array([u.displacement for u in moved], dtype=np.float64)[local]
-        walked_now = np.array([u.walked for u in moved], dtype=np.float64)[local]
-        shift[behind] = now - then
-        walked[behind] = walked_now - walked_then
+        shift[behind] = moved.displacement[local] - then
+        walked[behind] = moved.walked[local] - walked_then
     return shift, walked, t >= last - TRAIL_MS
+
+
+MAX_EXTRAPOLATION_MS = 5_000
+"""A user not heard from for longer than this is not guessed at: where it went is anyone's guess."""
+STANDING_MS = 1_500
+"""A phone that reports this long past its last step (a walker steps every ~0.5 s) is standing still."""
+_NEVER = np.iinfo(np.int64).min
+
+
+class SlotColumns:
+    """Per filter slot, the few numbers of each tracked user's track that choosing encounters reads for every
+    reading of a call (~12,000 from ~1,100 users at 2,000 phones): kept as arrays and updated for the users
+    of each call, since reading them off the tracks, one Python object each, had cost more than the choice.
+    ``start_t_ms`` and ``start_walked``: the user's last event and distance walked before its latest batch
+    (never and 0 for a user new since), which bound how far it walked after any later time; ``heard_t_ms``:
+    the latest time its phone has reported anything at all (a scan, a sighting), up to which a user without
+    steps since its last one stood still."""
+
+    def __init__(self) -> None:
+        self.heard_t_ms = np.zeros(0, dtype=np.int64)
+        self.last_t_ms = np.zeros(0, dtype=np.int64)
+        self.walked = np.zeros(0)
+        self.velocity = np.zeros((0, 2))
+        self.start_t_ms = np.zeros(0, dtype=np.int64)
+        self.start_walked = np.zeros(0)
+
+    def _room(self, slot: int) -> None:
+        n = self.last_t_ms.size
+        if slot < n:
+            return
+        grow = max(slot + 1, 2 * n) - n
+        self.heard_t_ms = np.concatenate([self.heard_t_ms, np.full(grow, -1, dtype=np.int64)])
+        self.last_t_ms = np.concatenate([self.last_t_ms, np.full(grow, -1, dtype=np.int64)])
+        self.walked = np.concatenate([self.walked, np.zeros(grow)])
+        self.velocity = np.concatenate([self.velocity, np.zeros((grow, 2))])
+        self.start_t_ms = np.concatenate([self.start_t_ms, np.full(grow, _NEVER, dtype=np.int64)])
+        self.start_walked = np.concatenate([self.start_walked, np.zeros(grow)])
+
+    def reset(self, slot: int) -> None:
+        """A user starts in this slot."""
+        self._room(slot)
+        self.heard_t_ms[slot], self.last_t_ms[slot], self.walked[slot], self.velocity[slot] = -1, -1, 0.0, 0.0
+        self.start_t_ms[slot], self.start_walked[slot] = _NEVER, 0.0
+
+    def begin(self, tracks: list[UserTrack]) -> None:
+        """Before a call's events: its tracked users' reports so far."""
+        for u in tracks:
+            if u.slot >= 0:
+                self._room(u.slot)
+                self.start_t_ms[u.slot], self.start_walked[u.slot] = u.last_t_ms, u.walked
+
+    def update(self, tracks: list[UserTrack], heard_t_ms: list[int]) -> None:
+        """After a call's events: its tracked users as they are now, each heard up to ``heard_t_ms`` (its
+        batch's latest time of anything)."""
+        for u, heard in zip(tracks, heard_t_ms, strict=True):
+            if u.slot < 0:
+                continue
+            self._room(u.slot)
+            heard = max(heard, u.last_t_ms, int(self.heard_t_ms[u.slot]))
+            self.heard_t_ms[u.slot], self.last_t_ms[u.slot], self.walked[u.slot] = (
+                heard,
+                u.last_t_ms,
+                u.walked,
+            )
+            walking = bool(u.trail) and heard - u.trail[-4] <= STANDING_MS
+            self.velocity[u.slot] = (u.velocity_x, u.velocity_y) if walking else (0.0, 0.0)
+
+    def reach(self, slots: np.ndarray, t_ms: np.ndarray) -> np.ndarray:
+        """At least how far each user walked after ``t_ms``: 0 when it has not reported past it, its latest
+        batch's walk when the time is within that batch, infinity (unknown) when older."""
+        t = np.asarray(t_ms, dtype=np.int64)
+        latest_batch = self.walked[slots] - self.start_walked[slots]
+        bound = np.where(t >= self.start_t_ms[slots], latest_batch, np.inf)
+        result: np.ndarray = np.where(t >= self.last_t_ms[slots], 0.0, bound)
+        return result
+
+    def extrapolated(self, slots: np.ndarray, t_ms: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Where each user has gone from its phone's last report to ``t_ms``, a time it has not reported
+        yet, at its recent velocity (``UserTrack.velocity_x``, ``velocity_y``; zero for a user standing at
+        its last report): (n, 2) displacement (zero when the time has been reported); (n,) the variance of
+        that guess, (half its length)^2 (the user may have stopped or turned); and (n,) whether it is
+        guessed at all (not after ``MAX_EXTRAPOLATION_MS`` of silence)."""
+        silence = np.asarray(t_ms, dtype=np.int64) - self.heard_t_ms[slots]
+        ahead = self.velocity[slots] * np.maximum(silence, 0).astype(np.float64)[:, None]
+        return ahead, 0.25 * np.sum(ahead * ahead, axis=1), silence <= MAX_EXTRAPOLATION_MS
 
 
 @dataclass

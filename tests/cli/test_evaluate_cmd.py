@@ -76,3 +76,29 @@ def test_a_scenario_that_cannot_be_calibrated_is_a_clear_error(
     assert main(["calibrate", "--scenario", str(path), "--out", str(out)]) == 2
     assert "labelled pairs to fit the wifi-log model" in capsys.readouterr().out
     assert not out.exists()
+
+
+def test_through_the_tracker_scores_every_batch_with_steps(small_scenario: Path, tmp_path: Path) -> None:
+    """A small crowd's phones (8 walking 40 m, so that some meet) one batch at a time through the server's
+    tracker: one estimate per batch with steps, human anchors applied in dynamicslam and none in
+    semanticslam, both better than plain dead reckoning; and the flag refuses --compare."""
+    raw = json.loads(small_scenario.read_text())
+    raw["users"]["count"] = 8
+    crowd = tmp_path / "crowd.json"
+    crowd.write_text(json.dumps(raw))
+    results = {}
+    for mode in ("pdr", "semanticslam", "dynamicslam"):
+        out = tmp_path / f"{mode}.json"
+        argv = ["evaluate", "--scenario", str(crowd), "--through-tracker", "--mode", mode]
+        assert main([*argv, "--json", str(out)]) == 0
+        results[mode] = json.loads(out.read_text())
+        assert results[mode]["path"] == "tracker"
+        assert out.with_suffix(".png").stat().st_size > 1000
+    # 8 users x 40 m at 1.4 m/s: ~29 one-second batches each, nearly all with steps
+    assert 8 * 25 <= results["dynamicslam"]["n_estimates"] == results["pdr"]["n_estimates"] <= 8 * 35
+    assert results["semanticslam"]["encounters_applied_per_user"] == 0
+    assert results["dynamicslam"]["encounters_applied_per_user"] > 0
+    for mode in ("semanticslam", "dynamicslam"):
+        assert results[mode]["median_m"] < results["pdr"]["median_m"]
+    refused = ["evaluate", "--scenario", str(crowd), "--through-tracker", "--compare"]
+    assert main([*refused, "--json", str(tmp_path / "x.json")]) == 2

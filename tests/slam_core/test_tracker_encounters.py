@@ -74,7 +74,7 @@ def test_a_close_pair_is_applied_and_then_cools_down() -> None:
     assert again.estimates["b"].cov[0] < peer_before.cov[0]  # the first call's encounter had moved b too
     assert again.detections == 1
     assert again.encounters == []
-    later = tracker.apply([_sighting("b", "a", T0 + 7_000, 3.0)])
+    later = tracker.apply([_sighting("b", "a", T0 + 6_000, 3.0)])  # a heard 5 s ago: still placed
     assert _applied(later) == [("b", "a", True)]
 
 
@@ -154,23 +154,24 @@ def _walk_with_scans(user: int, t_ms: int, rng: np.random.Generator, scan_lag_ms
 
 
 def _busy_building(
-    background_scans: int, monkeypatch: pytest.MonkeyPatch, scan_lag_ms: int = 0
+    background_scans: int, monkeypatch: pytest.MonkeyPatch, scan_lag_ms: int = 0, calls_per_second: int = 1
 ) -> list[object]:
+    """24 phones posting a second each, in ``calls_per_second`` calls (the later ones' peers lag)."""
     monkeypatch.setattr(radio, "BACKGROUND_SCANS", background_scans)
     tracker = BuildingTracker(TrackerParams(), CAL, seed=3)
     tracker.apply([_fix(f"u{k}", (2.0 * (k % 3), 1.5 * (k // 3)), T0) for k in range(24)])
     rng = np.random.default_rng(7)
     seen: list[object] = []
     for second in range(1, 8):
-        outcome = tracker.apply(
-            [_walk_with_scans(k, T0 + 1_000 * second + 20 * k, rng, scan_lag_ms) for k in range(24)]
-        )
-        seen.append(outcome.detections)
-        seen += [
-            (e.detection.user_a, e.detection.user_b, e.detection.feature, e.applied)
-            for e in outcome.encounters
-        ]
-        seen += [(u, r.x, r.y, *r.cov) for u, r in sorted(outcome.estimates.items())]
+        batches = [_walk_with_scans(k, T0 + 1_000 * second + 20 * k, rng, scan_lag_ms) for k in range(24)]
+        for part in np.array_split(np.arange(24), calls_per_second):
+            outcome = tracker.apply([batches[k] for k in part])
+            seen.append(outcome.detections)
+            seen += [
+                (e.detection.user_a, e.detection.user_b, e.detection.feature, e.applied)
+                for e in outcome.encounters
+            ]
+            seen += [(u, r.x, r.y, *r.cov) for u, r in sorted(outcome.estimates.items())]
     return seen
 
 
@@ -287,47 +288,62 @@ def test_an_encounter_older_than_the_trail_is_not_applied() -> None:
 def test_narrowing_the_readings_before_carrying_them_chooses_as_carrying_all(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    """``_choose`` carries only the readings the selector could choose; a reference that carries every
-    reading and lets the selector (a copy, with the same cooldowns) choose among them all picks the same
-    readings with the same offsets, call after call of a busy building."""
+    """``_choose`` carries only the readings the selector could choose; a reference that carries (or, for
+    a lagging phone, extrapolates) every reading and lets the selector (a copy, with the same cooldowns)
+    choose among them all picks the same readings with the same offsets, call after call of a busy building
+    whose phones post in three calls a second."""
     import copy
 
     from slam_core.dense_ids import unique_ints_inverse
     from slam_core.encounter_selection import pair_keys
-    from slam_core.tracker_rounds import carried_since
+    from slam_core.tracker_rounds import TrackTable, carried_since
 
     calls: list[int] = []
     narrowed = radio._choose
 
-    def checked(engine, detector, selector, users, found, slot_a, slot_b):  # type: ignore[no-untyped-def]
+    def checked(engine, detector, selector, users, columns, found, slot_a, slot_b):  # type: ignore[no-untyped-def]
         reference = copy.deepcopy(selector)
-        got, offset, carry_var = narrowed(engine, detector, selector, users, found, slot_a, slot_b)
+        got, offset, carry_var = narrowed(engine, detector, selector, users, columns, found, slot_a, slot_b)
         n = len(found)
         ids, who = unique_ints_inverse(np.concatenate([found.user_a, found.user_b]))
         tracks = [users[detector.user_name(i)] for i in ids.tolist()]
-        shift, walked, placeable = carried_since(tracks, who, np.concatenate([found.t_ms, found.t_ms]))
-        ok = np.flatnonzero(placeable[:n] & placeable[n:])
+        table = TrackTable.of(tracks)
+        t2 = np.concatenate([found.t_ms, found.t_ms])
+        shift, walked, placeable = carried_since(table, who, t2)
+        # each user's guessed walk beyond its phone's last report, at its own track's velocity (all walk)
+        heard_until = columns.heard_t_ms[np.concatenate([slot_a, slot_b])]
+        velocity = np.array([(u.velocity_x, u.velocity_y) for u in tracks])[who]
+        ahead = velocity * np.maximum(t2 - heard_until, 0)[:, None]
+        guess_var = 0.25 * np.sum(ahead**2, axis=1)
+        heard = t2 - heard_until <= 5_000
+        ok = np.flatnonzero(placeable[:n] & placeable[n:] & heard[:n] & heard[n:])
         slots, index = unique_ints_inverse(np.concatenate([slot_a, slot_b]))
         means = engine.means(slots)
-        delta = means[index[:n]] - means[index[n:]] - (shift[:n] - shift[n:])
+        placed = (shift - ahead)[:n] - (shift - ahead)[n:]
+        delta = means[index[:n]] - means[index[n:]] - placed
         predicted = np.hypot(delta[ok, 0], delta[ok, 1])
         sigma = np.sqrt(np.array([detector.range_model(int(m)).variance_at_distance(np.array([d]))[0]
                                   for m, d in zip(found.model[ok], predicted, strict=True)]))  # fmt: skip
         keys = pair_keys(found.user_a, found.user_b, found.model)
         want = ok[reference.choose(found.t_ms[ok], keys[ok], predicted, sigma)]
         assert got.tolist() == want.tolist()
-        np.testing.assert_allclose(offset, (shift[:n] - shift[n:])[want], atol=1e-12)
-        np.testing.assert_allclose(carry_var, 0.01 * (walked[:n] ** 2 + walked[n:] ** 2)[want], atol=1e-12)
+        np.testing.assert_allclose(offset, placed[want], atol=1e-12)
+        variance = 0.01 * (walked[:n] ** 2 + walked[n:] ** 2) + guess_var[:n] + guess_var[n:]
+        np.testing.assert_allclose(carry_var, variance[want], atol=1e-12)
         calls.append(int(got.size))
         far.append(int(np.sum(predicted > selector.params.select_range_m)))
-        moved.append(float(np.abs(offset).sum()))
+        carried.append(float(np.abs(shift[:n][want]).sum() + np.abs(shift[n:][want]).sum()))
+        guessed.append(float(np.abs(ahead[:n][want]).sum() + np.abs(ahead[n:][want]).sum()))
         return got, offset, carry_var
 
     far: list[int] = []
-    moved: list[float] = []
+    carried: list[float] = []
+    guessed: list[float] = []
     monkeypatch.setattr(radio, "_choose", checked)
-    _busy_building(10**9, monkeypatch, scan_lag_ms=700)  # scans before each batch's last step
-    assert len(calls) >= 7
+    # scans before each batch's last step, and phones posting in three calls a second
+    _busy_building(10**9, monkeypatch, scan_lag_ms=700, calls_per_second=3)
+    assert len(calls) >= 21
     assert sum(calls) > 0
-    assert sum(moved) > 0  # the chosen readings were carried
+    assert sum(carried) > 0  # chosen readings were carried back through the walk since
+    assert sum(guessed) > 0  # and lagging peers extrapolated
     assert sum(far) > 0  # and some readings were out of range, for the narrowing to leave out

@@ -8,8 +8,18 @@ import math
 import pickle
 
 import numpy as np
+import pytest
 
-from slam_core.tracker_rounds import TRAIL_MS, UserTrack, carried_since, carry_variance, trail_lookup
+from slam_core.tracker_rounds import (
+    MAX_SPEED_M_PER_MS,
+    TRAIL_MS,
+    SlotColumns,
+    TrackTable,
+    UserTrack,
+    carried_since,
+    carry_variance,
+    trail_lookup,
+)
 
 
 def _walk(seconds: int) -> tuple[UserTrack, list[tuple[int, float, float, float]]]:
@@ -105,7 +115,7 @@ def test_many_users_times_at_once_answer_as_one_at_a_time() -> None:
     times = [0, 500, 31_000, 45_250, 60_000, 70_000, steps[0][0] - 1, steps[1][0]]
     which = np.array([w for w in range(3) for _ in times], dtype=np.int64)
     t = np.array(times * 3, dtype=np.int64)
-    displacement, walked = trail_lookup(tracks, which, t)
+    displacement, walked = trail_lookup(TrackTable.of(tracks), which, t)
     for k, (w, query) in enumerate(zip(which.tolist(), t.tolist(), strict=True)):
         (x, y), distance = _at_by_hand(tracks[w], query)
         assert displacement[k].tolist() == [x, y], (w, query)
@@ -119,10 +129,66 @@ def test_many_users_times_at_once_answer_as_one_at_a_time() -> None:
 def test_carrying_a_time_to_now_follows_the_steps_since_and_grows_with_the_distance() -> None:
     track, steps = _walk(60)
     t = np.array([steps[-3][0], steps[-1][0], steps[-1][0] - TRAIL_MS - 1], dtype=np.int64)
-    shift, walked, placeable = carried_since([track], np.zeros(3, np.int64), t)
+    shift, walked, placeable = carried_since(TrackTable.of([track]), np.zeros(3, np.int64), t)
     assert np.allclose(shift[0], np.array(steps[-1][1:3]) - np.array(steps[-3][1:3]), atol=1e-9)
     assert np.array_equal(shift[1], np.zeros(2))
     assert walked[1] == 0.0
     assert math.isclose(walked[0], steps[-1][3] - steps[-3][3])
     assert math.isclose(float(carry_variance(walked[0])), (0.1 * walked[0]) ** 2)
     assert placeable.tolist() == [True, True, False]  # older than the trail cannot be carried
+
+
+def _east(speed_m_per_s: float) -> UserTrack:
+    """Ten seconds of steps east, two a second, at ``speed_m_per_s``."""
+    track = UserTrack()
+    step = speed_m_per_s / 2.0
+    for second in range(10):
+        times = [second * 1_000 + 500, second * 1_000 + 1_000]
+        track.lay(times, [step, step], [0.0, 0.0], [step, step], (2 * step, 0.0), (2 * step, 0.0), math.nan)
+        track.last_t_ms = times[-1]
+    return track
+
+
+def test_a_lagging_user_is_guessed_ahead_at_its_recent_velocity_capped_at_a_run() -> None:
+    walker, runner, standing = _east(1.4), _east(5.0), UserTrack()
+    standing.last_t_ms = 1_000
+    for slot, track in enumerate((walker, runner, standing)):
+        track.slot = slot
+    columns = SlotColumns()
+    for track in (walker, runner, standing):
+        columns.reset(track.slot)
+    columns.update([walker, runner, standing], [10_000, 10_000, 1_000])
+    slots = np.array([0, 0, 0, 1, 2, 0])
+    t = np.array([10_500, 9_000, 10_000, 11_000, 5_000, 16_000], dtype=np.int64)
+    ahead, variance, heard = columns.extrapolated(slots, t)
+    np.testing.assert_allclose(ahead[0], [0.7, 0.0], atol=1e-12)  # half a second at 1.4 m/s
+    assert math.isclose(variance[0], 0.25 * 0.7**2)
+    assert ahead[1:3].tolist() == [[0.0, 0.0], [0.0, 0.0]]  # not after its last report: nothing to guess
+    assert variance[1] == variance[2] == 0.0
+    np.testing.assert_allclose(ahead[3], [1000 * MAX_SPEED_M_PER_MS, 0.0], atol=1e-12)  # 3 m in 1 s, not 5
+    assert ahead[4].tolist() == [0.0, 0.0]  # a user who never walked stays where it is
+    assert heard.tolist() == [True, True, True, True, True, False]  # 6 s of silence: not guessed at
+    # the walker's phone goes on reporting scans without steps until 12 s: it stands; heard until 12 s
+    columns.update([walker], [12_000])
+    ahead, _, heard = columns.extrapolated(np.array([0, 0]), np.array([11_000, 13_000]))
+    assert ahead.tolist() == [[0.0, 0.0], [0.0, 0.0]]
+    assert heard.tolist() == [True, True]
+
+
+def test_the_columns_bound_the_walk_after_a_time_by_the_latest_batch() -> None:
+    """``reach``: 0 for a time the user has not reported past, the latest batch's walk for a time inside
+    it (at least the walk since), infinity for an older time; a user new since has walked since its start."""
+    track = _east(1.4)  # ten seconds, 1.4 m a second
+    track.slot = 0
+    columns = SlotColumns()
+    columns.reset(0)
+    columns.update([track], [10_000])
+    assert columns.reach(np.array([0, 0]), np.array([10_000, 3_000])).tolist() == pytest.approx([0.0, 14.0])
+    columns.begin([track])
+    track.lay([10_500, 11_000], [0.7, 0.7], [0.0, 0.0], [0.7, 0.7], (1.4, 0.0), (1.4, 0.0), math.nan)
+    track.last_t_ms = 11_000
+    columns.update([track], [11_000])
+    reach = columns.reach(np.zeros(3, np.int64), np.array([10_200, 9_000, 11_000]))
+    assert reach.tolist() == pytest.approx([1.4, math.inf, 0.0])
+    _, walked, _ = carried_since(TrackTable.of([track]), np.zeros(1, np.int64), np.array([10_200]))
+    assert walked[0] <= reach[0]
