@@ -111,7 +111,7 @@ def _msindoor(args: argparse.Namespace) -> int:
 
     from server.app import load_calibration, tracker_params
     from server.datasets.msindoor import TraceFormatError
-    from server.datasets.msindoor_replay import ReplayOptions, replay_floor
+    from server.datasets.msindoor_replay import replay_floor
     from server.settings import Settings
     from slam_core.metrics import empirical_cdf
 
@@ -119,16 +119,7 @@ def _msindoor(args: argparse.Namespace) -> int:
         print("crowdslam evaluate: --sweep and --compare apply to --scenario only")
         return 2
     try:
-        options = ReplayOptions(
-            mode=args.mode,
-            warm_split=args.warm_split,
-            particles=args.particles,
-            sampling=args.sampling,
-            motion_model=args.motion_model,
-            crowd_solver=args.crowd_solver,
-            seed=args.seed,
-            fingerprints=args.fingerprints is not False,
-        )
+        options = _replay_options(args)
         calibration = load_calibration(args.calibration)
     except (OSError, ValueError) as error:
         print(f"crowdslam evaluate: {error}")
@@ -184,20 +175,11 @@ def _through_tracker(scenario: Any, args: argparse.Namespace, plot: Path) -> dic
     from tqdm import tqdm
 
     from server.app import load_calibration, tracker_params
-    from server.datasets.msindoor_replay import ReplayOptions
     from server.settings import Settings
     from server.simulated_replay import replay_simulation
     from slam_core.metrics import empirical_cdf
 
-    options = ReplayOptions(
-        mode=args.mode,
-        particles=args.particles,
-        sampling=args.sampling,
-        motion_model=args.motion_model,
-        crowd_solver=args.crowd_solver,
-        seed=args.seed,
-        fingerprints=args.fingerprints is not False,
-    )
+    options = _replay_options(args)
     with tqdm(desc=f"{scenario['name']} through the tracker ({args.mode})", unit="batch") as bar:
         result, errors = replay_simulation(
             scenario, options, tracker_params(Settings()), load_calibration(None), bar.update
@@ -312,3 +294,19 @@ def _plot_lines(
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
+
+
+def _replay_options(args: argparse.Namespace) -> Any:
+    """The command's options for a replay through the server's tracker (real walks or simulated phones)."""
+    from server.datasets.msindoor_replay import ReplayOptions
+
+    return ReplayOptions(
+        mode=args.mode,
+        warm_split=args.warm_split,
+        particles=args.particles,
+        sampling=args.sampling,
+        motion_model=args.motion_model,
+        crowd_solver=args.crowd_solver,
+        seed=args.seed,
+        fingerprints=args.fingerprints is not False,
+    )
