@@ -400,10 +400,11 @@ class DynamicSlam:
         summaries. A user in several encounters uses the most confident peer (Section 5.1) or, with
         ``peer_selection='all'``, each in turn. Encounters failing the Mahalanobis gate are not applied.
 
-        ``offset`` (E, 2): for an encounter measured before the users' latest steps, user a's dead-reckoned
-        displacement since the encounter minus user b's. The distance was between the users as they were
+        ``offset`` (E, 2): for an encounter measured at another time than the users' summaries describe,
+        user a's displacement from then to its summary minus user b's (the tracker's: dead reckoning since,
+        or a guess for a user not yet heard up to then). The distance was between the users as they were
         then, so b's summary is moved by it when it is a's anchor, and a's by its opposite when it is b's
-        (the caller adds the dead reckoning's own uncertainty to ``distance_var``). None: measured now."""
+        (the caller adds that displacement's uncertainty to ``distance_var``). None: measured now."""
         user_a = np.ascontiguousarray(user_a, dtype=np.int64)
         user_b = np.ascontiguousarray(user_b, dtype=np.int64)
         distance = np.ascontiguousarray(distance, dtype=np.float64)

@@ -18,7 +18,8 @@ by the server) and advances everything they imply, in this order:
 3. WiFi scans and Bluetooth sightings are matched against the building's other users (Eq. 3, the RSS
    cut-off); detections between tracked users that the selector chooses from the filters' estimates
    (``slam_core.encounter_selection``) become human anchors (Algorithm 1), both users updated from their
-   pre-encounter states;
+   pre-encounter states, each reading placed at its time (the users' dead reckoning since, or a guess for a
+   peer whose phone has not reported up to it yet);
 4. the estimate of every user whose batch was applied. A peer that an encounter moved is not estimated
    here: its estimate comes with its own next batch (within a sighting period), so that every batch yields
    one estimate, however many encounters it makes.
