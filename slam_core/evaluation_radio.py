@@ -13,8 +13,9 @@ from slam_core.encounters import Calibration
 from slam_core.fastslam import DynamicSlam
 from slam_core.simulate import Simulation
 from slam_core.simulated_encounters import Encounters
+from slam_core.track_placement import carry_variance
 from slam_core.tracker_radio import apply_fingerprint_fixes
-from slam_core.tracker_rounds import MAX_SPEED_M_PER_MS, VELOCITY_WINDOW_MS, carry_variance
+from slam_core.tracker_rounds import MAX_SPEED_M_PER_MS, VELOCITY_WINDOW_MS
 
 
 def fingerprint_fixes(

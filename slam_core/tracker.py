@@ -46,7 +46,8 @@ from slam_core.encounter_selection import EncounterSelector
 from slam_core.encounters import Calibration
 from slam_core.fastslam import DynamicSlam
 from slam_core.front_end import FrontEnd, RadioArrays
-from slam_core.tracker_rounds import Round, SlotColumns, UserTrack, lay_steps, round_at
+from slam_core.track_placement import SlotColumns
+from slam_core.tracker_rounds import Round, UserTrack, lay_steps, round_at
 from slam_core.tracker_types import (
     CROWD_SOLVERS,
     EncounterResult,

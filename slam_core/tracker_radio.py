@@ -22,14 +22,8 @@ from slam_core.dense_ids import unique_ints, unique_ints_inverse
 from slam_core.encounter_detection import DetectionArrays, EncounterDetector, ScanBatch
 from slam_core.encounter_selection import EncounterSelector, latest_per_pair, pair_keys
 from slam_core.fastslam import DynamicSlam
-from slam_core.tracker_rounds import (
-    Round,
-    SlotColumns,
-    TrackTable,
-    UserTrack,
-    carried_since,
-    carry_variance,
-)
+from slam_core.track_placement import SlotColumns, TrackTable, carried_since, carry_variance, trail_lookup
+from slam_core.tracker_rounds import Round, UserTrack
 from slam_core.tracker_types import EncounterResult, EstimateRow, TrackerParams, UserBatch, UserReport
 from slam_core.wifi_pairs import fresh_mask
 
@@ -57,11 +51,14 @@ def observe_signatures(
     fix_slots, fix_xy, fix_sigma = [], [], []
     ids = []
     r2 = params.signature_sigma_m**2
-    for name, row, k in zip(names, before, signed, strict=True):
+    observed = np.array([rnd.det_observed_t[k] for k in signed], dtype=np.int64)
+    at_peak, walked_at_peak = trail_lookup(
+        TrackTable.of([users[n] for n in names]), np.arange(len(names)), observed
+    )
+    for name, row, k, then, walked_then in zip(names, before, signed, at_peak, walked_at_peak, strict=True):
         u = users[name]
-        then, walked_then = u.at(rnd.det_observed_t[k])
         shift = u.displacement - then
-        drift = (0.1 * (u.walked - walked_then)) ** 2
+        drift = float(carry_variance(u.walked - walked_then))
         cov = np.array([[row[2], row[3]], [row[3], row[4]]]) + drift * np.eye(2)
         existing = crowd.find_signature(rnd.det_signature[k])
         if existing is not None and crowd.informed_by_others(existing, u.number):

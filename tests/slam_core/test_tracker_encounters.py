@@ -296,7 +296,7 @@ def test_narrowing_the_readings_before_carrying_them_chooses_as_carrying_all(
 
     from slam_core.dense_ids import unique_ints_inverse
     from slam_core.encounter_selection import pair_keys
-    from slam_core.tracker_rounds import TrackTable, carried_since
+    from slam_core.track_placement import TrackTable, carried_since
 
     calls: list[int] = []
     narrowed = radio._choose

@@ -1,5 +1,6 @@
-"""A user's dead-reckoned trail: what ``at`` answers against a plain list of the steps laid, the window it
-keeps, and a pickle round trip (snapshots) that restores it exactly."""
+"""A user's dead-reckoned trail: what ``trail_lookup`` answers against a plain list of the steps laid, the
+window it keeps, a pickle round trip (snapshots) that restores it exactly, and readings placed in time
+(``slam_core.track_placement``: carried back, guessed ahead)."""
 
 from __future__ import annotations
 
@@ -10,16 +11,14 @@ import pickle
 import numpy as np
 import pytest
 
-from slam_core.tracker_rounds import (
-    MAX_SPEED_M_PER_MS,
-    TRAIL_MS,
-    SlotColumns,
-    TrackTable,
-    UserTrack,
-    carried_since,
-    carry_variance,
-    trail_lookup,
-)
+from slam_core.track_placement import SlotColumns, TrackTable, carried_since, carry_variance, trail_lookup
+from slam_core.tracker_rounds import MAX_SPEED_M_PER_MS, TRAIL_MS, UserTrack
+
+
+def _at(track: UserTrack, t_ms: int) -> tuple[np.ndarray, float]:
+    """One user's ``trail_lookup`` at one time."""
+    displacement, walked = trail_lookup(TrackTable.of([track]), np.zeros(1, np.int64), np.array([t_ms]))
+    return displacement[0], float(walked[0])
 
 
 def _walk(seconds: int) -> tuple[UserTrack, list[tuple[int, float, float, float]]]:
@@ -45,11 +44,11 @@ def test_the_trail_answers_the_last_step_at_or_before_a_time_within_its_window()
     assert len(track.trail) == 4 * len(kept)
     for t, x, y, walked in kept:
         for query in (t, t + 250):
-            displacement, distance = track.at(query)
+            displacement, distance = _at(track, query)
             assert np.allclose(displacement, [x, y], atol=1e-9)
             assert math.isclose(distance, walked)
     # older than the window: the oldest step kept; after the last step: where the user is now
-    oldest, now = track.at(0), track.at(steps[-1][0] + 10_000)
+    oldest, now = _at(track, 0), _at(track, steps[-1][0] + 10_000)
     assert np.allclose(oldest[0], kept[0][1:3])
     assert math.isclose(oldest[1], kept[0][3])
     assert np.array_equal(now[0], track.displacement)
@@ -120,7 +119,7 @@ def test_many_users_times_at_once_answer_as_one_at_a_time() -> None:
         (x, y), distance = _at_by_hand(tracks[w], query)
         assert displacement[k].tolist() == [x, y], (w, query)
         assert walked[k] == distance
-        one, one_walked = tracks[w].at(query)
+        one, one_walked = _at(tracks[w], query)
         assert one.tolist() == [x, y]
         assert one_walked == distance
     long.lay([99_000], [1.0], [0.0], [1.0], (1.0, 0.0), (1.0, 0.0), math.nan)  # the trails still grow
