@@ -184,8 +184,6 @@ def _filter_errors(
     graph = CrowdGraph(GraphParams(detection_sigma_m=params.anchors.detection_sigma_m))
     for k in np.flatnonzero(sim.world.anchor_known):
         graph.set_known(int(k), sim.world.anchor_xy[k])
-    displacement = np.zeros((len(sim.users), 2))
-    walked = np.zeros(len(sim.users))
     last_solve_s = -np.inf
     slots = np.full(len(sim.users), -1, dtype=np.int64)
     # every step of every user as (tick, user, step index)
@@ -211,6 +209,7 @@ def _filter_errors(
     if fp is None:
         scan_tick = np.zeros(0, np.int64)
     dead_reckoned = [_dead_reckoned(tr) for tr in sim.users]
+    # each user's dead reckoning and distance walked after each step, and its steps applied so far
     walked_at = [np.concatenate([[0.0], np.cumsum(tr.step_length_obs)]) for tr in sim.users]
     steps_done = np.zeros(len(sim.users), dtype=np.int64)
     ap_names = [f"ap{i}" for i in range(sim.world.ap_xy.shape[0])]
@@ -249,9 +248,7 @@ def _filter_errors(
             )
             engine.step(slots[uniq], offsets, lengths, headings)
             det_users, det_types = [], []
-            for u, k, length, heading in zip(users_sorted, step_index[sel], lengths, headings, strict=True):
-                displacement[u] += length * np.array([np.cos(heading), np.sin(heading)])
-                walked[u] += length
+            for u, k in zip(users_sorted, step_index[sel], strict=True):
                 steps_done[u] = k
                 if k in anchor_at[u]:
                     det_users.append(int(u))
@@ -272,7 +269,8 @@ def _filter_errors(
                 detection_crowd_ids += ids.tolist()
                 if crowd_solver == "graph":
                     for u, c in zip(det_users, ids, strict=True):
-                        graph.add_detection(u, int(c), displacement[u], float(walked[u]))
+                        now = steps_done[u]
+                        graph.add_detection(u, int(c), dead_reckoned[u][now], float(walked_at[u][now]))
                 if crowd_solver == "graph" and tick * TICK_S - last_solve_s >= GRAPH_SOLVE_PERIOD_S:
                     last_solve_s = tick * TICK_S
                     means, covs = graph.solve(crowd.means())
@@ -286,7 +284,7 @@ def _filter_errors(
             assert fingerprints is not None
             s = np.flatnonzero(scan_tick == tick)
             fingerprint_fixes += radio.fingerprint_fixes(
-                engine, fp, fingerprints, sim, slots, displacement, dead_reckoned, ap_names,
+                engine, fp, fingerprints, sim, slots, steps_done, dead_reckoned, ap_names,
                 scan_user[s], scan_index[s],
             )  # fmt: skip
         if encounters is not None and calibration is not None and params.use_human_anchors:

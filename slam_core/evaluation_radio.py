@@ -24,14 +24,15 @@ def fingerprint_fixes(
     params: FingerprintParams,
     sim: Simulation,
     slots: np.ndarray,
-    displacement: np.ndarray,
+    steps_done: np.ndarray,
     dead_reckoned: list[np.ndarray],
     ap_names: list[str],
     scan_user: np.ndarray,
     scan_index: np.ndarray,
 ) -> int:
     """One tick's scans of the tracked users, through ``slam_core.tracker_radio.apply_fingerprint_fixes`` as
-    a tracker call's are; returns the fixes applied."""
+    a tracker call's are (each carried to the user's last applied step, ``steps_done``); returns the fixes
+    applied."""
     scans: dict[int, list[Scan]] = {}
     for u, c in zip(scan_user.tolist(), scan_index.tolist(), strict=True):
         if slots[u] < 0:
@@ -40,7 +41,7 @@ def fingerprint_fixes(
         rss = tr.scan_rss[c]
         heard = np.flatnonzero(np.isfinite(rss))
         position = int(np.searchsorted(tr.t, tr.scan_t[c], side="right")) - 1
-        shift = displacement[u] - dead_reckoned[u][max(position, 0)]
+        shift = dead_reckoned[u][steps_done[u]] - dead_reckoned[u][max(position, 0)]
         t_ms = round(float(tr.scan_t[c]) * 1000.0)
         scans.setdefault(u, []).append(Scan([ap_names[i] for i in heard], rss[heard], shift, t_ms))
     if not scans:
