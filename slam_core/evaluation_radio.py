@@ -13,9 +13,9 @@ from slam_core.encounters import Calibration
 from slam_core.fastslam import DynamicSlam
 from slam_core.simulate import Simulation
 from slam_core.simulated_encounters import Encounters
-from slam_core.track_placement import carry_variance
+from slam_core.track_placement import carry_variance, guess_variance
 from slam_core.tracker_radio import apply_fingerprint_fixes
-from slam_core.tracker_rounds import MAX_SPEED_M_PER_MS, VELOCITY_WINDOW_MS
+from slam_core.tracker_rounds import MAX_SPEED_M_PER_MS, VELOCITY_WINDOW_MS, cap_speed
 
 
 def fingerprint_fixes(
@@ -64,9 +64,9 @@ def carried(
     steps_done: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
     """For detections ``e`` of this tick, as the tracker places a batch's encounters through its users'
-    trails (``slam_core.tracker_rounds.carried_since`` and ``extrapolated``): user a's dead-reckoned
-    displacement from the detection to its last applied step (``steps_done``), or minus its guessed walk
-    from that step to a later detection, minus user b's; and the variance of both carries."""
+    trails (``slam_core.track_placement.carried_since`` and ``SlotColumns.extrapolated``): user a's
+    dead-reckoned displacement from the detection to its last applied step (``steps_done``), or minus its
+    guessed walk from that step to a later detection, minus user b's; and the variance of both carries."""
     offset = np.zeros((e.size, 2))
     variance = np.zeros(e.size)
     window_s, max_speed = VELOCITY_WINDOW_MS / 1000.0, MAX_SPEED_M_PER_MS * 1000.0
@@ -75,11 +75,10 @@ def carried(
             times, now = sim.users[u].t, int(steps_done[u])
             if t > times[now]:  # after the last step: guessed at the user's recent velocity
                 recent = max(int(np.searchsorted(times, times[now] - window_s, side="right")) - 1, 0)
-                velocity = (dead_reckoned[u][now] - dead_reckoned[u][recent]) / window_s
-                speed = float(np.hypot(*velocity))
-                ahead = velocity * min(speed, max_speed) / max(speed, 1e-12) * (t - times[now])
+                vx, vy = (dead_reckoned[u][now] - dead_reckoned[u][recent]) / window_s
+                ahead = np.array(cap_speed(float(vx), float(vy), max_speed)) * (t - times[now])
                 shift = -ahead
-                variance[k] += 0.25 * float(ahead @ ahead)
+                variance[k] += float(guess_variance(ahead))
             else:
                 then = max(int(np.searchsorted(times, t, side="right")) - 1, 0)
                 shift = dead_reckoned[u][now] - dead_reckoned[u][then]

@@ -108,6 +108,16 @@ def carried_since(
     return shift, walked, t >= last - TRAIL_MS
 
 
+GUESS_SIGMA_FRACTION = 0.5
+"""A user guessed ahead may have stopped or turned: the guess's sigma is half its length."""
+
+
+def guess_variance(ahead: np.ndarray) -> np.ndarray:
+    """Variance (m^2) of guessed displacements ``ahead`` (..., 2)."""
+    variance: np.ndarray = GUESS_SIGMA_FRACTION**2 * np.sum(ahead * ahead, axis=-1)
+    return variance
+
+
 MAX_EXTRAPOLATION_MS = 5_000
 """A user not heard from for longer than this is not guessed at: where it went is anyone's guess."""
 STANDING_MS = 1_500
@@ -171,11 +181,12 @@ class SlotColumns:
                 u.walked,
             )
             walking = bool(u.trail) and heard - u.trail[-4] <= STANDING_MS
-            self.velocity[u.slot] = (u.velocity_x, u.velocity_y) if walking else (0.0, 0.0)
+            self.velocity[u.slot] = u.recent_velocity() if walking else (0.0, 0.0)
 
     def reach(self, slots: np.ndarray, t_ms: np.ndarray) -> np.ndarray:
-        """At least how far each user walked after ``t_ms``: 0 when it has not reported past it, its latest
-        batch's walk when the time is within that batch, infinity (unknown) when older."""
+        """A bound on how far each user walked after ``t_ms`` (at least that far): 0 when it has not reported
+        steps past it, its latest batch's walk when the time is within that batch, infinity (unknown) when
+        older."""
         t = np.asarray(t_ms, dtype=np.int64)
         latest_batch = self.walked[slots] - self.start_walked[slots]
         bound = np.where(t >= self.start_t_ms[slots], latest_batch, np.inf)
@@ -184,10 +195,10 @@ class SlotColumns:
 
     def extrapolated(self, slots: np.ndarray, t_ms: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Where each user has gone from its phone's last report to ``t_ms``, a time it has not reported
-        yet, at its recent velocity (``UserTrack.velocity_x``, ``velocity_y``; zero for a user standing at
-        its last report): (n, 2) displacement (zero when the time has been reported); (n,) the variance of
-        that guess, (half its length)^2 (the user may have stopped or turned); and (n,) whether it is
-        guessed at all (not after ``MAX_EXTRAPOLATION_MS`` of silence)."""
+        yet, at its recent velocity (``UserTrack.recent_velocity``; zero for a user standing at its last
+        report): (n, 2) displacement (zero when the time has been reported); (n,) the variance of that guess
+        (``guess_variance``); and (n,) whether it is guessed at all (not after ``MAX_EXTRAPOLATION_MS`` of
+        silence)."""
         silence = np.asarray(t_ms, dtype=np.int64) - self.heard_t_ms[slots]
         ahead = self.velocity[slots] * np.maximum(silence, 0).astype(np.float64)[:, None]
-        return ahead, 0.25 * np.sum(ahead * ahead, axis=1), silence <= MAX_EXTRAPOLATION_MS
+        return ahead, guess_variance(ahead), silence <= MAX_EXTRAPOLATION_MS

@@ -19,6 +19,14 @@ MAX_SPEED_M_PER_MS = 0.003
 user can be guessed to have gone in a given time."""
 
 
+def cap_speed(vx: float, vy: float, limit: float = MAX_SPEED_M_PER_MS) -> tuple[float, float]:
+    """The velocity, slowed to ``limit`` (in its units) if faster."""
+    speed = math.hypot(vx, vy)
+    if speed > limit:
+        return vx * limit / speed, vy * limit / speed
+    return vx, vy
+
+
 @dataclass
 class UserTrack:
     number: int = -1  # start order: the crowd graph's user id
@@ -40,10 +48,6 @@ class UserTrack:
     walked after it. A flat array of doubles: the garbage collector does not walk it and a snapshot writes
     it as one block (a list of small tuples and lists had cost a 1,000-user building ~100,000 objects in
     every full collection and ~75 ms of pickling in the building's thread)."""
-    velocity_x: float = 0.0
-    velocity_y: float = 0.0
-    """The dead-reckoned velocity over the ``VELOCITY_WINDOW_MS`` before the last step (m per ms, at most
-    ``MAX_SPEED_M_PER_MS``), kept by ``lay``: how ``SlotColumns.extrapolated`` guesses an unheard user."""
 
     # A user travels in a snapshot as one flat tuple, its fields in declaration order and its 2-vectors as
     # plain floats: thousands of tiny arrays, or of dicts naming every field, pickle slowly one by one (a
@@ -56,7 +60,7 @@ class UserTrack:
         return (
             self.number, self.slot, self.last_t_ms, self.heading, self.walked, self.heading_offset,
             self.trail, float(d[0]), float(d[1]), float(o[0]), float(o[1]), float(g[0]), float(g[1]),
-            float(sg[0]), float(sg[1]), float(sl[0]), float(sl[1]), self.velocity_x, self.velocity_y,
+            float(sg[0]), float(sg[1]), float(sl[0]), float(sl[1]),
         )  # fmt: skip
 
     def __setstate__(self, state: tuple[object, ...] | dict[str, object]) -> None:
@@ -64,11 +68,10 @@ class UserTrack:
             self.__dict__.update(state)
             for name in self._VECTORS:
                 self.__dict__[name] = np.array(state[name], dtype=np.float64)
-            self.velocity_x, self.velocity_y = self._recent_velocity()
             return
         (
             self.number, self.slot, self.last_t_ms, self.heading, self.walked, self.heading_offset,
-            self.trail, dx, dy, ox, oy, gx, gy, sgx, sgy, slx, sly, self.velocity_x, self.velocity_y,
+            self.trail, dx, dy, ox, oy, gx, gy, sgx, sgy, slx, sly,
         ) = state  # type: ignore[assignment]  # fmt: skip
         self.displacement = np.array([dx, dy])
         self.origin = np.array([ox, oy])
@@ -103,16 +106,17 @@ class UserTrack:
         del trail[:old]
         self.displacement = np.array(trail[-3:-1])
         self.walked = trail[-1]
-        self.velocity_x, self.velocity_y = self._recent_velocity()
         self.gyro_displacement = self.gyro_displacement + gyro
         self.since_gyro = self.since_gyro + gyro
         self.since_laid = self.since_laid + laid
         if math.isfinite(heading_offset):
             self.heading_offset = heading_offset
 
-    def _recent_velocity(self) -> tuple[float, float]:
-        """Displacement from the last step at least ``VELOCITY_WINDOW_MS`` before the latest one (the oldest
-        kept when the trail is shorter) to the latest, over that window, capped at ``MAX_SPEED_M_PER_MS``."""
+    def recent_velocity(self) -> tuple[float, float]:
+        """Dead-reckoned velocity (m per ms): the displacement from the last step at least
+        ``VELOCITY_WINDOW_MS`` before the latest one (the oldest kept when the trail is shorter) to the
+        latest, over that window, capped at ``MAX_SPEED_M_PER_MS``; how ``SlotColumns.extrapolated`` guesses
+        a user not heard yet."""
         trail = self.trail
         if not trail:
             return 0.0, 0.0
@@ -122,10 +126,7 @@ class UserTrack:
             i -= 4
         vx = (trail[-3] - trail[i + 1]) / VELOCITY_WINDOW_MS
         vy = (trail[-2] - trail[i + 2]) / VELOCITY_WINDOW_MS
-        speed = math.hypot(vx, vy)
-        if speed > MAX_SPEED_M_PER_MS:
-            vx, vy = vx * MAX_SPEED_M_PER_MS / speed, vy * MAX_SPEED_M_PER_MS / speed
-        return vx, vy
+        return cap_speed(vx, vy)
 
     def revision(self) -> np.ndarray:
         """How far the path since the last absolute observation moves when all of it takes the latest north

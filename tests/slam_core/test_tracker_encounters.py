@@ -312,7 +312,7 @@ def test_narrowing_the_readings_before_carrying_them_chooses_as_carrying_all(
         shift, walked, placeable = carried_since(table, who, t2)
         # each user's guessed walk beyond its phone's last report, at its own track's velocity (all walk)
         heard_until = columns.heard_t_ms[np.concatenate([slot_a, slot_b])]
-        velocity = np.array([(u.velocity_x, u.velocity_y) for u in tracks])[who]
+        velocity = np.array([u.recent_velocity() for u in tracks])[who]
         ahead = velocity * np.maximum(t2 - heard_until, 0)[:, None]
         guess_var = 0.25 * np.sum(ahead**2, axis=1)
         heard = t2 - heard_until <= 5_000
