@@ -7,7 +7,10 @@ import argparse
 import json
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from server.datasets.msindoor_replay import ReplayOptions
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -296,9 +299,9 @@ def _plot_lines(
     plt.close(fig)
 
 
-def _replay_options(args: argparse.Namespace) -> Any:
+def _replay_options(args: argparse.Namespace) -> ReplayOptions:
     """The command's options for a replay through the server's tracker (real walks or simulated phones)."""
-    from server.datasets.msindoor_replay import ReplayOptions
+    from server.datasets.msindoor_replay import ReplayOptions  # imported late: the CLI starts fast
 
     return ReplayOptions(
         mode=args.mode,
