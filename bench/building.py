@@ -3,11 +3,11 @@
     python bench/building.py [--phones 1000] [--seconds 20] [--group 32] [--path process|thread|both]
                              [--json OUT] [--profile OUT.prof]
 
-A building's session as its own process builds it (``server.app.building_session``: SQLite, its write-ahead
-log checkpointed by a thread beside the batch path, recording on: the server's defaults) is fed the load
-benchmark's phones (``bench/load.py``: a batch per phone per second, two steps, a WiFi scan every 2 s,
-Bluetooth sightings) in groups of ``--group`` batches, the way the building's worker drains its queue under
-load. Every phone posts its fix first; the figures count the seconds after that. Prints one JSON object:
+A building's tracking as its own process builds it (``server.buildings.tracking.open_building``: SQLite,
+its write-ahead log checkpointed by a thread beside the batch path, recording on: the server's defaults) is
+fed the load benchmark's phones (``bench/load.py``: a batch per phone per second, two steps, a WiFi scan every
+2 s, Bluetooth sightings) in groups of ``--group`` batches, the way the building's worker drains its queue
+under load. Every phone posts its fix first; the figures count the seconds after that. Prints one JSON object:
 ``us_per_batch`` (wall time of ``process`` and of the JSON of its receipts and live messages, mean over the
 seconds; ``_min``: the cheapest second; ``cpu_us_per_batch``: the process' CPU time over the same spans,
 which a shared machine's stolen time inflates less), ``json_us_per_batch`` (that JSON alone), and what it
@@ -45,7 +45,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
-from server.numba_cache import configure_numba_cache
+from server.engine.numba_cache import configure_numba_cache
 
 configure_numba_cache()
 
@@ -54,12 +54,13 @@ from load import Crowd, _body
 from report import emit
 
 from schemas.live import LIVE_MESSAGE_ADAPTER
-from server import tracker_snapshot
-from server.app import building_session, tune_gc_for_serving
-from server.batch_decoding import decode_batch
-from server.building_process import batch_fields, received_batch
+from server.buildings import snapshot as tracker_snapshot
+from server.buildings.process import batch_fields, received_batch
+from server.buildings.tracking import open_building
+from server.buildings.types import Submission
 from server.errors import ProblemError
-from server.session_types import Submission
+from server.gc_tuning import tune_gc_for_serving
+from server.ingestion.decoding import decode_batch
 from server.settings import Settings
 from server.store.db import make_engine, make_session_factory
 from server.store.migrate import upgrade
@@ -67,7 +68,7 @@ from server.store.models import BuildingRow
 
 THREADS = numba.get_num_threads()
 """numba's threads in the server's own process; a building process runs its kernels on one
-(``server.building_process.serve_building``), and so does this benchmark on the ``process`` path."""
+(``server.buildings.process.serve_building``), and so does this benchmark on the ``process`` path."""
 
 
 def run(phones: int, seconds: int, group: int, path: str, profile: Path | None) -> dict[str, object]:
@@ -77,9 +78,9 @@ def run(phones: int, seconds: int, group: int, path: str, profile: Path | None) 
         upgrade(engine)
         with make_session_factory(engine).begin() as s:
             s.add(BuildingRow(id="load", name="Load test", rotation_rad=0.0))
-        # the session a building's process serves with: its own engine with the write-ahead log
+        # the tracking a building's process serves with: its own engine with the write-ahead log
         # checkpointed by a thread beside the batch path, recording, snapshots and retention as configured
-        session = building_session(settings, "load", engine)
+        building = open_building(settings, "load", engine)
         crowd = Crowd.create(phones, seed=0)
         start_ms = int(time.time() * 1000)
         per_second: list[float] = []
@@ -108,7 +109,7 @@ def run(phones: int, seconds: int, group: int, path: str, profile: Path | None) 
                     subs = [_building_side(f) for f in frames]
                 else:
                     subs = [Submission.of(decode_batch(r, len(r)), r, time.time_ns()) for r in raws]
-                result = session.process(subs)
+                result = building.process(subs)
                 encoded = time.perf_counter()
                 for receipt in result.receipts:
                     if isinstance(receipt, ProblemError):
@@ -135,11 +136,11 @@ def run(phones: int, seconds: int, group: int, path: str, profile: Path | None) 
                 tune_gc_for_serving()  # as the server does once its kernels are warm
         if profiler is not None and profile is not None:
             profiler.dump_stats(profile)
-        pickle_s = min(_timed(lambda: tracker_snapshot.pickled(session.session_state())) for _ in range(3))
+        pickle_s = min(_timed(lambda: tracker_snapshot.pickled(building.building_state())) for _ in range(3))
         gc_s = min(_timed(gc.collect) for _ in range(3))
-        session.close()
-        assert session.recorder is not None
-        session.recorder.close()
+        building.close()
+        assert building.recorder is not None
+        building.recorder.close()
         engine.dispose()  # and its checkpoint thread
     paths = {}
     if path == "both":
@@ -162,8 +163,8 @@ def run(phones: int, seconds: int, group: int, path: str, profile: Path | None) 
         "group_ms_max": round(max(group_ms), 1),
         "snapshot_pickle_ms": round(pickle_s * 1e3, 1),
         "full_gc_ms": round(gc_s * 1e3, 1),
-        "fingerprint_fixes": session.counters.fingerprint_fixes,
-        "encounters": session.counters.encounters,
+        "fingerprint_fixes": building.counters.fingerprint_fixes,
+        "encounters": building.counters.encounters,
     }
 
 
@@ -192,7 +193,7 @@ def main() -> int:
     parser.add_argument(
         "--seconds", type=int, default=20, help="measured seconds of batches (after the fixes)"
     )
-    parser.add_argument("--group", type=int, default=32, help="batches per call of BuildingSession.process")
+    parser.add_argument("--group", type=int, default=32, help="batches per call of BuildingTracking.process")
     parser.add_argument(
         "--path",
         choices=("process", "thread", "both"),

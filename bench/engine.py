@@ -5,7 +5,7 @@ plain-NumPy textbook FastSLAM on identical inputs.
 
 Prints one JSON object: motion_ms, step_ms, human_anchor_us, reference_ratio (the engine's kernels in
 parallel, as over a whole building) and reference_ratio_serial (as the engine runs a call of 100 users by
-default: serially, ``slam_core.kernels.serial``), and what they were measured on.
+default: serially, ``slam_core.filter.kernels.serial``), and what they were measured on.
 """
 
 from __future__ import annotations
@@ -20,15 +20,15 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from server.numba_cache import configure_numba_cache
+from server.engine.numba_cache import configure_numba_cache
 
 configure_numba_cache()
 from report import emit
 
-from slam_core import reference
-from slam_core.fastslam import DynamicSlam
-from slam_core.kernels.serial import PARALLEL_MIN_USERS
-from slam_core.params import FilterParams
+from slam_core.filter import reference
+from slam_core.filter.dynamic_slam import DynamicSlam
+from slam_core.filter.kernels.serial import PARALLEL_MIN_USERS
+from slam_core.filter.params import FilterParams
 
 
 def _engine(
@@ -156,7 +156,7 @@ def main() -> int:
     # warm the small-input path of every kernel before timing it against the reference
     bench_reference_ratio(params, n_users=2, n_ticks=1, repeats=1)
     # the 100 users in parallel, as a call over a whole building runs; and as the engine dispatches a call
-    # of 100 users by default: serially (slam_core.kernels.serial), steadier on a busy machine
+    # of 100 users by default: serially (slam_core.filter.kernels.serial), steadier on a busy machine
     ratio, ref_ms, eng_ms = bench_reference_ratio(params, parallel_min_users=1)
     ratio_serial, _, eng_serial_ms = bench_reference_ratio(params)
     import numba

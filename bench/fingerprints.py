@@ -3,7 +3,7 @@
     python bench/fingerprints.py [--width 120 --height 80 --aps 60 --scans 30000] [--json OUT]
 
 The floor of ``bench/load.py`` by default: APs placed at random, log-distance path loss with 4 dB noise, each
-scan the 15 strongest APs. ``--scans`` scans at random places fill the map (``slam_core.crowd_fingerprints``,
+scan the 15 strongest APs. ``--scans`` scans at random places fill the map (``slam_core.crowd.fingerprints``,
 the server's parameters: at most ``per_cell`` per cell, ``max_references`` in all); then as many fresh scans
 are located (``locate``: the inverted-index kernel and the weighted kNN) and stored (``add``; the scans are a
 minute apart, so a full cell takes each). Prints one JSON object: references and postings held, microseconds
@@ -24,12 +24,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from server.numba_cache import configure_numba_cache
+from server.engine.numba_cache import configure_numba_cache
 
 configure_numba_cache()
 from report import emit
 
-from slam_core.crowd_fingerprints import CrowdFingerprints, FingerprintParams
+from slam_core.crowd.fingerprints import CrowdFingerprints, FingerprintParams
 
 SCAN_TOP = 15
 

@@ -2,12 +2,13 @@
 
     python bench/kernel_dispatch.py [--users 8,32,128,512,2048] [--calls 300] [--json OUT]
 
-The engine runs a kernel serially below ``slam_core.kernels.serial.PARALLEL_MIN_USERS`` users per call. This
-measures why: the summary (``summarise``) and the motion update (``motion_update``, two steps per user)
-over n users, each call followed by a 2 ms pause (a building's kernels come between Python work, so numba's
-thread pool has gone to sleep by the next call), once with the other cores idle and once with a process
-spinning on one core (the HTTP front and the phones' sockets on a loaded server). Prints one JSON object:
-per row ``kernel, users, other_core, parallel_mean_us, parallel_p99_us, serial_mean_us, serial_p99_us``.
+The engine runs a kernel serially below ``slam_core.filter.kernels.serial.PARALLEL_MIN_USERS`` users per
+call. This measures why: the summary (``summarise``) and the motion update (``motion_update``, two steps per
+user) over n users, each call followed by a 2 ms pause (a building's kernels come between Python work, so
+numba's thread pool has gone to sleep by the next call), once with the other cores idle and once with a
+process spinning on one core (the HTTP front and the phones' sockets on a loaded server). Prints one JSON
+object: per row ``kernel, users, other_core, parallel_mean_us, parallel_p99_us, serial_mean_us,
+serial_p99_us``.
 """
 
 from __future__ import annotations
@@ -23,14 +24,14 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from server.numba_cache import configure_numba_cache
+from server.engine.numba_cache import configure_numba_cache
 
 configure_numba_cache()
 
 from report import emit
 
-from slam_core.fastslam import DynamicSlam
-from slam_core.params import FilterParams
+from slam_core.filter.dynamic_slam import DynamicSlam
+from slam_core.filter.params import FilterParams
 
 
 def _spin(stop: Any) -> None:

@@ -54,7 +54,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from server.numba_cache import configure_numba_cache
+from server.engine.numba_cache import configure_numba_cache
 
 configure_numba_cache()
 
@@ -64,7 +64,7 @@ from websockets.asyncio.client import connect
 
 from schemas.api import KeyScope
 from server.auth import mint_key
-from server.background import free_port, serve_process
+from server.cli.background_server import free_port, serve_process
 from server.store.db import make_engine, make_session_factory
 from server.store.migrate import upgrade
 from server.store.models import BuildingRow

@@ -2,10 +2,10 @@
 
     python bench/pdr.py [--floor ../shared/data/msindoor20/site1/F1] [--json OUT]
 
-Every walk of the floor goes through ``slam_core.pdr.frontend.pdr_steps`` in the one-second batches a phone
-posts (state carried between batches), with the phone's rotation vector alone, with the rotation vector and
-the gyroscope (the server's usual path: gyroscope heading referenced to north) and with the Madgwick filter
-on gyroscope + magnetometer (phones without a rotation vector). Time is process CPU time
+Every walk of the floor goes through ``slam_core.sensing.pdr.online.pdr_steps`` in the one-second batches a
+phone posts (state carried between batches), with the phone's rotation vector alone, with the rotation vector
+and the gyroscope (the server's usual path: gyroscope heading referenced to north) and with the Madgwick
+filter on gyroscope + magnetometer (phones without a rotation vector). Time is process CPU time
 on one thread. Prints one JSON object: realtime_x per orientation source, per-batch microseconds, steps.
 """
 
@@ -21,13 +21,13 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from server.numba_cache import configure_numba_cache
+from server.engine.numba_cache import configure_numba_cache
 
 configure_numba_cache()
 from report import emit
 
 from server.datasets.msindoor import read_floor, read_trace
-from slam_core.pdr.frontend import ImuSamples, PdrParams, PdrState, pdr_steps
+from slam_core.sensing.pdr.online import ImuSamples, PdrParams, PdrState, pdr_steps
 
 
 def _batches(trace_streams: dict[str, np.ndarray], sources: tuple[str, ...]) -> list[ImuSamples]:

@@ -1,4 +1,4 @@
-"""Prometheus metrics: counters from the buildings' sessions, gauges from queues, latency summaries."""
+"""Prometheus metrics: counters from the buildings' tracking, gauges from queues, latency summaries."""
 
 from __future__ import annotations
 
@@ -10,12 +10,12 @@ from prometheus_client import CollectorRegistry, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 from prometheus_client.registry import Collector
 
+from server.buildings.registry import TrackingService
+from server.buildings.types import Counters
+from server.live.broadcast import Broadcaster
+
 if TYPE_CHECKING:
     from collections.abc import Iterator
-
-    from server.broadcast import Broadcaster
-    from server.ingestion import TrackingService
-    from server.session_types import Counters
 
 
 class Metrics:
@@ -33,7 +33,6 @@ class _Collector(Collector):
         self._broadcaster = broadcaster
 
     def collect(self) -> Iterator[Metric]:
-        from server.session_types import Counters
 
         workers = self._tracking.workers
         for f in fields(Counters):

@@ -11,16 +11,16 @@ import httpx
 
 from schemas.api import BatchReceipt
 from schemas.estimates import Estimate
-from server.app import load_calibration, tracker_params
-from server.batch_decoding import decode_batch
+from server.buildings.tracking import BuildingTracking
+from server.buildings.types import Submission
+from server.engine.config import load_calibration, tracker_params
 from server.errors import ProblemError
-from server.recording import RecordedBatch
-from server.session_types import Submission
+from server.ingestion.decoding import decode_batch
+from server.recordings.recorder import RecordedBatch
 from server.settings import Settings
 from server.store.db import make_engine, make_session_factory
 from server.store.migrate import upgrade
 from server.store.models import BuildingRow
-from server.tracking import BuildingSession
 
 
 @dataclass
@@ -62,7 +62,7 @@ def replay_offline(
         upgrade(engine)
         sessions = make_session_factory(engine)
         params, calibration = tracker_params(settings), load_calibration(settings.encounter_calibration)
-        buildings: dict[str, BuildingSession] = {}
+        buildings: dict[str, BuildingTracking] = {}
         try:
             for recorded in batches:
                 try:
@@ -76,7 +76,7 @@ def replay_offline(
                         session.add(
                             BuildingRow(id=batch.building_id, name=batch.building_id, rotation_rad=0.0)
                         )
-                    building = BuildingSession(
+                    building = BuildingTracking(
                         batch.building_id, sessions, params, calibration, settings.seed
                     )
                     buildings[batch.building_id] = building

@@ -66,7 +66,7 @@ class Settings(BaseSettings):
     )
     building_processes: bool = Field(
         default=False,
-        description="Run each building in a process of its own (server/building_process.py): its batch path "
+        description="Run each building in a process of its own (server/buildings/process.py): its batch path "
         "then has a core of its own beside the HTTP front's.",
     )
     key_cache_s: float = Field(

@@ -8,9 +8,9 @@ from fastapi import APIRouter, Query, Response, status
 
 from schemas.anchors import AnchorMergeIn, BuildingAnchor, KnownAnchorIn
 from schemas.common import MAX_TIME_MS, MIN_TIME_MS, Identifier
-from server.deps import Caller, DbSession, State
+from server.api.deps import Caller, DbSession, State
+from server.buildings.workers import Worker
 from server.errors import InvalidInputError
-from server.ingestion import Worker
 from server.store import repositories as repo
 
 router = APIRouter(prefix="/v1/buildings/{building_id}", tags=["anchors"])

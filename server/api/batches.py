@@ -12,12 +12,12 @@ from starlette.types import ASGIApp, Receive, Scope, Send
 from schemas.api import BatchReceipt
 from schemas.errors import Problem
 from schemas.sensors import SensorBatch
-from server.app import AppState
+from server.api.deps import AUTHORIZATION_PARAMETER, principal, token_principal
 from server.auth import Principal
-from server.batch_decoding import decode_batch
-from server.deps import AUTHORIZATION_PARAMETER, principal, token_principal
+from server.buildings.types import Submission
 from server.errors import BodyTooLargeError, InvalidInputError, ProblemError, problem_response_parts
-from server.session_types import Submission
+from server.ingestion.decoding import decode_batch
+from server.state import AppState
 
 router = APIRouter(prefix="/v1/buildings/{building_id}", tags=["batches"])
 

@@ -6,8 +6,8 @@ from fastapi import APIRouter, status
 
 from schemas.api import KeyCreated, KeyCreateIn, KeyScope
 from schemas.buildings import Building, Floor, GeoReference
+from server.api.deps import Caller, DbSession
 from server.auth import mint_key
-from server.deps import Caller, DbSession
 from server.errors import ConflictError, InvalidInputError, NotFoundError
 from server.store import repositories as repo
 from server.store.models import BuildingRow, FloorRow

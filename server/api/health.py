@@ -6,7 +6,7 @@ from fastapi import APIRouter, Response
 from sqlalchemy import text
 
 from schemas.api import Health
-from server.deps import State
+from server.api.deps import State
 
 router = APIRouter(tags=["health"])
 

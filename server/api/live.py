@@ -7,10 +7,10 @@ import time
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
 from schemas.live import HeartbeatMessage
-from server.app import AppState
-from server.broadcast import Chunk, live_json
-from server.deps import token_principal
+from server.api.deps import token_principal
 from server.errors import ProblemError
+from server.live.broadcast import Chunk, live_json
+from server.state import AppState
 from server.store import repositories as repo
 
 router = APIRouter(prefix="/v1/buildings/{building_id}", tags=["live"])

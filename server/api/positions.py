@@ -8,7 +8,7 @@ from fastapi import APIRouter, Query
 
 from schemas.common import MAX_TIME_MS, MIN_TIME_MS, Position
 from schemas.estimates import Estimate, EstimateSource
-from server.deps import Caller, DbSession
+from server.api.deps import Caller, DbSession
 from server.errors import InvalidInputError, NotFoundError
 from server.store import repositories as repo
 from server.store.models import LatestPositionRow, PositionSnapshotRow

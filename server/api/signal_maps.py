@@ -6,7 +6,7 @@ from fastapi import APIRouter, status
 from fastapi.responses import FileResponse
 
 from schemas.signal_maps import SignalMapJob
-from server.deps import Caller, State
+from server.api.deps import Caller, State
 
 router = APIRouter(prefix="/v1/buildings/{building_id}/signal-maps", tags=["signal maps"])
 

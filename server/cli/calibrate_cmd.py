@@ -48,9 +48,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     if args.scenario is not None:
         return _run_scenario(args)
-    from server.app import load_calibration
+    # deferred: the command's dependencies load when it runs (`crowdslam --help` loads none)
     from server.datasets.msindoor import TraceFormatError
     from server.datasets.msindoor_calibration import calibrate_floor, plot_calibration
+    from server.engine.config import load_calibration
 
     try:
         base = load_calibration(args.base)
@@ -68,8 +69,9 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run_scenario(args: argparse.Namespace) -> int:
-    from slam_core.simulate import Scenario
-    from slam_core.simulated_encounters import calibrate
+    # deferred: the command's dependencies load when it runs (`crowdslam --help` loads none)
+    from slam_core.sim.encounters import calibrate
+    from slam_core.sim.simulation import Scenario
 
     try:
         scenario = Scenario.from_dict(json.loads(args.scenario.read_text()))

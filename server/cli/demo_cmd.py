@@ -30,18 +30,19 @@ def _scenario_text(path: Path | None) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    # deferred: the command's dependencies load when it runs (`crowdslam --help` loads none)
     import httpx
 
     from schemas.api import KeyScope
     from server.app import create_app
     from server.auth import mint_key
-    from server.background import ServerDidNotStartError, running_server
-    from server.crowd_client import device_keys, post_crowd, prepare_building
+    from server.cli.background_server import ServerDidNotStartError, running_server
     from server.settings import get_settings
-    from server.simulated_phones import EPOCH_MS
+    from server.simulation.crowd_client import device_keys, post_crowd, prepare_building
+    from server.simulation.phones import EPOCH_MS
     from server.store.db import make_engine, make_session_factory
     from server.store.migrate import upgrade
-    from slam_core.simulate import Scenario, simulate
+    from slam_core.sim.simulation import Scenario, simulate
 
     settings = get_settings()
     engine = make_engine(settings.resolved_database_url)

@@ -1,16 +1,15 @@
 """``crowdslam evaluate``: run the simulated testbed (or a sweep), or replay a floor of real Indoor Location
-2.0 walks as a crowd, and write the metrics as JSON (+ a CDF plot)."""
+2.0 walks as a crowd, through the server's own tracker, and write the metrics as JSON (+ a CDF plot)."""
 
 from __future__ import annotations
 
 import argparse
 import json
-import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from server.datasets.msindoor_replay import ReplayOptions
+    from server.engine.config import ReplayOptions
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -39,7 +38,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="FILE",
         help="with --msindoor: encounter range models from `crowdslam calibrate` (default: the server's)",
     )
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0, help="the simulated world's seed (and the filters')")
+    parser.add_argument(
+        "--filter-seed",
+        type=int,
+        metavar="N",
+        help="the filters' own seed, when it should differ from --seed (their noise on one world)",
+    )
     parser.add_argument("--mode", choices=("pdr", "semanticslam", "dynamicslam"), default="dynamicslam")
     parser.add_argument("--sampling", choices=("one-shot", "iterative"), default="iterative")
     parser.add_argument("--particles", type=int, default=75)
@@ -59,8 +64,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--through-tracker",
         action="store_true",
-        help="with --scenario: post the simulated phones' batches one at a time through the server's "
-        "tracker, as the demo does, instead of stepping every user together",
+        help="accepted and ignored: every evaluation runs through the server's tracker",
     )
     parser.add_argument("--sweep", choices=("particles", "density", "anchor-density"))
     parser.add_argument(
@@ -73,15 +77,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from slam_core.simulate import Scenario
+    # deferred: the command's dependencies load when it runs (`crowdslam --help` loads none)
+    from slam_core.sim.simulation import Scenario
 
     if args.msindoor is not None:
         return _msindoor(args)
     if args.warm_split is not None or args.calibration is not None:
         print("crowdslam evaluate: --warm-split and --calibration apply to --msindoor only")
-        return 2
-    if args.through_tracker and (args.sweep or args.compare):
-        print("crowdslam evaluate: --through-tracker runs one mode, without --sweep or --compare")
         return 2
 
     try:
@@ -95,8 +97,6 @@ def run(args: argparse.Namespace) -> int:
             result = _sweep(scenario, args, plot)
         elif args.compare:
             result = _compare(scenario, args, plot)
-        elif args.through_tracker:
-            result = _through_tracker(scenario, args, plot)
         else:
             result = _single(scenario, args, plot)
     except ValueError as error:  # a world the models cannot be calibrated or run on
@@ -110,13 +110,14 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _msindoor(args: argparse.Namespace) -> int:
+    # deferred: the command's dependencies load when it runs (`crowdslam --help` loads none)
     from tqdm import tqdm
 
-    from server.app import load_calibration, tracker_params
     from server.datasets.msindoor import TraceFormatError
     from server.datasets.msindoor_replay import replay_floor
+    from server.engine.config import load_calibration, tracker_params
     from server.settings import Settings
-    from slam_core.metrics import empirical_cdf
+    from slam_core.sim.statistics import empirical_cdf
 
     if args.sweep or args.compare:
         print("crowdslam evaluate: --sweep and --compare apply to --scenario only")
@@ -151,66 +152,47 @@ def _msindoor(args: argparse.Namespace) -> int:
     return 0
 
 
-def _single(scenario: Any, args: argparse.Namespace, plot: Path) -> dict[str, Any]:
-    from slam_core.evaluation import run_scenario_with_errors
-    from slam_core.metrics import empirical_cdf
+def _run(scenario: Any, args: argparse.Namespace, mode: str, particles: int, bar: Any) -> tuple[Any, Any]:
+    """One run of the scenario through the server's tracker (``server.simulation.evaluation``)."""
+    # deferred: the command's dependencies load when it runs (`crowdslam --help` loads none)
+    from dataclasses import replace
 
-    started = time.perf_counter()
-    result, errors = run_scenario_with_errors(
-        scenario,
-        args.seed,
-        args.mode,
-        args.sampling,
-        args.particles,
-        args.motion_model,
-        args.crowd_solver,
-        args.fingerprints is not False,
+    from server.engine.config import load_calibration, tracker_params
+    from server.settings import Settings
+    from server.simulation.evaluation import evaluate_scenario
+
+    options = replace(_replay_options(args), mode=mode, particles=particles)
+    return evaluate_scenario(
+        scenario, options, tracker_params(Settings()), load_calibration(None), bar.update
     )
-    result["seconds"] = time.perf_counter() - started
+
+
+def _single(scenario: Any, args: argparse.Namespace, plot: Path) -> dict[str, Any]:
+    # deferred: the command's dependencies load when it runs (`crowdslam --help` loads none)
+    from tqdm import tqdm
+
+    from slam_core.sim.statistics import empirical_cdf
+
+    with tqdm(desc=f"{scenario['name']} ({args.mode})", unit="batch") as bar:
+        result, errors = _run(scenario, args, args.mode, args.particles, bar)
     x, p = empirical_cdf(errors)
     _plot_lines(
         plot, [(x, p, args.mode)], "position error (m)", "CDF", f"{scenario['name']} seed {args.seed}"
     )
-    return result
-
-
-def _through_tracker(scenario: Any, args: argparse.Namespace, plot: Path) -> dict[str, Any]:
-    from tqdm import tqdm
-
-    from server.app import load_calibration, tracker_params
-    from server.settings import Settings
-    from server.simulated_replay import replay_simulation
-    from slam_core.metrics import empirical_cdf
-
-    options = _replay_options(args)
-    with tqdm(desc=f"{scenario['name']} through the tracker ({args.mode})", unit="batch") as bar:
-        result, errors = replay_simulation(
-            scenario, options, tracker_params(Settings()), load_calibration(None), bar.update
-        )
-    x, p = empirical_cdf(errors)
-    title = f"{scenario['name']} seed {args.seed}, through the tracker"
-    _plot_lines(plot, [(x, p, args.mode)], "position error (m)", "CDF", title)
-    return result
+    return dict(result)
 
 
 def _compare(scenario: Any, args: argparse.Namespace, plot: Path) -> dict[str, Any]:
-    from slam_core.evaluation import MODES, run_scenario_with_errors
-    from slam_core.metrics import empirical_cdf
+    # deferred: the command's dependencies load when it runs (`crowdslam --help` loads none)
+    from tqdm import tqdm
+
+    from slam_core.sim.statistics import empirical_cdf
+    from slam_core.tracking.params import MODES
 
     results, lines = {}, []
     for mode in MODES:
-        started = time.perf_counter()
-        result, errors = run_scenario_with_errors(
-            scenario,
-            args.seed,
-            mode,
-            args.sampling,
-            args.particles,
-            args.motion_model,
-            args.crowd_solver,
-            args.fingerprints is not False,
-        )
-        result["seconds"] = time.perf_counter() - started
+        with tqdm(desc=f"{scenario['name']} ({mode})", unit="batch") as bar:
+            result, errors = _run(scenario, args, mode, args.particles, bar)
         results[mode] = result
         x, p = empirical_cdf(errors)
         lines.append((x, p, f"{mode} (median {result['median_m']:.2f} m)"))
@@ -219,36 +201,27 @@ def _compare(scenario: Any, args: argparse.Namespace, plot: Path) -> dict[str, A
 
 
 def _sweep(scenario: Any, args: argparse.Namespace, plot: Path) -> dict[str, Any]:
+    # deferred: the command's dependencies load when it runs (`crowdslam --help` loads none)
     from tqdm import tqdm
 
-    from slam_core.evaluation import run_scenario, sweep_values, swept_scenario
+    from slam_core.sim import sweeps
 
     rows = []
     modes = ("semanticslam", "dynamicslam")
-    values = sweep_values(args.sweep)
+    values = sweeps.sweep_values(args.sweep)
     with tqdm(total=len(values) * len(modes), desc=f"sweep {args.sweep}", unit="run") as bar:
         for value in values:
-            world = swept_scenario(scenario, args.sweep, value)
+            world = sweeps.swept_scenario(scenario, args.sweep, value)
             particles = int(value) if args.sweep == "particles" else args.particles
             for mode in modes:
-                started = time.perf_counter()
-                r = run_scenario(
-                    world,
-                    args.seed,
-                    mode,
-                    args.sampling,
-                    particles,
-                    args.motion_model,
-                    args.crowd_solver,
-                    args.fingerprints is not False,
-                )
+                r, _ = _run(world, args, mode, particles, _Ignore())
                 rows.append(
                     {
                         "value": value,
                         "mode": mode,
                         "median_m": r["median_m"],
                         "p90_m": r["p90_m"],
-                        "seconds": time.perf_counter() - started,
+                        "seconds": r["seconds"],
                     }
                 )
                 bar.update()
@@ -275,9 +248,17 @@ def _sweep(scenario: Any, args: argparse.Namespace, plot: Path) -> dict[str, Any
     return {"sweep": args.sweep, "seed": args.seed, "rows": rows}
 
 
+class _Ignore:
+    """A progress bar that shows nothing (a sweep shows one bar for its runs)."""
+
+    def update(self, n: int = 1) -> None:
+        pass
+
+
 def _plot_lines(
     path: Path, lines: list[Any], xlabel: str, ylabel: str, title: str, log_x: bool = False
 ) -> None:
+    # deferred: matplotlib loads only when plotting, its backend chosen before pyplot
     import matplotlib
 
     matplotlib.use("Agg")
@@ -301,7 +282,8 @@ def _plot_lines(
 
 def _replay_options(args: argparse.Namespace) -> ReplayOptions:
     """The command's options for a replay through the server's tracker (real walks or simulated phones)."""
-    from server.datasets.msindoor_replay import ReplayOptions  # imported late: the CLI starts fast
+    # deferred: the command's dependencies load when it runs (`crowdslam --help` loads none)
+    from server.engine.config import ReplayOptions  # imported late: the CLI starts fast
 
     return ReplayOptions(
         mode=args.mode,
@@ -311,5 +293,6 @@ def _replay_options(args: argparse.Namespace) -> ReplayOptions:
         motion_model=args.motion_model,
         crowd_solver=args.crowd_solver,
         seed=args.seed,
+        filter_seed=args.filter_seed,
         fingerprints=args.fingerprints is not False,
     )

@@ -17,11 +17,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    # deferred: the command's dependencies load when it runs (`crowdslam --help` loads none)
     from tqdm import tqdm
 
     from server.datasets.msindoor import read_trace
     from server.datasets.msindoor_batches import trace_batches
-    from server.recording import BuildingRecorder
+    from server.recordings.recorder import BuildingRecorder
 
     folder = args.dir / "path_data_files" if (args.dir / "path_data_files").is_dir() else args.dir
     walks = sorted(folder.glob("*.txt"))

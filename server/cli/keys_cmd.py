@@ -15,6 +15,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    # deferred: the command's dependencies load when it runs (`crowdslam --help` loads none)
     from schemas.api import KeyScope
     from server.auth import mint_key
     from server.settings import get_settings

@@ -66,7 +66,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         sys.argv = [sys.argv[0], *argv]
     parser = build_parser()
     args = parser.parse_args()
-    from server.numba_cache import configure_numba_cache
+    # deferred: the command's dependencies load when it runs (`crowdslam --help` loads none)
+    from server.engine.numba_cache import configure_numba_cache
 
     configure_numba_cache()
     module = importlib.import_module(args._module)

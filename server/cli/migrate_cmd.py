@@ -16,6 +16,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    # deferred: the command's dependencies load when it runs (`crowdslam --help` loads none)
     from server.settings import get_settings
     from server.store.db import make_engine
     from server.store.migrate import current_revision, upgrade

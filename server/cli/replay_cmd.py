@@ -18,9 +18,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    # deferred: the command's dependencies load when it runs (`crowdslam --help` loads none)
     from tqdm import tqdm
 
-    from server.recording import read_batches
+    from server.recordings.recorder import read_batches
     from server.replay import replay_offline, replay_to_server
     from server.settings import get_settings
 

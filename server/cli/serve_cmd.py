@@ -14,6 +14,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    # deferred: the command's dependencies load when it runs (`crowdslam --help` loads none)
     import uvicorn
 
     from server.app import create_app

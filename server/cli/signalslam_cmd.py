@@ -36,11 +36,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    # deferred: the command's dependencies load when it runs (`crowdslam --help` loads none)
     from tqdm import tqdm
 
     from server.datasets.msindoor import TraceFormatError
     from server.datasets.msindoor_signalslam import run_signalslam
-    from slam_core.signal_map.graph import MODALITIES, GraphParams
+    from slam_core.signalslam.graph import MODALITIES, GraphParams
 
     if args.folds < 2:
         print("crowdslam signalslam: --folds must be at least 2")

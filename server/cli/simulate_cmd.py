@@ -22,11 +22,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    # deferred: the command's dependencies load when it runs (`crowdslam --help` loads none)
     import httpx
     from tqdm import tqdm
 
-    from server.crowd_client import device_keys, post_crowd, prepare_building
-    from slam_core.simulate import Scenario, simulate
+    from server.simulation.crowd_client import device_keys, post_crowd, prepare_building
+    from slam_core.sim.simulation import Scenario, simulate
 
     scenario = Scenario.from_dict(json.loads(args.scenario.read_text()))
     sim = simulate(scenario, args.seed)

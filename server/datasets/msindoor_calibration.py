@@ -5,7 +5,7 @@ waypoints at the scan's time; cross-walk scan pairs are the labelled data (a pai
 Entries whose last-seen time is more than ``stale_ap_ms`` before the scan are cached re-reports and are
 dropped, as the live detector drops them. The report also gives the Weinberg constant that fits the floor's
 surveyed walk lengths (``StepParams.weinberg_k``; a report, not applied). For each WiFi feature
-(``slam_core.wifi_pairs``) the report gives precision and recall for near pairs; the paper's logarithmic
+(``slam_core.wifi.pairs``) the report gives precision and recall for near pairs; the paper's logarithmic
 Sim-distance model (Figure 3) is fitted on the pairs Eq. 3 passes, with its empirical range variance, and
 written as a calibration the server and ``crowdslam evaluate --calibration`` load. The walks carry no
 phone-to-phone Bluetooth, so the Bluetooth model is kept from the base calibration (said in the report).
@@ -21,17 +21,17 @@ from typing import Any
 import numpy as np
 
 from server.datasets.msindoor import read_floor, read_trace
-from slam_core.encounter_selection import SelectionParams
-from slam_core.encounters import (
+from slam_core.encounters.models import (
     FIT_MAX_DISTANCE_M,
     Calibration,
     WifiEq3Params,
     WifiFingerprintParams,
     fit_range_model,
 )
-from slam_core.pdr.frontend import ImuSamples, PdrParams, PdrState, pdr_steps
-from slam_core.signal_map.windows import rss_matrix
-from slam_core.wifi_pairs import (
+from slam_core.encounters.selection import SelectionParams
+from slam_core.sensing.pdr.online import ImuSamples, PdrParams, PdrState, pdr_steps
+from slam_core.signalslam.windows import rss_matrix
+from slam_core.wifi.pairs import (
     STALE_AP_MS,
     eq3_matrix,
     fingerprint_matrix,
@@ -196,6 +196,7 @@ def calibrate_floor(
 
 def plot_calibration(path: Path, pairs: Pairs, report: dict[str, Any]) -> None:
     """Precision-recall of each feature for near pairs, and Eq. 3 against surveyed distance."""
+    # deferred: matplotlib loads only when plotting, its backend chosen before pyplot
     import matplotlib
 
     matplotlib.use("Agg")

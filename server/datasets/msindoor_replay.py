@@ -1,11 +1,12 @@
 """Crowd replay of a floor of Indoor Location 2.0 walks through the server's own batch path.
 
 Every walk becomes a concurrent user (all start at the same replay time): its trace is cut into the
-one-second sensor batches a phone would post (``msindoor_batches``), converted by ``server.convert`` and
-applied with ``BuildingTracker.apply``, one call per replay second for every walk that has data, as the
-server's per-building worker does. Each walk starts from its first waypoint as a position fix (heading from
-the phone); its position is scored at every later waypoint. Windows are also cut at waypoint times, so the
-scored estimate is the one the server held at the waypoint's time, never one informed by later sensor data.
+one-second sensor batches a phone would post (``msindoor_batches``), converted by
+``server.ingestion.convert`` and applied with ``BuildingTracker.apply``, one call per replay second for every
+walk that has data, as the server's per-building worker does. Each walk starts from its first waypoint as a
+position fix (heading from the phone); its position is scored at every later waypoint. Windows are also cut at
+waypoint times, so the scored estimate is the one the server held at the waypoint's time, never one informed
+by later sensor data.
 
 With ``warm_split`` the earlier walks (by recorded start time) are replayed first as a crowd of their own
 and build the building's shared map; only the later walks, replayed afterwards, are scored.
@@ -16,7 +17,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -24,14 +25,13 @@ import numpy as np
 
 from schemas.common import Position
 from schemas.sensors import PositionFix
-from server.convert import BuildingContext, to_user_batch
 from server.datasets.msindoor import Trace, iter_windows, read_floor, read_trace, shifted
 from server.datasets.msindoor_batches import trace_windows
-from slam_core.encounters import Calibration
-from slam_core.evaluation import MODES
-from slam_core.metrics import error_summary
-from slam_core.params import HumanAnchorParams, MotionParams
-from slam_core.tracker import BuildingTracker, TrackerParams, UserBatch
+from server.engine.config import ReplayOptions, replay_params
+from server.ingestion.convert import BuildingContext, to_user_batch
+from slam_core.encounters.models import Calibration
+from slam_core.sim.statistics import error_summary
+from slam_core.tracking.tracker import BuildingTracker, TrackerParams, UserBatch
 
 REPLAY_BASE_MS = 1_700_000_000_000
 """Replay time of every walk's first sample (a valid wire timestamp)."""
@@ -48,47 +48,6 @@ class _Walk:
     waypoints: np.ndarray  # (K, 3) t, x, y in replay time
     pending: int = 1  # the next waypoint to score
     errors: list[float] = field(default_factory=list)
-
-
-@dataclass(frozen=True)
-class ReplayOptions:
-    mode: str = "dynamicslam"
-    warm_split: float | None = None
-    particles: int = 75
-    sampling: str = "iterative"
-    motion_model: str = "bias-scale"
-    crowd_solver: str = "graph"
-    seed: int = 0
-    window_ms: int = 1000
-    fingerprints: bool = True
-    """In ``dynamicslam`` mode, also localise scans on the crowd-learned WiFi fingerprint map
-    (``slam_core.crowd_fingerprints``), as the server does by default."""
-
-    def __post_init__(self) -> None:
-        if self.mode not in MODES:
-            raise ValueError(f"unknown mode {self.mode!r}; valid: {', '.join(MODES)}")
-        if self.warm_split is not None and not 0.0 < self.warm_split < 1.0:
-            raise ValueError("warm_split must be in (0, 1)")
-
-
-def replay_params(base: TrackerParams, options: ReplayOptions) -> TrackerParams:
-    """The server's tracker parameters (``base``) in the options' mode: ``pdr`` scores plain dead reckoning,
-    ``semanticslam`` uses building anchors only, ``dynamicslam`` also human anchors and (unless the options
-    turn them off) fixes on the crowd's WiFi fingerprint map, which come from other users' scans too."""
-    return replace(
-        base,
-        filter=replace(
-            base.filter,
-            n_particles=options.particles,
-            motion=MotionParams(model=options.motion_model),
-            human=HumanAnchorParams(sampling=options.sampling),
-            use_human_anchors=options.mode == "dynamicslam",
-        ),
-        crowd_solver=options.crowd_solver,
-        fingerprints=replace(
-            base.fingerprints, enabled=options.fingerprints and options.mode == "dynamicslam"
-        ),
-    )
 
 
 def replay_floor(
@@ -110,7 +69,7 @@ def replay_floor(
     traces.sort(key=lambda t: (t.start_ms, t.path.name))
     n_warm = 0 if options.warm_split is None else int(len(traces) * options.warm_split)
     phases = [traces[:n_warm], traces[n_warm:]] if n_warm else [traces]
-    tracker = BuildingTracker(replay_params(base_params, options), calibration, seed=options.seed)
+    tracker = BuildingTracker(replay_params(base_params, options), calibration, seed=options.tracker_seed)
     ctx = BuildingContext(building_id=floor_dir.name, geo=None, known_anchors={})
     base = REPLAY_BASE_MS
     scored: list[_Walk] = []

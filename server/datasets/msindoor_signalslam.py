@@ -19,18 +19,18 @@ from typing import Any
 import numpy as np
 
 from server.datasets.msindoor import Trace, read_floor, read_trace
-from slam_core.pdr.frontend import ImuSamples, PdrParams, PdrState, pdr_steps
-from slam_core.pdr.heading import with_final_offset
-from slam_core.signal_map.graph import GraphParams, Trajectories, Walk, position_at, solve
-from slam_core.signal_map.maps import FingerprintGrid, fingerprint_grid, localise_kernel, localise_knn
-from slam_core.signal_map.windows import (
+from slam_core.sensing.pdr.heading import with_final_offset
+from slam_core.sensing.pdr.online import ImuSamples, PdrParams, PdrState, pdr_steps
+from slam_core.signalslam.graph import GraphParams, Trajectories, Walk, position_at, solve
+from slam_core.signalslam.maps import FingerprintGrid, fingerprint_grid, localise_kernel, localise_knn
+from slam_core.signalslam.windows import (
     WINDOW_STEP_MS,
     rss_matrix,
     window_counts,
     window_mean_series,
     window_sightings,
 )
-from slam_core.wifi_pairs import STALE_AP_MS
+from slam_core.wifi.pairs import STALE_AP_MS
 
 KNN = 7
 FINGERPRINT_CELL_M = 5.0

@@ -12,9 +12,9 @@ from typing import Any
 
 import numpy as np
 
-from slam_core.signal_map.graph import Trajectories, position_at
-from slam_core.signal_map.maps import fingerprint_grid, signal_grid
-from slam_core.signal_map.windows import rss_matrix
+from slam_core.signalslam.graph import Trajectories, position_at
+from slam_core.signalslam.maps import fingerprint_grid, signal_grid
+from slam_core.signalslam.windows import rss_matrix
 
 METHODS = (("raw", "PDR"), ("calibrated", "recalibrated PDR (Eq. 4)"), ("graphslam", "GraphSLAM"),
            ("signalslam", "SignalSLAM"))  # fmt: skip
@@ -24,6 +24,7 @@ SUPPORT_M = 6.0
 
 
 def _pyplot() -> Any:
+    # deferred: matplotlib loads only when plotting, its backend chosen before pyplot
     import matplotlib
 
     matplotlib.use("Agg")

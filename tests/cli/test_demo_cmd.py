@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from server.background import CLI, free_port
-from slam_core.simulate import Scenario, simulate
+from server.cli.background_server import CLI, free_port
+from slam_core.sim.simulation import Scenario, simulate
 from tests.conftest import SHARED
 
 

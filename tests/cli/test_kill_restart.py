@@ -14,10 +14,10 @@ import httpx
 import pytest
 
 from schemas.api import BatchReceipt
-from server.background import CLI, free_port, serve_process
-from server.crowd_client import device_keys, prepare_building
-from server.simulated_phones import simulated_batches
-from slam_core.simulate import Scenario, simulate
+from server.cli.background_server import CLI, free_port, serve_process
+from server.simulation.crowd_client import device_keys, prepare_building
+from server.simulation.phones import simulated_batches
+from slam_core.sim.simulation import Scenario, simulate
 from tests.conftest import SHARED
 
 

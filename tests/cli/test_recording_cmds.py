@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from server.cli.main import main
-from server.recording import read_batches
+from server.recordings.recorder import read_batches
 from tests.conftest import MSINDOOR_FLOOR, ROOT
 
 WALKS = MSINDOOR_FLOOR / "path_data_files"

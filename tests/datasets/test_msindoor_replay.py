@@ -10,15 +10,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from server.app import load_calibration, tracker_params
 from server.cli.main import main
-from server.convert import BuildingContext, to_user_batch
 from server.datasets.msindoor import read_trace
 from server.datasets.msindoor_batches import trace_batches
-from server.datasets.msindoor_replay import ReplayOptions, replay_floor, replay_params
+from server.datasets.msindoor_replay import replay_floor
+from server.engine.config import ReplayOptions, load_calibration, replay_params, tracker_params
+from server.ingestion.convert import BuildingContext, to_user_batch
 from server.settings import Settings
-from slam_core.crowd_fingerprints import FingerprintParams
-from slam_core.tracker import BuildingTracker
+from slam_core.crowd.fingerprints import FingerprintParams
+from slam_core.tracking.tracker import BuildingTracker
 from tests.datasets.conftest import FLOOR, WALKS
 
 

@@ -14,15 +14,15 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parents[1]))
 
-from server.numba_cache import configure_numba_cache  # noqa: E402
+from server.engine.numba_cache import configure_numba_cache  # noqa: E402
 
 configure_numba_cache()
 
-from server.recording import BuildingRecorder, read_batches  # noqa: E402
+from server.recordings.recorder import BuildingRecorder, read_batches  # noqa: E402
 from server.replay import replay_offline  # noqa: E402
 from server.settings import Settings  # noqa: E402
-from server.simulated_phones import simulated_batches  # noqa: E402
-from slam_core.simulate import simulate  # noqa: E402
+from server.simulation.phones import simulated_batches  # noqa: E402
+from slam_core.sim.simulation import simulate  # noqa: E402
 from tests.server.test_recording import small_crowd  # noqa: E402
 
 

@@ -11,8 +11,8 @@ import pytest
 
 from schemas.catalog import EXAMPLES
 from schemas.sensors import MAX_BATCH_BYTES, MAX_IMU_SAMPLES, SensorBatch, Step
-from server.batch_decoding import decode_batch
 from server.errors import ProblemError
+from server.ingestion.decoding import decode_batch
 
 Mutation = Callable[[dict[str, Any]], None]
 

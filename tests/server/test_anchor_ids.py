@@ -1,6 +1,6 @@
 from __future__ import annotations
 
-from server.anchor_ids import AnchorIds
+from server.buildings.anchor_ids import AnchorIds
 
 
 def test_crowd_anchors_get_the_next_free_number_after_every_linked_one() -> None:

@@ -296,7 +296,7 @@ def test_a_revoked_key_stops_working_after_one_revalidation_round(sqlite_api: Ap
 
     from sqlalchemy import update
 
-    from server.deps import revalidate_keys
+    from server.api.deps import revalidate_keys
     from server.store.models import ApiKeyRow
 
     api = sqlite_api

@@ -16,12 +16,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from schemas.sensors import SensorBatch
-from server import batch_transport, convert
-from server.building_process import batch_fields, received_batch
+from server.buildings.process import batch_fields, received_batch
+from server.buildings.types import BatchHeader, Submission
 from server.errors import InvalidInputError
-from server.session_types import BatchHeader, Submission
-from slam_core.pdr.frontend import ImuSamples
-from slam_core.tracker import UserBatch
+from server.ingestion import convert
+from server.ingestion import transport as batch_transport
+from slam_core.sensing.pdr.online import ImuSamples
+from slam_core.tracking.tracker import UserBatch
 
 T0 = 1_700_000_000_000
 

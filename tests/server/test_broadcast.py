@@ -20,7 +20,7 @@ from schemas.live import (
     LiveMessage,
     PositionMessage,
 )
-from server.broadcast import QUEUE_SIZE, Broadcaster, Chunk, chunks_of, live_json
+from server.live.broadcast import QUEUE_SIZE, Broadcaster, Chunk, chunks_of, live_json
 
 
 def _texts(n: int, start: int = 0) -> list[str]:

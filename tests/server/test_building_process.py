@@ -18,8 +18,8 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
-from server import app as app_module
 from server.app import create_app
+from server.engine import warmup
 from server.settings import Settings
 from server.store.db import make_engine, make_session_factory
 from server.store.models import BatchRow, TrackerSnapshotRow
@@ -144,7 +144,10 @@ def test_the_kernels_are_compiled_once_in_a_child_before_the_server_takes_reques
     url = f"sqlite:///{tmp_path / 'db.sqlite3'}"
     migrate_with_operator(url)
     settings = Settings(data_dir=tmp_path, database_url=url, building_processes=True)
-    with caplog.at_level(logging.INFO, logger="server.app"), TestClient(create_app(settings)) as client:
+    with (
+        caplog.at_level(logging.INFO, logger="server.engine.warmup"),
+        TestClient(create_app(settings)) as client,
+    ):
         assert client.get("/healthz").status_code == 200
         assert any(r.getMessage().startswith("kernels compiled into the cache in") for r in caplog.records)
         assert client.app.state.crowdslam.tracking.workers == {}  # type: ignore[attr-defined]
@@ -159,7 +162,7 @@ def test_a_server_whose_kernels_fail_to_compile_does_not_start(
 ) -> None:
     url = f"sqlite:///{tmp_path / 'db.sqlite3'}"
     migrate_with_operator(url)
-    monkeypatch.setattr(app_module, "_warm_kernels_for", _exit_three)  # what the child runs
+    monkeypatch.setattr(warmup, "warm_kernels_for", _exit_three)  # what the child runs
     before = set(_checkpoint_threads())
     settings = Settings(data_dir=tmp_path, database_url=url, building_processes=True)
     with (

@@ -12,10 +12,15 @@ import numpy as np
 import pytest
 
 from schemas.estimates import EncounterEvent, Estimate, EstimateSource
-from server.convert import encounter_event, estimate
-from slam_core.encounter_detection import MODEL_BLUETOOTH, MODEL_WIFI, MODEL_WIFI_FINGERPRINT, RangedDetection
+from server.ingestion.convert import encounter_event, estimate
+from slam_core.encounters.detection import (
+    MODEL_BLUETOOTH,
+    MODEL_WIFI,
+    MODEL_WIFI_FINGERPRINT,
+    RangedDetection,
+)
 from slam_core.geo import GeoFrame
-from slam_core.tracker import EncounterResult, EstimateRow
+from slam_core.tracking.tracker import EncounterResult, EstimateRow
 
 GEO = GeoFrame(47.6, -122.3, 0.3)
 

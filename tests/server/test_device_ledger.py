@@ -6,8 +6,8 @@ from __future__ import annotations
 from typing import Any
 
 from schemas.sensors import SensorBatch
-from server.device_ledger import DeviceLedger
-from server.session_types import BatchHeader
+from server.buildings.ledger import DeviceLedger
+from server.buildings.types import BatchHeader
 
 
 def _batch(device: str, seq: int, user: str | None = None, ble: str | None = None) -> BatchHeader:

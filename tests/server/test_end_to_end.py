@@ -12,14 +12,15 @@ import numpy as np
 import pytest
 from websockets.sync.client import connect
 
-from server.app import create_app, load_calibration, tracker_params
-from server.background import free_port, running_server
-from server.convert import BuildingContext, anchor_type_index, to_user_batch
-from server.crowd_client import device_keys, post_crowd, prepare_building
+from server.app import create_app
+from server.cli.background_server import free_port, running_server
+from server.engine.config import load_calibration, tracker_params
+from server.ingestion.convert import BuildingContext, anchor_type_index, to_user_batch
 from server.settings import Settings
-from server.simulated_phones import known_anchors, simulated_batches
-from slam_core.simulate import Scenario, simulate
-from slam_core.tracker import BuildingTracker
+from server.simulation.crowd_client import device_keys, post_crowd, prepare_building
+from server.simulation.phones import known_anchors, simulated_batches
+from slam_core.sim.simulation import Scenario, simulate
+from slam_core.tracking.tracker import BuildingTracker
 from tests.conftest import SHARED
 from tests.server.conftest import migrate_with_operator
 

@@ -26,7 +26,7 @@ def test_a_building_worker_refuses_calls_it_does_not_offer() -> None:
 
     import pytest
 
-    from server.ingestion import CALLS, BuildingWorker
+    from server.buildings.workers import CALLS, BuildingWorker
 
     assert "process" not in CALLS  # batches go through submit, in order
     worker = BuildingWorker.__new__(BuildingWorker)  # the check comes before the session is touched

@@ -16,8 +16,8 @@ from fastapi.testclient import TestClient
 from mcap.reader import make_reader
 
 from server.app import create_app
-from server.broadcast import Broadcaster
-from server.foxglove_live import FoxgloveLive
+from server.live.broadcast import Broadcaster
+from server.live.foxglove import FoxgloveLive
 from server.settings import Settings
 from tests.server.conftest import migrate_with_operator
 from tests.server.test_api import _batch

@@ -10,7 +10,7 @@ import threading
 import numpy as np
 import pytest
 
-from server.building_process import _NONE, FrameReader, _frame
+from server.buildings.process import _NONE, FrameReader, _frame
 
 
 def _frames(n: int) -> list[tuple[str, int, bytes]]:

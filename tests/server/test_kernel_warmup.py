@@ -21,17 +21,17 @@ sys.path.insert(0, {root!r})
 from numba.core.registry import CPUDispatcher
 
 import slam_core
-from server.app import load_calibration, tracker_params
-from server.kernel_warmup import warm_kernels
-from server.session_types import Submission
+from server.engine.config import load_calibration, tracker_params
+from server.engine.warmup import warm_kernels
+from server.buildings.types import Submission
 from server.settings import Settings
-from server.simulated_phones import simulated_batches
+from server.simulation.phones import simulated_batches
 from server.store.db import make_engine, make_session_factory
 from server.store.migrate import upgrade
 from server.store.models import BuildingRow
-from server.tracking import BuildingSession
-from slam_core.kernels.serial import PARALLEL_MIN_USERS
-from slam_core.simulate import simulate
+from server.buildings.tracking import BuildingTracking
+from slam_core.filter.kernels.serial import PARALLEL_MIN_USERS
+from slam_core.sim.simulation import simulate
 from tests.server.test_recording import small_crowd
 
 
@@ -54,7 +54,7 @@ with tempfile.TemporaryDirectory() as tmp:
     sessions = make_session_factory(engine)
     with sessions.begin() as session:
         session.add(BuildingRow(id="b", name="b", rotation_rad=0.0))
-    building = BuildingSession("b", sessions, params, calibration, 0)
+    building = BuildingTracking("b", sessions, params, calibration, 0)
     groups = {{}}
     for batch in simulated_batches(simulate(small_crowd(users=23, walk_m=150.0), 3), "b"):
         groups.setdefault((batch.time_span_ms() or (0, 0))[1], []).append(batch)

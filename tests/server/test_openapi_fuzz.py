@@ -15,7 +15,7 @@ from schemathesis.core.result import Err
 from schemas.api import KeyScope
 from server.app import create_app
 from server.auth import mint_key
-from server.background import free_port, running_server
+from server.cli.background_server import free_port, running_server
 from server.settings import Settings
 from server.store.db import make_engine, make_session_factory
 from server.store.migrate import upgrade

@@ -11,11 +11,11 @@ import pytest
 from mcap.reader import make_reader
 
 from schemas.estimates import Estimate
-from server.recording import BATCH_TOPIC, ESTIMATE_TOPIC, POSE_TOPIC, read_batches
+from server.recordings.recorder import BATCH_TOPIC, ESTIMATE_TOPIC, POSE_TOPIC, read_batches
 from server.replay import replay_offline
 from server.settings import Settings
-from server.simulated_phones import simulated_batches
-from slam_core.simulate import Scenario, simulate
+from server.simulation.phones import simulated_batches
+from slam_core.sim.simulation import Scenario, simulate
 from tests.conftest import ROOT, SHARED
 from tests.server.conftest import Api, make_api
 
@@ -121,9 +121,9 @@ def test_the_formatted_pose_is_the_pose_in_frame_as_json() -> None:
     import numpy as np
 
     from schemas.estimates import EstimateSource
-    from server.convert import estimate
-    from server.recording import pose_in_frame_json
-    from slam_core.tracker import EstimateRow
+    from server.ingestion.convert import estimate
+    from server.recordings.recorder import pose_in_frame_json
+    from slam_core.tracking.tracker import EstimateRow
 
     rng = np.random.default_rng(1)
     for k in range(100):

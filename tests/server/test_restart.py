@@ -13,15 +13,15 @@ from sqlalchemy import Engine, func, select
 
 from schemas.anchors import KnownAnchorIn
 from schemas.common import Position
-from server.app import load_calibration, tracker_params
-from server.session_types import Retention, Submission
+from server.buildings.tracking import BuildingTracking
+from server.buildings.types import Retention, Submission
+from server.engine.config import load_calibration, tracker_params
 from server.settings import Settings
-from server.simulated_phones import KnownAnchor, known_anchors, simulated_batches
+from server.simulation.phones import KnownAnchor, known_anchors, simulated_batches
 from server.store.db import make_engine, make_session_factory
 from server.store.migrate import upgrade
 from server.store.models import BatchRow, BuildingRow, TrackerSnapshotRow
-from server.tracking import BuildingSession
-from slam_core.simulate import Scenario, simulate
+from slam_core.sim.simulation import Scenario, simulate
 from tests.conftest import SHARED
 
 SETTINGS = Settings(seed=5)
@@ -43,16 +43,16 @@ def _groups(subs: list[Submission], size: int = 4) -> list[list[Submission]]:
     return [subs[i : i + size] for i in range(0, len(subs), size)]
 
 
-def _session(
+def _building(
     engine: Engine,
     snapshot_period_s: float = math.inf,
     n_particles: int | None = None,
     retention: Retention | None = None,
-) -> BuildingSession:
+) -> BuildingTracking:
     tp = tracker_params(SETTINGS)
     if n_particles is not None:
         tp = replace(tp, filter=replace(tp.filter, n_particles=n_particles))
-    return BuildingSession(
+    return BuildingTracking(
         "hq",
         make_session_factory(engine),
         tp,
@@ -71,7 +71,7 @@ def _fresh_building(url: str) -> Engine:
     return engine
 
 
-def _pin_known(session: BuildingSession) -> None:
+def _pin_known(session: BuildingTracking) -> None:
     for k, anchor in enumerate(KNOWN):
         body = KnownAnchorIn(
             type=anchor.type, position=Position(x_m=anchor.position[0], y_m=anchor.position[1])
@@ -79,7 +79,7 @@ def _pin_known(session: BuildingSession) -> None:
         session.put_known_anchor(f"known-{k}", body)
 
 
-def _estimates(session: BuildingSession) -> dict[str, object]:
+def _estimates(session: BuildingTracking) -> dict[str, object]:
     return {u: session.latest_estimate(u) for u in session.tracker.users}
 
 
@@ -99,21 +99,21 @@ def _snapshot_round(engine: Engine) -> int:
 
 
 @pytest.mark.parametrize("snapshot_period_s", [math.inf, 0.0])
-def test_an_abandoned_session_is_rebuilt_exactly_and_tracking_resumes(
+def test_an_abandoned_building_is_rebuilt_exactly_and_tracking_resumes(
     database_url: str, sqlite_url: str, snapshot_period_s: float
 ) -> None:
     groups = _groups(CROWD)
     cut = len(groups) * 3 // 5
     # the reference: one session that never stops, in its own database
     reference_engine = _fresh_building(sqlite_url.replace(".sqlite3", "-ref.sqlite3"))
-    reference = _session(reference_engine)
+    reference = _building(reference_engine)
     _pin_known(reference)
     for group in groups[:cut]:
         reference.process(group)
     at_crash = _estimates(reference)
 
     engine = _fresh_building(database_url)
-    crashed = _session(engine, snapshot_period_s)
+    crashed = _building(engine, snapshot_period_s)
     _pin_known(crashed)
     for group in groups[:cut]:
         crashed.process(group)
@@ -131,7 +131,7 @@ def test_an_abandoned_session_is_rebuilt_exactly_and_tracking_resumes(
     anchors_at_crash = crashed.anchors()
     del crashed  # no shutdown, no final snapshot: as after kill -9
 
-    restarted = _session(engine, snapshot_period_s)
+    restarted = _building(engine, snapshot_period_s)
     assert restarted.restore_problem is None
     assert restarted.counters.replayed == applied_since_snapshot
     assert _estimates(restarted) == at_crash
@@ -152,11 +152,11 @@ def test_a_snapshot_compressed_in_the_background_covers_its_own_engine_calls_onl
     """Taken by one group, written by a later one: the batches applied in between stay logged, and a crash
     while a snapshot is being compressed restarts from the one before it and the whole log."""
     g0, g1, g2, g3 = _groups(CROWD)[:4]
-    reference = _session(_fresh_building(sqlite_url.replace(".sqlite3", "-ref.sqlite3")))
+    reference = _building(_fresh_building(sqlite_url.replace(".sqlite3", "-ref.sqlite3")))
     for group in (g0, g1, g2, g3):
         reference.process(group)
     engine = _fresh_building(sqlite_url)
-    session = _session(engine, snapshot_period_s=0.0)
+    session = _building(engine, snapshot_period_s=0.0)
     loaded_round = _snapshot_round(engine)
     session.process(g0)  # takes a snapshot: compressed in the background, nothing written yet
     assert _snapshot_round(engine) == loaded_round
@@ -169,7 +169,7 @@ def test_a_snapshot_compressed_in_the_background_covers_its_own_engine_calls_onl
     session.process(g2)  # takes the next one
     session.process(g3)  # which may or may not be written yet: either way a restart is exact
     del session  # as after kill -9
-    restarted = _session(engine, snapshot_period_s=0.0)
+    restarted = _building(engine, snapshot_period_s=0.0)
     assert restarted.restore_problem is None
     assert restarted.counters.replayed == _logged_after(
         engine, taken_at
@@ -181,12 +181,12 @@ def test_a_log_cleared_slower_than_it_grows_replays_from_the_snapshots_round_onl
     """Covered bodies are cleared a chunk per group; when that is slower than the log grows, some stay.
     A crash then replays only the batches applied after the snapshot's round, and the restart is exact."""
     groups = _groups(CROWD)[:10]
-    reference = _session(_fresh_building(sqlite_url.replace(".sqlite3", "-ref.sqlite3")))
+    reference = _building(_fresh_building(sqlite_url.replace(".sqlite3", "-ref.sqlite3")))
     for group in groups:
         reference.process(group)
     engine = _fresh_building(sqlite_url)
     # two bodies cleared a group of four: slower than the log grows
-    session = _session(engine, snapshot_period_s=0.0, retention=Retention(log_clear_per_batch=0.5))
+    session = _building(engine, snapshot_period_s=0.0, retention=Retention(log_clear_per_batch=0.5))
     for group in groups:
         session.process(group)
         session._background.wait()
@@ -194,7 +194,7 @@ def test_a_log_cleared_slower_than_it_grows_replays_from_the_snapshots_round_onl
     assert session.counters.log_bodies_cleared > 0
     assert _logged(engine) > after_snapshot  # covered bodies not cleared yet
     del session  # as after kill -9
-    restarted = _session(engine, snapshot_period_s=0.0)
+    restarted = _building(engine, snapshot_period_s=0.0)
     assert restarted.restore_problem is None
     assert restarted.counters.replayed == after_snapshot
     assert _estimates(restarted) == _estimates(reference)
@@ -203,11 +203,11 @@ def test_a_log_cleared_slower_than_it_grows_replays_from_the_snapshots_round_onl
 
 def test_a_retried_batch_after_restart_is_still_a_duplicate(sqlite_url: str) -> None:
     engine = _fresh_building(sqlite_url)
-    session = _session(engine)
+    session = _building(engine)
     _pin_known(session)
     first = _groups(CROWD)[0]
     session.process(first)
-    restarted = _session(engine)
+    restarted = _building(engine)
     receipts = restarted.process(first).receipts
     assert [getattr(r, "status", None) for r in receipts] == ["duplicate"] * len(first)
     assert restarted.counters.replayed == len(first)
@@ -221,12 +221,12 @@ def test_a_batch_older_than_the_logged_ones_is_late_after_a_restart(
     """Devices' last sequence numbers reach SQL with snapshots; after a crash the batch log supplies the
     newer ones, also when the snapshot is refused and the filters start again."""
     engine = _fresh_building(sqlite_url)
-    session = _session(engine)  # snapshots only on load: every group below stays in the log
+    session = _building(engine)  # snapshots only on load: every group below stays in the log
     for group in _groups(CROWD)[:6]:
         session.process(group)
     last = {b.device_id: b.seq for g in _groups(CROWD)[:6] for b in (s.batch for s in g)}
     device, seq = next(iter(last.items()))
-    restarted = _session(engine, n_particles=40 if other_parameters else None)
+    restarted = _building(engine, n_particles=40 if other_parameters else None)
     assert (restarted.restore_problem is not None) == other_parameters
     old = next(s.batch for s in CROWD if s.batch.device_id == device and s.batch.seq == seq - 1)
     resent = old.model_copy(update={"batch_id": f"{old.batch_id}-again"})
@@ -237,12 +237,12 @@ def test_a_batch_older_than_the_logged_ones_is_late_after_a_restart(
 
 def test_a_snapshot_taken_with_other_parameters_is_refused_and_the_sql_map_is_kept(sqlite_url: str) -> None:
     engine = _fresh_building(sqlite_url)
-    session = _session(engine)
+    session = _building(engine)
     _pin_known(session)
     for group in _groups(CROWD)[:20]:
         session.process(group)
     anchors = {a.id: a for a in session.anchors()}
-    other = _session(engine, n_particles=40)
+    other = _building(engine, n_particles=40)
     assert other.restore_problem == "snapshot was taken with other tracker parameters"
     assert other.counters.restore_failures == 1
     assert other.counters.replayed == 0
@@ -263,7 +263,7 @@ def test_the_batch_path_prunes_history_but_keeps_every_users_latest_position(sql
     from server.store.models import PositionSnapshotRow
 
     engine = _fresh_building(sqlite_url)
-    session = _session(
+    session = _building(
         engine, retention=Retention(position_history_days=1e-12, batch_ids_days=None, prune_period_s=0.0)
     )
     groups = _groups(CROWD)[:12]
@@ -285,8 +285,8 @@ def test_idle_users_are_forgotten_at_a_snapshot_and_stay_forgotten_after_a_resta
 
     engine = _fresh_building(sqlite_url)
 
-    def session() -> BuildingSession:
-        return _session(engine, retention=Retention(user_idle_s=1e-9))
+    def session() -> BuildingTracking:
+        return _building(engine, retention=Retention(user_idle_s=1e-9))
 
     first = session()
     groups = _groups(CROWD)

@@ -15,7 +15,7 @@ import pytest
 
 from server.store.db import make_engine
 from server.store.writer_lock import WriterTurns, writer_turns
-from tests.server.test_restart import CROWD, _fresh_building, _session
+from tests.server.test_restart import CROWD, _building, _fresh_building
 
 
 def _taken(path: Path) -> bool:
@@ -75,7 +75,7 @@ def test_only_a_sqlite_file_has_turns(tmp_path: Path) -> None:
 def test_a_group_of_batches_waits_for_its_turn(tmp_path: Path) -> None:
     path = tmp_path / "db.sqlite3"
     engine = _fresh_building(f"sqlite:///{path}")
-    building = _session(engine)
+    building = _building(engine)
     other = WriterTurns(path.with_name(path.name + "-writers.lock"))  # another building's
     done = threading.Event()
 

@@ -1,0 +1,102 @@
+"""A building's devices as the batch path needs them: which batches are late, which engine call applies
+each, and which device rows SQL must learn.
+
+A batch whose ``seq`` is not after its device's last applied one is late: recorded, never applied (filters
+cannot rewind). A device's batches in one group are applied one per engine call, in order. Both are decided
+before anything is written, so each batch row is inserted with the engine call that will apply it (the log a
+restart replays) and no update follows. Device rows are written when a device appears or its user or
+Bluetooth id changes; the last applied sequence numbers are written with each tracker snapshot, and a
+restart takes the newer ones from the batches it replays.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from server.buildings.types import BatchHeader
+
+
+@dataclass
+class _Device:
+    user_id: str
+    ble_advertised_id: str | None
+    last_seq: int | None
+    stored_seq: int | None
+
+
+class DeviceLedger:
+    def __init__(self, building_id: str, rows: dict[str, tuple[str, str | None, int | None]]) -> None:
+        """``rows``: the building's stored devices, id -> (user id, Bluetooth id, last applied seq)."""
+        self.building_id = building_id
+        self._devices = {d: _Device(u, ble, seq, seq) for d, (u, ble, seq) in rows.items()}
+
+    def last_seq(self, device_id: str) -> int | None:
+        device = self._devices.get(device_id)
+        return None if device is None else device.last_seq
+
+    def plan(self, batches: list[BatchHeader]) -> list[int | None]:
+        """Per batch (in arrival order): the engine call of this group that applies it (1, 2, ...: a user's
+        k-th batch here goes in the k-th call) or None when it is late. Nothing is recorded yet."""
+        last: dict[str, int | None] = {}
+        calls: dict[str, int] = {}
+        out: list[int | None] = []
+        for b in batches:
+            previous = last[b.device_id] if b.device_id in last else self.last_seq(b.device_id)
+            if previous is not None and b.seq <= previous:
+                out.append(None)
+                continue
+            last[b.device_id] = b.seq
+            user = b.effective_user_id
+            calls[user] = calls.get(user, 0) + 1
+            out.append(calls[user])
+        return out
+
+    def applied(self, batch: BatchHeader) -> dict[str, object] | None:
+        """Record an applied batch; returns the device's row when SQL must learn it now (a new device, or
+        a new user or Bluetooth id; a batch without a Bluetooth id keeps the stored one), else None."""
+        device = self._devices.get(batch.device_id)
+        ble = batch.ble_advertised_id
+        if device is None:
+            self._devices[batch.device_id] = _Device(batch.effective_user_id, ble, batch.seq, None)
+            return self._row(batch.device_id)
+        changed = device.user_id != batch.effective_user_id or (
+            ble is not None and ble != device.ble_advertised_id
+        )
+        device.user_id = batch.effective_user_id
+        device.ble_advertised_id = ble if ble is not None else device.ble_advertised_id
+        device.last_seq = batch.seq if device.last_seq is None else max(device.last_seq, batch.seq)
+        if not changed:
+            return None
+        return self._row(batch.device_id)
+
+    def replayed(self, batch: BatchHeader) -> None:
+        """A logged batch re-applied after a restart: its device's last seq moves on (SQL learns it at the
+        next snapshot)."""
+        device = self._devices.get(batch.device_id)
+        if device is None:
+            self._devices[batch.device_id] = _Device(
+                batch.effective_user_id, batch.ble_advertised_id, batch.seq, None
+            )
+        elif device.last_seq is None or batch.seq > device.last_seq:
+            device.last_seq = batch.seq
+
+    def unsaved_rows(self) -> list[dict[str, object]]:
+        """The rows of devices whose last seq SQL does not have yet (``saved`` once they are committed)."""
+        return [self._row(d) for d, device in self._devices.items() if device.last_seq != device.stored_seq]
+
+    def saved(self, rows: list[dict[str, object]]) -> None:
+        """These rows (from ``unsaved_rows`` or ``applied``) are committed."""
+        for row in rows:
+            device = self._devices[str(row["id"])]
+            seq = row["last_seq"]
+            device.stored_seq = seq if isinstance(seq, int) else None
+
+    def _row(self, device_id: str) -> dict[str, object]:
+        device = self._devices[device_id]
+        return {
+            "building_id": self.building_id,
+            "id": device_id,
+            "user_id": device.user_id,
+            "ble_advertised_id": device.ble_advertised_id,
+            "last_seq": device.last_seq,
+        }

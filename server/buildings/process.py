@@ -1,0 +1,428 @@
+"""A building in a process of its own (``CROWDSLAM_BUILDING_PROCESSES``): its batch path runs under its own
+GIL, beside the HTTP front's event loop, so a busy building and the front use two cores, and buildings one
+each. The building process holds the same ``BuildingTracking`` as the in-process worker
+(``server.buildings.workers.BuildingWorker``); this module is both ends of the socket between them.
+
+Each frame is an 8-byte length and a pickle:
+- front -> building: ``("batch", id, raw body, received_ns, BatchHeader, packed UserBatch or None)`` (the
+  last two as plain tuples),
+  ``("call", id, name, args)``, ``("close", id)``. The front converts the batches it can convert without
+  the building (those without landmarks: nearly all) and sends them packed (``server.ingestion.transport``);
+  the building decodes the others from the raw body again;
+- building -> front: first ``("ready", geo)`` or ``("failed", error)``; then per group of batches
+  ``("group", [(id, receipt JSON | ProblemError)], live messages as JSON, counters, seconds)``, and per call
+  ``("result", id, ok, value or error)``.
+
+Batches and calls are served in the order they arrive. The building process dies with the front (Linux:
+``PR_SET_PDEATHSIG``; elsewhere when the socket closes): a crash of either is a crash of both, and the next
+start restores the building from its snapshot and batch log. A building process that dies alone fails its
+waiting requests with 503, and the next request starts it again the same way.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import ctypes
+import itertools
+import multiprocessing
+import os
+import pickle
+import select
+import signal
+import socket
+import struct
+import sys
+import time
+from typing import Any
+
+import numba
+
+from schemas.live import LiveMessage
+from server.buildings.tracking import BuildingTracking, open_building
+from server.buildings.types import BatchHeader, Counters, Submission
+from server.buildings.workers import CALLS, MAX_GROUP, LatencyWindow
+from server.engine.warmup import warm_kernels_for
+from server.errors import InvalidInputError, ProblemError, ServiceUnavailableError
+from server.gc_tuning import tune_gc_for_serving
+from server.ingestion import convert, transport
+from server.ingestion.decoding import decode_batch
+from server.live.broadcast import Broadcaster, live_json
+from server.settings import Settings
+from slam_core.geo import GeoFrame
+
+_HEADER = struct.Struct("!Q")
+START_TIMEOUT_S = 300.0
+"""A first start compiles the numba kernels (about a minute); later ones load them from the cache."""
+CLOSE_TIMEOUT_S = 120.0
+
+
+# --------------------------------------------------------------------------------------------- framing
+def _send(sock: socket.socket, message: object) -> None:
+    sock.sendall(_frame(message))
+
+
+class FrameReader:
+    """Frames from a blocking socket, read in large chunks: one ``recv`` brings every frame the front has
+    sent since the last (reading each frame's header and body apart, with a ``select`` between frames, had
+    cost three system calls a batch)."""
+
+    CHUNK = 1 << 20
+
+    def __init__(self, sock: socket.socket) -> None:
+        self.sock = sock
+        self._buffer = bytearray()
+        self._offset = 0
+        self._closed = False
+
+    def next(self) -> Any | None:
+        """The next frame, waiting for it; None when the other end has gone."""
+        while True:
+            frame = self._buffered()
+            if frame is not _NONE:
+                return frame
+            if not self._read(wait=True):
+                return None
+
+    def ready(self) -> Any | None:
+        """The next frame if one has arrived (buffered, or waiting in the socket), else ``_NONE``; None when
+        the other end has gone."""
+        frame = self._buffered()
+        if frame is not _NONE:
+            return frame
+        if not self._read(wait=False):
+            return None
+        return self._buffered()
+
+    def _buffered(self) -> Any:
+        start = self._offset + _HEADER.size
+        if len(self._buffer) < start:
+            return _NONE
+        end = start + _HEADER.unpack_from(self._buffer, self._offset)[0]
+        if len(self._buffer) < end:
+            return _NONE
+        self._offset = end
+        return pickle.loads(self._buffer[start:end])
+
+    def _read(self, wait: bool) -> bool:
+        """Append what the socket holds (``wait``: once something does); False when the other end has gone."""
+        if self._closed:
+            return False
+        if not wait and not select.select([self.sock], [], [], 0)[0]:
+            return True
+        chunk = self.sock.recv(self.CHUNK)
+        if not chunk:
+            self._closed = True
+            return False
+        del self._buffer[: self._offset]
+        self._offset = 0
+        self._buffer += chunk
+        return True
+
+
+_NONE: Any = object()
+"""``FrameReader``'s "no complete frame yet" (a frame itself is never this object)."""
+
+
+async def _read_frame(reader: asyncio.StreamReader) -> Any | None:
+    try:
+        header = await reader.readexactly(_HEADER.size)
+        return pickle.loads(await reader.readexactly(_HEADER.unpack(header)[0]))
+    except (asyncio.IncompleteReadError, ConnectionError):
+        return None
+
+
+def _frame(message: object) -> bytes:
+    data = pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL)
+    return _HEADER.pack(len(data)) + data
+
+
+# ------------------------------------------------------------------------------------ building side
+def serve_building(building_id: str, settings: Settings, sock: socket.socket, front_pid: int) -> None:
+    """Entry point of a building's process: load the building, then serve the front until it closes."""
+    _die_with(front_pid)
+    # One core per building: its batch kernels run on its own thread. With numba's thread pool, OpenMP's
+    # workers spun between the back-to-back launches (half a core), or, told to sleep, took a wake-up per
+    # launch.
+
+    numba.set_num_threads(1)
+    # kernels warm and the GC tuned before the first batch, as the front's lifespan does for its own
+    warm_kernels_for(settings)
+    tune_gc_for_serving()
+    try:
+        building = open_building(settings, building_id)
+    except Exception as exc:
+        _send(sock, ("failed", exc if isinstance(exc, ProblemError) else ProblemError(repr(exc))))
+        raise
+    _send(sock, ("ready", building.geo))
+    _BuildingLoop(building, sock).run()
+
+
+def _die_with(front_pid: int) -> None:
+    """Be killed when the front dies (Linux); elsewhere the closed socket ends the loop."""
+    if sys.platform.startswith("linux"):
+        with contextlib.suppress(OSError, AttributeError):
+            ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    if os.getppid() != front_pid:  # the front died before the line above
+        os._exit(0)
+
+
+class _BuildingLoop:
+    def __init__(self, building: BuildingTracking, sock: socket.socket) -> None:
+        self.building = building
+        self.sock = sock
+        self.batches: list[tuple[int, BatchFields]] = []
+
+    def run(self) -> None:
+        reader = FrameReader(self.sock)
+        while True:
+            frame = reader.next()
+            if frame is None:  # the front is gone without closing us: a crash, nothing more to write
+                return
+            frames = [frame]
+            while len(self.batches) + len(frames) < MAX_GROUP:
+                more = reader.ready()
+                if more is None:
+                    return
+                if more is _NONE:
+                    break
+                frames.append(more)
+            for f in frames:
+                if f[0] == "batch":
+                    self.batches.append((f[1], f[2:]))
+                    continue
+                self._flush()
+                if f[0] == "close":
+                    self.building.close()
+                    if self.building.recorder is not None:
+                        self.building.recorder.close()
+                    _send(self.sock, ("result", f[1], True, None))
+                    return
+                self._call(f[1], f[2], f[3])
+            self._flush()
+
+    def _flush(self) -> None:
+        if not self.batches:
+            return
+        started = time.perf_counter()
+        ids: list[int] = []
+        group: list[Submission] = []
+        answers: dict[int, bytes | Exception] = {}
+        for request, fields in self.batches:
+            try:
+                submission = received_batch(*fields)
+            except ProblemError as exc:
+                answers[request] = exc
+                continue
+            ids.append(request)
+            group.append(submission)
+        self.batches = []
+        messages: list[str] = []
+        if group:
+            try:
+                result = self.building.process(group)
+            except Exception as exc:  # as the in-process worker: every batch of the group fails with it
+                answers.update((request, _transportable(exc)) for request in ids)
+            else:
+                for request, receipt in zip(ids, result.receipts, strict=True):
+                    answers[request] = (
+                        receipt if isinstance(receipt, ProblemError) else receipt.model_dump_json().encode()
+                    )
+                messages = [live_json(m) for m in result.messages]
+        seconds = time.perf_counter() - started
+        _send(self.sock, ("group", list(answers.items()), messages, self.building.counters, seconds))
+
+    def _call(self, request: int, name: str, args: tuple[Any, ...]) -> None:
+        try:
+            if name not in CALLS:
+                raise ValueError(f"unknown building call {name!r}")
+            value = getattr(self.building, name)(*args)
+        except Exception as exc:
+            _send(self.sock, ("result", request, False, _transportable(exc)))
+            return
+        _send(self.sock, ("result", request, True, value))
+
+
+BatchFields = tuple[bytes, int, tuple[Any, ...], tuple[Any, ...] | None]
+"""A batch on the socket: raw body, received_ns, its ``BatchHeader`` and its packed conversion (None: the
+building decodes the raw body), the last two as plain tuples (a named tuple pickles by its class, which
+had cost ~10 us a batch on both sides)."""
+
+
+def batch_fields(submission: Submission) -> BatchFields:
+    """The front's side: a batch as it crosses to its building, converted when that needs nothing of the
+    building. Raises ``InvalidInputError`` where the building's conversion would have answered it."""
+    packed = None
+    if submission.batch is not None:
+        try:
+            packed = convert.packed_without_context(submission.batch)  # most batches: straight to the bytes
+            if packed is None and (converted := convert.without_context(submission.batch)) is not None:
+                packed = transport.pack(converted.user_batch)  # raw IMU
+        except ValueError as exc:
+            raise InvalidInputError(str(exc)) from None
+    fields = None if packed is None else tuple(packed)
+    return submission.raw, submission.received_ns, tuple(submission.header), fields
+
+
+def received_batch(
+    raw: bytes, received_ns: int, header: tuple[Any, ...], packed: tuple[Any, ...] | None
+) -> Submission:
+    """The building's side of ``batch_fields``."""
+    if packed is None:
+        batch = decode_batch(raw, max(len(raw), 1))  # validated by the front already
+        return Submission(BatchHeader._make(header), raw, received_ns, batch=batch)
+    user_batch = transport.unpack(transport.PackedBatch._make(packed))
+    return Submission(
+        BatchHeader._make(header), raw, received_ns, converted=convert.Converted(user_batch, [])
+    )
+
+
+def _transportable(exc: Exception) -> Exception:
+    """The error as the front will raise it: a ProblemError as it is, anything else as a RuntimeError
+    naming it (the front answers 500 and logs it, as for an error in its own process)."""
+    if isinstance(exc, ProblemError):
+        return exc
+    return RuntimeError(f"{type(exc).__name__} in the building's process: {exc}")
+
+
+# -------------------------------------------------------------------------------------- front side
+class ProcessBuildingWorker:
+    """The front's handle on a building process, with ``BuildingWorker``'s interface."""
+
+    def __init__(
+        self,
+        building_id: str,
+        process: Any,
+        reader: asyncio.StreamReader,
+        writer: asyncio.StreamWriter,
+        geo: GeoFrame | None,
+        broadcaster: Broadcaster,
+    ) -> None:
+        self.building_id = building_id
+        self._process = process
+        self._reader, self._writer = reader, writer
+        self._geo = geo
+        self._broadcaster = broadcaster
+        self._ids = itertools.count()
+        self._waiting: dict[int, asyncio.Future[Any]] = {}
+        self._outbox: list[bytes] = []
+        self.counters = Counters()
+        self.latency = LatencyWindow()
+        self.group_sizes = LatencyWindow()
+        self.alive = True
+        self._listening = asyncio.get_running_loop().create_task(self._listen())
+
+    @classmethod
+    async def start(
+        cls, building_id: str, settings: Settings, broadcaster: Broadcaster
+    ) -> ProcessBuildingWorker:
+        front, back = socket.socketpair()
+        context = multiprocessing.get_context("spawn")
+        process = context.Process(
+            target=serve_building,
+            args=(building_id, settings, back, os.getpid()),
+            name=f"crowdslam-building-{building_id}",
+            daemon=True,
+        )
+        await asyncio.to_thread(process.start)
+        back.close()
+        reader, writer = await asyncio.open_unix_connection(sock=front)
+        try:
+            first = await asyncio.wait_for(_read_frame(reader), timeout=START_TIMEOUT_S)
+        except TimeoutError:
+            first = None
+        if first is None or first[0] != "ready":
+            writer.close()
+            await asyncio.to_thread(process.join, 10.0)
+            if first is not None and isinstance(first[1], ProblemError):
+                raise first[1]
+            raise ServiceUnavailableError(f"building {building_id!r} could not be started")
+        return cls(building_id, process, reader, writer, first[1], broadcaster)
+
+    @property
+    def pid(self) -> int | None:
+        pid: int | None = self._process.pid
+        return pid
+
+    @property
+    def geo(self) -> GeoFrame | None:
+        return self._geo
+
+    @property
+    def queue_depth(self) -> int:
+        return len(self._waiting)
+
+    async def submit(self, submission: Submission) -> bytes:
+        answer: bytes = await self._ask(("batch", *batch_fields(submission)))
+        return answer
+
+    async def call(self, name: str, *args: Any) -> Any:
+        if name not in CALLS:
+            raise ValueError(f"unknown building call {name!r}; valid: {', '.join(sorted(CALLS))}")
+        return await self._ask(("call", name, args))
+
+    def publish(self, messages: list[LiveMessage]) -> None:
+        self._broadcaster.publish(self.building_id, messages)
+
+    async def _ask(self, message: tuple[Any, ...]) -> Any:
+        if not self.alive:
+            raise ServiceUnavailableError(f"building {self.building_id!r} is restarting; send again")
+        request = next(self._ids)
+        future: asyncio.Future[Any] = asyncio.get_running_loop().create_future()
+        self._waiting[request] = future
+        self._outbox.append(_frame((message[0], request, *message[1:])))
+        if len(self._outbox) == 1:
+            asyncio.get_running_loop().call_soon(self._send_outbox)
+        return await future
+
+    def _send_outbox(self) -> None:
+        """The frames of one turn of the event loop in one write: under load the front reads many requests a
+        turn, and a write each was a system call each (and a wake-up of the building when it waited)."""
+        frames, self._outbox = self._outbox, []
+        self._writer.write(b"".join(frames))
+
+    async def _listen(self) -> None:
+        while True:
+            frame = await _read_frame(self._reader)
+            if frame is None:
+                break
+            if frame[0] == "group":
+                _, answers, texts, counters, seconds = frame
+                self.counters = counters
+                self.latency.add(seconds)
+                self.group_sizes.add(len(answers))
+                for request, answer in answers:
+                    self._settle(request, answer, isinstance(answer, Exception))
+                self._broadcaster.publish_texts(self.building_id, texts)
+            elif frame[0] == "result":
+                _, request, ok, value = frame
+                self._settle(request, value, not ok)
+        self.alive = False
+        for future in self._waiting.values():
+            if not future.done():
+                future.set_exception(
+                    ServiceUnavailableError(f"building {self.building_id!r} stopped; send again")
+                )
+        self._waiting.clear()
+
+    def _settle(self, request: int, answer: Any, failed: bool) -> None:
+        future = self._waiting.pop(request, None)
+        if future is None or future.done():
+            return
+        if failed:
+            future.set_exception(answer)
+        else:
+            future.set_result(answer)
+
+    async def close(self) -> None:
+        """Snapshot and stop the building process (a clean shutdown leaves nothing to replay)."""
+        if self.alive:
+            with contextlib.suppress(ProblemError, TimeoutError):
+                await asyncio.wait_for(self._ask(("close",)), timeout=CLOSE_TIMEOUT_S)
+        self._writer.close()
+        await asyncio.to_thread(self._process.join, 30.0)
+        if self._process.is_alive():
+            self._process.kill()
+        self._listening.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await self._listening

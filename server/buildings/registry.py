@@ -1,0 +1,97 @@
+"""The buildings being tracked, as the API reaches them: one worker per building, loaded on first use, on a
+thread of this process (``server.buildings.workers``) or in a process of its own
+(``server.buildings.process``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+from pathlib import Path
+
+from sqlalchemy.orm import Session, sessionmaker
+
+from server.buildings.process import ProcessBuildingWorker
+from server.buildings.tracking import BuildingTracking
+from server.buildings.types import Retention
+from server.buildings.workers import BuildingWorker, Worker
+from server.errors import NotFoundError
+from server.live.broadcast import Broadcaster
+from server.recordings.recorder import BuildingRecorder
+from server.settings import Settings
+from server.store import repositories as repo
+from slam_core.encounters.models import Calibration
+from slam_core.tracking.tracker import TrackerParams
+
+
+class TrackingService:
+    """The registry of buildings being tracked; a building is loaded on first use."""
+
+    def __init__(
+        self,
+        sessions: sessionmaker[Session],
+        broadcaster: Broadcaster,
+        params: TrackerParams,
+        calibration: Calibration,
+        seed: int,
+        recordings: Path | None = None,
+        snapshot_period_s: float = 60.0,
+        retention: Retention | None = None,
+        processes: Settings | None = None,
+    ) -> None:
+        """``processes``: run each building in a process of its own, configured by these settings."""
+        self._processes = processes
+        self._snapshot_period_s = snapshot_period_s
+        self._retention = retention
+        self._recordings = recordings
+        self._sessions = sessions
+        self._broadcaster = broadcaster
+        self._params = params
+        self._calibration = calibration
+        self._seed = seed
+        self._workers: dict[str, Worker] = {}
+        self._loading = asyncio.Lock()
+
+    async def worker(self, building_id: str) -> Worker:
+        worker = self._workers.get(building_id)
+        if worker is not None and worker.alive:
+            return worker
+        async with self._loading:
+            worker = self._workers.get(building_id)
+            if worker is not None and not worker.alive:  # its process died: start it again
+                await worker.close()
+                worker = None
+            if worker is None and self._processes is not None:
+                if not await asyncio.to_thread(self._exists, building_id):  # never a process for nothing
+                    raise NotFoundError(f"no building {building_id!r}")
+                worker = await ProcessBuildingWorker.start(building_id, self._processes, self._broadcaster)
+                self._workers[building_id] = worker
+            elif worker is None:
+                recorder = (
+                    None if self._recordings is None else BuildingRecorder(self._recordings, building_id)
+                )
+                session = await asyncio.to_thread(
+                    BuildingTracking,
+                    building_id,
+                    self._sessions,
+                    self._params,
+                    self._calibration,
+                    self._seed,
+                    recorder,
+                    self._snapshot_period_s,
+                    self._retention,
+                )
+                worker = self._workers[building_id] = BuildingWorker(session, self._broadcaster)
+        return worker
+
+    def _exists(self, building_id: str) -> bool:
+        with self._sessions() as session:
+            return repo.get_building(session, building_id) is not None
+
+    @property
+    def workers(self) -> dict[str, Worker]:
+        return dict(self._workers)
+
+    async def close(self) -> None:
+        for worker in self._workers.values():
+            await worker.close()
+        self._workers.clear()

@@ -1,0 +1,355 @@
+"""One owner per building: its tracker, its anchor map in SQL, and the batch path of GUIDE.md.
+
+``BuildingTracking`` is synchronous and used only from its building's single worker thread, so a building's
+batches and anchor edits are applied one group at a time, in arrival order. Batches that arrive while a
+group is being processed form the next group: under load, one engine call and one transaction serve many
+phones.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from datetime import UTC, datetime
+from typing import Literal
+
+import numpy as np
+from sqlalchemy import Engine
+from sqlalchemy.orm import Session, sessionmaker
+
+from schemas.anchors import BuildingAnchor, KnownAnchorIn
+from schemas.api import BatchReceipt
+from schemas.estimates import EncounterEvent, Estimate, EstimateSource
+from schemas.live import AnchorMessage, EncounterMessage, LiveMessage, PositionMessage
+from server.buildings.recovery import RecoverableBuilding
+from server.buildings.rows import anchor_row, position_row
+from server.buildings.types import BatchHeader, GroupResult, Retention, Submission
+from server.engine.config import load_calibration, tracker_params
+from server.errors import ConflictError, InvalidInputError, NotFoundError, ProblemError
+from server.ingestion import convert
+from server.recordings.recorder import BuildingRecorder
+from server.settings import Settings
+from server.store import repositories as repo
+from server.store.batches import (
+    AcceptedBatch,
+    insert_batches_once,
+)
+from server.store.db import make_engine, make_session_factory
+from server.store.wal_checkpoints import checkpoint_in_background
+from server.store.writer_lock import writer_turns
+from slam_core.encounters.models import Calibration
+from slam_core.tracking.tracker import EstimateRow, TrackerParams, UserBatch
+
+
+class BuildingTracking(RecoverableBuilding):
+    """A building's batch path and its operator's anchor edits, on its recoverable tracking state."""
+
+    def __init__(
+        self,
+        building_id: str,
+        sessions: sessionmaker[Session],
+        params: TrackerParams,
+        calibration: Calibration,
+        seed: int,
+        recorder: BuildingRecorder | None = None,
+        snapshot_period_s: float = 60.0,
+        retention: Retention | None = None,
+    ) -> None:
+        self.recorder = recorder
+        self._last_prune = -math.inf
+        super().__init__(building_id, sessions, params, calibration, seed, snapshot_period_s, retention)
+        with sessions() as session:
+            self._writer_turns = writer_turns(session.get_bind().engine)
+
+    # ------------------------------------------------------------------ anchors
+    def anchor(self, index: int) -> BuildingAnchor:
+        mean, cov, type_index, known, count, last = self.tracker.crowd.anchor(index)
+        return convert.building_anchor(
+            self.ids.public_id(index),
+            self.building_id,
+            mean,
+            cov,
+            type_index,
+            known,
+            count,
+            int(last) if math.isfinite(last) and last > 0 else None,
+            self.ids.labels.get(index),
+            signature=self.tracker.crowd.signature(index) or None,
+        )
+
+    def anchors(self) -> list[BuildingAnchor]:
+        return [self.anchor(i) for i in sorted(self.ids.public) if self.tracker.crowd.is_live(i)]
+
+    def get_anchor(self, public_id: str) -> BuildingAnchor:
+        index = self.ids.index.get(public_id)
+        if index is None or not self.tracker.crowd.is_live(index):
+            raise NotFoundError(f"no anchor {public_id!r} in building {self.building_id!r}")
+        return self.anchor(index)
+
+    def put_known_anchor(
+        self, public_id: str, body: KnownAnchorIn
+    ) -> tuple[BuildingAnchor, list[LiveMessage]]:
+        index = self.ids.index.get(public_id)
+        if index is not None and not self.tracker.crowd.is_live(index):
+            raise ConflictError(f"anchor {public_id!r} was deleted or merged; pick a new id")
+        xy = np.array([body.position.x_m, body.position.y_m])
+        type_index = convert.anchor_type_index(body.type)
+        index = self.tracker.pin_anchor(xy, type_index, index)
+        self.ids.link(index, public_id, body.label)
+        anchor = self.anchor(index)
+        with self._sessions.begin() as session:
+            repo.save_anchor(session, anchor_row(self.building_id, anchor))
+            rows = self._save_snapshot(session)
+        self.devices.saved(rows)
+        return anchor, [AnchorMessage(anchor=anchor)]
+
+    def delete_anchor(self, public_id: str) -> list[LiveMessage]:
+        anchor = self.get_anchor(public_id)
+        self.tracker.remove_anchor(self.ids.index[public_id])
+        with self._sessions.begin() as session:
+            repo.delete_anchor(session, self.building_id, public_id)
+            rows = self._save_snapshot(session)
+        self.devices.saved(rows)
+        return [AnchorMessage(anchor=anchor, deleted=True)]
+
+    def merge_anchors(self, public_ids: list[str]) -> tuple[BuildingAnchor, list[LiveMessage]]:
+        if len(set(public_ids)) != len(public_ids):
+            raise InvalidInputError("anchor_ids must be distinct")
+        olds = [self.get_anchor(p) for p in public_ids]
+        keep = self.ids.index[public_ids[0]]
+        for p in public_ids[1:]:
+            self.tracker.merge_anchors(keep, self.ids.index[p])
+        merged = self.anchor(keep)
+        with self._sessions.begin() as session:
+            repo.save_anchor(session, anchor_row(self.building_id, merged))
+            for p in public_ids[1:]:
+                repo.delete_anchor(session, self.building_id, p)
+            rows = self._save_snapshot(session)
+        self.devices.saved(rows)
+        messages: list[LiveMessage] = [AnchorMessage(anchor=merged)]
+        messages += [AnchorMessage(anchor=a, deleted=True) for a in olds[1:]]
+        return merged, messages
+
+    # ------------------------------------------------------------------ batches
+    def latest_estimate(self, user: str) -> Estimate | None:
+        row = self.tracker.estimate(user)
+        if row is None:
+            return None
+        return self._estimate(user, row)
+
+    def _estimate(self, user: str, row: EstimateRow) -> Estimate:
+        source = (
+            EstimateSource.DYNAMICSLAM
+            if self.tracker.params.filter.use_human_anchors
+            else EstimateSource.SEMANTICSLAM
+        )
+        return convert.estimate(
+            row, self.building_id, user, self._device_of_user.get(user, user), self.geo, source
+        )
+
+    def process(self, group: list[Submission]) -> GroupResult:
+        """Apply a group of batches: dedupe, order, convert, track, persist, in one transaction."""
+        ctx: convert.BuildingContext | None = None  # only for batches not converted by the front
+        results: list[BatchReceipt | ProblemError | None] = [None] * len(group)
+        converted: dict[int, tuple[UserBatch, list[str]]] = {}
+        for i, sub in enumerate(group):
+            c = sub.converted
+            if c is None:
+                assert sub.batch is not None  # a Submission holds one or the other
+                ctx = ctx or self.context()
+                try:
+                    c = convert.to_user_batch(sub.batch, ctx)
+                except ValueError as exc:
+                    results[i] = InvalidInputError(str(exc))
+                    continue
+            converted[i] = (c.user_batch, c.warnings)
+        messages: list[LiveMessage] = []
+        order = list(converted)
+        # late or applied, and by which engine call, is decided before anything is written: each row goes
+        # in with the call that applies it (a retry is recognised by the insert itself, and was late anyway)
+        calls = dict(zip(order, self.devices.plan([group[i].header for i in order]), strict=True))
+        base = self._round
+        device_rows: list[dict[str, object]] = []
+        with self._writer_turns, self._sessions.begin() as session:  # see server.store.writer_lock
+            inserted = insert_batches_once(session, [self._accepted(group[i], calls[i], base) for i in order])
+            by_call: dict[int, list[int]] = {}
+            for i, row_id in zip(order, inserted, strict=True):
+                b = group[i].header
+                if row_id is None:
+                    self.counters.duplicates += 1
+                    results[i] = self._receipt(b, "duplicate", converted[i][1])
+                    continue
+                if self.recorder is not None:
+                    self.recorder.record_batch(group[i].raw, group[i].received_ns)
+                call = calls[i]
+                if call is None:
+                    self.counters.late += 1
+                    results[i] = self._receipt(b, "late", converted[i][1])
+                    continue
+                self._device_of_user[b.effective_user_id] = b.device_id
+                row = self.devices.applied(b)
+                if row is not None:
+                    device_rows.append(row)
+                by_call.setdefault(call, []).append(i)
+            repo.upsert_devices(session, device_rows)
+            # a user may have several batches in one group: one per user per engine call
+            for call in sorted(by_call):
+                now = by_call[call]
+                self._round = base + call
+                self._apply(session, group, converted, now, results, messages)
+            device_rows += self._periodic_snapshot(session)
+            self._clear_log(session, max(1, int(self.retention.log_clear_per_batch * len(group))))
+            if time.monotonic() - self._last_prune >= self.retention.prune_period_s:
+                self._prune(session)
+        self.devices.saved(device_rows)
+        if self.recorder is not None:
+            self.recorder.flush()
+        self.counters.batches += len(group)
+        return GroupResult([r if r is not None else ProblemError("not processed") for r in results], messages)
+
+    def _apply(
+        self,
+        session: Session,
+        group: list[Submission],
+        converted: dict[int, tuple[UserBatch, list[str]]],
+        now: list[int],
+        results: list[BatchReceipt | ProblemError | None],
+        messages: list[LiveMessage],
+    ) -> None:
+        """One engine call over these batches (at most one per user); their receipts, positions, anchor
+        changes and live messages."""
+        outcome = self.tracker.apply([converted[i][0] for i in now])
+        heard = time.time()
+        for i in now:
+            self._last_heard[converted[i][0].user] = heard
+        encounters = [convert.encounter_event(e, self.building_id) for e in outcome.encounters]
+        self.counters.encounters += len(encounters)
+        self.counters.encounters_applied += sum(e.applied for e in encounters)
+        self.counters.encounter_detections += outcome.detections
+        estimates = {u: self._estimate(u, row) for u, row in outcome.estimates.items()}
+        self.counters.estimates += len(estimates)
+        if self.recorder is not None:
+            self.recorder.record_estimates(list(estimates.values()), group[now[0]].received_ns)
+        stored_at_ms = int(heard * 1000)
+        rows = [position_row(self.building_id, e, stored_at_ms) for e in estimates.values()]
+        repo.add_positions(session, rows)
+        for index in outcome.anchors_changed:
+            if self.tracker.crowd.is_live(index):
+                anchor = self.anchor(index)
+                repo.save_anchor(session, anchor_row(self.building_id, anchor))
+                messages.append(AnchorMessage(anchor=anchor))
+        messages += [PositionMessage(estimate=e) for e in estimates.values()]
+        messages += [EncounterMessage(encounter=e) for e in encounters]
+        by_user: dict[str, list[EncounterEvent]] = {}
+        for e in encounters:
+            by_user.setdefault(e.user_a, []).append(e)
+            if e.user_b != e.user_a:
+                by_user.setdefault(e.user_b, []).append(e)
+        for i in now:
+            b = group[i].header
+            report = outcome.reports[converted[i][0].user]
+            self.counters.steps_dropped += report.steps_dropped
+            self.counters.steps_detected += report.steps_detected
+            self.counters.imu_samples_dropped += report.imu_samples_dropped
+            self.counters.recentred += report.recentred
+            self.counters.fingerprint_fixes += report.fingerprint_fixes
+            warnings = list(converted[i][1])
+            if report.imu_samples_dropped:
+                warnings.append(
+                    f"{report.imu_samples_dropped} IMU samples skipped: not newer than the samples "
+                    "already dead-reckoned for this user"
+                )
+            if report.steps_dropped:
+                warnings.append(_dropped_warning(report.steps_dropped, report.status))
+            results[i] = self._receipt(
+                b, "applied", warnings, estimates.get(b.effective_user_id), by_user.get(b.effective_user_id)
+            )
+
+    def _prune(self, session: Session) -> None:
+        """Delete a chunk of position history and of batch ids past their retention."""
+        r = self.retention
+        now = time.time()
+        positions_before = (
+            None if r.position_history_days is None else int((now - r.position_history_days * 86_400) * 1e3)
+        )
+        batches_before = (
+            None if r.batch_ids_days is None else datetime.fromtimestamp(now - r.batch_ids_days * 86_400, UTC)
+        )
+        positions, batches = repo.prune_history(
+            session, self.building_id, positions_before, batches_before, r.prune_chunk
+        )
+        self.counters.pruned_positions += positions
+        self.counters.pruned_batches += batches
+        self._last_prune = time.monotonic()
+
+    def _accepted(self, sub: Submission, call: int | None, base: int) -> AcceptedBatch:
+        span = sub.header.span_ms
+        return AcceptedBatch(
+            self.building_id,
+            sub.header.device_id,
+            sub.header.batch_id,
+            sub.header.seq,
+            None if span is None else span[0],
+            None if span is None else span[1],
+            len(sub.raw),
+            None if call is None else sub.raw,  # a late batch is never replayed: nothing to log
+            None if call is None else base + call,
+        )
+
+    def _receipt(
+        self,
+        batch: BatchHeader,
+        status: Literal["applied", "duplicate", "late"],
+        warnings: list[str],
+        estimate: Estimate | None = None,
+        encounters: list[EncounterEvent] | None = None,
+    ) -> BatchReceipt:
+        user = batch.effective_user_id
+        if estimate is None:
+            estimate = self.latest_estimate(user)
+        return BatchReceipt(
+            batch_id=batch.batch_id,
+            status=status,
+            duplicate=status == "duplicate",
+            tracking=self.tracker.is_tracking(user),
+            estimate=estimate,
+            encounters=encounters or [],
+            warnings=warnings,
+        )
+
+
+def _dropped_warning(n: int, status: str) -> str:
+    if status != "tracking":
+        return (
+            f"{n} steps skipped: the user has no position yet (send a fix, a tag or a known-anchor reading)"
+        )
+    return f"{n} steps skipped: out of time order, or turns without any azimuth to start from"
+
+
+def retention(settings: Settings) -> Retention:
+    """How much history the settings keep (0: all)."""
+    return Retention(
+        position_history_days=settings.position_history_days or None,
+        batch_ids_days=settings.batch_ids_days or None,
+        user_idle_s=settings.user_idle_s or None,
+    )
+
+
+def open_building(settings: Settings, building_id: str, engine: Engine | None = None) -> BuildingTracking:
+    """A building's tracking as the settings describe it, on its own database engine (a building's
+    process; ``engine``: that engine, made by the caller, who disposes of it), its write-ahead log
+    checkpointed beside the batch path; raises NotFoundError for an unknown building."""
+    engine = engine or make_engine(settings.resolved_database_url)
+    checkpoint_in_background(engine, settings.sqlite_checkpoint_period_s)  # stops when the process does
+    sessions = make_session_factory(engine)
+    recorder = BuildingRecorder(settings.recordings_dir, building_id) if settings.record else None
+    return BuildingTracking(
+        building_id,
+        sessions,
+        tracker_params(settings),
+        load_calibration(settings.encounter_calibration),
+        settings.seed,
+        recorder,
+        settings.snapshot_period_s,
+        retention(settings),
+    )

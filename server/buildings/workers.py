@@ -1,0 +1,156 @@
+"""A building's worker: what the API submits batches and anchor edits to, one building at a time.
+
+``BuildingWorker`` runs the building on a thread of this process: requests enqueue and await their receipt;
+the building's task drains the queue into a group, runs it in the building's thread (numba kernels release
+the GIL, SQL waits on I/O) and publishes the group's live messages. ``server.buildings.process`` runs the
+same behind the same ``Worker`` protocol in a process of its own.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+from schemas.live import LiveMessage
+from server.buildings.tracking import BuildingTracking
+from server.buildings.types import Counters, Submission
+from server.errors import ProblemError
+from server.live.broadcast import Broadcaster
+from slam_core.geo import GeoFrame
+
+MAX_GROUP = 256
+
+
+CALLS = frozenset({"anchors", "get_anchor", "put_known_anchor", "delete_anchor", "merge_anchors", "context"})
+"""The building's methods the API may call (``BuildingWorker.call``), in order with its batches."""
+
+
+class Worker(Protocol):
+    """What the API sees of a building: ``BuildingWorker`` (a thread of this process) or
+    ``server.buildings.process.ProcessBuildingWorker`` (a process of its own)."""
+
+    alive: bool
+    latency: LatencyWindow
+    group_sizes: LatencyWindow
+
+    @property
+    def geo(self) -> GeoFrame | None: ...
+    @property
+    def counters(self) -> Counters: ...
+    @property
+    def queue_depth(self) -> int: ...
+    async def submit(self, submission: Submission) -> bytes: ...
+    async def call(self, name: str, *args: Any) -> Any: ...
+    def publish(self, messages: list[LiveMessage]) -> None: ...
+    async def close(self) -> None: ...
+
+
+@dataclass
+class _Pending:
+    submission: Submission
+    future: asyncio.Future[bytes]
+
+
+@dataclass
+class LatencyWindow:
+    """The most recent processing latencies (seconds), for /metrics."""
+
+    values: list[float] = field(default_factory=list)
+    limit: int = 10_000
+
+    def add(self, value: float) -> None:
+        self.values.append(value)
+        if len(self.values) > self.limit:
+            del self.values[: len(self.values) - self.limit]
+
+
+class BuildingWorker:
+    def __init__(self, building: BuildingTracking, broadcaster: Broadcaster) -> None:
+        self.building = building
+        self._broadcaster = broadcaster
+        self._queue: asyncio.Queue[_Pending] = asyncio.Queue()
+        self._executor = ThreadPoolExecutor(
+            max_workers=1, thread_name_prefix=f"building-{building.building_id}"
+        )
+        self._task = asyncio.get_running_loop().create_task(self._run())
+        self.latency = LatencyWindow()
+        self.group_sizes = LatencyWindow()
+        self.alive = True
+
+    @property
+    def queue_depth(self) -> int:
+        return self._queue.qsize()
+
+    @property
+    def geo(self) -> GeoFrame | None:
+        return self.building.geo
+
+    @property
+    def counters(self) -> Counters:
+        return self.building.counters
+
+    async def submit(self, submission: Submission) -> bytes:
+        """The batch's receipt, as JSON."""
+        future: asyncio.Future[bytes] = asyncio.get_running_loop().create_future()
+        await self._queue.put(_Pending(submission, future))
+        return await future
+
+    async def call(self, name: str, *args: Any) -> Any:
+        """Run one of the building's ``CALLS`` on the building's thread (anchor edits stay ordered with
+        batches)."""
+        if name not in CALLS:
+            raise ValueError(f"unknown building call {name!r}; valid: {', '.join(sorted(CALLS))}")
+        method = getattr(self.building, name)
+        return await asyncio.get_running_loop().run_in_executor(self._executor, lambda: method(*args))
+
+    def publish(self, messages: list[LiveMessage]) -> None:
+        self._broadcaster.publish(self.building.building_id, messages)
+
+    async def _run(self) -> None:
+        loop = asyncio.get_running_loop()
+        while True:
+            group = [await self._queue.get()]
+            while not self._queue.empty() and len(group) < MAX_GROUP:
+                group.append(self._queue.get_nowait())
+            started = time.perf_counter()
+            try:
+                receipts, messages = await loop.run_in_executor(
+                    self._executor, self._process, [p.submission for p in group]
+                )
+            except Exception as exc:
+                for p in group:
+                    if not p.future.done():
+                        p.future.set_exception(exc)
+                continue
+            self.latency.add(time.perf_counter() - started)
+            self.group_sizes.add(len(group))
+            for p, receipt in zip(group, receipts, strict=True):
+                if p.future.done():
+                    continue
+                if isinstance(receipt, ProblemError):
+                    p.future.set_exception(receipt)
+                else:
+                    p.future.set_result(receipt)
+            self.publish(messages)
+
+    def _process(self, group: list[Submission]) -> tuple[list[bytes | ProblemError], list[LiveMessage]]:
+        """On the building's thread: the group, with its receipts serialised there."""
+        result = self.building.process(group)
+        receipts = [
+            r if isinstance(r, ProblemError) else r.model_dump_json().encode() for r in result.receipts
+        ]
+        return receipts, result.messages
+
+    async def close(self) -> None:
+        self._task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await self._task
+        # a clean stop leaves nothing to replay: the next start loads this snapshot and an empty log
+        await asyncio.get_running_loop().run_in_executor(self._executor, self.building.close)
+        self._executor.shutdown(wait=True)
+        if self.building.recorder is not None:
+            self.building.recorder.close()

@@ -1,0 +1,91 @@
+"""The engine as the settings configure it (the tracker's parameters, the encounter range models), and as an
+evaluation runs it (a mode, a number of particles, seeds)."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, replace
+from importlib import resources
+from pathlib import Path
+
+from server.settings import Settings
+from slam_core.crowd.fingerprints import FingerprintParams
+from slam_core.encounters.models import Calibration, DetectionParams
+from slam_core.filter.params import (
+    BuildingAnchorParams,
+    FilterParams,
+    HumanAnchorParams,
+    MotionParams,
+    extended_confusion,
+)
+from slam_core.tracking.params import MODES, TrackerParams
+
+
+def load_calibration(path: Path | None) -> Calibration:
+    """Encounter range models from ``crowdslam calibrate`` (``path``), or the shipped testbed calibration."""
+    if path is None:
+        text = resources.files("server.data").joinpath("testbed_calibration.json").read_text()
+    else:
+        text = path.read_text()
+    return Calibration.from_dict(json.loads(text))
+
+
+def tracker_params(settings: Settings) -> TrackerParams:
+    n_types = len(extended_confusion(10))
+    return TrackerParams(
+        filter=FilterParams(
+            anchors=BuildingAnchorParams(confusion=extended_confusion(n_types)),
+            use_human_anchors=settings.mode == "dynamicslam",
+        ),
+        detection=DetectionParams(wifi_model=settings.encounter_wifi_model),
+        # other users' scans, like human anchors: off in semanticslam mode (building anchors only)
+        fingerprints=FingerprintParams(enabled=settings.fingerprint_fixes and settings.mode == "dynamicslam"),
+    )
+
+
+@dataclass(frozen=True)
+class ReplayOptions:
+    mode: str = "dynamicslam"
+    warm_split: float | None = None
+    particles: int = 75
+    sampling: str = "iterative"
+    motion_model: str = "bias-scale"
+    crowd_solver: str = "graph"
+    seed: int = 0
+    """The world's (a simulated crowd's) and, unless ``filter_seed`` is set, the filters' seed."""
+    filter_seed: int | None = None
+    """The filters' own seed, to measure their noise on one world (``seed``) apart from the world's."""
+    window_ms: int = 1000
+    fingerprints: bool = True
+    """In ``dynamicslam`` mode, also localise scans on the crowd-learned WiFi fingerprint map
+    (``slam_core.crowd.fingerprints``), as the server does by default."""
+
+    @property
+    def tracker_seed(self) -> int:
+        return self.seed if self.filter_seed is None else self.filter_seed
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise ValueError(f"unknown mode {self.mode!r}; valid: {', '.join(MODES)}")
+        if self.warm_split is not None and not 0.0 < self.warm_split < 1.0:
+            raise ValueError("warm_split must be in (0, 1)")
+
+
+def replay_params(base: TrackerParams, options: ReplayOptions) -> TrackerParams:
+    """The server's tracker parameters (``base``) in the options' mode: ``pdr`` scores plain dead reckoning,
+    ``semanticslam`` uses building anchors only, ``dynamicslam`` also human anchors and (unless the options
+    turn them off) fixes on the crowd's WiFi fingerprint map, which come from other users' scans too."""
+    return replace(
+        base,
+        filter=replace(
+            base.filter,
+            n_particles=options.particles,
+            motion=MotionParams(model=options.motion_model),
+            human=HumanAnchorParams(sampling=options.sampling),
+            use_human_anchors=options.mode == "dynamicslam",
+        ),
+        crowd_solver=options.crowd_solver,
+        fingerprints=replace(
+            base.fingerprints, enabled=options.fingerprints and options.mode == "dynamicslam"
+        ),
+    )

@@ -1,0 +1,356 @@
+"""The one module that sees both the wire models and the engine's arrays: batches in, estimates out."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from pydantic import ValidationError
+
+from schemas.anchors import AnchorType, BuildingAnchor
+from schemas.common import Position
+from schemas.estimates import EncounterEvent, EncounterModelName, Estimate, EstimateSource
+from schemas.sensors import (
+    AnchorReading,
+    BeaconSighting,
+    GpsFix,
+    PeerSighting,
+    PositionFix,
+    RotationVectorStream,
+    SensorBatch,
+    TagReading,
+    Vector3Stream,
+    WifiScan,
+)
+from server.ingestion.transport import PackedBatch, pack_lists
+from slam_core.encounters.models import MODEL_BLUETOOTH, MODEL_WIFI_FINGERPRINT
+from slam_core.geo import GeoFrame
+from slam_core.sensing.pdr.online import ImuSamples
+from slam_core.tracking.tracker import EncounterResult, EstimateRow, UserBatch
+
+ENGINE_ANCHOR_TYPES: tuple[AnchorType, ...] = tuple(AnchorType)
+"""The engine's anchor type index of each wire type (the first five are the paper testbed's)."""
+_TYPE_INDEX = {t: i for i, t in enumerate(ENGINE_ANCHOR_TYPES)}
+TAG_SIGMA_M = 0.5
+"""A tag with an encoded position places the phone within about an arm's length of it."""
+
+
+@dataclass(frozen=True)
+class BuildingContext:
+    """What conversion needs to know about the building: its geo-reference and its known anchors."""
+
+    building_id: str
+    geo: GeoFrame | None
+    known_anchors: Mapping[str, tuple[float, float]]  # public id -> local position
+    detection_sigma_m: float = 0.5
+
+
+_NO_CONTEXT = BuildingContext("", None, {})
+"""For batches without landmarks, the only part of a batch that needs its building to be converted."""
+
+
+@dataclass(frozen=True)
+class Converted:
+    user_batch: UserBatch
+    warnings: list[str]
+
+
+def anchor_type_index(anchor_type: AnchorType) -> int:
+    return _TYPE_INDEX[anchor_type]
+
+
+def without_context(batch: SensorBatch) -> Converted | None:
+    """The batch as engine arrays when that needs nothing of its building (it has no landmarks to place),
+    else None. Raises ``ValueError`` as ``to_user_batch``."""
+    if batch.landmarks:
+        return None
+    return to_user_batch(batch, _NO_CONTEXT)
+
+
+def to_user_batch(batch: SensorBatch, ctx: BuildingContext) -> Converted:
+    """The batch as engine arrays. Landmarks that cannot be placed are skipped with a warning saying why."""
+    warnings: list[str] = []
+    fix_t: list[int] = []
+    fix_xy: list[tuple[float, float]] = []
+    fix_sigma: list[float] = []
+    fix_azimuth: list[float] = []
+    for i, mark in enumerate(batch.landmarks):
+        placed = _place(mark, ctx)
+        if isinstance(placed, str):
+            warnings.append(f"landmarks.{i}: {placed}")
+            continue
+        (x, y), sigma, azimuth = placed
+        fix_t.append(mark.t_ms)
+        fix_xy.append((x, y))
+        fix_sigma.append(sigma)
+        fix_azimuth.append(azimuth)
+    ints, floats, strings = _sensor_columns(batch)
+    fields: dict[str, Any] = {
+        "user": batch.effective_user_id,
+        "ble_id": batch.ble_advertised_id,
+        "fix_t": _ints(fix_t),
+        "fix_xy": np.array(fix_xy, dtype=np.float64).reshape(-1, 2) if fix_xy else _NO_XY,
+        "fix_sigma": _floats(fix_sigma),
+        "fix_azimuth": _floats(fix_azimuth),
+        **{name: _ints(values) for name, values in ints.items()},
+        **{name: _floats(values) for name, values in floats.items()},
+        **strings,
+        "imu": _imu(batch),
+    }
+    user_batch = UserBatch(**fields)
+    return Converted(user_batch, warnings)
+
+
+def packed_without_context(batch: SensorBatch) -> PackedBatch | None:
+    """``transport.pack(without_context(batch).user_batch)``, built straight from the batch's values
+    without the arrays in between, for the batches phones send most (no landmarks, no raw IMU: the phone
+    counts its own steps), else None. Raises ``ValueError`` where ``UserBatch``'s checks would.
+
+    The front of a building process sends every batch packed: converting to ~25 small arrays and joining
+    them again had been a quarter of the front's time per batch under ``bench/load.py``."""
+    if batch.landmarks or _has_raw_imu(batch):
+        return None
+    ints, floats, strings = _sensor_columns(batch)
+    checked = (*floats["step_length"], *floats["scan_rss"], *floats["peer_rss"])
+    if not all(math.isfinite(v) for v in checked) or any(v < 0 for v in floats["step_length"]):
+        raise ValueError(
+            f"user batch of {batch.effective_user_id!r}: non-finite values, sigma <= 0 or negative lengths"
+        )
+    return pack_lists(batch.effective_user_id, batch.ble_advertised_id, ints, floats, strings)
+
+
+def _sensor_columns(
+    batch: SensorBatch,
+) -> tuple[dict[str, list[int]], dict[str, list[float]], dict[str, tuple[str, ...]]]:
+    """The batch's steps, detections, scans and sightings as ``UserBatch``'s fields, as lists (integers,
+    floats, strings): the one place both conversions read them."""
+    steps = batch.steps
+    scans = batch.wifi_scans
+    aps = [ap for s in scans for ap in s.aps]
+    peers = [s for s in batch.bluetooth if isinstance(s, PeerSighting)]
+    beacons = [s for s in batch.bluetooth if isinstance(s, BeaconSighting)]
+    detections = batch.anchor_detections
+    ints = {
+        "step_t": [s.t_ms for s in steps],
+        "detect_t": [d.t_ms for d in detections],
+        "detect_type": [anchor_type_index(d.type) for d in detections],
+        "scan_t": [s.t_ms for s in scans],
+        "scan_offsets": _offsets(scans),
+        "scan_last_seen": [-1 if ap.last_seen_ms is None else ap.last_seen_ms for ap in aps],
+        "peer_t": [p.t_ms for p in peers],
+        "beacon_t": [s.t_ms for s in beacons],
+    }
+    floats = {
+        "step_length": [s.length_m for s in steps],
+        "step_azimuth": [_nan_if_none(s.azimuth_rad) for s in steps],
+        "step_turn": [_nan_if_none(s.heading_change_rad) for s in steps],
+        "scan_rss": [ap.rssi_dbm for ap in aps],
+        "peer_rss": [p.rssi_dbm for p in peers],
+        "beacon_rss": [s.rssi_dbm for s in beacons],
+    }
+    strings = {
+        "scan_bssid": tuple(ap.bssid for ap in aps),
+        "peer_id": tuple(p.peer_advertised_id for p in peers),
+        "beacon_mac": tuple(s.mac for s in beacons),
+    }
+    return ints, floats, strings
+
+
+# Shared empty arrays: most batches carry no fix, detection or beacon, and an array per absent field had
+# cost a fifth of the conversion. Nothing can be written into an empty array; they stay writable so that
+# the numba kernels see one array type (a read-only array is another type to them, compiled anew).
+_NO_INTS = np.zeros(0, dtype=np.int64)
+_NO_FLOATS = np.zeros(0, dtype=np.float64)
+_NO_XY = np.zeros((0, 2), dtype=np.float64)
+
+
+def _ints(values: list[int]) -> np.ndarray:
+    return np.array(values, dtype=np.int64) if values else _NO_INTS
+
+
+def _floats(values: list[float]) -> np.ndarray:
+    return np.array(values, dtype=np.float64) if values else _NO_FLOATS
+
+
+def _offsets(scans: list[WifiScan]) -> list[int]:
+    """Where each scan's APs start among all of them, and their total last ([0] without scans). Summed
+    here: ``np.cumsum`` of a list took its slow path, ~7 us of a batch's conversion."""
+    offsets = [0]
+    for scan in scans:
+        offsets.append(offsets[-1] + len(scan.aps))
+    return offsets
+
+
+def _nan_if_none(value: float | None) -> float:
+    return math.nan if value is None else value
+
+
+def _vector(stream: Vector3Stream | None) -> np.ndarray:
+    if stream is None:
+        return np.zeros((0, 4))
+    return np.column_stack([stream.t_ms, stream.x, stream.y, stream.z]).astype(np.float64)
+
+
+def _rotation(stream: RotationVectorStream | None) -> np.ndarray:
+    if stream is None:
+        return np.zeros((0, 5))
+    w = np.full(len(stream.t_ms), np.nan) if stream.w is None else stream.w
+    return np.column_stack([stream.t_ms, stream.x, stream.y, stream.z, w]).astype(np.float64)
+
+
+def _has_raw_imu(batch: SensorBatch) -> bool:
+    """Whether the batch carries IMU for the PDR front-end: not when the phone counts its own steps, nor
+    without any accelerometer, gyroscope or rotation stream."""
+    if batch.steps:
+        return False
+    streams = (batch.accelerometer, batch.rotation_vector, batch.game_rotation_vector, batch.gyroscope)
+    return any(s is not None for s in streams)
+
+
+def _imu(batch: SensorBatch) -> ImuSamples | None:
+    """Raw IMU for the PDR front-end; None when the phone counts its own steps or sent no accelerometer
+    (orientation streams alone are still kept so the next batch's samples have a held orientation)."""
+    if not _has_raw_imu(batch):
+        return None
+    return ImuSamples(
+        acc=_vector(batch.accelerometer),
+        gyr=_vector(batch.gyroscope),
+        mag=_vector(batch.magnetometer),
+        rv=_rotation(batch.rotation_vector),
+        grv=_rotation(batch.game_rotation_vector),
+        pressure=(
+            np.zeros((0, 2))
+            if batch.pressure is None
+            else np.column_stack([batch.pressure.t_ms, batch.pressure.value]).astype(np.float64)
+        ),
+    )
+
+
+def _place(
+    mark: GpsFix | TagReading | AnchorReading | PositionFix, ctx: BuildingContext
+) -> tuple[tuple[float, float], float, float] | str:
+    """((x, y), sigma, azimuth or NaN) of a landmark in local metres, or why it cannot be placed."""
+    if isinstance(mark, PositionFix):
+        azimuth = math.nan if mark.azimuth_rad is None else mark.azimuth_rad
+        return (mark.position.x_m, mark.position.y_m), mark.sigma_m, azimuth
+    if isinstance(mark, AnchorReading):
+        xy = ctx.known_anchors.get(mark.anchor_id)
+        if xy is None:
+            return f"anchor {mark.anchor_id!r} is not a known anchor of building {ctx.building_id!r}"
+        return xy, ctx.detection_sigma_m, math.nan
+    if isinstance(mark, GpsFix):
+        if ctx.geo is None:
+            return f"building {ctx.building_id!r} has no geo-reference, so a GPS fix cannot be placed"
+        return ctx.geo.to_local(mark.lat_deg, mark.lon_deg), mark.accuracy_m, math.nan
+    encoded = mark.encoded_position()
+    if encoded is None:
+        return "the tag encodes no position (tags without one are kept for SignalSLAM loop closures)"
+    if ctx.geo is None:
+        return f"building {ctx.building_id!r} has no geo-reference, so the tag's position cannot be placed"
+    lat, lon, _floor = encoded
+    return ctx.geo.to_local(lat, lon), TAG_SIGMA_M, math.nan
+
+
+def estimate(
+    row: EstimateRow,
+    building_id: str,
+    user_id: str,
+    device_id: str,
+    geo: GeoFrame | None,
+    source: EstimateSource,
+) -> Estimate:
+    """The wire estimate of an engine row, validated by the schema (finite numbers, heading within the
+    wrapped range, a symmetric positive semi-definite covariance, WGS-84 bounds): a ``ValueError`` naming the
+    user when the engine's numbers break it. One validation of a plain dict (pydantic-core) costs 6.2 us an
+    estimate: less than ``model_construct`` of the three models with the same checks written out by hand had
+    cost (10.8 us, pydantic 2.14)."""
+    lat = lon = None
+    if geo is not None:
+        lat, lon = geo.to_wgs84(row.x, row.y)
+    xx, xy, yy = row.cov
+    try:
+        built: Estimate = _validate_estimate(
+            {
+                "building_id": building_id,
+                "user_id": user_id,
+                "device_id": device_id,
+                "t_ms": row.t_ms,
+                "position": {"x_m": row.x, "y_m": row.y},
+                "covariance_m2": [[xx, xy], [xy, yy]],
+                "best_particle": {"x_m": row.best[0], "y_m": row.best[1]},
+                "heading_rad": (row.heading + math.pi) % (2 * math.pi) - math.pi,
+                "floor": 0,
+                "source": source,
+                "lat_deg": lat,
+                "lon_deg": lon,
+            }
+        )
+    except ValidationError as exc:
+        raise ValueError(f"the engine's estimate of {user_id!r} breaks the schema: {exc}") from None
+    return built
+
+
+_validate_estimate = Estimate.__pydantic_validator__.validate_python
+_validate_encounter = EncounterEvent.__pydantic_validator__.validate_python
+
+_ENCOUNTER_MODELS = {
+    MODEL_BLUETOOTH: EncounterModelName.BLUETOOTH,
+    MODEL_WIFI_FINGERPRINT: EncounterModelName.WIFI_FINGERPRINT,
+}
+
+
+def encounter_event(result: EncounterResult, building_id: str) -> EncounterEvent:
+    """The wire event of a chosen detection, its range and sigma clamped to the schema's 200 m and validated
+    by it (as ``estimate``)."""
+    d = result.detection
+    try:
+        event: EncounterEvent = _validate_encounter(
+            {
+                "building_id": building_id,
+                "t_ms": int(d.t_ms),
+                "user_a": d.user_a,
+                "user_b": d.user_b,
+                "model": _ENCOUNTER_MODELS.get(d.model, EncounterModelName.WIFI_EQ3),
+                "distance_m": min(float(d.distance_m), 200.0),
+                "distance_sigma_m": min(math.sqrt(d.variance_m2), 200.0) if d.variance_m2 > 0.0 else math.nan,
+                "applied": bool(result.applied),
+            }
+        )
+    except ValidationError as exc:
+        raise ValueError(
+            f"the encounter of {d.user_a!r} and {d.user_b!r} has no valid range: "
+            f"{d.distance_m} m, variance {d.variance_m2} m^2 ({exc.error_count()} schema errors)"
+        ) from None
+    return event
+
+
+def building_anchor(
+    public_id: str,
+    building_id: str,
+    mean: np.ndarray,
+    cov: np.ndarray,
+    type_index: int,
+    known: bool,
+    observations: int,
+    last_seen_ms: int | None,
+    label: str | None = None,
+    floor: int = 0,
+    signature: str | None = None,
+) -> BuildingAnchor:
+    sym = 0.5 * (cov[0, 1] + cov[1, 0])
+    return BuildingAnchor(
+        id=public_id,
+        building_id=building_id,
+        floor=floor,
+        type=ENGINE_ANCHOR_TYPES[type_index],
+        position=Position(x_m=float(mean[0]), y_m=float(mean[1])),
+        covariance_m2=[[float(cov[0, 0]), float(sym)], [float(sym), float(cov[1, 1])]],
+        observation_count=observations,
+        known=known,
+        label=label,
+        last_seen_ms=last_seen_ms,
+        signature=signature,
+    )

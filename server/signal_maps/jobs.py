@@ -1,0 +1,125 @@
+"""Signal-map builds: one process for SignalSLAM (gtsam holds the GIL), job records on disk.
+
+A job's record (``job.json``) and outputs live in ``<data_dir>/signal_maps/<building>/<job id>/``, so builds
+survive a restart; a build still queued or running when the server stops is marked failed at the next start.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import threading
+import uuid
+from concurrent.futures import Future, ProcessPoolExecutor
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from schemas.signal_maps import SignalMapJob, SignalMapStatus
+from server.errors import ConflictError, NotFoundError
+from server.ingestion.convert import BuildingContext
+from server.signal_maps.build import build_signal_maps
+
+RECORD = "job.json"
+
+
+class SignalMapService:
+    def __init__(self, root: Path, recordings: Path | None, modalities: tuple[str, ...] = ("wifi",)) -> None:
+        self.root = root
+        self.recordings = recordings
+        self.modalities = modalities
+        self._pool: ProcessPoolExecutor | None = None
+        self._futures: dict[str, Future[dict[str, Any]]] = {}
+        self._lock = threading.Lock()
+        self._fail_interrupted()
+
+    def _folder(self, building_id: str, job_id: str) -> Path:
+        return self.root / building_id / job_id
+
+    def _save(self, job: SignalMapJob) -> None:
+        folder = self._folder(job.building_id, job.id)
+        folder.mkdir(parents=True, exist_ok=True)
+        tmp = folder / (RECORD + ".tmp")
+        tmp.write_text(job.model_dump_json(indent=2))
+        tmp.replace(folder / RECORD)
+
+    def _fail_interrupted(self) -> None:
+        for record in self.root.glob(f"*/*/{RECORD}"):
+            job = SignalMapJob.model_validate_json(record.read_text())
+            if job.status in (SignalMapStatus.QUEUED, SignalMapStatus.RUNNING):
+                self._save(job.model_copy(update={
+                    "status": SignalMapStatus.FAILED, "finished_at": datetime.now(UTC),
+                    "error": "the server stopped before the build finished; start a new one",
+                }))  # fmt: skip
+
+    def start(self, ctx: BuildingContext) -> SignalMapJob:
+        if self.recordings is None:
+            raise ConflictError(
+                "recording is switched off (CROWDSLAM_RECORD), so there is nothing to build from"
+            )
+        files = sorted((self.recordings / ctx.building_id).glob("*.mcap"))
+        if not files:
+            raise ConflictError(f"building {ctx.building_id!r} has no recordings yet")
+        job = SignalMapJob(
+            id=uuid.uuid4().hex[:12],
+            building_id=ctx.building_id,
+            status=SignalMapStatus.QUEUED,
+            created_at=datetime.now(UTC),
+            recordings=len(files),
+        )
+        self._save(job)
+        with self._lock:
+            if self._pool is None:
+                self._pool = ProcessPoolExecutor(
+                    max_workers=1, mp_context=multiprocessing.get_context("spawn")
+                )
+            future = self._pool.submit(
+                build_signal_maps,
+                [str(f) for f in files],
+                str(self._folder(ctx.building_id, job.id)),
+                ctx,
+                self.modalities,
+            )
+            self._futures[job.id] = future
+        future.add_done_callback(lambda f: self._finish(job, f))
+        return job
+
+    def _finish(self, job: SignalMapJob, future: Future[dict[str, Any]]) -> None:
+        now = datetime.now(UTC)
+        try:
+            summary = future.result()
+        except Exception as error:  # the build's own errors say what was missing; keep the message
+            self._save(job.model_copy(update={"status": SignalMapStatus.FAILED, "finished_at": now,
+                                              "error": str(error) or type(error).__name__}))  # fmt: skip
+        else:
+            self._save(job.model_copy(update={"status": SignalMapStatus.DONE, "finished_at": now, **summary}))
+        with self._lock:
+            self._futures.pop(job.id, None)
+
+    def get(self, building_id: str, job_id: str) -> SignalMapJob:
+        record = self._folder(building_id, job_id) / RECORD
+        if not job_id.isalnum() or not record.is_file():
+            raise NotFoundError(f"no signal-map build {job_id!r} for building {building_id!r}")
+        job = SignalMapJob.model_validate_json(record.read_text())
+        with self._lock:
+            future = self._futures.get(job_id)
+        if job.status == SignalMapStatus.QUEUED and future is not None and future.running():
+            job = job.model_copy(update={"status": SignalMapStatus.RUNNING})
+        return job
+
+    def list(self, building_id: str) -> list[SignalMapJob]:
+        jobs = [self.get(building_id, r.parent.name) for r in (self.root / building_id).glob(f"*/{RECORD}")]
+        return sorted(jobs, key=lambda j: j.created_at, reverse=True)
+
+    def file(self, building_id: str, job_id: str, name: str) -> Path:
+        job = self.get(building_id, job_id)
+        if name not in job.files:
+            raise NotFoundError(
+                f"build {job_id!r} has no file {name!r}; it has: {', '.join(job.files) or 'none'}"
+            )
+        return self._folder(building_id, job_id) / name
+
+    def close(self) -> None:
+        with self._lock:
+            if self._pool is not None:
+                self._pool.shutdown(wait=False, cancel_futures=True)
+                self._pool = None

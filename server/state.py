@@ -1,0 +1,33 @@
+"""What the app holds while it runs (``app.state.crowdslam``): built by the lifespan, read by the routers."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+from sqlalchemy import Engine
+from sqlalchemy.orm import Session, sessionmaker
+
+from server.auth import KeyCache
+from server.buildings.registry import TrackingService
+from server.live.broadcast import Broadcaster
+from server.metrics import Metrics
+from server.settings import Settings
+from server.signal_maps.jobs import SignalMapService
+
+if TYPE_CHECKING:
+    from server.live.foxglove import FoxgloveLive  # the SDK is imported only when its port is set
+
+
+@dataclass
+class AppState:
+    settings: Settings
+    engine: Engine
+    sessions: sessionmaker[Session]
+    broadcaster: Broadcaster
+    tracking: TrackingService
+    metrics: Metrics
+    started: float
+    keys: KeyCache
+    signal_maps: SignalMapService
+    foxglove: FoxgloveLive | None = None

@@ -1,0 +1,391 @@
+"""Online encounter detection across one building's users (DynamicSLAM Section 4.1.2), as scans and
+sightings arrive.
+
+WiFi: each scan is compared, by Eq. 3, with the other users' scans within ``scan_pair_window_ms``. Eq. 3
+only compares APs common to both scans' strongest N, so a scan can only pass against scans sharing one of
+its strongest N APs: an inverted index from those APs to recent scans finds every candidate, and the cost
+of a scan does not grow with the number of users in the building. The scans and the index live in arrays
+(``slam_core.encounters.scan_store``), and a compiled kernel compares a whole tracker call's scans
+(``slam_core.encounters.search``, with the measures of ``slam_core.wifi.similarity``).
+
+Bluetooth: a phone's sighting of another phone's advertised id, averaged per pair (both directions) over
+``bt_smoothing_ms`` (one sighting period), is an encounter above the -90 dBm cut-off.
+
+Every detection is reported; which ones become human anchors is chosen by the tracker from the filters'
+estimates (``slam_core.encounters.selection``), and only those are ranged
+(calibrated range and R, ``ranged``).
+"""
+
+from __future__ import annotations
+
+import struct
+from collections import OrderedDict
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from slam_core.background_call import BackgroundCall
+from slam_core.encounters.models import (
+    MODEL_BLUETOOTH,
+    MODEL_WIFI,
+    MODEL_WIFI_FINGERPRINT,
+    Calibration,
+    DetectionParams,
+    RangeModel,
+)
+from slam_core.encounters.scan_store import ScanStore
+from slam_core.encounters.search import CANDIDATES
+from slam_core.wifi.pairs import fresh_mask
+
+_SIGHTING = struct.Struct("<dd")
+"""A Bluetooth sighting in a pair's history: its time (ms, exact as a double) and RSS (dBm)."""
+_SIGHTING_T = struct.Struct("<d")
+
+
+def _pair_key(a: int, b: int) -> int:
+    """Two interned user ids as one int, the same either way round (ids stay below 2**32)."""
+    return (a << 32) | b if a < b else (b << 32) | a
+
+
+@dataclass(frozen=True)
+class Detection:
+    t_ms: int
+    user_a: str
+    user_b: str
+    model: int  # MODEL_WIFI, MODEL_WIFI_FINGERPRINT or MODEL_BLUETOOTH
+    feature: float  # Sim (dB) or averaged RSS (dBm)
+
+
+@dataclass(frozen=True)
+class DetectionArrays:
+    """Detections as arrays (a busy building finds thousands per call; only the few chosen become
+    ``Detection`` objects). Users are the detector's interned ids (``EncounterDetector.user_name``)."""
+
+    t_ms: np.ndarray  # int64
+    user_a: np.ndarray  # int64
+    user_b: np.ndarray  # int64
+    model: np.ndarray  # int64
+    feature: np.ndarray  # float64
+
+    @classmethod
+    def empty(cls) -> DetectionArrays:
+        none = np.zeros(0, dtype=np.int64)
+        return cls(none, none, none, none, np.zeros(0))
+
+    @classmethod
+    def concatenate(cls, parts: Sequence[DetectionArrays]) -> DetectionArrays:
+        if not parts:
+            return cls.empty()
+        return cls(*(np.concatenate([getattr(p, f) for p in parts]) for f in _DETECTION_FIELDS))
+
+    def __len__(self) -> int:
+        return int(self.t_ms.size)
+
+    def subset(self, index: np.ndarray) -> DetectionArrays:
+        return DetectionArrays(*(getattr(self, f)[index] for f in _DETECTION_FIELDS))
+
+
+_DETECTION_FIELDS = ("t_ms", "user_a", "user_b", "model", "feature")
+
+
+@dataclass(frozen=True)
+class RangedDetection(Detection):
+    """A detection with its calibrated range and R (``EncounterDetector.ranged``)."""
+
+    distance_m: float
+    variance_m2: float
+
+
+@dataclass(frozen=True)
+class ScanBatch:
+    """WiFi scans in arrival order: scan c, of ``users[c]`` at ``t_ms[c]``, has the entries
+    ``offsets[c]:offsets[c + 1]`` of ``bssids``, ``rss`` and ``last_seen_ms`` (-1: the phone did not say)."""
+
+    users: Sequence[str]
+    t_ms: np.ndarray
+    offsets: np.ndarray
+    bssids: Sequence[str]
+    rss: np.ndarray
+    last_seen_ms: np.ndarray
+
+
+@dataclass(frozen=True)
+class _PreparedScans:
+    """A call's kept scans as the scan store takes them (``EncounterDetector._prepared``)."""
+
+    t_ms: np.ndarray
+    user: np.ndarray
+    top_ap: np.ndarray
+    top_rss: np.ndarray
+    fresh_offsets: np.ndarray
+    fresh_ap: np.ndarray
+    fresh_rss: np.ndarray
+    n_aps: int
+
+
+class EncounterDetector:
+    def __init__(self, params: DetectionParams, calibration: Calibration, scan_capacity: int = 1024) -> None:
+        self.params = params
+        self.calibration = calibration
+        self._ap_ids: dict[str, int] = {}
+        self._user_ids: dict[str, int] = {}
+        self._user_names: list[str] = []
+        self._store = ScanStore(params.wifi.strongest_n, scan_capacity)
+        # per pair (``_pair_key``), its sightings within the smoothing window as packed (t_ms, rss) doubles
+        # (``_SIGHTING``). Neither ints nor bytes are objects the garbage collector tracks, and pickle
+        # writes both natively: tuples of (t, rss) tuples, replaced at every sighting, had been ~85,000 new
+        # tracked objects between two young collections at 2,000 phones (each collection then took 30-50
+        # ms), and a third of a snapshot's pickling (deques before them ~0.1 s at 1,000 phones). Least
+        # recently heard first: an OrderedDict, whose first key is found at once (a dict's first key, after
+        # the deletions of pairs moved to its end, is found by skipping every deleted slot before it: ~10
+        # us a sighting with 60,000 pairs).
+        self._bt: OrderedDict[int, bytes] = OrderedDict()
+        self._bt_newest_ms = 0
+        self._pending: BackgroundCall[DetectionArrays] | None = None  # scans compared on a thread
+        if params.wifi_model == "wifi-fingerprint" and calibration.wifi_fingerprint is None:
+            raise ValueError(
+                "the wifi-fingerprint encounter model needs its range model in the calibration "
+                "(fit it with `crowdslam calibrate`)"
+            )
+
+    def __getstate__(self) -> dict[str, object]:
+        if self._pending is not None:
+            raise RuntimeError("cannot pickle a detector while scans are being compared")
+        state = dict(self.__dict__)
+        del state["_pending"]  # a thread handle; snapshots keep their format
+        state["_bt"] = dict(self._bt)  # as before the OrderedDict: the same order, the same format
+        return state
+
+    def __setstate__(self, state: dict[str, object]) -> None:
+        self.__dict__.update(state)
+        self._bt = OrderedDict(self._bt)
+        self._pending = None
+
+    @property
+    def n_candidates(self) -> int:
+        """Scan pairs compared so far."""
+        return int(self._store.meta[CANDIDATES])
+
+    @property
+    def n_indexed_scans(self) -> int:
+        return self._store.live
+
+    def user_id(self, user: str) -> int:
+        """The interned id detections carry for ``user``."""
+        ident = self._user_ids.get(user)
+        if ident is None:
+            ident = self._user_ids[user] = len(self._user_names)
+            self._user_names.append(user)
+        return ident
+
+    def user_name(self, ident: int) -> str:
+        return self._user_names[ident]
+
+    def bluetooth_pairs(self) -> list[tuple[str, str]]:
+        """The pairs whose sightings are kept, least recently heard first (each by its users' names, the
+        earlier interned first)."""
+        return [(self._user_names[k >> 32], self._user_names[k & 0xFFFF_FFFF]) for k in self._bt]
+
+    @property
+    def n_user_ids(self) -> int:
+        """User ids interned so far (ids are ``0 .. n_user_ids - 1``, never reused)."""
+        return len(self._user_names)
+
+    def known_user_id(self, user: str) -> int | None:
+        """``user``'s id if it has one (unlike ``user_id``, never interns)."""
+        return self._user_ids.get(user)
+
+    def to_detections(self, found: DetectionArrays) -> list[Detection]:
+        names = self._user_names
+        return [
+            Detection(int(t), names[int(a)], names[int(b)], int(m), float(f))
+            for t, a, b, m, f in zip(
+                found.t_ms, found.user_a, found.user_b, found.model, found.feature, strict=True
+            )
+        ]
+
+    # ------------------------------------------------------------------ WiFi
+    def add_scans(
+        self,
+        users: Sequence[str],
+        t_ms: np.ndarray,
+        offsets: np.ndarray,
+        bssids: Sequence[str],
+        rss: np.ndarray,
+        last_seen_ms: np.ndarray,
+    ) -> DetectionArrays:
+        """Index scans (in arrival order; scan c's entries are ``offsets[c]:offsets[c + 1]``) and return the
+        encounters each completes with other users' earlier scans. ``last_seen_ms`` is -1 where the phone
+        did not say. A scan without fresh APs is neither indexed nor compared."""
+        scans = ScanBatch(users, t_ms, offsets, bssids, rss, last_seen_ms)
+        return self.start_scans(scans, background=False).result()
+
+    def start_scans(self, scans: ScanBatch, background: bool) -> BackgroundCall[DetectionArrays]:
+        """``add_scans``, with the comparison (the compiled kernel, which releases the GIL) on a thread of
+        its own when ``background``: the caller goes on with work that does not touch this detector and
+        collects the detections with ``result()``. The BSSIDs and users are interned here, in the caller's
+        thread, so the thread touches only the scan store, and the outcome is the same either way."""
+        if self._pending is not None:
+            raise RuntimeError("the previous scans' detections have not been collected")
+        prepared = self._prepared(scans)
+        if prepared is None:
+            return BackgroundCall(DetectionArrays.empty, False)
+        pending = BackgroundCall(lambda: self._compare(prepared), background, self._collected)
+        self._pending = pending
+        return pending
+
+    def _collected(self) -> None:
+        self._pending = None
+
+    def _prepared(self, scans: ScanBatch) -> _PreparedScans | None:
+        """The kept scans as the scan store's arrays (None when no scan has a fresh AP)."""
+        p = self.params
+        by_fingerprint = p.wifi_model == "wifi-fingerprint"
+        n_top = p.wifi.strongest_n
+        users, t_ms, offsets, bssids = scans.users, scans.t_ms, scans.offsets, scans.bssids
+        rss, last_seen_ms = scans.rss, scans.last_seen_ms
+        kept_t, kept_user, tops, top_rss = [], [], [], []
+        fresh_ap: list[int] = []
+        fresh_rss: list[float] = []
+        fresh_offsets = [0]
+        for c in range(len(users)):
+            lo, hi = int(offsets[c]), int(offsets[c + 1])
+            t = int(t_ms[c])
+            keep = lo + np.flatnonzero(fresh_mask(t, last_seen_ms[lo:hi], p.stale_ap_ms))
+            if keep.size == 0:
+                continue
+            order = keep[np.argsort(-rss[keep], kind="stable")[:n_top]]
+            top = {
+                self._intern(bssids[i]): float(rss[i]) for i in order.tolist()
+            }  # a repeated BSSID counts once
+            kept_t.append(t)
+            kept_user.append(self.user_id(users[c]))
+            row = np.full(n_top, -1, dtype=np.int64)
+            row[: len(top)] = list(top)
+            tops.append(row)
+            values = np.zeros(n_top)
+            values[: len(top)] = list(top.values())
+            top_rss.append(values)
+            if by_fingerprint:
+                fresh = {self._intern(bssids[i]): float(rss[i]) for i in keep.tolist()}
+                fresh_ap += fresh
+                fresh_rss += fresh.values()
+            fresh_offsets.append(len(fresh_ap))
+        if not kept_t:
+            return None
+        return _PreparedScans(
+            np.array(kept_t, dtype=np.int64),
+            np.array(kept_user, dtype=np.int64),
+            np.array(tops),
+            np.array(top_rss),
+            np.array(fresh_offsets, dtype=np.int64),
+            np.array(fresh_ap, dtype=np.int64),
+            np.array(fresh_rss, dtype=np.float64),
+            len(self._ap_ids),
+        )
+
+    def _compare(self, scans: _PreparedScans) -> DetectionArrays:
+        """Store the prepared scans and compare each with the live ones before it (touches only the store)."""
+        p = self.params
+        out_t, out_new, other, feature = self._store.add(
+            scans.t_ms, scans.user, scans.top_ap, scans.top_rss, scans.fresh_offsets, scans.fresh_ap,
+            scans.fresh_rss, scans.n_aps, p,
+        )  # fmt: skip
+        model = MODEL_WIFI_FINGERPRINT if p.wifi_model == "wifi-fingerprint" else MODEL_WIFI
+        return DetectionArrays(out_t, scans.user[out_new], other, np.full(out_t.size, model), feature)
+
+    def add_scan(
+        self, user: str, t_ms: int, bssids: list[str], rss: np.ndarray, last_seen_ms: np.ndarray
+    ) -> list[Detection]:
+        """One scan (``add_scans`` of one), its detections as objects."""
+        found = self.add_scans(
+            [user], np.array([t_ms]), np.array([0, len(bssids)]), bssids, rss, last_seen_ms
+        )
+        return self.to_detections(found)
+
+    def _intern(self, bssid: str) -> int:
+        key = bssid.lower()
+        ident = self._ap_ids.get(key)
+        if ident is None:
+            ident = self._ap_ids[key] = len(self._ap_ids)
+        return ident
+
+    # ------------------------------------------------------------------ Bluetooth
+    def add_sightings(
+        self, receivers: Sequence[str], senders: Sequence[str], t_ms: np.ndarray, rss_dbm: np.ndarray
+    ) -> DetectionArrays:
+        """Phones heard other phones (in arrival order); an encounter each time a pair's RSS, averaged over
+        both directions and ``bt_smoothing_ms``, passes the cut-off."""
+        rows = []
+        smoothing_ms = self.params.bt_smoothing_ms
+        for receiver, sender, t, rss in zip(receivers, senders, t_ms.tolist(), rss_dbm.tolist(), strict=True):
+            if receiver == sender:
+                continue
+            self._advance_bluetooth(t)
+            a, b = self.user_id(receiver), self.user_id(sender)
+            pair = _pair_key(a, b)
+            sighting = _SIGHTING.pack(t, rss)
+            earlier = self._bt.get(pair)
+            history = sighting if earlier is None else earlier + sighting
+            start = 0  # the sightings that left the window (the new one never has: smoothing_ms > 0)
+            while t - _SIGHTING_T.unpack_from(history, start)[0] >= smoothing_ms:
+                start += _SIGHTING.size
+            if start:
+                history = history[start:]
+            self._bt[pair] = history
+            self._bt.move_to_end(pair)  # the pairs run from the least recently heard
+            smoothed = sum(r for _, r in _SIGHTING.iter_unpack(history)) / (len(history) // _SIGHTING.size)
+            if smoothed >= self.params.bluetooth.cutoff_dbm:
+                rows.append((t, a, b, smoothed))
+        if not rows:
+            return DetectionArrays.empty()
+        t_col, a_col, b_col, f_col = zip(*rows, strict=True)
+        return DetectionArrays(
+            np.array(t_col, dtype=np.int64),
+            np.array(a_col, dtype=np.int64),
+            np.array(b_col, dtype=np.int64),
+            np.full(len(rows), MODEL_BLUETOOTH, dtype=np.int64),
+            np.array(f_col, dtype=np.float64),
+        )
+
+    def _advance_bluetooth(self, t_ms: int) -> None:
+        """Forget pairs not heard within ``retention_ms``: their sightings can no longer be averaged with
+        anything new. Only the least recently heard pairs are looked at (the dict's front), so the cost
+        follows the pairs dropped; rebuilding the dict of a 1,000-phone building's pairs had stalled a group
+        for ~10 ms every few seconds."""
+        if t_ms <= self._bt_newest_ms:
+            return
+        self._bt_newest_ms = t_ms
+        horizon = t_ms - self.params.retention_ms
+        while self._bt:
+            oldest = next(iter(self._bt))
+            history = self._bt[oldest]
+            if _SIGHTING_T.unpack_from(history, len(history) - _SIGHTING.size)[0] >= horizon:
+                return
+            self._bt.popitem(last=False)
+
+    def ranged(self, detections: list[Detection]) -> list[RangedDetection]:
+        """The detections with their calibrated ranges and R, one vectorised lookup per model (only the
+        detections chosen as human anchors need them)."""
+        distance = np.empty(len(detections))
+        variance = np.empty(len(detections))
+        models = np.array([d.model for d in detections], dtype=np.int64)
+        features = np.array([d.feature for d in detections], dtype=np.float64)
+        for model in np.unique(models):
+            at = models == model
+            distance[at], variance[at] = self.range_model(int(model)).range_and_variance(features[at])
+        return [
+            RangedDetection(d.t_ms, d.user_a, d.user_b, d.model, d.feature, float(r), float(v))
+            for d, r, v in zip(detections, distance, variance, strict=True)
+        ]
+
+    def range_model(self, model: int) -> RangeModel:
+        """The calibrated range model behind detections of ``model``."""
+        if model == MODEL_BLUETOOTH:
+            return self.calibration.bluetooth
+        if model == MODEL_WIFI_FINGERPRINT and self.calibration.wifi_fingerprint is not None:
+            return self.calibration.wifi_fingerprint
+        if model == MODEL_WIFI:
+            return self.calibration.wifi
+        raise ValueError(f"no range model for encounter model {model}")

@@ -1,0 +1,157 @@
+"""Motion update (DynamicSLAM Eq. 4-8), batched over users: ``prange`` over users, a plain loop over
+their steps and particles."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+from slam_core.filter.kernels.linalg2 import wrap_angle
+from slam_core.filter.kernels.rng import normal, normal_at
+from slam_core.filter.kernels.serial import serial_twin
+
+MODEL_PAPER = 0
+MODEL_BIAS_SCALE = 1
+
+
+@njit(cache=True, nogil=True)
+def _advance_user(
+    x: np.ndarray,
+    y: np.ndarray,
+    heading: np.ndarray,
+    bias: np.ndarray,
+    scale: np.ndarray,
+    walk: np.ndarray,
+    ctrl_cov: np.ndarray,
+    last_obs_heading: np.ndarray,
+    rng_key: np.ndarray,
+    rng_ctr: np.ndarray,
+    u: int,
+    first: int,
+    stop: int,
+    step_length: np.ndarray,
+    step_heading: np.ndarray,
+    model: int,
+    sigma_l: float,
+    sigma_phi: float,
+    sigma_walk: float,
+    ctrl_cov_cap: float,
+) -> None:
+    n_particles = x.shape[1]
+    key = rng_key[u]
+    counter = rng_ctr[u]
+    one = np.uint64(1)
+    for s in range(first, stop):
+        length = step_length[s]
+        obs = step_heading[s]
+        previous = last_obs_heading[u]
+        d_obs = 0.0 if math.isnan(previous) else wrap_angle(obs - previous)
+        for m in range(n_particles):
+            n_len = normal_at(key, counter)
+            n_h = normal_at(key, counter + one)
+            counter += np.uint64(2)
+            if model == MODEL_PAPER:
+                # Eq. 5: L ~ N(l, sigma_l), phi ~ N(phi_hat, sigma_phi); Eq. 6: heading += phi
+                step = length + sigma_l * n_len
+                h = heading[u, m] + d_obs + sigma_phi * n_h
+            else:
+                # Beyond the paper: phone heading + per-particle bias + slow walk, scaled length. The white
+                # per-step heading noise of Eq. 5 is left out here: it moves a particle l sigma_phi ~ 2 cm
+                # sideways per step and averages out, while a third normal per particle cost a third of
+                # the update.
+                walk[u, m] += sigma_walk * n_h
+                step = scale[u, m] * length + sigma_l * n_len
+                h = obs + bias[u, m] + walk[u, m]
+            h = wrap_angle(h)
+            heading[u, m] = h
+            x[u, m] += step * math.cos(h)  # Eq. 7
+            y[u, m] += step * math.sin(h)  # Eq. 8
+        last_obs_heading[u] = obs
+        # P_t: covariance of the control data since the last correction (along/across the step).
+        c = math.cos(obs)
+        sn = math.sin(obs)
+        var_along = sigma_l * sigma_l
+        var_across = (length * sigma_phi) ** 2
+        ctrl_cov[u, 0] = min(ctrl_cov[u, 0] + var_along * c * c + var_across * sn * sn, ctrl_cov_cap)
+        ctrl_cov[u, 1] = ctrl_cov[u, 1] + (var_along - var_across) * c * sn
+        ctrl_cov[u, 2] = min(ctrl_cov[u, 2] + var_along * sn * sn + var_across * c * c, ctrl_cov_cap)
+        # keep the capped covariance positive definite
+        lim = 0.999 * math.sqrt(ctrl_cov[u, 0] * ctrl_cov[u, 2])
+        ctrl_cov[u, 1] = max(-lim, min(lim, ctrl_cov[u, 1]))
+    rng_ctr[u] = counter
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def motion_update(
+    x: np.ndarray,
+    y: np.ndarray,
+    heading: np.ndarray,
+    bias: np.ndarray,
+    scale: np.ndarray,
+    walk: np.ndarray,
+    ctrl_cov: np.ndarray,
+    last_obs_heading: np.ndarray,
+    rng_key: np.ndarray,
+    rng_ctr: np.ndarray,
+    users: np.ndarray,
+    offsets: np.ndarray,
+    step_length: np.ndarray,
+    step_heading: np.ndarray,
+    model: int,
+    sigma_l: float,
+    sigma_phi: float,
+    sigma_walk: float,
+    ctrl_cov_cap: float,
+) -> None:
+    """Advance ``users[i]`` by its steps ``offsets[i]:offsets[i+1]`` (lengths in metres, observed headings in
+    rad counter-clockwise from east). Users must be distinct within one call.
+
+    Per particle and step, two normals are drawn in this order: length noise, then heading noise (paper
+    model) or the heading walk's increment (bias-scale model); ``slam_core.filter.reference`` draws them
+    identically. The ``prange`` body only calls a plain ``@njit`` function: numba's parfor pass slowed the
+    inlined loops 2.5x.
+    """
+    for i in prange(users.shape[0]):
+        _advance_user(
+            x, y, heading, bias, scale, walk, ctrl_cov, last_obs_heading, rng_key, rng_ctr, users[i],
+            offsets[i], offsets[i + 1], step_length, step_heading, model, sigma_l, sigma_phi, sigma_walk,
+            ctrl_cov_cap,
+        )  # fmt: skip
+
+
+@njit(cache=True, nogil=True)
+def initialise_user(
+    x: np.ndarray,
+    y: np.ndarray,
+    heading: np.ndarray,
+    bias: np.ndarray,
+    scale: np.ndarray,
+    walk: np.ndarray,
+    logw: np.ndarray,
+    rng_key: np.ndarray,
+    rng_ctr: np.ndarray,
+    u: int,
+    x0: float,
+    y0: float,
+    position_sigma: float,
+    heading0: float,
+    heading_sigma: float,
+    bias_sigma: float,
+    scale_sigma: float,
+) -> None:
+    """Particles of a new user around its start fix; bias and scale drawn from their priors."""
+    n_particles = x.shape[1]
+    key = rng_key[u]
+    for m in range(n_particles):
+        x[u, m] = x0 + position_sigma * normal(key, rng_ctr, u)
+        y[u, m] = y0 + position_sigma * normal(key, rng_ctr, u)
+        heading[u, m] = wrap_angle(heading0 + heading_sigma * normal(key, rng_ctr, u))
+        bias[u, m] = bias_sigma * normal(key, rng_ctr, u)
+        scale[u, m] = max(0.2, 1.0 + scale_sigma * normal(key, rng_ctr, u))
+        walk[u, m] = 0.0
+        logw[u, m] = -math.log(n_particles)
+
+
+motion_update_serial = serial_twin(motion_update)

@@ -1,0 +1,110 @@
+"""The server-side sensor front-end of phones that send raw IMU: per user, the online PDR (steps) and the
+building-anchor detectors (turns, strong beacons, strong WiFi APs, changes of floor), all state carried
+between batches.
+
+Phones that count their own steps are expected to run their own detectors too (they send
+``anchor_detections``); the tracker only calls this for batches with raw IMU and no steps.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from slam_core.sensing.detectors import (
+    AnchorEvents,
+    DetectorParams,
+    DetectorState,
+    detect_radio,
+    detect_turns,
+    merge_events,
+    step_headings,
+)
+from slam_core.sensing.lift import detect_lift_rides
+from slam_core.sensing.magnetic import detect_magnetic_anomalies
+from slam_core.sensing.pdr.online import ImuSamples, PdrParams, PdrState, PdrSteps, drop_stale, pdr_steps
+from slam_core.sensing.vertical import detect_floor_changes
+
+
+@dataclass(frozen=True)
+class RadioArrays:
+    """One batch's radio readings as the tracker holds them."""
+
+    scan_t: np.ndarray
+    scan_offsets: np.ndarray
+    scan_bssid: tuple[str, ...]
+    scan_rss: np.ndarray
+    scan_last_seen: np.ndarray
+    beacon_t: np.ndarray
+    beacon_mac: tuple[str, ...]
+    beacon_rss: np.ndarray
+
+
+@dataclass(frozen=True)
+class FrontEndOutput:
+    steps: PdrSteps
+    anchors: AnchorEvents
+    imu_samples_dropped: int
+
+
+class FrontEnd:
+    def __init__(self, pdr: PdrParams, detectors: DetectorParams | None) -> None:
+        self.pdr = pdr
+        self.detectors = detectors
+        self._pdr: dict[str, PdrState] = {}
+        self._detect: dict[str, DetectorState] = {}
+        self.fired = {
+            "turn": 0,
+            "beacon": 0,
+            "wifi": 0,
+            "elevator": 0,
+            "stairs": 0,
+            "escalator": 0,
+            "magnetic": 0,
+        }
+
+    def forget(self, user: str) -> None:
+        self._pdr.pop(user, None)
+        self._detect.pop(user, None)
+
+    def process(self, user: str, imu: ImuSamples, radio: RadioArrays) -> FrontEndOutput:
+        state = self._pdr.setdefault(user, PdrState())
+        imu, dropped = drop_stale(state, imu)
+        steps = pdr_steps(state, imu, self.pdr)
+        if self.detectors is None:
+            return FrontEndOutput(steps, AnchorEvents.empty(), dropped)
+        p = self.detectors
+        detect = self._detect.setdefault(user, DetectorState())
+        headings = step_headings(detect, steps.azimuth_rad, steps.turn_rad)
+        turns = detect_turns(detect, p, steps.t_ms, headings) if p.turns else []
+        radio_events = detect_radio(
+            detect, p, radio.scan_t, radio.scan_offsets, radio.scan_bssid, radio.scan_rss,
+            radio.scan_last_seen, radio.beacon_t, radio.beacon_mac, radio.beacon_rss,
+        )  # fmt: skip
+        floors: list[tuple[int, int, str, int]] = []
+        pressure = imu.pressure
+        last = detect.vertical.last_t
+        if pressure.size and not np.isnan(last) and pressure[0, 0] <= last:  # a late or re-sent batch
+            fresh = pressure[pressure[:, 0] > last]
+            dropped += pressure.shape[0] - fresh.shape[0]
+            pressure = fresh
+        if p.vertical.enabled and pressure.size:
+            v = p.vertical
+            changes = detect_floor_changes(detect.vertical, v, pressure, steps.t_ms)
+            floors = [(c.t_ms, c.type_index, "", c.observed_t_ms) for c in changes]
+            for c in changes:
+                kind = {v.elevator_type: "elevator", v.stairs_type: "stairs"}.get(c.type_index, "escalator")
+                self.fired[kind] += 1
+        elif p.lift.enabled and np.isnan(detect.vertical.last_t) and imu.acc.size:  # no barometer
+            ride_t, _ = detect_lift_rides(detect.lift, p.lift, imu.acc, steps.t_ms)
+            floors = [(int(t), p.lift.type_index, "", int(t)) for t in ride_t]
+            self.fired["elevator"] += len(floors)
+        if p.magnetic.enabled and imu.mag.size:
+            anomalies = detect_magnetic_anomalies(detect.magnetic, p.magnetic, imu.mag)
+            floors += [(t, p.magnetic.type_index, "", peak) for t, peak in anomalies]
+            self.fired["magnetic"] += len(anomalies)
+        self.fired["turn"] += len(turns)
+        self.fired["beacon"] += sum(e[1] == p.beacon_type for e in radio_events)
+        self.fired["wifi"] += sum(e[1] == p.wifi_type for e in radio_events)
+        return FrontEndOutput(steps, merge_events(turns, radio_events, p.turn_type, floors), dropped)

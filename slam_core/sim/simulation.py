@@ -1,0 +1,336 @@
+"""Simulate a scenario exactly as given (the paper testbed: ``shared/scenarios/paper-testbed.json``).
+
+Produces what phones would send (PDR steps with the scenario's noise model, WiFi scans with path loss, walls
+and correlated shadowing, Bluetooth RSS between phones, building-anchor detections with confused types,
+start fixes) plus the ground truth. Nothing here is tuned to the filter: every number comes from the
+scenario dict; the seed picks the world and the walks. The caller loads the JSON (slam_core does no I/O).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy.ndimage import gaussian_filter
+
+from slam_core.filter.params import ANCHOR_TYPES
+
+
+@dataclass(frozen=True)
+class Scenario:
+    raw: dict[str, Any]
+
+    @classmethod
+    def from_dict(cls, raw: dict[str, Any]) -> Scenario:
+        for section in ("floor", "building_anchors", "users", "pdr_noise", "wifi", "bluetooth"):
+            if section not in raw:
+                raise ValueError(f"scenario lacks the '{section}' section")
+        if raw["floor"].get("corridors") != "grid":
+            raise ValueError("only 'grid' corridor layouts are supported")
+        types = raw["building_anchors"]["types"]
+        if tuple(types) != ANCHOR_TYPES[: len(types)]:
+            raise ValueError(f"anchor types must be a prefix of {ANCHOR_TYPES}")
+        confusion = np.asarray(raw["building_anchors"]["type_confusion"], dtype=float)
+        if confusion.shape != (len(types), len(types)) or not np.allclose(confusion.sum(axis=1), 1.0):
+            raise ValueError("type_confusion must be square over the types with rows summing to 1")
+        return cls(raw)
+
+    def __getitem__(self, key: str) -> Any:
+        return self.raw[key]
+
+    def with_setting(self, section: str, key: str, value: Any) -> Scenario:
+        """The scenario with one setting changed (a copy: this scenario stays as it is)."""
+        raw = {k: dict(v) if isinstance(v, dict) else v for k, v in self.raw.items()}
+        if section not in raw or not isinstance(raw[section], dict):
+            raise KeyError(f"scenario has no section {section!r}")
+        raw[section][key] = value
+        return Scenario.from_dict(raw)
+
+
+@dataclass(frozen=True)
+class World:
+    width: float
+    height: float
+    spacing: float
+    corridor_half_width: float
+    anchor_xy: np.ndarray  # (A, 2)
+    anchor_type: np.ndarray  # (A,)
+    anchor_known: np.ndarray  # (A,) bool
+    ap_xy: np.ndarray  # (P, 2)
+    shadow: np.ndarray  # (P, H, W) dB on a 1 m grid
+
+
+@dataclass(frozen=True)
+class UserTrace:
+    start_t: float
+    t: np.ndarray  # (S+1,) time of each position (index 0 = start)
+    xy: np.ndarray  # (S+1, 2) true positions
+    step_length_obs: np.ndarray  # (S,)
+    step_heading_obs: np.ndarray  # (S,) rad counter-clockwise from east (phone azimuth converted)
+    start_fix: np.ndarray  # (2,)
+    start_heading_fix: float
+    anchor_step: np.ndarray  # (D,) index of the step at which a detection happens (position index)
+    anchor_true: np.ndarray  # (D,) true anchor index
+    anchor_detected_type: np.ndarray  # (D,)
+    scan_t: np.ndarray  # (C,)
+    scan_rss: np.ndarray  # (C, P) dBm, NaN where not heard
+    anchor_passes: int  # passes within the detection radius, detected or not
+
+
+@dataclass(frozen=True)
+class Simulation:
+    scenario: Scenario
+    world: World
+    users: list[UserTrace]
+    bt_t: np.ndarray  # (B,) times of Bluetooth sightings
+    bt_pair: np.ndarray  # (B, 2) user indices (receiver, sender)
+    bt_rss: np.ndarray  # (B,)
+    anchors_passed_per_user: float
+
+    def true_position(self, user: int, t: float) -> np.ndarray:
+        trace = self.users[user]
+        return np.array([np.interp(t, trace.t, trace.xy[:, 0]), np.interp(t, trace.t, trace.xy[:, 1])])
+
+
+# ----------------------------------------------------------------------------- world
+def _grid_lines(length: float, spacing: float) -> np.ndarray:
+    return np.arange(0.0, length + 1e-9, spacing)
+
+
+def _point_on_corridors(rng: np.random.Generator, width: float, height: float, spacing: float) -> np.ndarray:
+    xs, ys = _grid_lines(width, spacing), _grid_lines(height, spacing)
+    horizontal = len(ys) * width
+    vertical = len(xs) * height
+    if rng.uniform() < horizontal / (horizontal + vertical):
+        return np.array([rng.uniform(0, width), rng.choice(ys)])
+    return np.array([rng.choice(xs), rng.uniform(0, height)])
+
+
+def build_world(scenario: Scenario, rng: np.random.Generator) -> World:
+    floor, anchors, wifi = scenario["floor"], scenario["building_anchors"], scenario["wifi"]
+    width, height, spacing = floor["width_m"], floor["height_m"], floor["corridor_spacing_m"]
+    min_gap = 5.0  # "on corridors, at least 5 m apart"
+    points: list[np.ndarray] = []
+    while len(points) < anchors["count"]:
+        p = _point_on_corridors(rng, width, height, spacing)
+        if all(np.linalg.norm(p - q) >= min_gap for q in points):
+            points.append(p)
+    n_types = len(anchors["types"])
+    anchor_type = rng.integers(0, n_types, anchors["count"])
+    known = np.zeros(anchors["count"], dtype=bool)
+    known[: anchors["known_positions"]] = True
+    n_ap = wifi["access_points"]
+    ap_xy = np.column_stack([rng.uniform(0, width, n_ap), rng.uniform(0, height, n_ap)])
+    # correlated shadowing: white noise on a 1 m grid smoothed to the correlation length, rescaled to sigma
+    gw, gh = math.ceil(width) + 1, math.ceil(height) + 1
+    shadow = np.empty((n_ap, gh, gw))
+    for k in range(n_ap):
+        field = gaussian_filter(rng.standard_normal((gh, gw)), sigma=wifi["shadowing_correlation_m"] / 2.0)
+        shadow[k] = field / field.std() * wifi["shadowing_sigma_db"]
+    return World(
+        width,
+        height,
+        spacing,
+        floor["corridor_width_m"] / 2.0,
+        np.array(points),
+        anchor_type,
+        known,
+        ap_xy,
+        shadow,
+    )
+
+
+def count_walls(world: World, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Walls crossed on segments a[i] -> b[i]: room walls run along every corridor edge, open where another
+    corridor crosses it."""
+    a = np.atleast_2d(a)
+    b = np.atleast_2d(b)
+    total = np.zeros(max(len(a), len(b)))
+    hw, sp = world.corridor_half_width, world.spacing
+    for axis, length in ((0, world.width), (1, world.height)):
+        other = 1 - axis
+        for centre in _grid_lines(length, sp):
+            for edge in (centre - hw, centre + hw):
+                if edge <= 0 or edge >= length:
+                    continue
+                da = a[:, axis] - edge
+                db = b[:, axis] - edge
+                crosses = da * db < 0
+                frac = np.where(crosses, da / np.where(crosses, da - db, 1.0), 0.0)
+                cross_other = a[:, other] + frac * (b[:, other] - a[:, other])
+                in_corridor = np.abs(cross_other - np.round(cross_other / sp) * sp) <= hw
+                total += crosses & ~in_corridor
+    return total
+
+
+def wifi_rss(world: World, wifi: dict[str, Any], xy: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """One scan's RSS per AP at ``xy`` (NaN below the sensitivity)."""
+    d_floor = np.linalg.norm(world.ap_xy - xy, axis=1)
+    d = np.sqrt(d_floor**2 + 9.0)  # APs 3 m above the floor
+    walls = count_walls(world, world.ap_xy, np.broadcast_to(xy, world.ap_xy.shape))
+    gx = min(max(xy[0], 0.0), world.shadow.shape[2] - 1.001)
+    gy = min(max(xy[1], 0.0), world.shadow.shape[1] - 1.001)
+    ix, iy = int(gx), int(gy)
+    fx, fy = gx - ix, gy - iy
+    s = world.shadow
+    shadow = (
+        s[:, iy, ix] * (1 - fx) * (1 - fy)
+        + s[:, iy, ix + 1] * fx * (1 - fy)
+        + s[:, iy + 1, ix] * (1 - fx) * fy
+        + s[:, iy + 1, ix + 1] * fx * fy
+    )
+    rss = (
+        wifi["tx_power_dbm_at_1m"]
+        - 10.0 * wifi["path_loss_exponent"] * np.log10(d)
+        - wifi["wall_loss_db_per_wall"] * walls
+        + shadow
+        + rng.normal(0.0, wifi["scan_noise_sigma_db"], len(d))
+    )
+    heard: np.ndarray = np.where(rss < wifi["sensitivity_dbm"], np.nan, np.minimum(rss, 0.0))
+    return heard
+
+
+# ----------------------------------------------------------------------------- walks
+def _corridor_walk(world: World, rng: np.random.Generator, length: float, step: float) -> np.ndarray:
+    """Positions every ``step`` metres along a random corridor walk: no U-turns except at dead ends."""
+    nx = round(world.width / world.spacing) + 1
+    ny = round(world.height / world.spacing) + 1
+    node = (int(rng.integers(0, nx)), int(rng.integers(0, ny)))
+    previous: tuple[int, int] | None = None
+    vertices = [np.array(node, dtype=float) * world.spacing]
+    walked = 0.0
+    while walked < length + step:
+        i, j = node
+        neighbours = [(i + di, j + dj) for di, dj in ((1, 0), (-1, 0), (0, 1), (0, -1))]
+        neighbours = [n for n in neighbours if 0 <= n[0] < nx and 0 <= n[1] < ny]
+        choices = [n for n in neighbours if n != previous] or neighbours
+        nxt = choices[int(rng.integers(0, len(choices)))]
+        previous, node = node, nxt
+        vertices.append(np.array(node, dtype=float) * world.spacing)
+        walked += world.spacing
+    poly = np.array(vertices)
+    seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
+    arc = np.concatenate([[0.0], np.cumsum(seg)])
+    s = np.arange(0.0, length + 1e-9, step)
+    return np.column_stack([np.interp(s, arc, poly[:, 0]), np.interp(s, arc, poly[:, 1])])
+
+
+def _user_trace(scenario: Scenario, world: World, rng: np.random.Generator) -> UserTrace:
+    users, noise, anchors, wifi = (
+        scenario["users"],
+        scenario["pdr_noise"],
+        scenario["building_anchors"],
+        scenario["wifi"],
+    )
+    step = users["step_length_m"]
+    period = step / users["speed_mps"]
+    xy = _corridor_walk(world, rng, users["walk_length_m"], step)
+    start_t = float(rng.uniform(0.0, 30.0))  # "all users start within the first 30 s"
+    t = start_t + period * np.arange(len(xy))
+    d = np.diff(xy, axis=0)
+    true_len = np.linalg.norm(d, axis=1)
+    true_heading = np.arctan2(d[:, 1], d[:, 0])
+    n = len(d)
+    scale_err = rng.normal(0.0, noise["step_length_scale_sigma"])
+    length_obs = np.maximum(
+        true_len * (1.0 + scale_err) + rng.normal(0.0, noise["step_length_sigma_m"], n), 0.05
+    )
+    bias = math.radians(rng.normal(0.0, noise["heading_bias_sigma_deg"]))
+    walk = np.cumsum(rng.normal(0.0, math.radians(noise["heading_random_walk_deg_per_sqrt_step"]), n))
+    white = rng.normal(0.0, math.radians(noise["heading_change_sigma_deg"]), n)
+    heading_obs = (true_heading + bias + walk + white + math.pi) % (2 * math.pi) - math.pi
+    start_fix = xy[0] + rng.normal(0.0, users["start_fix_sigma_m"], 2)
+    start_heading = float(true_heading[0] + math.radians(rng.normal(0.0, users["start_heading_sigma_deg"])))
+    # building anchors: one detection per pass within the radius, at the closest step, with probability p
+    radius, p_detect = anchors["detection_radius_m"], anchors["detection_probability"]
+    confusion = np.asarray(anchors["type_confusion"])
+    det_step, det_true, det_type = [], [], []
+    passes = 0
+    dist = np.linalg.norm(xy[:, None, :] - world.anchor_xy[None, :, :], axis=2)  # (S+1, A)
+    for a in range(world.anchor_xy.shape[0]):
+        inside = dist[:, a] <= radius
+        k = 0
+        while k < len(inside):
+            if inside[k]:
+                end = k
+                while end + 1 < len(inside) and inside[end + 1]:
+                    end += 1
+                passes += 1
+                if rng.uniform() < p_detect:
+                    closest = k + int(np.argmin(dist[k : end + 1, a]))
+                    det_step.append(max(closest, 1))
+                    det_true.append(a)
+                    det_type.append(int(rng.choice(len(confusion), p=confusion[world.anchor_type[a]])))
+                k = end + 1
+            else:
+                k += 1
+    order = np.argsort(det_step, kind="stable")
+    # WiFi scans every scan_period with a random phase
+    scan_t = np.arange(start_t + rng.uniform(0, wifi["scan_period_s"]), t[-1], wifi["scan_period_s"])
+    scan_rss = np.array(
+        [
+            wifi_rss(world, wifi, np.array([np.interp(ts, t, xy[:, 0]), np.interp(ts, t, xy[:, 1])]), rng)
+            for ts in scan_t
+        ]
+    ).reshape(len(scan_t), world.ap_xy.shape[0])
+    return UserTrace(
+        start_t,
+        t,
+        xy,
+        length_obs,
+        heading_obs,
+        start_fix,
+        start_heading,
+        np.asarray(det_step, dtype=np.int64)[order],
+        np.asarray(det_true, dtype=np.int64)[order],
+        np.asarray(det_type, dtype=np.int64)[order],
+        scan_t,
+        scan_rss,
+        passes,
+    )
+
+
+def _bluetooth(
+    scenario: Scenario, traces: list[UserTrace], rng: np.random.Generator
+) -> tuple[np.ndarray, ...]:
+    bt = scenario["bluetooth"]
+    t_end = max(tr.t[-1] for tr in traces)
+    times, pairs, rss = [], [], []
+    for ts in np.arange(0.0, t_end, bt["period_s"]):
+        active = [i for i, tr in enumerate(traces) if tr.t[0] <= ts <= tr.t[-1]]
+        pos = {
+            i: np.array(
+                [
+                    np.interp(ts, traces[i].t, traces[i].xy[:, 0]),
+                    np.interp(ts, traces[i].t, traces[i].xy[:, 1]),
+                ]
+            )
+            for i in active
+        }
+        for ii, i in enumerate(active):
+            for j in active[ii + 1 :]:
+                d = max(float(np.linalg.norm(pos[i] - pos[j])), 0.1)
+                for rx, tx in ((i, j), (j, i)):
+                    r = (
+                        bt["rss_at_1m_dbm"]
+                        - 10 * bt["path_loss_exponent"] * math.log10(d)
+                        + rng.normal(0, bt["noise_sigma_db"])
+                    )
+                    if r >= bt["sensitivity_dbm"]:
+                        times.append(ts)
+                        pairs.append((rx, tx))
+                        rss.append(min(r, 0.0))
+    return np.array(times), np.array(pairs, dtype=np.int64).reshape(-1, 2), np.array(rss)
+
+
+def simulate(scenario: Scenario, seed: int, world_seed: int | None = None) -> Simulation:
+    """The scenario's world and its users' walks from ``seed``; with ``world_seed``, the world (anchors,
+    access points, shadowing) from that seed instead, so that several crowds walk the same building."""
+    rng = np.random.default_rng(seed)
+    world = build_world(scenario, rng if world_seed is None else np.random.default_rng(world_seed))
+    traces = [_user_trace(scenario, world, rng) for _ in range(scenario["users"]["count"])]
+    bt_t, bt_pair, bt_rss = _bluetooth(scenario, traces, rng)
+    passed = float(np.mean([tr.anchor_passes for tr in traces]))
+    return Simulation(scenario, world, traces, bt_t, bt_pair, bt_rss, passed)

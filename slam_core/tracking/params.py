@@ -1,0 +1,53 @@
+"""The tracker's parameters, and the modes an evaluation compares."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from slam_core.crowd.fingerprints import FingerprintParams
+from slam_core.encounters.models import DetectionParams
+from slam_core.encounters.selection import SelectionParams
+from slam_core.filter.params import FilterParams
+from slam_core.sensing.detectors import DetectorParams
+from slam_core.sensing.pdr.online import PdrParams
+
+MODES = ("pdr", "semanticslam", "dynamicslam")
+"""How a user is tracked: ``pdr`` its own dead reckoning, ``semanticslam`` with the crowd's building anchors,
+``dynamicslam`` also with human anchors and the crowd's WiFi fingerprints (other users' readings)."""
+CROWD_SOLVERS = ("fusion", "graph")
+
+
+@dataclass(frozen=True)
+class TrackerParams:
+    filter: FilterParams = field(default_factory=FilterParams)
+    detection: DetectionParams = field(default_factory=DetectionParams)
+    selection: SelectionParams = field(default_factory=SelectionParams)
+    """Which detections become human anchors (``slam_core.encounters.selection``)."""
+    crowd_solver: str = "graph"
+    graph_solve_period_ms: int = 5_000
+    """The joint crowd-map solve runs at most every 5 s of phone time (it takes ~0.1 s)."""
+    max_graph_users: int = 500
+    """Users whose detections the joint solve keeps; older users' tracks are forgotten (their anchors keep
+    their estimates), so a long-running server's solve stays bounded."""
+    start_sigma_floor_m: float = 0.5
+    pdr: PdrParams = field(default_factory=PdrParams)
+    detectors: DetectorParams | None = field(default_factory=DetectorParams)
+    """Building-anchor detectors for raw-IMU phones; None: steps only."""
+    signature_sigma_m: float = 6.0
+    """How far from a transmitter its visit's strongest reading may be (one sigma). On the msindoor floor the
+    peak of a visit lies from the median position of that transmitter's strong readings 2.9 / 5.1 / 7.4 m
+    (p50 / p75 / p90) for beacons and 3.7 / 6.8 / 9.8 m for WiFi APs: one sigma near the p75, the tail
+    left to the gate."""
+    signature_gate_chi2: float = 9.21
+    """A signature observation more than this (99 %, 2 dof) from the user's cloud is skipped and counted."""
+    fingerprints: FingerprintParams = field(default_factory=FingerprintParams)
+    """The crowd-learned WiFi fingerprint map and its robust position fixes
+    (``slam_core.crowd.fingerprints``). Off here, so that the core's defaults are the paper's DynamicSLAM;
+    the server and ``evaluate --msindoor`` turn it on in dynamicslam mode."""
+    revise_headings: bool = True
+    """When the PDR front-end's north offset estimate moves, translate the user's particles by the revision
+    of the path dead-reckoned since its last absolute observation (``BuildingTracker._revise_headings``)."""
+
+    def __post_init__(self) -> None:
+        if self.crowd_solver not in CROWD_SOLVERS:
+            raise ValueError(f"unknown crowd solver {self.crowd_solver!r}; valid: {', '.join(CROWD_SOLVERS)}")

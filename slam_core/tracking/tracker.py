@@ -1,0 +1,477 @@
+"""One building's tracking: every user's DynamicSLAM filter, the crowd anchor map and online encounters.
+
+``BuildingTracker.apply`` takes the arrays of one or more users' batches (already validated and converted
+by the server) and advances everything they imply, in this order:
+
+0. raw IMU of users who do not count their own steps goes through the sensor front-end
+   (``slam_core.sensing.front_end``: online PDR and the building-anchor detectors, state carried per user
+   between batches) and becomes steps and anchor detections;
+1. each user's events in time order: a first position fix starts its filter (seeded from the crowd map);
+   steps move it (Eq. 4-8); a building-anchor detection feeds the crowd map with the user's pre-update
+   estimate and updates the filter (Eq. 15-17, Algorithm 3); a detection of an identified transmitter
+   (a signature anchor) joins its crowd anchor by identity and, once other users have placed that anchor,
+   is a gated position measurement of the user; a later fix reweights it. Users are advanced
+   together, one engine call per round of events, so a micro-batch of many phones costs one kernel call;
+2. the crowd map is re-solved jointly (every ``graph_solve_period_ms`` of phone time) and new anchors are
+   offered to every user; with fingerprint fixes on, each user's latest scan the crowd's WiFi fingerprint
+   map can place is a robust position fix, and confident users' scans join that map;
+3. WiFi scans and Bluetooth sightings are matched against the building's other users (Eq. 3, the RSS
+   cut-off); detections between tracked users that the selector chooses from the filters' estimates
+   (``slam_core.encounters.selection``) become human anchors (Algorithm 1), both users updated from their
+   pre-encounter states, each reading placed at its time (the users' dead reckoning since, or a guess for a
+   peer whose phone has not reported up to it yet);
+4. the estimate of every user whose batch was applied. A peer that an encounter moved is not estimated
+   here: its estimate comes with its own next batch (within a sighting period), so that every batch yields
+   one estimate, however many encounters it makes.
+
+The signature, fingerprint and encounter stages live in ``slam_core.tracking.radio``; the per-user dead
+reckoning and the rounds of events in ``slam_core.tracking.trails``.
+
+Pure numerics: no I/O, no clock. Times are the phones' epoch milliseconds.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+
+import slam_core.tracking.radio as radio
+from slam_core.crowd.anchor_map import CrowdMapBuilder
+from slam_core.crowd.fingerprints import CrowdFingerprints
+from slam_core.crowd.graph import CrowdGraph, GraphParams
+from slam_core.encounters.detection import EncounterDetector
+from slam_core.encounters.models import Calibration
+from slam_core.encounters.selection import EncounterSelector
+from slam_core.filter.dynamic_slam import DynamicSlam
+from slam_core.sensing.front_end import FrontEnd, RadioArrays
+from slam_core.tracking.batches import (
+    EncounterResult,
+    EstimateRow,
+    TrackerOutcome,
+    UserBatch,
+    UserReport,
+)
+from slam_core.tracking.params import CROWD_SOLVERS, TrackerParams
+from slam_core.tracking.placement import SlotColumns
+from slam_core.tracking.trails import Round, UserTrack, lay_steps, round_at
+
+__all__ = [
+    "CROWD_SOLVERS",
+    "BuildingTracker",
+    "EncounterResult",
+    "EstimateRow",
+    "TrackerOutcome",
+    "TrackerParams",
+    "UserBatch",
+    "UserReport",
+]
+
+
+class BuildingTracker:
+    def __init__(self, params: TrackerParams, calibration: Calibration, seed: int = 0) -> None:
+        self.params = params
+        fp = params.filter
+        self.engine = DynamicSlam(fp, seed=seed)
+        self.crowd = CrowdMapBuilder(
+            fp.anchors.type_posterior,
+            fp.anchors.detection_sigma_m,
+            fp.anchors.new_anchor_likelihood,
+            fuse=params.crowd_solver == "fusion",
+        )
+        self.graph = CrowdGraph(GraphParams(detection_sigma_m=fp.anchors.detection_sigma_m))
+        self.detector = EncounterDetector(params.detection, calibration)
+        self.selector = EncounterSelector(params.selection)
+        self.fingerprints = CrowdFingerprints(params.fingerprints)
+        self._users: dict[str, UserTrack] = {}
+        self.front_end = FrontEnd(params.pdr, params.detectors)
+        self._by_ble: dict[str, str] = {}
+        self._last_solve_ms = -(2**62)
+        self._graph_users: list[int] = []
+        self._started = 0
+        self.n_types = fp.anchors.type_posterior.shape[0]
+        self._columns = SlotColumns()
+
+    # built on first use (snapshots from before it lack it)
+    _detector_slots: radio.DetectorSlots | None = None
+
+    def _slot_table(self) -> radio.DetectorSlots:
+        if self._detector_slots is None:
+            self._detector_slots = radio.DetectorSlots()
+        return self._detector_slots
+
+    # ------------------------------------------------------------------ users and anchors
+    @property
+    def users(self) -> list[str]:
+        return list(self._users)
+
+    def is_tracking(self, user: str) -> bool:
+        u = self._users.get(user)
+        return u is not None and u.slot >= 0
+
+    def last_time_ms(self, user: str) -> int:
+        u = self._users.get(user)
+        return -1 if u is None else u.last_t_ms
+
+    def remove_user(self, user: str) -> None:
+        """Forget a user (idle or gone); its filter slot is freed. Its crowd-map contributions stay."""
+        self.remove_users([user])
+
+    def remove_users(self, users: list[str]) -> None:
+        """Forget these users (``remove_user`` for many: the Bluetooth index is rebuilt once)."""
+        unknown = [n for n in users if n not in self._users]
+        if unknown:
+            raise KeyError(f"unknown users {unknown!r}")
+        for name in users:
+            u = self._users.pop(name)
+            self.front_end.forget(name)
+            if u.slot >= 0:
+                self.engine.remove_user(u.slot)
+                self._slot_table().set(self.detector, name, -1)
+        gone = set(users)
+        self._by_ble = {k: v for k, v in self._by_ble.items() if v not in gone}
+
+    def pin_anchor(self, xy: np.ndarray, anchor_type: int, index: int | None = None) -> int:
+        """Add an operator-known anchor (or pin an existing one); returns its crowd index."""
+        self._check_type(anchor_type)
+        if index is None:
+            index = self.crowd.add_known(xy, anchor_type)
+        else:
+            self.crowd.pin(index, xy, anchor_type)
+        self.graph.set_known(index, np.asarray(xy, dtype=float))
+        self._offer_crowd_map()
+        return index
+
+    def restore_anchor(
+        self,
+        xy: np.ndarray,
+        cov: np.ndarray,
+        anchor_type: int,
+        known: bool,
+        observations: int,
+        t_ms: int,
+        signature: str = "",
+    ) -> int:
+        self._check_type(anchor_type)
+        index = self.crowd.restore(xy, cov, anchor_type, known, observations, float(t_ms), signature)
+        if known:
+            self.graph.set_known(index, np.asarray(xy, dtype=float))
+        return index
+
+    def remove_anchor(self, index: int) -> None:
+        self.crowd.remove(index)
+
+    def merge_anchors(self, keep: int, drop: int) -> None:
+        self.crowd.merge(keep, drop)
+        self.graph.relabel(drop, keep)
+
+    def _check_type(self, anchor_type: int) -> None:
+        if not 0 <= anchor_type < self.n_types:
+            raise ValueError(f"anchor type must be in [0, {self.n_types})")
+
+    def dead_reckoning(self, user: str) -> np.ndarray | None:
+        """Plain PDR: the user's starting fix plus every applied step, ignoring every observation (the
+        baseline the filter is measured against). Steps from the PDR front-end's gyroscope heading are
+        re-rotated by its latest north offset: the offset is one constant error whose estimate improves as
+        the walk goes on (``slam_core.sensing.pdr.heading``), so the best causal guess of the path walked so
+        far turns all of it, not only the steps still to come."""
+        u = self._users.get(user)
+        if u is None or u.slot < 0:
+            return None
+        if not math.isfinite(u.heading_offset):
+            position: np.ndarray = u.origin + u.displacement
+            return position
+        c, s = math.cos(u.heading_offset), math.sin(u.heading_offset)
+        gx, gy = u.gyro_displacement  # azimuth offset clockwise = a clockwise turn of the relative path
+        turned: np.ndarray = u.origin + np.array([c * gx + s * gy, -s * gx + c * gy])
+        return turned
+
+    def estimate(self, user: str) -> EstimateRow | None:
+        u = self._users.get(user)
+        if u is None or u.slot < 0:
+            return None
+        return self._rows([user])[user]
+
+    # ------------------------------------------------------------------ the batch path
+    def apply(self, batches: list[UserBatch]) -> TrackerOutcome:
+        """Advance the building by these users' batches (at most one per user)."""
+        names = [b.user for b in batches]
+        if len(set(names)) != len(names):
+            raise ValueError("at most one batch per user per call")
+        for b in batches:
+            if b.detect_type.size and np.any((b.detect_type < 0) | (b.detect_type >= self.n_types)):
+                raise ValueError(f"user batch of {b.user!r}: anchor type outside [0, {self.n_types})")
+        reports = {b.user: UserReport() for b in batches}
+        batches = [self._dead_reckon(b, reports[b.user]) for b in batches]
+        for b in batches:
+            if b.user not in self._users:
+                self._users[b.user] = UserTrack()
+            if b.ble_id is not None:
+                self._by_ble[b.ble_id] = b.user
+        callers = [self._users[b.user] for b in batches]
+        self._columns.begin(callers)
+        rounds = self._plan(batches, reports)
+        newest = max([self._users[b.user].last_t_ms for b in batches], default=-1)
+        # in a busy call the scans are compared on a thread while the rounds and the fingerprint fixes
+        # run: the detector depends on nothing they change
+        scans = radio.start_scan_detection(self.detector, batches)
+        try:
+            changed = self._observe(batches, rounds, reports, newest)
+            self._columns.update(callers, [_heard_until(b) for b in batches])
+            encounters, detections = radio.encounters(
+                self.engine,
+                self.detector,
+                self.selector,
+                self.params,
+                batches,
+                self._users,
+                self._by_ble,
+                scans,
+                self._slot_table(),
+                self._columns,
+            )
+        finally:
+            scans.join()
+        for b in batches:
+            reports[b.user].status = "tracking" if self.is_tracking(b.user) else "awaiting_fix"
+        estimates = self._rows(sorted(b.user for b in batches if reports[b.user].status == "tracking"))
+        return TrackerOutcome(reports, estimates, encounters, sorted(changed), detections)
+
+    def _observe(
+        self, batches: list[UserBatch], rounds: list[Round], reports: dict[str, UserReport], newest: int
+    ) -> set[int]:
+        """The rounds of steps and anchor events, the crowd map's solve, and the fingerprint fixes; returns
+        the crowd anchors changed."""
+        changed: set[int] = set()
+        crowd_size = len(self.crowd)
+        for rnd in rounds:
+            self._run_round(rnd, reports, changed)
+        if (
+            self.params.crowd_solver == "graph"
+            and changed
+            and newest - self._last_solve_ms >= self.params.graph_solve_period_ms
+        ):
+            self._last_solve_ms = newest
+            means, covs = self.graph.solve(self.crowd.means())
+            for c, mean in means.items():
+                if self.crowd.is_live(c):
+                    self.crowd.set_estimate(c, mean, covs[c])
+                    changed.add(c)
+            active = self.engine.active_users
+            if active.size:
+                self.engine.refresh_crowd_anchors(active, self.crowd.snapshot())
+        if len(self.crowd) != crowd_size:
+            self._offer_crowd_map()
+        if self.params.fingerprints.enabled:
+            names = [b.user for b in batches if self.is_tracking(b.user) and b.scan_t.size]
+            radio.fingerprint_fixes(
+                self.engine, self.fingerprints, self.params, batches, self._users, self._rows(names), reports
+            )
+        return changed
+
+    def _dead_reckon(self, b: UserBatch, report: UserReport) -> UserBatch:
+        """The batch with the steps the PDR front-end finds in its raw IMU (phones counting their own steps
+        and batches without IMU pass through)."""
+        if b.imu is None or b.step_t.size:
+            return b
+        radio = RadioArrays(
+            b.scan_t, b.scan_offsets, b.scan_bssid, b.scan_rss, b.scan_last_seen,
+            b.beacon_t, b.beacon_mac, b.beacon_rss,
+        )  # fmt: skip
+        out = self.front_end.process(b.user, b.imu, radio)
+        report.imu_samples_dropped = out.imu_samples_dropped
+        report.steps_detected = out.steps.t_ms.size
+        report.anchors_detected = out.anchors.t_ms.size
+        signatures = b.detect_signature or ("",) * b.detect_t.size
+        observed = b.detect_observed_t if b.detect_observed_t.size else b.detect_t
+        return replace(
+            b,
+            step_t=out.steps.t_ms,
+            step_length=out.steps.length_m,
+            step_azimuth=out.steps.azimuth_rad,
+            step_turn=out.steps.turn_rad,
+            step_heading_offset=out.steps.heading_offset_rad,
+            detect_t=np.concatenate([b.detect_t, out.anchors.t_ms]),
+            detect_type=np.concatenate([b.detect_type, out.anchors.type_index]),
+            detect_signature=signatures + out.anchors.signature,
+            detect_observed_t=np.concatenate([observed, out.anchors.observed_t_ms]),
+            imu=None,
+        )
+
+    def _plan(self, batches: list[UserBatch], reports: dict[str, UserReport]) -> list[Round]:
+        """Each user's events in time order, cut into rounds at every observation (detection or fix)."""
+        rounds: list[Round] = []
+        for b in batches:
+            u = self._users[b.user]
+            report = reports[b.user]
+            # (time, kind order, index): fixes first at equal times, then steps, then detections
+            events = sorted(
+                [(int(t), 0, i) for i, t in enumerate(b.fix_t)]
+                + [(int(t), 1, i) for i, t in enumerate(b.step_t)]
+                + [(int(t), 2, i) for i, t in enumerate(b.detect_t)]
+            )
+            r = 0
+            lengths: list[float] = []
+            headings: list[float] = []
+            times: list[int] = []
+            offsets: list[float] = []
+            started = u.slot >= 0
+            for t, kind, i in events:
+                if t < u.last_t_ms or (t == u.last_t_ms and kind == 1):
+                    report.steps_dropped += kind == 1
+                    continue
+                if kind == 1:
+                    heading = self._step_heading(u, b, i)
+                    if not started or not math.isfinite(heading):
+                        report.steps_dropped += 1
+                        continue
+                    u.heading = heading
+                    u.last_t_ms = t
+                    lengths.append(float(b.step_length[i]))
+                    headings.append(heading)
+                    times.append(t)
+                    offsets.append(
+                        float(b.step_heading_offset[i]) if b.step_heading_offset.size else math.nan
+                    )
+                    continue
+                rnd = round_at(rounds, r)
+                if lengths:
+                    rnd.add_steps(b.user, lengths, headings, times, offsets)
+                    report.steps_applied += len(lengths)
+                    lengths, headings, times, offsets = [], [], [], []
+                if kind == 0:
+                    if not started:
+                        self._start(b.user, b.fix_xy[i], float(b.fix_sigma[i]), float(b.fix_azimuth[i]))
+                        started = True
+                    else:
+                        rnd.fix_users.append(b.user)
+                        rnd.fix_xy.append(b.fix_xy[i])
+                        rnd.fix_sigma.append(float(b.fix_sigma[i]))
+                    report.fixes_applied += 1
+                elif started:
+                    rnd.det_users.append(b.user)
+                    rnd.det_types.append(int(b.detect_type[i]))
+                    rnd.det_t.append(t)
+                    rnd.det_signature.append(b.detect_signature[i] if b.detect_signature else "")
+                    rnd.det_observed_t.append(int(b.detect_observed_t[i]) if b.detect_observed_t.size else t)
+                    report.detections_applied += 1
+                u.last_t_ms = t
+                r += 1
+            if lengths:
+                round_at(rounds, r).add_steps(b.user, lengths, headings, times, offsets)
+                report.steps_applied += len(lengths)
+        return rounds
+
+    def _step_heading(self, u: UserTrack, b: UserBatch, i: int) -> float:
+        """The step's direction, counter-clockwise from east: from the azimuth when given, else the last
+        heading plus the turn (NaN when neither is known)."""
+        azimuth = float(b.step_azimuth[i])
+        if math.isfinite(azimuth):
+            return math.pi / 2 - azimuth
+        turn = float(b.step_turn[i])
+        if math.isfinite(turn) and math.isfinite(u.heading):
+            return u.heading + turn
+        return math.nan
+
+    def _start(self, user: str, xy: np.ndarray, sigma: float, azimuth: float) -> None:
+        u = self._users[user]
+        heading = math.pi / 2 - azimuth if math.isfinite(azimuth) else 0.0
+        if math.isfinite(azimuth):
+            u.heading = heading
+        sigma = max(sigma, self.params.start_sigma_floor_m)
+        u.slot = self.engine.add_user(float(xy[0]), float(xy[1]), heading, sigma, self.crowd.snapshot())
+        self._columns.reset(u.slot)
+        self._slot_table().set(self.detector, user, u.slot)
+        u.number = self._started
+        u.origin = np.asarray(xy, dtype=float).copy()
+        self._started += 1
+        self.graph.add_user(u.number, np.asarray(xy, dtype=float))
+        self._graph_users.append(u.number)
+        while len(self._graph_users) > self.params.max_graph_users:
+            self.graph.forget_user(self._graph_users.pop(0))
+
+    def _run_round(self, rnd: Round, reports: dict[str, UserReport], changed: set[int]) -> None:
+        if rnd.users:
+            users = [self._users[n] for n in rnd.users]
+            counts = [len(x) for x in rnd.step_len]
+            offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+            lengths = np.concatenate(rnd.step_len)
+            headings = np.concatenate(rnd.step_head)
+            self.engine.step(np.array([u.slot for u in users], dtype=np.int64), offsets, lengths, headings)
+            lay_steps(users, rnd, lengths, headings)
+            if self.params.revise_headings:
+                self._revise_headings(users)
+        plain = [k for k, s in enumerate(rnd.det_signature) if not s]
+        signed = [k for k, s in enumerate(rnd.det_signature) if s]
+        if plain:
+            names = [rnd.det_users[k] for k in plain]
+            types = [rnd.det_types[k] for k in plain]
+            slots = np.array([self._users[n].slot for n in names], dtype=np.int64)
+            before = self.engine.summaries(slots)
+            ids = []
+            for name, row, f, k in zip(names, before, types, plain, strict=True):
+                cov = np.array([[row[2], row[3]], [row[3], row[4]]])
+                ids.append(
+                    self.crowd.contribute(self._users[name].number, row[0:2], cov, f, float(rnd.det_t[k]))
+                )
+                reports[name].anchor_joins.append((rnd.det_t[k], ids[-1]))
+            self.engine.observe_building_anchors(slots, np.array(types), np.array(ids))
+            for name in names:
+                self._users[name].pin()
+            self._add_to_graph(names, ids, changed)
+        if signed:
+            radio.observe_signatures(
+                self.engine, self.crowd, self.graph, self.params, self._users, rnd, signed, reports, changed
+            )
+        if rnd.fix_users:
+            slots = np.array([self._users[n].slot for n in rnd.fix_users], dtype=np.int64)
+            recentred = self.engine.observe_position(slots, np.array(rnd.fix_xy), np.array(rnd.fix_sigma))
+            for name, flag in zip(rnd.fix_users, recentred, strict=True):
+                reports[name].recentred += int(flag)
+                self._users[name].pin()
+
+    def _revise_headings(self, users: list[UserTrack]) -> None:
+        """Beyond both papers: the PDR front-end sends each step with its current estimate of the north
+        offset of its gyroscope yaw (``slam_core.sensing.pdr.heading``), an estimate that improves as the walk
+        goes on. The path dead-reckoned since the user's last absolute observation is then due the same turn
+        the tracker's plain dead reckoning makes; its particles are translated by that revision (the cloud
+        keeps its shape: each particle's own bias and scale still apply on top)."""
+        slots, shifts = [], []
+        for u in users:
+            shift = u.revision()
+            if float(np.hypot(*shift)) > 1e-9:
+                slots.append(u.slot)
+                shifts.append(shift)
+        if slots:
+            self.engine.shift(np.array(slots, dtype=np.int64), np.array(shifts))
+
+    def _add_to_graph(self, names: list[str], ids: list[int], changed: set[int]) -> None:
+        changed.update(ids)
+        if self.params.crowd_solver == "graph":
+            for name, c in zip(names, ids, strict=True):
+                u = self._users[name]
+                self.graph.add_detection(u.number, int(c), u.displacement, u.walked)
+
+    def _offer_crowd_map(self) -> None:
+        active = self.engine.active_users
+        if active.size:
+            self.engine.merge_crowd_map(active, self.crowd.snapshot())
+
+    def _rows(self, users: list[str]) -> dict[str, EstimateRow]:
+        if not users:
+            return {}
+        summary = self.engine.summaries(np.array([self._users[n].slot for n in users], dtype=np.int64))
+        return {  # rows as Python floats at once: indexing each numpy row cost more than the row
+            n: EstimateRow(self._users[n].last_t_ms, x, y, (xx, xy, yy), (bx, by), heading)
+            for n, (x, y, xx, xy, yy, bx, by, heading) in zip(users, summary.tolist(), strict=True)
+        }
+
+
+def _heard_until(b: UserBatch) -> int:
+    """The latest time a batch reports anything at (-1: nothing timed)."""
+    latest = -1
+    for times in (b.fix_t, b.step_t, b.detect_t, b.scan_t, b.peer_t, b.beacon_t):
+        if times.size:  # a list's max: numpy's costs more than these few numbers
+            latest = max(latest, max(times.tolist()))
+    return int(latest)

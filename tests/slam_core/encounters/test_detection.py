@@ -1,0 +1,195 @@
+"""Online WiFi encounter detection with the paper's Eq. 3 and with our union-fingerprint model."""
+
+from __future__ import annotations
+
+import math
+import pickle
+
+import numpy as np
+import pytest
+
+from slam_core.encounters.detection import EncounterDetector
+from slam_core.encounters.models import (
+    ENCOUNTER_MODELS,
+    MODEL_WIFI,
+    MODEL_WIFI_FINGERPRINT,
+    Calibration,
+    DetectionParams,
+    RangeModel,
+    WifiFingerprintParams,
+    encounter_model,
+)
+
+BT = RangeModel("bt-quadratic", (-60.0, -10.0, 0.0), 4.0)
+EQ3 = RangeModel("wifi-log", (1.0, 2.0), 0.5)
+FINGERPRINT = RangeModel("wifi-log", (2.0, 4.0), 1.0)
+T0 = 1_700_000_000_000
+BSSIDS = [f"0a:00:00:00:00:{i:02x}" for i in range(12)]
+
+
+def _scan(detector: EncounterDetector, user: str, t: int, rss: list[float]) -> list:  # type: ignore[type-arg]
+    heard = [(b, r) for b, r in zip(BSSIDS, rss, strict=True) if math.isfinite(r)]
+    return detector.add_scan(
+        user,
+        t,
+        [b for b, _ in heard],
+        np.array([r for _, r in heard]),
+        np.full(len(heard), -1, dtype=np.int64),
+    )
+
+
+@pytest.mark.parametrize(
+    ("model", "kind"), [("wifi-eq3", MODEL_WIFI), ("wifi-fingerprint", MODEL_WIFI_FINGERPRINT)]
+)
+def test_two_phones_in_the_same_place_meet_and_far_ones_do_not(model: str, kind: int) -> None:
+    detector = EncounterDetector(DetectionParams(wifi_model=model), Calibration(EQ3, BT, FINGERPRINT))
+    here = [-45.0, -50.0, -55.0, -60.0, -65.0, -70.0, -75.0, -80.0, math.nan, math.nan, math.nan, math.nan]
+    there = [math.nan, math.nan, math.nan, math.nan, -80.0, -75.0, -70.0, -65.0, -60.0, -55.0, -50.0, -45.0]
+    assert _scan(detector, "a", T0, here) == []
+    met = _scan(detector, "b", T0 + 300, [r + 1.0 if math.isfinite(r) else r for r in here])
+    assert [(d.user_a, d.user_b, d.model) for d in met] == [("b", "a", kind)]
+    assert detector.ranged(met)[0].distance_m < 3.0
+    assert _scan(detector, "c", T0 + 20_000, there) == []
+    # "d" hears "c"'s strongest APs just as "c" does, and four loud APs that "c" does not hear at all:
+    # Eq. 3 only compares the common strongest APs and passes; the union of APs tells them apart
+    mixed = _scan(detector, "d", T0 + 20_300, here[:4] + there[4:])
+    assert len(mixed) == (1 if model == "wifi-eq3" else 0)
+
+
+def test_the_fingerprint_model_needs_its_calibration_and_a_known_name() -> None:
+    with pytest.raises(ValueError, match="calibrate"):
+        EncounterDetector(DetectionParams(wifi_model="wifi-fingerprint"), Calibration(EQ3, BT))
+    with pytest.raises(ValueError, match="unknown WiFi encounter model"):
+        DetectionParams(wifi_model="wifi-magic")
+    assert isinstance(encounter_model("wifi-fingerprint"), WifiFingerprintParams)
+    assert set(ENCOUNTER_MODELS) == {"wifi-eq3", "wifi-fingerprint", "bluetooth"}
+    with pytest.raises(ValueError, match="valid: wifi-eq3, wifi-fingerprint, bluetooth"):
+        encounter_model("lte")
+
+
+def test_calibration_round_trips_with_and_without_the_fingerprint_model() -> None:
+    with_fp = Calibration(EQ3, BT, FINGERPRINT)
+    assert Calibration.from_dict(with_fp.to_dict()) == with_fp
+    without = Calibration(EQ3, BT)
+    assert "wifi_fingerprint" not in without.to_dict()
+    assert Calibration.from_dict(without.to_dict()) == without
+    broken = {
+        **with_fp.to_dict(),
+        "wifi_fingerprint": {"kind": "bt-quadratic", "coefficients": [1.0], "sigma": 1},
+    }
+    with pytest.raises(ValueError, match="wifi_fingerprint"):
+        Calibration.from_dict(broken)
+
+
+def test_bluetooth_pairs_not_heard_within_the_retention_are_forgotten() -> None:
+    """A pair's sightings average over one sighting period; pairs silent for ``retention_ms`` are dropped
+    as time advances (a long-running building holds only its recent pairs), and a pair heard again starts
+    its average afresh with the same result."""
+    params = DetectionParams()
+    detector = EncounterDetector(params, Calibration(EQ3, BT))
+    for k in range(50):  # 50 pairs, each heard once, 100 ms apart
+        detector.add_sightings([f"u{k}"], [f"v{k}"], np.array([T0 + 100 * k]), np.array([-70.0]))
+    assert len(detector._bt) == 50
+    later = T0 + 100 * 30 + params.retention_ms  # pairs heard before T0 + 3,000 ms are past the retention
+    found = detector.add_sightings(
+        ["u0", "w"], ["v0", "x"], np.array([later, later]), np.array([-75.0, -95.0])
+    )
+    assert len(detector._bt) == 50 - 30 + 2  # u0..u29 went; u0-v0 came back and w-x joined
+    assert ("u29", "v29") not in detector.bluetooth_pairs()
+    assert ("u30", "v30") in detector.bluetooth_pairs()
+    # u0-v0 is detected on its new reading alone (-75 dBm, above the cut-off); w-x at -95 dBm is not
+    assert found.feature.tolist() == [-75.0]
+
+
+def test_bluetooth_pairs_keep_their_order_through_a_snapshot() -> None:
+    """Pairs run from the least recently heard (a pair heard again moves to the end); a snapshot stores them
+    as a plain dict in that order (the format snapshots had), and the restored detector forgets the same
+    pairs as the original."""
+    params = DetectionParams()
+    detector = EncounterDetector(params, Calibration(EQ3, BT))
+    for k in range(20):
+        detector.add_sightings([f"u{k}"], [f"v{k}"], np.array([T0 + 100 * k]), np.array([-70.0]))
+    detector.add_sightings(["v3"], ["u3"], np.array([T0 + 2_500]), np.array([-72.0]))  # heard again
+    order = detector.bluetooth_pairs()
+    assert order == [(f"u{k}", f"v{k}") for k in range(20) if k != 3] + [("u3", "v3")]
+    state = detector.__getstate__()
+    assert type(state["_bt"]) is dict
+    assert list(state["_bt"]) == list(detector._bt)
+    restored = pickle.loads(pickle.dumps(detector))
+    assert restored.bluetooth_pairs() == order
+    later = T0 + 100 * 10 + params.retention_ms  # u0..u9 (but u3) are past the retention
+    for d in (detector, restored):
+        d.add_sightings(["a"], ["b"], np.array([later]), np.array([-95.0]))
+    assert restored.bluetooth_pairs() == detector.bluetooth_pairs() == [*order[9:], ("a", "b")]
+
+
+class _TupleHistories:
+    """The Bluetooth smoothing as it was first written (tuples of (t, rss) per pair of names): the oracle
+    for the packed histories."""
+
+    def __init__(self, params: DetectionParams) -> None:
+        self.params = params
+        self.bt: dict[tuple[str, str], tuple[tuple[int, float], ...]] = {}
+        self.newest = 0
+
+    def add(self, receiver: str, sender: str, t: int, rss: float) -> float | None:
+        if t > self.newest:
+            self.newest = t
+            horizon = t - self.params.retention_ms
+            while self.bt:  # from the least recently heard (the dict's order), as the detector does
+                oldest = next(iter(self.bt))
+                if self.bt[oldest][-1][0] >= horizon:
+                    break
+                del self.bt[oldest]
+        pair = (min(receiver, sender), max(receiver, sender))
+        history = (*self.bt.pop(pair, ()), (t, rss))
+        start = 0
+        while start < len(history) and t - history[start][0] >= self.params.bt_smoothing_ms:
+            start += 1
+        self.bt[pair] = history[start:]
+        smoothed = sum(r for _, r in self.bt[pair]) / len(self.bt[pair])
+        return smoothed if smoothed >= self.params.bluetooth.cutoff_dbm else None
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_bluetooth_smoothing_matches_the_tuple_oracle(seed: int) -> None:
+    """Random sightings among 12 phones (times mostly increasing, some late, some repeated; RSS around the
+    cut-off): the same detections with bit-identical averages, and the same pairs kept, as the oracle."""
+    rng = np.random.default_rng(seed)
+    params = DetectionParams()
+    detector = EncounterDetector(params, Calibration(EQ3, BT))
+    oracle = _TupleHistories(params)
+    names = [f"p{k}" for k in range(12)]
+    t = T0
+    for _ in range(60):
+        n = int(rng.integers(1, 30))
+        t += int(rng.integers(0, 1_500))
+        times = t + rng.integers(-1_200, 400, n)  # a batch's sightings, some before the newest seen
+        rss = rng.normal(-88.0, 6.0, n)
+        receivers = [names[i] for i in rng.integers(0, 12, n)]
+        senders = [names[i] for i in rng.integers(0, 12, n)]
+        found = detector.add_sightings(receivers, senders, times, rss)
+        expected = []
+        for rx, tx, ti, ri in zip(receivers, senders, times.tolist(), rss.tolist(), strict=True):
+            if rx == tx:
+                continue
+            smoothed = oracle.add(rx, tx, ti, ri)
+            if smoothed is not None:
+                expected.append((ti, rx, tx, smoothed))
+        got = [
+            (ti, detector.user_name(a), detector.user_name(b), f)
+            for ti, a, b, f in zip(
+                found.t_ms.tolist(),
+                found.user_a.tolist(),
+                found.user_b.tolist(),
+                found.feature.tolist(),
+                strict=True,
+            )
+        ]
+        assert got == expected
+        assert [tuple(sorted(p)) for p in detector.bluetooth_pairs()] == list(oracle.bt)
+
+
+def test_bluetooth_smoothing_needs_a_window() -> None:
+    with pytest.raises(ValueError, match="bt_smoothing_ms"):
+        DetectionParams(bt_smoothing_ms=0)

@@ -1,0 +1,136 @@
+"""Encounters chosen on the filters' prediction: the rule's gates, its cooldown, and why it exists (readings
+chosen on their own value are biased; readings chosen on the prediction are not)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from slam_core.encounters.models import RangeModel, fit_range_model
+from slam_core.encounters.selection import EncounterSelector, SelectionParams, latest_per_pair, pair_key
+
+PHYSICAL_BT = RangeModel("bt-quadratic", (-60.0, -22.0 / math.log(10.0), 0.0), 2.8)
+
+
+def _choose(selector: EncounterSelector, t_ms: list[int], keys: list[tuple[str, str, int]], d: list[float]):  # type: ignore[no-untyped-def]
+    predicted = np.array(d, dtype=float)
+    sigma = np.sqrt(PHYSICAL_BT.variance_at_distance(predicted))
+    return selector.choose(np.array(t_ms, dtype=np.int64), keys, predicted, sigma)
+
+
+def test_pairs_placed_close_are_chosen_far_ones_are_not() -> None:
+    selector = EncounterSelector(SelectionParams(select_range_m=8.0, max_sigma_m=5.0))
+    keys = [pair_key("a", "b", 1), pair_key("c", "d", 1)]
+    chosen = _choose(selector, [0, 0], keys, [3.0, 20.0])
+    assert chosen.tolist() == [True, False]
+    assert selector.n_considered == 2
+    assert selector.n_chosen == 1
+
+
+def test_an_uninformative_model_is_not_chosen_even_close() -> None:
+    selector = EncounterSelector(SelectionParams(select_range_m=8.0, max_sigma_m=1.0))
+    # the physical model's range sigma is 2.8 dB / (22 dB per decade) * d ln 10: 1.4 m at 5 m, 0.6 m at 2 m
+    chosen = _choose(selector, [0, 0], [pair_key("a", "b", 1), pair_key("c", "d", 1)], [2.0, 5.0])
+    assert chosen.tolist() == [True, False]
+
+
+def test_a_pair_cools_down_per_model_and_in_either_order() -> None:
+    selector = EncounterSelector(SelectionParams(pair_cooldown_ms=5_000))
+    assert pair_key("b", "a", 1) == pair_key("a", "b", 1) == ("a", "b", 1)
+    assert _choose(selector, [1_000], [pair_key("a", "b", 1)], [3.0]).tolist() == [True]
+    assert _choose(selector, [4_000], [pair_key("b", "a", 1)], [3.0]).tolist() == [False]
+    assert _choose(selector, [4_000], [pair_key("b", "a", 0)], [3.0]).tolist() == [True]  # other model
+    assert _choose(selector, [6_000], [pair_key("a", "b", 1)], [3.0]).tolist() == [True]
+    # a pair placed too far does not start a cooldown
+    assert _choose(selector, [20_000], [pair_key("a", "b", 1)], [30.0]).tolist() == [False]
+    assert _choose(selector, [20_500], [pair_key("a", "b", 1)], [3.0]).tolist() == [True]
+
+
+def test_the_pairs_latest_reading_of_a_call_is_the_one_considered() -> None:
+    selector = EncounterSelector(SelectionParams())
+    keys = [pair_key("a", "b", 1)] * 3
+    assert _choose(selector, [300, 900, 100], keys, [3.0, 3.0, 3.0]).tolist() == [False, True, False]
+
+
+def test_forgetting_keeps_running_cooldowns() -> None:
+    selector = EncounterSelector(SelectionParams(pair_cooldown_ms=5_000))
+    _choose(selector, [0, 9_000], [pair_key("a", "b", 1), pair_key("c", "d", 1)], [3.0, 3.0])
+    assert len(selector) == 2
+    selector.forget_before(10_000)
+    assert len(selector) == 1
+    assert _choose(selector, [10_000], [pair_key("c", "d", 1)], [3.0]).tolist() == [False]
+
+
+def test_bad_arguments_are_refused() -> None:
+    selector = EncounterSelector(SelectionParams())
+    with pytest.raises(ValueError, match="equally long"):
+        selector.choose(np.zeros(2, dtype=np.int64), [pair_key("a", "b", 1)], np.ones(2), np.ones(2))
+    with pytest.raises(ValueError, match="finite"):
+        selector.choose(
+            np.zeros(1, dtype=np.int64), [pair_key("a", "b", 1)], np.array([math.nan]), np.ones(1)
+        )
+    for bad in ({"select_range_m": 0.0}, {"max_sigma_m": -1.0}, {"pair_cooldown_ms": -1}):
+        with pytest.raises(ValueError, match="must be"):
+            SelectionParams(**bad)  # type: ignore[arg-type]
+
+
+def test_readings_chosen_on_the_prediction_are_unbiased_those_chosen_on_their_value_are_not() -> None:
+    """Far pairs outnumber close ones: among readings that *look* close, many are far pairs read strong by
+    chance, so their reported range is short of the truth. Choosing on the filters' prediction (truth plus
+    the filters' own error, independent of the reading's noise) keeps the reading's noise unbiased."""
+    rng = np.random.default_rng(3)
+    true = rng.uniform(0.5, 30.0, 200_000)  # pairs spread over the floor
+    rss = PHYSICAL_BT.feature_at(true) + rng.normal(0.0, 2.8, true.size)
+    reported, _ = PHYSICAL_BT.range_and_variance(rss)
+    by_value = reported <= 8.0
+    by_prediction = np.hypot(*(rng.normal(0.0, 1.0, (2, true.size)))) + true <= 8.0
+    log_error_by_value = np.median(np.log(reported[by_value] / true[by_value]))
+    log_error_by_prediction = np.median(np.log(reported[by_prediction] / true[by_prediction]))
+    assert log_error_by_value < -0.06  # about 9 % short
+    assert abs(log_error_by_prediction) < 0.02  # 0.3 %
+
+
+def test_variance_at_the_reported_range_is_the_readings_r() -> None:
+    model = PHYSICAL_BT.with_empirical_variance(
+        PHYSICAL_BT.feature_at(np.array([1.0, 2.0, 5.0] * 20)), np.array([1.2, 2.5, 4.0] * 20)
+    )
+    feature = np.array([-60.0, -70.0, -80.0, -90.0])
+    d, r = model.range_and_variance(feature)
+    np.testing.assert_allclose(model.variance_at_distance(d), r)
+    # analytic part: (sigma / |f'(d)|)^2 grows with distance, floored at 0.25 m^2
+    plain = PHYSICAL_BT.variance_at_distance(np.array([1.0, 5.0, 20.0]))
+    slope = 22.0 / (np.array([1.0, 5.0, 20.0]) * math.log(10.0))
+    np.testing.assert_allclose(plain, np.maximum((2.8 / slope) ** 2, 0.25), rtol=0.02)
+
+
+def test_fitting_where_the_model_is_used_avoids_the_sensitivity_cut() -> None:
+    """Beyond the receiver's sensitivity only lucky strong readings are heard: fitted over all distances,
+    they flatten the model; fitted up to 25 m, it is the true one."""
+    rng = np.random.default_rng(0)
+    true = rng.uniform(0.5, 60.0, 50_000)
+    rss = PHYSICAL_BT.feature_at(true) + rng.normal(0.0, 4.0, true.size)
+    heard = rss >= -95.0
+    everywhere = fit_range_model(rss[heard], true[heard], "bt-quadratic")
+    near = fit_range_model(rss[heard], true[heard], "bt-quadratic", max_distance_m=25.0)
+    grid = np.array([2.0, 5.0, 10.0, 15.0])  # where encounters are used
+    truth = PHYSICAL_BT.feature_at(grid)
+    assert np.max(np.abs(near.feature_at(grid) - truth)) < 0.45  # 0.27-0.32 dB over seeds 0-3
+    assert np.max(np.abs(everywhere.feature_at(grid) - truth)) > 0.65  # 0.79-0.82 dB
+
+
+def test_each_pairs_latest_reading_is_found_and_the_last_of_equal_times() -> None:
+    t = np.array([5, 9, 7, 9, 1, 3], dtype=np.int64)
+    keys = np.array([10, 10, 20, 10, 30, 20], dtype=np.int64)
+    assert latest_per_pair(t, keys).tolist() == [2, 3, 4]  # pair 10 read twice at 9: its last reading
+    assert latest_per_pair(np.zeros(0, np.int64), np.zeros(0, np.int64)).tolist() == []
+    # choose considers exactly these: narrowing its input to them changes nothing
+    predicted = np.array([3.0, 3.0, 30.0, 4.0, 2.0, 3.0])
+    sigma = np.sqrt(PHYSICAL_BT.variance_at_distance(predicted))
+    whole = EncounterSelector(SelectionParams()).choose(t, keys, predicted, sigma)
+    latest = latest_per_pair(t, keys)
+    narrowed = EncounterSelector(SelectionParams()).choose(
+        t[latest], keys[latest], predicted[latest], sigma[latest]
+    )
+    assert np.flatnonzero(whole).tolist() == latest[narrowed].tolist() == [3, 4]
