@@ -21,7 +21,7 @@ from server.api import anchors, batches, buildings, health, live, positions, sig
 from server.api.deps import revalidate_keys
 from server.auth import KeyCache
 from server.buildings.registry import TrackingService
-from server.buildings.tracking import retention
+from server.buildings.tracking import tracking_config
 from server.engine.config import load_calibration, tracker_params
 from server.engine.warmup import compile_kernels_in_child, warm_kernels
 from server.errors import InvalidInputError, ProblemError, field_problem, problem_response_parts
@@ -83,12 +83,8 @@ def create_app(settings: Settings, tune_gc: bool = False) -> FastAPI:
         tracking = TrackingService(
             sessions,
             broadcaster,
-            params,
-            calibration,
-            settings.seed,
+            tracking_config(settings),
             recordings,
-            settings.snapshot_period_s,
-            retention(settings),
             settings if settings.building_processes else None,
         )
         app.state.crowdslam = AppState(

@@ -12,7 +12,7 @@ import httpx
 from schemas.api import BatchReceipt
 from schemas.estimates import Estimate
 from server.buildings.tracking import BuildingTracking
-from server.buildings.types import Submission
+from server.buildings.types import Submission, TrackingConfig
 from server.engine.config import load_calibration, tracker_params
 from server.errors import ProblemError
 from server.ingestion.decoding import decode_batch
@@ -77,7 +77,7 @@ def replay_offline(
                             BuildingRow(id=batch.building_id, name=batch.building_id, rotation_rad=0.0)
                         )
                     building = BuildingTracking(
-                        batch.building_id, sessions, params, calibration, settings.seed
+                        batch.building_id, sessions, TrackingConfig(params, calibration, settings.seed)
                     )
                     buildings[batch.building_id] = building
                 result = building.process([Submission.of(batch, recorded.raw, recorded.received_ns)])

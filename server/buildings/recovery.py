@@ -21,7 +21,7 @@ from schemas.sensors import SensorBatch
 from server.buildings import snapshot as tracker_snapshot
 from server.buildings.anchor_ids import AnchorIds
 from server.buildings.ledger import DeviceLedger
-from server.buildings.types import BatchHeader, Counters, Retention
+from server.buildings.types import BatchHeader, Counters, TrackingConfig
 from server.errors import NotFoundError
 from server.ingestion import convert
 from server.store import repositories as repo
@@ -36,20 +36,12 @@ logger = logging.getLogger(__name__)
 class RecoverableBuilding:
     """Used from the building's single worker thread only, like ``BuildingTracking``."""
 
-    def __init__(
-        self,
-        building_id: str,
-        sessions: sessionmaker[Session],
-        params: TrackerParams,
-        calibration: Calibration,
-        seed: int,
-        snapshot_period_s: float = 60.0,
-        retention: Retention | None = None,
-    ) -> None:
+    def __init__(self, building_id: str, sessions: sessionmaker[Session], config: TrackingConfig) -> None:
+        params, calibration, seed = config.params, config.calibration, config.seed
         self.building_id = building_id
-        self.retention = retention or Retention()
+        self.retention = config.retention
         self._last_heard: dict[str, float] = {}  # user -> wall time of its last applied batch
-        self.snapshot_period_s = snapshot_period_s
+        self.snapshot_period_s = config.snapshot_period_s
         self._sessions = sessions
         self.counters = Counters()
         self.restore_problem: str | None = None

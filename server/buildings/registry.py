@@ -12,15 +12,13 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from server.buildings.process import ProcessBuildingWorker
 from server.buildings.tracking import BuildingTracking
-from server.buildings.types import Retention
+from server.buildings.types import TrackingConfig
 from server.buildings.workers import BuildingWorker, Worker
 from server.errors import NotFoundError
 from server.live.broadcast import Broadcaster
 from server.recordings.recorder import BuildingRecorder
 from server.settings import Settings
 from server.store import repositories as repo
-from slam_core.encounters.models import Calibration
-from slam_core.tracking.tracker import TrackerParams
 
 
 class TrackingService:
@@ -30,24 +28,16 @@ class TrackingService:
         self,
         sessions: sessionmaker[Session],
         broadcaster: Broadcaster,
-        params: TrackerParams,
-        calibration: Calibration,
-        seed: int,
+        config: TrackingConfig,
         recordings: Path | None = None,
-        snapshot_period_s: float = 60.0,
-        retention: Retention | None = None,
         processes: Settings | None = None,
     ) -> None:
         """``processes``: run each building in a process of its own, configured by these settings."""
         self._processes = processes
-        self._snapshot_period_s = snapshot_period_s
-        self._retention = retention
+        self._config = config
         self._recordings = recordings
         self._sessions = sessions
         self._broadcaster = broadcaster
-        self._params = params
-        self._calibration = calibration
-        self._seed = seed
         self._workers: dict[str, Worker] = {}
         self._loading = asyncio.Lock()
 
@@ -69,18 +59,10 @@ class TrackingService:
                 recorder = (
                     None if self._recordings is None else BuildingRecorder(self._recordings, building_id)
                 )
-                session = await asyncio.to_thread(
-                    BuildingTracking,
-                    building_id,
-                    self._sessions,
-                    self._params,
-                    self._calibration,
-                    self._seed,
-                    recorder,
-                    self._snapshot_period_s,
-                    self._retention,
+                building = await asyncio.to_thread(
+                    BuildingTracking, building_id, self._sessions, self._config, recorder
                 )
-                worker = self._workers[building_id] = BuildingWorker(session, self._broadcaster)
+                worker = self._workers[building_id] = BuildingWorker(building, self._broadcaster)
         return worker
 
     def _exists(self, building_id: str) -> bool:

@@ -23,7 +23,7 @@ from schemas.estimates import EncounterEvent, Estimate, EstimateSource
 from schemas.live import AnchorMessage, EncounterMessage, LiveMessage, PositionMessage
 from server.buildings.recovery import RecoverableBuilding
 from server.buildings.rows import anchor_row, position_row
-from server.buildings.types import BatchHeader, GroupResult, Retention, Submission
+from server.buildings.types import BatchHeader, GroupResult, Retention, Submission, TrackingConfig
 from server.engine.config import load_calibration, tracker_params
 from server.errors import ConflictError, InvalidInputError, NotFoundError, ProblemError
 from server.ingestion import convert
@@ -37,8 +37,7 @@ from server.store.batches import (
 from server.store.db import make_engine, make_session_factory
 from server.store.wal_checkpoints import checkpoint_in_background
 from server.store.writer_lock import writer_turns
-from slam_core.encounters.models import Calibration
-from slam_core.tracking.tracker import EstimateRow, TrackerParams, UserBatch
+from slam_core.tracking.tracker import EstimateRow, UserBatch
 
 
 class BuildingTracking(RecoverableBuilding):
@@ -48,16 +47,12 @@ class BuildingTracking(RecoverableBuilding):
         self,
         building_id: str,
         sessions: sessionmaker[Session],
-        params: TrackerParams,
-        calibration: Calibration,
-        seed: int,
+        config: TrackingConfig,
         recorder: BuildingRecorder | None = None,
-        snapshot_period_s: float = 60.0,
-        retention: Retention | None = None,
     ) -> None:
         self.recorder = recorder
         self._last_prune = -math.inf
-        super().__init__(building_id, sessions, params, calibration, seed, snapshot_period_s, retention)
+        super().__init__(building_id, sessions, config)
         with sessions() as session:
             self._writer_turns = writer_turns(session.get_bind().engine)
 
@@ -326,12 +321,19 @@ def _dropped_warning(n: int, status: str) -> str:
     return f"{n} steps skipped: out of time order, or turns without any azimuth to start from"
 
 
-def retention(settings: Settings) -> Retention:
-    """How much history the settings keep (0: all)."""
-    return Retention(
+def tracking_config(settings: Settings) -> TrackingConfig:
+    """How the settings have every building tracked."""
+    retention = Retention(
         position_history_days=settings.position_history_days or None,
         batch_ids_days=settings.batch_ids_days or None,
         user_idle_s=settings.user_idle_s or None,
+    )
+    return TrackingConfig(
+        tracker_params(settings),
+        load_calibration(settings.encounter_calibration),
+        settings.seed,
+        settings.snapshot_period_s,
+        retention,
     )
 
 
@@ -343,13 +345,4 @@ def open_building(settings: Settings, building_id: str, engine: Engine | None = 
     checkpoint_in_background(engine, settings.sqlite_checkpoint_period_s)  # stops when the process does
     sessions = make_session_factory(engine)
     recorder = BuildingRecorder(settings.recordings_dir, building_id) if settings.record else None
-    return BuildingTracking(
-        building_id,
-        sessions,
-        tracker_params(settings),
-        load_calibration(settings.encounter_calibration),
-        settings.seed,
-        recorder,
-        settings.snapshot_period_s,
-        retention(settings),
-    )
+    return BuildingTracking(building_id, sessions, tracking_config(settings), recorder)

@@ -1,5 +1,5 @@
 """What a building's tracking counts, keeps and is given: its counters (exported as Prometheus metrics), its
-retention of history, one submitted batch, and a group's result."""
+configuration and retention of history, one submitted batch, and a group's result."""
 
 from __future__ import annotations
 
@@ -11,6 +11,8 @@ from schemas.live import LiveMessage
 from schemas.sensors import SensorBatch
 from server.errors import ProblemError
 from server.ingestion.convert import Converted
+from slam_core.encounters.models import Calibration
+from slam_core.tracking.tracker import TrackerParams
 
 
 @dataclass
@@ -68,6 +70,17 @@ class Retention:
     """A user not heard from for this long is forgotten by the tracker (its slot, particles and maps freed;
     it needs a new fix when it comes back), at the next snapshot, so a restart's replay never spans an
     eviction. None keeps every user."""
+
+
+@dataclass(frozen=True)
+class TrackingConfig:
+    """How every building of a server is tracked: the engine, its seed, snapshots and retention."""
+
+    params: TrackerParams
+    calibration: Calibration
+    seed: int = 0
+    snapshot_period_s: float = 60.0
+    retention: Retention = field(default_factory=Retention)
 
 
 class BatchHeader(NamedTuple):

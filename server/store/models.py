@@ -171,7 +171,22 @@ class AnchorObservationRow(Base):
     cov_yy: Mapped[float] = mapped_column(Float)
 
 
-class PositionSnapshotRow(Base):
+class _EstimateColumns:
+    """A user's estimate as both the position history and the latest positions store it."""
+
+    device_id: Mapped[str] = mapped_column(String(64))
+    t_ms: Mapped[int] = mapped_column(BigInteger)
+    x_m: Mapped[float] = mapped_column(Float)
+    y_m: Mapped[float] = mapped_column(Float)
+    cov_xx: Mapped[float] = mapped_column(Float)
+    cov_xy: Mapped[float] = mapped_column(Float)
+    cov_yy: Mapped[float] = mapped_column(Float)
+    heading_rad: Mapped[float] = mapped_column(Float)
+    floor: Mapped[int] = mapped_column(Integer, default=0)
+    source: Mapped[str] = mapped_column(String(16))
+
+
+class PositionSnapshotRow(_EstimateColumns, Base):
     """Position history: one row per published estimate."""
 
     __tablename__ = "position_snapshots"
@@ -184,22 +199,12 @@ class PositionSnapshotRow(Base):
     id: Mapped[int] = mapped_column(BigIntPk, primary_key=True, autoincrement=True)
     building_id: Mapped[str] = mapped_column(String(64))
     user_id: Mapped[str] = mapped_column(String(64))
-    device_id: Mapped[str] = mapped_column(String(64))
-    t_ms: Mapped[int] = mapped_column(BigInteger)
-    x_m: Mapped[float] = mapped_column(Float)
-    y_m: Mapped[float] = mapped_column(Float)
-    cov_xx: Mapped[float] = mapped_column(Float)
-    cov_xy: Mapped[float] = mapped_column(Float)
-    cov_yy: Mapped[float] = mapped_column(Float)
-    heading_rad: Mapped[float] = mapped_column(Float)
-    floor: Mapped[int] = mapped_column(Integer, default=0)
-    source: Mapped[str] = mapped_column(String(16))
     stored_at_ms: Mapped[int | None] = mapped_column(BigInteger)
     """Server time of the write: history is pruned by it (``t_ms`` is the phone's, and a replayed recording
     may be years old)."""
 
 
-class LatestPositionRow(Base):
+class LatestPositionRow(_EstimateColumns, Base):
     """Each user's latest position snapshot (GET /positions reads it; the history would need a scan)."""
 
     __tablename__ = "latest_positions"
@@ -207,16 +212,6 @@ class LatestPositionRow(Base):
 
     building_id: Mapped[str] = mapped_column(String(64), primary_key=True)
     user_id: Mapped[str] = mapped_column(String(64), primary_key=True)
-    device_id: Mapped[str] = mapped_column(String(64))
-    t_ms: Mapped[int] = mapped_column(BigInteger)
-    x_m: Mapped[float] = mapped_column(Float)
-    y_m: Mapped[float] = mapped_column(Float)
-    cov_xx: Mapped[float] = mapped_column(Float)
-    cov_xy: Mapped[float] = mapped_column(Float)
-    cov_yy: Mapped[float] = mapped_column(Float)
-    heading_rad: Mapped[float] = mapped_column(Float)
-    floor: Mapped[int] = mapped_column(Integer, default=0)
-    source: Mapped[str] = mapped_column(String(16))
 
 
 class TrackerSnapshotRow(Base):

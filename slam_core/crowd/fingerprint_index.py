@@ -29,6 +29,8 @@ def room_needed(cols: np.ndarray, length: np.ndarray, capacity: np.ndarray) -> i
     return need
 
 
+# The kernels take the index's arrays one by one (start, length, capacity and the postings), as numba
+# compiles plain arrays; they share those parameters and nothing else.
 @njit(cache=True, nogil=True)
 def append(
     cols: np.ndarray,
@@ -78,31 +80,31 @@ def compact(
     for a column left empty); ``start``, ``length`` and ``capacity`` are updated in place. Returns the new
     pool and its end."""
     n_cols = start.size
-    room = np.zeros(n_cols, dtype=np.int64)
-    total = 0
+    live = np.zeros(n_cols, dtype=np.int64)
+    kept = np.empty(post_row.size, dtype=np.int64)  # the live postings, column by column
+    n_kept = 0
     for c in range(n_cols):
-        live = 0
-        for k in range(length[c]):
-            p = start[c] + k
+        for p in range(start[c], start[c] + length[c]):
             if row_serial[post_row[p]] == post_serial[p]:
-                live += 1
-        room[c] = 0 if live == 0 else max(4, live + live // 2)
-        total += room[c]
+                kept[n_kept] = p
+                n_kept += 1
+                live[c] += 1
+    room = np.where(live == 0, 0, np.maximum(4, live + live // 2))
+    total = int(room.sum())
     new_row = np.empty(total, dtype=np.int64)
     new_serial = np.empty(total, dtype=np.int64)
     new_gain = np.empty(total, dtype=np.float32)
     end = 0
+    k = 0
     for c in range(n_cols):
-        n = 0
-        for k in range(length[c]):
-            p = start[c] + k
-            if row_serial[post_row[p]] == post_serial[p]:
-                new_row[end + n] = post_row[p]
-                new_serial[end + n] = post_serial[p]
-                new_gain[end + n] = post_gain[p]
-                n += 1
+        for n in range(live[c]):
+            p = kept[k + n]
+            new_row[end + n] = post_row[p]
+            new_serial[end + n] = post_serial[p]
+            new_gain[end + n] = post_gain[p]
+        k += live[c]
         start[c] = end
-        length[c] = n
+        length[c] = live[c]
         capacity[c] = room[c]
         end += room[c]
     return new_row, new_serial, new_gain, end

@@ -67,6 +67,8 @@ def _push(buffer: np.ndarray, n: int, value: int) -> np.ndarray:
     return buffer
 
 
+# Like every compiled kernel it takes the store's arrays one by one: numba compiles plain arrays and
+# scalars, so kernels over like state share the shape of their parameter lists.
 @njit(cache=True, nogil=True)
 def detect_scans(
     meta: np.ndarray,

@@ -121,15 +121,7 @@ class DynamicSlam:
         self._admitted += 1
         motion = self.params.motion
         initialise_user(
-            s.x,
-            s.y,
-            s.heading,
-            s.bias,
-            s.scale,
-            s.walk,
-            s.logw,
-            s.rng_key,
-            s.rng_ctr,
+            s.arrays(),
             slot,
             float(x),
             float(y),
@@ -200,26 +192,20 @@ class DynamicSlam:
         s = self.state
         self._moved(users)
         motion = self.params.motion
+        model = MODEL_PAPER if motion.model == "paper" else MODEL_BIAS_SCALE
         pick(motion_update, motion_update_serial, users.shape[0], self.parallel_min_users)(
-            s.x,
-            s.y,
-            s.heading,
-            s.bias,
-            s.scale,
-            s.walk,
-            s.ctrl_cov,
-            s.last_obs_heading,
-            s.rng_key,
-            s.rng_ctr,
+            s.arrays(),
             users,
             offsets,
             lengths,
             headings,
-            MODEL_PAPER if motion.model == "paper" else MODEL_BIAS_SCALE,
-            motion.step_length_sigma_m,
-            motion.heading_change_sigma_rad,
-            motion.heading_walk_sigma_rad,
-            self.params.human.control_covariance_cap_m2,
+            (
+                model,
+                motion.step_length_sigma_m,
+                motion.heading_change_sigma_rad,
+                motion.heading_walk_sigma_rad,
+                self.params.human.control_covariance_cap_m2,
+            ),
         )
 
     def observe_building_anchors(
@@ -246,10 +232,12 @@ class DynamicSlam:
         a = self.params.anchors
         used_slot = np.full((users.size, s.n_particles), -1, dtype=np.int64)
         pick(building_anchor_update, building_anchor_update_serial, users.shape[0], self.parallel_min_users)(
-            s.x, s.y, s.logw, s.map_mu, s.map_cov, s.map_type, s.map_count, s.map_known, s.map_crowd_id,
-            s.map_n, s.ctrl_cov, s.rng_key, s.rng_ctr, users, detected_types, self._type_posterior,
-            a.detection_sigma_m, a.new_anchor_likelihood, s.n_map_overflow, s.n_degenerate, used_slot,
-        )  # fmt: skip
+            s.arrays(),
+            users,
+            detected_types,
+            (self._type_posterior, a.detection_sigma_m, a.new_anchor_likelihood),
+            used_slot,
+        )
         if crowd_ids is not None:
             self.tag_crowd_ids(users, used_slot, crowd_ids)
         self._resample(users)
@@ -387,11 +375,16 @@ class DynamicSlam:
         known_var = self.params.anchors.known_sigma_m**2
         cov = crowd.cov.copy()
         cov[crowd.known] = (known_var, 0.0, known_var)
+        crowd_arrays = (
+            np.ascontiguousarray(crowd.mean),
+            np.ascontiguousarray(cov),
+            crowd.type.astype(np.int8),
+            crowd.known.astype(np.bool_),
+            crowd.crowd_id.astype(np.int64),
+        )
         pick(merge_crowd_anchors, merge_crowd_anchors_serial, users.shape[0], self.parallel_min_users)(
-            s.map_mu, s.map_cov, s.map_type, s.map_count, s.map_known, s.map_crowd_id, s.map_n, users,
-            np.ascontiguousarray(crowd.mean), np.ascontiguousarray(cov), crowd.type.astype(np.int8),
-            crowd.known.astype(np.bool_), crowd.crowd_id.astype(np.int64), s.n_map_overflow,
-        )  # fmt: skip
+            s.arrays(), users, crowd_arrays
+        )
 
     def observe_encounters(
         self,
@@ -489,23 +482,13 @@ class DynamicSlam:
         s = self.state
         h = self.params.human
         pick(human_anchor_update, human_anchor_update_serial, users.shape[0], self.parallel_min_users)(
-            s.x,
-            s.y,
-            s.logw,
-            s.ctrl_cov,
-            s.rng_key,
-            s.rng_ctr,
+            s.arrays(),
             users,
             np.ascontiguousarray(peer_mean),
             np.ascontiguousarray(peer_cov),
             z,
             r,
-            h.sampling == "iterative",
-            h.beta_m,
-            h.max_iterations,
-            h.outlier_probability,
-            h.max_range_m,
-            s.n_degenerate,
+            (h.sampling == "iterative", h.beta_m, h.max_iterations, h.outlier_probability, h.max_range_m),
         )
 
     def _resample(self, users: np.ndarray) -> None:
@@ -513,29 +496,13 @@ class DynamicSlam:
         self._moved(users)
         rs = self.params.resampling
         bias_scale = self.params.motion.model == "bias-scale"  # the paper model has no bias or scale
+        roughening = (rs.roughening_bias_rad, rs.roughening_scale) if bias_scale else (0.0, 0.0)
         pick(resample_users, resample_users_serial, users.shape[0], self.parallel_min_users)(
+            s.arrays(),
             np.ascontiguousarray(users, dtype=np.int64),
             rs.ess_threshold,
             SCHEME_CODES[rs.scheme],
-            s.logw,
-            s.x,
-            s.y,
-            s.heading,
-            s.bias,
-            s.scale,
-            s.walk,
-            s.map_mu,
-            s.map_cov,
-            s.map_type,
-            s.map_count,
-            s.map_known,
-            s.map_crowd_id,
-            s.map_n,
-            s.rng_key,
-            s.rng_ctr,
-            s.n_resamples,
-            rs.roughening_bias_rad if bias_scale else 0.0,
-            rs.roughening_scale if bias_scale else 0.0,
+            roughening,
         )
 
     # ----------------------------------------------------------------- estimates

@@ -7,15 +7,18 @@ back by ``release``; the arrays grow (doubling) when the slots run out. Covarian
 
 from __future__ import annotations
 
+import operator
 from dataclasses import dataclass, fields
 
 import numpy as np
 
+from slam_core.filter.kernels import arrays as bundle
 from slam_core.filter.kernels.rng import splitmix64
 
 NO_CROWD_ID = -1
 _MAP_FIELDS = frozenset({"map_mu", "map_cov", "map_type", "map_count", "map_known", "map_crowd_id"})
 """The per-particle anchor map's arrays, (U, M, K, ...): past a particle's ``map_n`` never read."""
+_BUNDLE = operator.attrgetter(*bundle.FIELDS)
 
 
 @dataclass
@@ -73,6 +76,11 @@ class FilterState:
             n_map_overflow=np.zeros(U, dtype=np.int64),
             n_degenerate=np.zeros(U, dtype=np.int64),
         )
+
+    def arrays(self) -> bundle.FilterArrays:
+        """The arrays the kernels update, as one tuple (``slam_core.filter.kernels.arrays``)."""
+        arrays: bundle.FilterArrays = _BUNDLE(self)
+        return arrays
 
     @property
     def capacity(self) -> int:

@@ -12,15 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slam_core.sensing.detectors import (
-    AnchorEvents,
-    DetectorParams,
-    DetectorState,
-    detect_radio,
-    detect_turns,
-    merge_events,
-    step_headings,
-)
+from slam_core.sensing import detectors as anchor_detectors
+from slam_core.sensing.detectors import AnchorEvents, DetectorParams, DetectorState
 from slam_core.sensing.lift import detect_lift_rides
 from slam_core.sensing.magnetic import detect_magnetic_anomalies
 from slam_core.sensing.pdr.online import ImuSamples, PdrParams, PdrState, PdrSteps, drop_stale, pdr_steps
@@ -76,9 +69,9 @@ class FrontEnd:
             return FrontEndOutput(steps, AnchorEvents.empty(), dropped)
         p = self.detectors
         detect = self._detect.setdefault(user, DetectorState())
-        headings = step_headings(detect, steps.azimuth_rad, steps.turn_rad)
-        turns = detect_turns(detect, p, steps.t_ms, headings) if p.turns else []
-        radio_events = detect_radio(
+        headings = anchor_detectors.step_headings(detect, steps.azimuth_rad, steps.turn_rad)
+        turns = anchor_detectors.detect_turns(detect, p, steps.t_ms, headings) if p.turns else []
+        radio_events = anchor_detectors.detect_radio(
             detect, p, radio.scan_t, radio.scan_offsets, radio.scan_bssid, radio.scan_rss,
             radio.scan_last_seen, radio.beacon_t, radio.beacon_mac, radio.beacon_rss,
         )  # fmt: skip
@@ -107,4 +100,6 @@ class FrontEnd:
         self.fired["turn"] += len(turns)
         self.fired["beacon"] += sum(e[1] == p.beacon_type for e in radio_events)
         self.fired["wifi"] += sum(e[1] == p.wifi_type for e in radio_events)
-        return FrontEndOutput(steps, merge_events(turns, radio_events, p.turn_type, floors), dropped)
+        return FrontEndOutput(
+            steps, anchor_detectors.merge_events(turns, radio_events, p.turn_type, floors), dropped
+        )

@@ -23,7 +23,7 @@ from numba.core.registry import CPUDispatcher
 import slam_core
 from server.engine.config import load_calibration, tracker_params
 from server.engine.warmup import warm_kernels
-from server.buildings.types import Submission
+from server.buildings.types import Submission, TrackingConfig
 from server.settings import Settings
 from server.simulation.phones import simulated_batches
 from server.store.db import make_engine, make_session_factory
@@ -54,7 +54,7 @@ with tempfile.TemporaryDirectory() as tmp:
     sessions = make_session_factory(engine)
     with sessions.begin() as session:
         session.add(BuildingRow(id="b", name="b", rotation_rad=0.0))
-    building = BuildingTracking("b", sessions, params, calibration, 0)
+    building = BuildingTracking("b", sessions, TrackingConfig(params, calibration))
     groups = {{}}
     for batch in simulated_batches(simulate(small_crowd(users=23, walk_m=150.0), 3), "b"):
         groups.setdefault((batch.time_span_ms() or (0, 0))[1], []).append(batch)

@@ -14,7 +14,7 @@ from sqlalchemy import Engine, func, select
 from schemas.anchors import KnownAnchorIn
 from schemas.common import Position
 from server.buildings.tracking import BuildingTracking
-from server.buildings.types import Retention, Submission
+from server.buildings.types import Retention, Submission, TrackingConfig
 from server.engine.config import load_calibration, tracker_params
 from server.settings import Settings
 from server.simulation.phones import KnownAnchor, known_anchors, simulated_batches
@@ -52,15 +52,10 @@ def _building(
     tp = tracker_params(SETTINGS)
     if n_particles is not None:
         tp = replace(tp, filter=replace(tp.filter, n_particles=n_particles))
-    return BuildingTracking(
-        "hq",
-        make_session_factory(engine),
-        tp,
-        load_calibration(None),
-        SETTINGS.seed,
-        snapshot_period_s=snapshot_period_s,
-        retention=retention,
+    config = TrackingConfig(
+        tp, load_calibration(None), SETTINGS.seed, snapshot_period_s, retention or Retention()
     )
+    return BuildingTracking("hq", make_session_factory(engine), config)
 
 
 def _fresh_building(url: str) -> Engine:

@@ -12,6 +12,18 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from slam_core.filter.kernels.arrays import (
+    CTRL_COV,
+    LOGW,
+    N_DEGENERATE,
+    N_MAP_OVERFLOW,
+    RNG_CTR,
+    RNG_KEY,
+    FilterArrays,
+    X,
+    Y,
+    particle_maps,
+)
 from slam_core.filter.kernels.linalg2 import gauss_logpdf2, sample2
 from slam_core.filter.kernels.rng import normal
 from slam_core.filter.kernels.serial import serial_twin
@@ -62,28 +74,17 @@ def associate(
 @njit(cache=True, nogil=True)
 def _update_user(
     i: int,
-    x: np.ndarray,
-    y: np.ndarray,
-    logw: np.ndarray,
-    map_mu: np.ndarray,
-    map_cov: np.ndarray,
-    map_type: np.ndarray,
-    map_count: np.ndarray,
-    map_known: np.ndarray,
-    map_crowd_id: np.ndarray,
-    map_n: np.ndarray,
-    ctrl_cov: np.ndarray,
-    rng_key: np.ndarray,
-    rng_ctr: np.ndarray,
+    arrays: FilterArrays,
     users: np.ndarray,
     detected_type: np.ndarray,
-    type_posterior: np.ndarray,
-    detection_sigma: float,
-    new_anchor_likelihood: float,
-    overflow: np.ndarray,
-    degenerate: np.ndarray,
+    anchors: tuple[np.ndarray, float, float],
     used_slot: np.ndarray,
 ) -> None:
+    x, y, logw = arrays[X], arrays[Y], arrays[LOGW]
+    map_mu, map_cov, map_type, map_count, map_known, map_crowd_id, map_n = particle_maps(arrays)
+    ctrl_cov, rng_key, rng_ctr = arrays[CTRL_COV], arrays[RNG_KEY], arrays[RNG_CTR]
+    overflow, degenerate = arrays[N_MAP_OVERFLOW], arrays[N_DEGENERATE]
+    type_posterior, detection_sigma, new_anchor_likelihood = anchors
     n_particles = x.shape[1]
     capacity = map_mu.shape[2]
     r = detection_sigma * detection_sigma
@@ -183,58 +184,34 @@ def _update_user(
     finish_observation(logw, ctrl_cov, degenerate, u)
 
 
+# The prange wrapper restates its per-user body's parameters: the body stays a plain @njit function because
+# numba's parfor pass slowed loops inlined in a prange 2.5x (``motion_update``).
 @njit(cache=True, nogil=True, parallel=True)
 def building_anchor_update(
-    x: np.ndarray,
-    y: np.ndarray,
-    logw: np.ndarray,
-    map_mu: np.ndarray,
-    map_cov: np.ndarray,
-    map_type: np.ndarray,
-    map_count: np.ndarray,
-    map_known: np.ndarray,
-    map_crowd_id: np.ndarray,
-    map_n: np.ndarray,
-    ctrl_cov: np.ndarray,
-    rng_key: np.ndarray,
-    rng_ctr: np.ndarray,
+    arrays: FilterArrays,
     users: np.ndarray,
     detected_type: np.ndarray,
-    type_posterior: np.ndarray,
-    detection_sigma: float,
-    new_anchor_likelihood: float,
-    overflow: np.ndarray,
-    degenerate: np.ndarray,
+    anchors: tuple[np.ndarray, float, float],
     used_slot: np.ndarray,
 ) -> None:
     """Each i: user ``users[i]`` detected an anchor of type ``detected_type[i]``. Users distinct per call.
+    ``anchors`` is (type posterior p(f | f_hat), detection sigma, a new anchor's likelihood p0).
     ``used_slot[i, m]`` receives the map slot particle m associated with or created (-1: map full)."""
     for i in prange(users.shape[0]):
-        _update_user(
-            i, x, y, logw, map_mu, map_cov, map_type, map_count, map_known, map_crowd_id, map_n, ctrl_cov,
-            rng_key, rng_ctr, users, detected_type, type_posterior, detection_sigma, new_anchor_likelihood,
-            overflow, degenerate, used_slot,
-        )  # fmt: skip
+        _update_user(i, arrays, users, detected_type, anchors, used_slot)
 
 
 @njit(cache=True, nogil=True, parallel=True)
 def merge_crowd_anchors(
-    map_mu: np.ndarray,
-    map_cov: np.ndarray,
-    map_type: np.ndarray,
-    map_count: np.ndarray,
-    map_known: np.ndarray,
-    map_crowd_id: np.ndarray,
-    map_n: np.ndarray,
+    arrays: FilterArrays,
     users: np.ndarray,
-    crowd_mean: np.ndarray,
-    crowd_cov: np.ndarray,
-    crowd_type: np.ndarray,
-    crowd_known: np.ndarray,
-    crowd_id: np.ndarray,
-    overflow: np.ndarray,
+    crowd: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray],
 ) -> None:
-    """Append to every particle map of ``users`` each crowd anchor whose id it does not hold."""
+    """Append to every particle map of ``users`` each crowd anchor whose id it does not hold; ``crowd`` is
+    the crowd map's (mean, cov, type, known, id)."""
+    map_mu, map_cov, map_type, map_count, map_known, map_crowd_id, map_n = particle_maps(arrays)
+    overflow = arrays[N_MAP_OVERFLOW]
+    crowd_mean, crowd_cov, crowd_type, crowd_known, crowd_id = crowd
     n_particles = map_mu.shape[1]
     capacity = map_mu.shape[2]
     for i in prange(users.shape[0]):

@@ -8,6 +8,20 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from slam_core.filter.kernels.arrays import (
+    BIAS,
+    CTRL_COV,
+    HEADING,
+    LAST_OBS_HEADING,
+    LOGW,
+    RNG_CTR,
+    RNG_KEY,
+    SCALE,
+    WALK,
+    FilterArrays,
+    X,
+    Y,
+)
 from slam_core.filter.kernels.linalg2 import wrap_angle
 from slam_core.filter.kernels.rng import normal, normal_at
 from slam_core.filter.kernels.serial import serial_twin
@@ -18,27 +32,19 @@ MODEL_BIAS_SCALE = 1
 
 @njit(cache=True, nogil=True)
 def _advance_user(
-    x: np.ndarray,
-    y: np.ndarray,
-    heading: np.ndarray,
-    bias: np.ndarray,
-    scale: np.ndarray,
-    walk: np.ndarray,
-    ctrl_cov: np.ndarray,
-    last_obs_heading: np.ndarray,
-    rng_key: np.ndarray,
-    rng_ctr: np.ndarray,
+    arrays: FilterArrays,
     u: int,
     first: int,
     stop: int,
     step_length: np.ndarray,
     step_heading: np.ndarray,
-    model: int,
-    sigma_l: float,
-    sigma_phi: float,
-    sigma_walk: float,
-    ctrl_cov_cap: float,
+    motion: tuple[int, float, float, float, float],
 ) -> None:
+    x, y, heading = arrays[X], arrays[Y], arrays[HEADING]
+    bias, scale, walk = arrays[BIAS], arrays[SCALE], arrays[WALK]
+    ctrl_cov, last_obs_heading = arrays[CTRL_COV], arrays[LAST_OBS_HEADING]
+    rng_key, rng_ctr = arrays[RNG_KEY], arrays[RNG_CTR]
+    model, sigma_l, sigma_phi, sigma_walk, ctrl_cov_cap = motion
     n_particles = x.shape[1]
     key = rng_key[u]
     counter = rng_ctr[u]
@@ -85,28 +91,16 @@ def _advance_user(
 
 @njit(cache=True, nogil=True, parallel=True)
 def motion_update(
-    x: np.ndarray,
-    y: np.ndarray,
-    heading: np.ndarray,
-    bias: np.ndarray,
-    scale: np.ndarray,
-    walk: np.ndarray,
-    ctrl_cov: np.ndarray,
-    last_obs_heading: np.ndarray,
-    rng_key: np.ndarray,
-    rng_ctr: np.ndarray,
+    arrays: FilterArrays,
     users: np.ndarray,
     offsets: np.ndarray,
     step_length: np.ndarray,
     step_heading: np.ndarray,
-    model: int,
-    sigma_l: float,
-    sigma_phi: float,
-    sigma_walk: float,
-    ctrl_cov_cap: float,
+    motion: tuple[int, float, float, float, float],
 ) -> None:
     """Advance ``users[i]`` by its steps ``offsets[i]:offsets[i+1]`` (lengths in metres, observed headings in
-    rad counter-clockwise from east). Users must be distinct within one call.
+    rad counter-clockwise from east). Users must be distinct within one call. ``motion`` is the model's
+    code and parameters: (model, sigma_l, sigma_phi, sigma_walk, control covariance cap).
 
     Per particle and step, two normals are drawn in this order: length noise, then heading noise (paper
     model) or the heading walk's increment (bias-scale model); ``slam_core.filter.reference`` draws them
@@ -114,24 +108,12 @@ def motion_update(
     inlined loops 2.5x.
     """
     for i in prange(users.shape[0]):
-        _advance_user(
-            x, y, heading, bias, scale, walk, ctrl_cov, last_obs_heading, rng_key, rng_ctr, users[i],
-            offsets[i], offsets[i + 1], step_length, step_heading, model, sigma_l, sigma_phi, sigma_walk,
-            ctrl_cov_cap,
-        )  # fmt: skip
+        _advance_user(arrays, users[i], offsets[i], offsets[i + 1], step_length, step_heading, motion)
 
 
 @njit(cache=True, nogil=True)
 def initialise_user(
-    x: np.ndarray,
-    y: np.ndarray,
-    heading: np.ndarray,
-    bias: np.ndarray,
-    scale: np.ndarray,
-    walk: np.ndarray,
-    logw: np.ndarray,
-    rng_key: np.ndarray,
-    rng_ctr: np.ndarray,
+    arrays: FilterArrays,
     u: int,
     x0: float,
     y0: float,
@@ -142,6 +124,9 @@ def initialise_user(
     scale_sigma: float,
 ) -> None:
     """Particles of a new user around its start fix; bias and scale drawn from their priors."""
+    x, y, heading = arrays[X], arrays[Y], arrays[HEADING]
+    bias, scale, walk, logw = arrays[BIAS], arrays[SCALE], arrays[WALK], arrays[LOGW]
+    rng_key, rng_ctr = arrays[RNG_KEY], arrays[RNG_CTR]
     n_particles = x.shape[1]
     key = rng_key[u]
     for m in range(n_particles):

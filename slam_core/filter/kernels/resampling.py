@@ -11,6 +11,20 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from slam_core.filter.kernels.arrays import (
+    BIAS,
+    HEADING,
+    LOGW,
+    N_RESAMPLES,
+    RNG_CTR,
+    RNG_KEY,
+    SCALE,
+    WALK,
+    FilterArrays,
+    X,
+    Y,
+    particle_maps,
+)
 from slam_core.filter.kernels.rng import normal, uniform
 from slam_core.filter.kernels.serial import serial_twin
 from slam_core.filter.kernels.weights import effective_sample_size
@@ -81,20 +95,11 @@ def draw_ancestors(w: np.ndarray, scheme: int, key: np.uint64, counters: np.ndar
 
 
 @njit(cache=True, nogil=True)
-def _gather_maps(
-    u: int,
-    idx: np.ndarray,
-    map_mu: np.ndarray,
-    map_cov: np.ndarray,
-    map_type: np.ndarray,
-    map_count: np.ndarray,
-    map_known: np.ndarray,
-    map_crowd_id: np.ndarray,
-    map_n: np.ndarray,
-) -> None:
+def _gather_maps(u: int, idx: np.ndarray, arrays: FilterArrays) -> None:
     """Particle m's map becomes a copy of its ancestor idx[m]'s. Only the slots up to the fullest ancestor's
     ``map_n`` are copied (slots past a particle's ``map_n`` are never read): copying whole map capacities
     dominated the resampling of young maps."""
+    map_mu, map_cov, map_type, map_count, map_known, map_crowd_id, map_n = particle_maps(arrays)
     k = 0
     for m in range(idx.shape[0]):
         k = max(k, map_n[u, idx[m]])
@@ -109,29 +114,12 @@ def _gather_maps(
 
 @njit(cache=True, nogil=True)
 def _resample_user(
-    u: int,
-    threshold: float,
-    scheme: int,
-    logw: np.ndarray,
-    x: np.ndarray,
-    y: np.ndarray,
-    heading: np.ndarray,
-    bias: np.ndarray,
-    scale: np.ndarray,
-    walk: np.ndarray,
-    map_mu: np.ndarray,
-    map_cov: np.ndarray,
-    map_type: np.ndarray,
-    map_count: np.ndarray,
-    map_known: np.ndarray,
-    map_crowd_id: np.ndarray,
-    map_n: np.ndarray,
-    rng_key: np.ndarray,
-    rng_ctr: np.ndarray,
-    n_resamples: np.ndarray,
-    roughening_bias: float,
-    roughening_scale: float,
+    u: int, arrays: FilterArrays, threshold: float, scheme: int, roughening: tuple[float, float]
 ) -> None:
+    x, y, heading = arrays[X], arrays[Y], arrays[HEADING]
+    bias, scale, walk, logw = arrays[BIAS], arrays[SCALE], arrays[WALK], arrays[LOGW]
+    rng_key, rng_ctr, n_resamples = arrays[RNG_KEY], arrays[RNG_CTR], arrays[N_RESAMPLES]
+    roughening_bias, roughening_scale = roughening
     n_particles = logw.shape[1]
     if threshold < 1.0 and effective_sample_size(logw, u) >= threshold * n_particles:
         return
@@ -144,7 +132,7 @@ def _resample_user(
     bias[u] = bias[u][idx]
     scale[u] = scale[u][idx]
     walk[u] = walk[u][idx]
-    _gather_maps(u, idx, map_mu, map_cov, map_type, map_count, map_known, map_crowd_id, map_n)
+    _gather_maps(u, idx, arrays)
     key = rng_key[u]
     for m in range(n_particles):
         logw[u, m] = -math.log(n_particles)
@@ -156,36 +144,12 @@ def _resample_user(
 
 @njit(cache=True, nogil=True, parallel=True)
 def resample_users(
-    users: np.ndarray,
-    threshold: float,
-    scheme: int,
-    logw: np.ndarray,
-    x: np.ndarray,
-    y: np.ndarray,
-    heading: np.ndarray,
-    bias: np.ndarray,
-    scale: np.ndarray,
-    walk: np.ndarray,
-    map_mu: np.ndarray,
-    map_cov: np.ndarray,
-    map_type: np.ndarray,
-    map_count: np.ndarray,
-    map_known: np.ndarray,
-    map_crowd_id: np.ndarray,
-    map_n: np.ndarray,
-    rng_key: np.ndarray,
-    rng_ctr: np.ndarray,
-    n_resamples: np.ndarray,
-    roughening_bias: float,
-    roughening_scale: float,
+    arrays: FilterArrays, users: np.ndarray, threshold: float, scheme: int, roughening: tuple[float, float]
 ) -> None:
-    """Resample every listed user whose ESS < threshold * M (threshold 1.0: always, as Algorithm 2 does)."""
+    """Resample every listed user whose ESS < threshold * M (threshold 1.0: always, as Algorithm 2 does);
+    ``roughening`` is the (bias, scale) jitter each particle then gets."""
     for i in prange(users.shape[0]):
-        _resample_user(
-            users[i], threshold, scheme, logw, x, y, heading, bias, scale, walk, map_mu, map_cov, map_type,
-            map_count, map_known, map_crowd_id, map_n, rng_key, rng_ctr, n_resamples, roughening_bias,
-            roughening_scale,
-        )  # fmt: skip
+        _resample_user(users[i], arrays, threshold, scheme, roughening)
 
 
 resample_users_serial = serial_twin(resample_users)

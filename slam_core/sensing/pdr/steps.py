@@ -69,6 +69,8 @@ def new_state() -> np.ndarray:
     return state
 
 
+# The compiled detector takes its carried state (``new_state``) and parameters as plain arrays and
+# scalars, as numba compiles them.
 @njit(cache=True, nogil=True)
 def _detect(
     state: np.ndarray,

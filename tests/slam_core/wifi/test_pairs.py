@@ -15,14 +15,6 @@ from slam_core.wifi.pairs import (
 )
 
 
-def _scans(n: int = 30, aps: int = 25, seed: int = 0) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    rss = rng.uniform(-95.0, -40.0, (n, aps)).round()  # integer dBm: ties happen, as on phones
-    rss[rng.random((n, aps)) < 0.6] = np.nan
-    rss[3] = np.nan  # an empty scan
-    return rss
-
-
 def test_strongest_mask_picks_the_strongest_heard_aps() -> None:
     rss = np.array([[-50.0, np.nan, -70.0, -40.0], [np.nan, np.nan, -60.0, np.nan]])
     np.testing.assert_array_equal(
