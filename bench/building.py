@@ -56,8 +56,8 @@ from report import emit
 from schemas.live import LIVE_MESSAGE_ADAPTER
 from server.buildings import snapshot as tracker_snapshot
 from server.buildings.process import batch_fields, received_batch
+from server.buildings.submissions import Submission
 from server.buildings.tracking import open_building
-from server.buildings.types import Submission
 from server.errors import ProblemError
 from server.gc_tuning import tune_gc_for_serving
 from server.ingestion.decoding import decode_batch

@@ -10,8 +10,8 @@ from prometheus_client import CollectorRegistry, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 from prometheus_client.registry import Collector
 
+from server.buildings.counters import Counters
 from server.buildings.registry import TrackingService
-from server.buildings.types import Counters
 from server.live.broadcast import Broadcaster
 
 if TYPE_CHECKING:

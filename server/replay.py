@@ -11,8 +11,9 @@ import httpx
 
 from schemas.api import BatchReceipt
 from schemas.estimates import Estimate
+from server.buildings.config import TrackingConfig
+from server.buildings.submissions import Submission
 from server.buildings.tracking import BuildingTracking
-from server.buildings.types import Submission, TrackingConfig
 from server.engine.config import load_calibration, tracker_params
 from server.errors import ProblemError
 from server.ingestion.decoding import decode_batch

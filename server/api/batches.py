@@ -14,7 +14,7 @@ from schemas.errors import Problem
 from schemas.sensors import SensorBatch
 from server.api.deps import AUTHORIZATION_PARAMETER, principal, token_principal
 from server.auth import Principal
-from server.buildings.types import Submission
+from server.buildings.submissions import Submission
 from server.errors import BodyTooLargeError, InvalidInputError, ProblemError, problem_response_parts
 from server.ingestion.decoding import decode_batch
 from server.state import AppState

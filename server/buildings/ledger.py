@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from server.buildings.types import BatchHeader
+from server.buildings.submissions import BatchHeader
 
 
 @dataclass

@@ -39,8 +39,9 @@ from typing import Any
 import numba
 
 from schemas.live import LiveMessage
+from server.buildings.counters import Counters
+from server.buildings.submissions import BatchHeader, Submission
 from server.buildings.tracking import BuildingTracking, open_building
-from server.buildings.types import BatchHeader, Counters, Submission
 from server.buildings.workers import CALLS, MAX_GROUP, LatencyWindow
 from server.engine.warmup import warm_kernels_for
 from server.errors import InvalidInputError, ProblemError, ServiceUnavailableError

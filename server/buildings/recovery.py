@@ -20,8 +20,10 @@ from schemas.anchors import AnchorType
 from schemas.sensors import SensorBatch
 from server.buildings import snapshot as tracker_snapshot
 from server.buildings.anchor_ids import AnchorIds
+from server.buildings.config import TrackingConfig
+from server.buildings.counters import Counters
 from server.buildings.ledger import DeviceLedger
-from server.buildings.types import BatchHeader, Counters, TrackingConfig
+from server.buildings.submissions import BatchHeader
 from server.errors import NotFoundError
 from server.ingestion import convert
 from server.store import repositories as repo

@@ -10,9 +10,9 @@ from pathlib import Path
 
 from sqlalchemy.orm import Session, sessionmaker
 
+from server.buildings.config import TrackingConfig
 from server.buildings.process import ProcessBuildingWorker
 from server.buildings.tracking import BuildingTracking
-from server.buildings.types import TrackingConfig
 from server.buildings.workers import BuildingWorker, Worker
 from server.errors import NotFoundError
 from server.live.broadcast import Broadcaster

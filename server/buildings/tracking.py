@@ -21,9 +21,10 @@ from schemas.anchors import BuildingAnchor, KnownAnchorIn
 from schemas.api import BatchReceipt
 from schemas.estimates import EncounterEvent, Estimate, EstimateSource
 from schemas.live import AnchorMessage, EncounterMessage, LiveMessage, PositionMessage
+from server.buildings.config import Retention, TrackingConfig
 from server.buildings.recovery import RecoverableBuilding
 from server.buildings.rows import anchor_row, position_row
-from server.buildings.types import BatchHeader, GroupResult, Retention, Submission, TrackingConfig
+from server.buildings.submissions import BatchHeader, GroupResult, Submission
 from server.engine.config import load_calibration, tracker_params
 from server.errors import ConflictError, InvalidInputError, NotFoundError, ProblemError
 from server.ingestion import convert

@@ -16,8 +16,9 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 from schemas.live import LiveMessage
+from server.buildings.counters import Counters
+from server.buildings.submissions import Submission
 from server.buildings.tracking import BuildingTracking
-from server.buildings.types import Counters, Submission
 from server.errors import ProblemError
 from server.live.broadcast import Broadcaster
 from slam_core.geo import GeoFrame

@@ -42,7 +42,7 @@ class WriterTurns:
 
     def __enter__(self) -> WriterTurns:
         if self._file is not None:
-            raise RuntimeError(f"a turn at {self.path} is already held by this session")
+            raise RuntimeError(f"a turn at {self.path} is already held by this holder")
         if not self.supported:
             return self
         file = self.path.open("ab")

@@ -5,12 +5,12 @@ Each detection contributes the detecting user's position estimate (cloud mean, c
 detection's R). A contribution is associated as each particle associates its own detections (Eq. 15-16): with
 the crowd anchor n that maximises N(d_n; 0, S_n) p(f_n | f_hat), d_n its offset and S_n the anchor's
 covariance plus the contribution's, unless a new anchor's p0 p(f_hat | f_hat) is larger; a 99 % chi-square
-gate bounds the offsets considered. An earlier rule (least Mahalanobis distance minus twice the log type
-posterior, anchors of a type with p(f | f_hat) < 0.05 left out) let each type confusion start a duplicate: on
-the paper testbed (seeds 0-4) DynamicSLAM's map held 12-23 duplicates of its 27 anchors, 3-11 with this rule
-(``slam_core.sim.map_quality`` scores it). An anchor's estimate is the information-weighted fusion of its
-contributors, each user counted once (its latest contribution), because one user's repeated passes share that
-user's drift and are not independent. Operator-known anchors never move.
+gate bounds the offsets considered. Weighing a type confusion against a new anchor this way, rather than
+leaving out anchors of an unlikely type, keeps a confused detection from starting a duplicate of the anchor
+it stands at (``slam_core.sim.map_quality`` scores duplicates; docs/experiments.md has the figures). An
+anchor's estimate is the information-weighted fusion of its contributors, each user counted once (its latest
+contribution), because one user's repeated passes share that user's drift and are not independent.
+Operator-known anchors never move.
 
 Beyond the paper: *signature anchors* (a fixed beacon or WiFi AP heard strongly,
 ``slam_core.sensing.detectors``) carry an identity, so a contribution joins the anchor with its signature

@@ -91,7 +91,7 @@ class FingerprintParams:
     scan a cell every ~0.6 s), so that the map held only the last few seconds' walkers, whose errors are
     alike, and the building spent ~6 % of its core storing scans it dropped again. At 30 s a full cell
     holds scans at least that far apart, most from different walks; a quiet floor, whose cells fill slower
-    than that, keeps every scan as before."""
+    than that, keeps every scan."""
     min_aps: int = 3
     """A scan with fewer fresh APs is neither stored nor localised."""
     floor_dbm: float = -100.0

@@ -154,7 +154,7 @@ class EncounterDetector:
             raise RuntimeError("cannot pickle a detector while scans are being compared")
         state = dict(self.__dict__)
         del state["_pending"]  # a thread handle; snapshots keep their format
-        state["_bt"] = dict(self._bt)  # as before the OrderedDict: the same order, the same format
+        state["_bt"] = dict(self._bt)  # a plain dict in the snapshot (same order): its format is the dict's
         return state
 
     def __setstate__(self, state: dict[str, object]) -> None:

@@ -147,7 +147,8 @@ class DynamicSlam:
     # doubling of the user slots copied all of it: ~0.4 GB at 2,048 slots, which stalled a building
     # 0.1-0.5 s while a crowd walked in. So the maps start with room for ``MAP_START`` anchors, and before
     # a kernel that may add anchors the room grows (doubling, up to the capacity) to what that call could
-    # need. The kernels overflow only at the capacity, as before: the filters are the same bit for bit.
+    # need. The kernels overflow only at the capacity, so the filters are those of maps with full room, bit
+    # for bit.
     MAP_START = 4
 
     def _map_room(self, users: np.ndarray, new_anchors: int) -> None:

@@ -68,8 +68,8 @@ def wifi_candidates(sim: Simulation, params: WifiEq3Params, threshold: float | N
 BT_SMOOTHING_S = 1.0
 """Bluetooth RSS is averaged per pair over one sighting period, both directions (two readings of 4 dB noise
 each on the testbed). A longer window blurs the range of pairs walking towards each other (with 4 s, the
-fit's residual at 0-2 m was 8 dB); it was only needed while encounters were chosen on their reading, when a
-lucky strong reading from far away was the commonest strong reading (``slam_core.encounters.selection``)."""
+fit's residual at 0-2 m was 8 dB). Encounters are chosen on the filters' estimates, not on the reading
+(``slam_core.encounters.selection``), so a lucky strong reading from far away needs no longer window."""
 
 
 def bluetooth_candidates(sim: Simulation, params: BluetoothParams, cutoff: float | None = None) -> Candidates:

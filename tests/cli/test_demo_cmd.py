@@ -1,7 +1,6 @@
 """``crowdslam demo``, the README's first command: a server on SQLite and crowds walking it, one after
 another. A later crowd is new people in the same building, after the earlier one, and is tracked as well
-as the first (it used to walk another simulated world, at the same phone times, against the first world's
-maps)."""
+as the first: it walks the same simulated world, later, against the maps the first crowd left."""
 
 from __future__ import annotations
 
@@ -46,7 +45,7 @@ def test_crowds_one_after_another_walk_the_same_building(tmp_path: Path) -> None
         assert int(errors) == 0
         assert float(median) < 2.5
         assert float(p90) < 7.0
-    # measured 1.93 then 1.49 m; when the second crowd walked another world it was 1.47 then 2.37 m
+    # measured 1.93 then 1.49 m (a second crowd in another world against the first world's maps: 2.37 m)
     assert float(rounds[1][3]) <= float(rounds[0][3]) + 0.25
 
 

@@ -40,9 +40,9 @@ def test_pdr_replay_scores_every_waypoint_after_the_start(small_floor: Path) -> 
 
 
 def test_online_pdr_on_the_whole_shared_floor_meets_its_targets() -> None:
-    """Issue 4's figure for the causal, online PDR (raw IMU through the server's front-end, every walk of
-    site1 F1 from its first waypoint): p50 <= 2.8 m and p90 <= 6.5 m (2.56 / 6.04 m when this was written;
-    2.99 / 6.88 m while the peak that starts a walk still counted as a step)."""
+    """The causal, online PDR (raw IMU through the server's front-end, every walk of site1 F1 from its first
+    waypoint) holds p50 <= 2.8 m and p90 <= 6.5 m (measured 2.56 / 6.04 m; counting the peak that starts a
+    walk as a step gives 2.99 / 6.88 m, docs/experiments.md)."""
     result, errors = replay_floor(
         FLOOR, ReplayOptions(mode="pdr"), tracker_params(Settings()), load_calibration(None)
     )

@@ -7,7 +7,7 @@ from typing import Any
 
 from schemas.sensors import SensorBatch
 from server.buildings.ledger import DeviceLedger
-from server.buildings.types import BatchHeader
+from server.buildings.submissions import BatchHeader
 
 
 def _batch(device: str, seq: int, user: str | None = None, ble: str | None = None) -> BatchHeader:

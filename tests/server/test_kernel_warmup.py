@@ -23,7 +23,8 @@ from numba.core.registry import CPUDispatcher
 import slam_core
 from server.engine.config import load_calibration, tracker_params
 from server.engine.warmup import warm_kernels
-from server.buildings.types import Submission, TrackingConfig
+from server.buildings.config import TrackingConfig
+from server.buildings.submissions import Submission
 from server.settings import Settings
 from server.simulation.phones import simulated_batches
 from server.store.db import make_engine, make_session_factory

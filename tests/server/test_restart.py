@@ -13,8 +13,9 @@ from sqlalchemy import Engine, func, select
 
 from schemas.anchors import KnownAnchorIn
 from schemas.common import Position
+from server.buildings.config import Retention, TrackingConfig
+from server.buildings.submissions import Submission
 from server.buildings.tracking import BuildingTracking
-from server.buildings.types import Retention, Submission, TrackingConfig
 from server.engine.config import load_calibration, tracker_params
 from server.settings import Settings
 from server.simulation.phones import KnownAnchor, known_anchors, simulated_batches

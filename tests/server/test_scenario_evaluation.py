@@ -102,8 +102,8 @@ def test_every_step_is_scored(results: dict[tuple[str, int], dict[str, Any]]) ->
 
 
 def test_a_sparse_world_is_calibrated_on_enough_phones() -> None:
-    """The density sweep's sparsest world (1,500 m^2 per user: 2 users) used to calibrate on a 2-user twin,
-    which had no WiFi pair within the fit's range, and the sweep failed at its last value."""
+    """The density sweep's sparsest world (1,500 m^2 per user: 2 users) is calibrated on at least 23 phones:
+    a 2-user twin has no WiFi pair within the fit's range."""
     scenario = Scenario.from_dict(json.loads(TESTBED.read_text()))
     sparse = swept_scenario(scenario, "density", 1500)
     assert sparse["users"]["count"] == 2

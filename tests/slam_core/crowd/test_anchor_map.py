@@ -78,7 +78,7 @@ def test_association_weighs_type_confusion_against_a_new_anchor_as_eq_15_16_do()
     Eq. 16's new anchor scores log(p0 p(door | door)) = log(1e-3 * 0.8) = -7.13. A door detection (type 2;
     p(elevator | door) = 0.04) 0.5 m away scores log N + log 0.04 = -2.59 - 3.22 = -5.81 and joins; 2.5 m
     away (inside the 99 % gate) -7.31 and starts a new anchor, where an elevator detection there scores
-    -4.32 and joins. (The earlier rule left out every anchor with p(f | f_hat) < 0.05: a duplicate each
+    -4.32 and joins. (Leaving out every anchor with p(f | f_hat) < 0.05 instead would start a duplicate each
     time.)"""
     crowd = CrowdMapBuilder(POSTERIOR, detection_sigma_m=1e-3)
     elevator = crowd.contribute(0, np.zeros(2), np.eye(2), 0, 0.0)

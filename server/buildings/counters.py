@@ -1,0 +1,41 @@
+"""What a building's tracking counts (exported as Prometheus metrics by ``server.metrics``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass
+class Counters:
+    batches: int = 0
+    duplicates: int = 0
+    late: int = 0
+    estimates: int = 0
+    encounters: int = 0
+    """Detections chosen as human anchors (``slam_core.encounters.selection``), applied or gated."""
+    encounters_applied: int = 0
+    encounter_detections: int = 0
+    """Every WiFi or Bluetooth encounter detection, chosen or not."""
+    steps_dropped: int = 0
+    steps_detected: int = 0
+    """Steps the PDR front-end found in raw IMU."""
+    imu_samples_dropped: int = 0
+    """IMU samples older than what a user's front-end had consumed (late or re-sent batches)."""
+    recentred: int = 0
+    snapshots: int = 0
+    snapshot_failures: int = 0
+    """Periodic snapshots that could not be compressed (the batch log keeps what they would have covered)."""
+    replayed: int = 0
+    """Logged batches re-applied on load, after a crash."""
+    log_bodies_cleared: int = 0
+    """Logged batch bodies cleared once a snapshot covered them."""
+    pruned_positions: int = 0
+    """Position history rows deleted past their retention."""
+    pruned_batches: int = 0
+    """Batch id rows deleted past their retention."""
+    fingerprint_fixes: int = 0
+    """Scans located on the crowd's WiFi fingerprint map and applied as position fixes."""
+    users_evicted: int = 0
+    """Users forgotten by the tracker after ``Retention.user_idle_s`` without a batch."""
+    restore_failures: int = 0
+    """Snapshots refused on load (another format, other parameters): tracking restarted from the SQL map."""
