@@ -25,7 +25,8 @@ from slam_core.filter.dynamic_slam import DynamicSlam
 from slam_core.tracking.batches import EncounterResult, EstimateRow, UserBatch, UserReport
 from slam_core.tracking.params import TrackerParams
 from slam_core.tracking.placement import SlotColumns, TrackTable, carried_since, carry_variance, trail_lookup
-from slam_core.tracking.trails import Round, UserTrack
+from slam_core.tracking.rounds import Round
+from slam_core.tracking.trails import UserTrack
 from slam_core.wifi.pairs import fresh_mask
 
 

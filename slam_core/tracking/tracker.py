@@ -25,7 +25,7 @@ by the server) and advances everything they imply, in this order:
    one estimate, however many encounters it makes.
 
 The signature, fingerprint and encounter stages live in ``slam_core.tracking.radio``; the per-user dead
-reckoning and the rounds of events in ``slam_core.tracking.trails``.
+reckoning in ``slam_core.tracking.trails``, the rounds of events in ``slam_core.tracking.rounds``.
 
 Pure numerics: no I/O, no clock. Times are the phones' epoch milliseconds.
 """
@@ -55,7 +55,8 @@ from slam_core.tracking.batches import (
 )
 from slam_core.tracking.params import CROWD_SOLVERS, TrackerParams
 from slam_core.tracking.placement import SlotColumns
-from slam_core.tracking.trails import Round, UserTrack, lay_steps, round_at
+from slam_core.tracking.rounds import Round, lay_steps, round_at
+from slam_core.tracking.trails import UserTrack
 
 __all__ = [
     "CROWD_SOLVERS",

@@ -8,7 +8,6 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from slam_core.filter.kernels.arrays import CTRL_COV, LOGW, N_DEGENERATE, RNG_CTR, RNG_KEY, FilterArrays, X, Y
 from slam_core.filter.kernels.linalg2 import sample2
 from slam_core.filter.kernels.rng import normal
 from slam_core.filter.kernels.serial import serial_twin
@@ -92,25 +91,31 @@ def refine_one(
 
 @njit(cache=True, nogil=True, parallel=True)
 def human_anchor_update(
-    arrays: FilterArrays,
+    x: np.ndarray,
+    y: np.ndarray,
+    logw: np.ndarray,
+    ctrl_cov: np.ndarray,
+    rng_key: np.ndarray,
+    rng_ctr: np.ndarray,
     users: np.ndarray,
     peer_mean: np.ndarray,
     peer_cov: np.ndarray,
     distance: np.ndarray,
     distance_var: np.ndarray,
-    human: tuple[bool, float, int, float, float],
+    iterative: bool,
+    beta: float,
+    max_iterations: int,
+    outlier_probability: float,
+    max_range: float,
+    degenerate: np.ndarray,
 ) -> None:
     """For each i, update user ``users[i]`` with peer summary (``peer_mean[i]``, ``peer_cov[i]``), measured
     distance ``distance[i]`` and its variance R. Users must be distinct within one call.
 
     Weights: the paper leaves them implicit; here each particle is weighted by the mixture likelihood
     (1 - eps) N(z; h(s_hat), J P J^T + Q) + eps / max_range, evaluated at its predicted position (the
-    FastSLAM 2.0 marginal of the proposal), so a wrong encounter cannot wipe out the cloud. ``human`` is
-    (iterative sampling, beta, its maximum iterations, the outlier probability, the maximum range).
+    FastSLAM 2.0 marginal of the proposal), so a wrong encounter cannot wipe out the cloud.
     """
-    x, y, logw, ctrl_cov = arrays[X], arrays[Y], arrays[LOGW], arrays[CTRL_COV]
-    rng_key, rng_ctr, degenerate = arrays[RNG_KEY], arrays[RNG_CTR], arrays[N_DEGENERATE]
-    iterative, beta, max_iterations, outlier_probability, max_range = human
     n_particles = x.shape[1]
     log_eps = math.log(outlier_probability / max_range) if outlier_probability > 0.0 else -np.inf
     log_keep = math.log(1.0 - outlier_probability)
