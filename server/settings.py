@@ -103,7 +103,7 @@ class Settings(BaseSettings):
         default=True,
         description="In dynamicslam mode, also localise each WiFi scan on the fingerprint map the crowd "
         "learns while it is tracked and apply it as a robust position fix (on msindoor site1 F1, warm "
-        "replay, seeds 0-3: p50 2.16-2.25 -> 2.08-2.18 m, p90 4.82 -> 4.63-4.92 m).",
+        "replay, seeds 0-3: p50 2.08-2.18 m with them, 2.16-2.25 m without).",
     )
     ws_compression: bool = Field(
         default=False,

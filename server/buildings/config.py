@@ -20,9 +20,8 @@ class Retention:
     prune_chunk: int = 10_000
     log_clear_per_batch: float = 2.0
     """Each group clears this many logged batch bodies per batch it holds, of those a snapshot covers: the
-    clearing outpaces the logging, and costs each group in proportion to its size (~7 us a row on SQLite
-    here, measured apart on 2026-12-04), where clearing a minute's log at once had held one group for
-    ~0.6 s at 1,000 phones."""
+    clearing outpaces the logging, and costs each group in proportion to its size (~7 us a row on SQLite),
+    where clearing a minute's log at once would hold one group for ~0.6 s at 1,000 phones."""
     user_idle_s: float | None = 900.0
     """A user not heard from for this long is forgotten by the tracker (its slot, particles and maps freed;
     it needs a new fix when it comes back), at the next snapshot, so a restart's replay never spans an

@@ -1,0 +1,1 @@
+"""Files shipped with the server: the simulated testbed and its encounter calibration."""

@@ -6,7 +6,7 @@ what a busy building does: single phones and groups, each on the serial twins an
 (``slam_core.filter.kernels.serial``), and a small crowd long enough that its WiFi scans meet (Eq. 3), its
 Bluetooth sightings pair up, its scans outgrow the encounter index and the fingerprint map (both
 compact), and the fingerprint map places scans. A kernel missed here was seen only by a load run from a
-fresh install: ``tests/server/test_kernel_warmup.py`` runs a simulated crowd through a building after the
+fresh install: ``tests/server/engine/test_warmup.py`` runs a simulated crowd through a building after the
 warm-up and fails if any kernel still compiles.
 """
 

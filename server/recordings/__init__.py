@@ -1,0 +1,1 @@
+"""MCAP recordings of every accepted batch and estimate: written per building and hour, read back."""

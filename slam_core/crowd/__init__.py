@@ -1,0 +1,1 @@
+"""What the crowd learns together: the shared anchor map, its joint solve, and the WiFi fingerprint map."""

@@ -1,0 +1,1 @@
+"""How alike two WiFi scans are: DynamicSLAM's Eq. 3 and the union-fingerprint distance, and pair features."""

@@ -23,7 +23,7 @@ from server.replay import replay_offline  # noqa: E402
 from server.settings import Settings  # noqa: E402
 from server.simulation.phones import simulated_batches  # noqa: E402
 from slam_core.sim.simulation import simulate  # noqa: E402
-from tests.server.test_recording import small_crowd  # noqa: E402
+from tests.server.recordings.test_recorder import small_crowd  # noqa: E402
 
 
 def main() -> None:

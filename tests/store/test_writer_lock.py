@@ -15,7 +15,7 @@ import pytest
 
 from server.store.db import make_engine
 from server.store.writer_lock import WriterTurns, writer_turns
-from tests.server.test_restart import CROWD, _building, _fresh_building
+from tests.server.buildings.test_restart import CROWD, _building, _fresh_building
 
 
 def _taken(path: Path) -> bool:

@@ -19,8 +19,8 @@ from server.app import create_app
 from server.live.broadcast import Broadcaster
 from server.live.foxglove import FoxgloveLive
 from server.settings import Settings
+from tests.server.api.test_api import _batch
 from tests.server.conftest import migrate_with_operator
-from tests.server.test_api import _batch
 
 
 def _advertised(port: int) -> set[str]:

@@ -15,8 +15,8 @@ from fastapi.testclient import TestClient
 from server.api.batches import BatchFastPath
 from server.app import create_app
 from server.settings import Settings
+from tests.server.api.test_api import _batch
 from tests.server.conftest import migrate_with_operator
-from tests.server.test_api import _batch
 
 
 def _client(tmp: Path, fast: bool) -> tuple[TestClient, str]:

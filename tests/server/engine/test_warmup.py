@@ -11,7 +11,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 
 SCRIPT = r"""
 import importlib, json, pkgutil, sys, tempfile, time
@@ -33,7 +33,7 @@ from server.store.models import BuildingRow
 from server.buildings.tracking import BuildingTracking
 from slam_core.filter.kernels.serial import PARALLEL_MIN_USERS
 from slam_core.sim.simulation import simulate
-from tests.server.test_recording import small_crowd
+from tests.server.recordings.test_recorder import small_crowd
 
 
 def signatures():

@@ -23,8 +23,8 @@ from server.engine import warmup
 from server.settings import Settings
 from server.store.db import make_engine, make_session_factory
 from server.store.models import BatchRow, TrackerSnapshotRow
+from tests.server.api.test_api import _batch
 from tests.server.conftest import Api, migrate_with_operator
-from tests.server.test_api import _batch
 
 
 @pytest.fixture

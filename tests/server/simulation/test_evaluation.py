@@ -18,7 +18,7 @@ from slam_core.sim.encounters import calibrate
 from slam_core.sim.simulation import Scenario
 from slam_core.sim.sweeps import swept_scenario
 
-TESTBED = Path(__file__).resolve().parents[3] / "shared" / "scenarios" / "paper-testbed.json"
+TESTBED = Path(__file__).resolve().parents[4] / "shared" / "scenarios" / "paper-testbed.json"
 SEEDS = (0, 1, 2)
 # Seven full testbed runs through the tracker (~1 min on an idle 2-core machine; longer under load or with a
 # cold numba cache).
