@@ -55,7 +55,18 @@ class BatchReceipt(WireModel):
     )
 
 
+class FailingBuilding(WireModel):
+    """A building some of whose batches could not be applied lately (each refused alone, nothing kept)."""
+
+    building_id: str
+    failed_batches: int = Field(description="Batches refused since the building was loaded.")
+    last_failure_ms: int = Field(description="When the latest was refused (server time, epoch ms).")
+
+
 class Health(WireModel):
-    status: Literal["ok"] = "ok"
+    status: Literal["ok", "degraded"] = Field(
+        default="ok", description="degraded while a building has refused a batch in the last five minutes."
+    )
     database: str
     buildings_loaded: int
+    failing_buildings: list[FailingBuilding] = Field(default_factory=list)

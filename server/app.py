@@ -19,6 +19,7 @@ from schemas.errors import Problem
 from schemas.sensors import SensorBatch
 from server.api import anchors, batches, buildings, health, live, positions, signal_maps
 from server.api.deps import revalidate_keys
+from server.api.limits import BodyLimit
 from server.auth import KeyCache
 from server.buildings.registry import TrackingService
 from server.buildings.tracking import tracking_config
@@ -131,6 +132,7 @@ def create_app(settings: Settings, tune_gc: bool = False) -> FastAPI:
     for module in (health, buildings, batches, positions, anchors, live, signal_maps):
         app.include_router(module.router)
     app.add_middleware(batches.BatchFastPath)
+    app.add_middleware(BodyLimit, limit=settings.max_request_bytes)
     _document_raw_bodies(app)
     return app
 

@@ -24,6 +24,12 @@ class Settings(BaseSettings):
         description="SQLAlchemy URL, e.g. postgresql+psycopg://user@host/db. Default: SQLite in data_dir.",
     )
     max_batch_bytes: int = Field(default=MAX_BATCH_BYTES, gt=0)
+    max_request_bytes: int = Field(
+        default=256 * 1024,
+        gt=0,
+        description="Largest body of any request but a batch; refused with 413 before it is read, before "
+        "the key is checked.",
+    )
     seed: int = Field(default=0, description="Root seed of every filter's random stream.")
     encounter_calibration: Path | None = Field(
         default=None,

@@ -2,20 +2,42 @@
 
 from __future__ import annotations
 
+import time
+
 from fastapi import APIRouter, Response
 from sqlalchemy import text
 
-from schemas.api import Health
+from schemas.api import FailingBuilding, Health
 from server.api.deps import State
 
 router = APIRouter(tags=["health"])
+
+
+DEGRADED_S = 300.0
+"""A building that refused a batch this recently makes the server ``degraded``."""
 
 
 @router.get("/healthz", response_model=Health)
 def healthz(state: State) -> Health:
     with state.engine.connect() as connection:
         connection.execute(text("SELECT 1"))
-    return Health(database=state.engine.dialect.name, buildings_loaded=len(state.tracking.workers))
+    workers = state.tracking.workers
+    now = time.time()
+    failing = [
+        FailingBuilding(
+            building_id=building_id,
+            failed_batches=counters.failed_batches,
+            last_failure_ms=int(counters.last_failure_unix_s * 1000),
+        )
+        for building_id, worker in sorted(workers.items())
+        if (counters := worker.counters).failed_batches and now - counters.last_failure_unix_s < DEGRADED_S
+    ]
+    return Health(
+        status="degraded" if failing else "ok",
+        database=state.engine.dialect.name,
+        buildings_loaded=len(workers),
+        failing_buildings=failing,
+    )
 
 
 @router.get("/metrics", response_class=Response)

@@ -39,3 +39,9 @@ class Counters:
     """Users forgotten by the tracker after ``Retention.user_idle_s`` without a batch."""
     restore_failures: int = 0
     """Snapshots refused on load (another format, other parameters): tracking restarted from the SQL map."""
+    reloads: int = 0
+    """Times the building was loaded again from SQL after a group's transaction failed."""
+    failed_batches: int = 0
+    """Batches that could not be applied (each answered with its own error; nothing of them kept)."""
+    last_failure_unix_s: float = 0.0
+    """Wall time of the latest failed batch (``/healthz`` calls a building failing lately degraded)."""

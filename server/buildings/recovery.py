@@ -39,7 +39,6 @@ class RecoverableBuilding:
     """Used from the building's single worker thread only, like ``BuildingTracking``."""
 
     def __init__(self, building_id: str, sessions: sessionmaker[Session], config: TrackingConfig) -> None:
-        params, calibration, seed = config.params, config.calibration, config.seed
         self.building_id = building_id
         self.retention = config.retention
         self._last_heard: dict[str, float] = {}  # user -> wall time of its last applied batch
@@ -47,24 +46,31 @@ class RecoverableBuilding:
         self._sessions = sessions
         self.counters = Counters()
         self.restore_problem: str | None = None
-        self.ids = AnchorIds()
-        self._device_of_user: dict[str, str] = {}
-        self._round = 0  # engine calls so far: the order a restart replays the batch log in
+        self._config = config
         self._last_snapshot = -math.inf
         self._log_to_clear = False  # a snapshot was written since the log's covered bodies were last cleared
         self._background = tracker_snapshot.BackgroundSnapshots(building_id)
-        with sessions() as session:
-            building = repo.get_building(session, building_id)
+        self._load()
+
+    def _load(self) -> None:
+        """The building as its SQL holds it: the last snapshot plus the batches logged since, replayed in
+        their original engine calls (or, without a usable snapshot, the SQL anchor map)."""
+        params, calibration, seed = self._config.params, self._config.calibration, self._config.seed
+        self.ids = AnchorIds()
+        self._device_of_user: dict[str, str] = {}
+        self._round = 0  # engine calls so far: the order a restart replays the batch log in
+        with self._sessions() as session:
+            building = repo.get_building(session, self.building_id)
             if building is None:
-                raise NotFoundError(f"no building {building_id!r}")
+                raise NotFoundError(f"no building {self.building_id!r}")
             self.geo = (
                 GeoFrame(building.origin_lat_deg, building.origin_lon_deg, building.rotation_rad)
                 if building.origin_lat_deg is not None and building.origin_lon_deg is not None
                 else None
             )
-            self.devices = DeviceLedger(building_id, repo.devices(session, building_id))
+            self.devices = DeviceLedger(self.building_id, repo.devices(session, self.building_id))
             restored = self._restore(session, params, calibration)
-            logged = logged_batches(session, building_id, after_round=self._round if restored else None)
+            logged = logged_batches(session, self.building_id, after_round=self._round if restored else None)
             if not restored:
                 # the filters start again, but the log still says which sequence numbers were applied; the
                 # engine calls count on from the log's last, so the load snapshot covers the whole log
@@ -73,7 +79,7 @@ class RecoverableBuilding:
                 self._round = max((item.applied_round for item in logged), default=self._round)
                 logged = []
                 self.tracker = BuildingTracker(params, calibration, seed=seed)
-                for row in repo.list_anchors(session, building_id):
+                for row in repo.list_anchors(session, self.building_id):
                     cov = np.array([[row.cov_xx, row.cov_xy], [row.cov_xy, row.cov_yy]])
                     index = self.tracker.restore_anchor(
                         np.array([row.x_m, row.y_m]),
@@ -87,6 +93,13 @@ class RecoverableBuilding:
                     self.ids.link(index, row.public_id, row.label)
         self._replay(logged)
         self.snapshot(clear_log=True)  # it covers the whole log now
+
+    def reload(self) -> None:
+        """Throw the in-memory state away and load the building again from SQL, exactly as a restart does:
+        what a rolled-back transaction had changed in the tracker is gone, what committed is all there."""
+        self._background.discard()  # a snapshot taken from the state thrown away is never written
+        self._load()
+        self.counters.reloads += 1
 
     def context(self) -> convert.BuildingContext:
         """What converting a batch needs of the building: its geo frame and its known anchors by id."""

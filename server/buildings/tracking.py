@@ -8,6 +8,7 @@ phones.
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from datetime import UTC, datetime
@@ -39,6 +40,8 @@ from server.store.db import make_engine, make_session_factory
 from server.store.wal_checkpoints import checkpoint_in_background
 from server.store.writer_lock import writer_turns
 from slam_core.tracking.tracker import EstimateRow, UserBatch
+
+logger = logging.getLogger(__name__)
 
 
 class BuildingTracking(RecoverableBuilding):
@@ -144,7 +147,37 @@ class BuildingTracking(RecoverableBuilding):
         )
 
     def process(self, group: list[Submission]) -> GroupResult:
-        """Apply a group of batches: dedupe, order, convert, track, persist, in one transaction."""
+        """Apply a group of batches: dedupe, order, convert, track, persist, in one transaction.
+
+        State changes only when that transaction commits. When it fails (a batch the engine cannot apply, a
+        non-finite estimate, a database error), the building is loaded again from SQL (``reload``: what
+        the tracker had changed is gone, as after a restart) and the group is applied again one batch at
+        a time, so that a batch that fails fails alone and every other user of the group is served."""
+        try:
+            return self._process(group)
+        except Exception as exc:
+            logger.warning(
+                "building %s: a group of %d failed (%r); reloading", self.building_id, len(group), exc
+            )
+            self.reload()
+            if len(group) > 1:
+                results: list[BatchReceipt | ProblemError] = []
+                messages: list[LiveMessage] = []
+                for sub in group:
+                    one = self.process([sub])
+                    results += one.receipts
+                    messages += one.messages
+                return GroupResult(results, messages)
+            self.counters.failed_batches += 1
+            self.counters.last_failure_unix_s = time.time()
+            if isinstance(exc, ProblemError):
+                return GroupResult([exc])
+            if isinstance(exc, ValueError):  # the engine refused what the batch implies; nothing was kept
+                return GroupResult([InvalidInputError(f"the batch cannot be applied: {exc}")])
+            logger.exception("building %s: batch %s failed", self.building_id, group[0].header.batch_id)
+            return GroupResult([ProblemError(f"the batch could not be applied ({type(exc).__name__})")])
+
+    def _process(self, group: list[Submission]) -> GroupResult:
         ctx: convert.BuildingContext | None = None  # only for batches not converted by the front
         results: list[BatchReceipt | ProblemError | None] = [None] * len(group)
         converted: dict[int, tuple[UserBatch, list[str]]] = {}
@@ -166,6 +199,8 @@ class BuildingTracking(RecoverableBuilding):
         calls = dict(zip(order, self.devices.plan([group[i].header for i in order]), strict=True))
         base = self._round
         device_rows: list[dict[str, object]] = []
+        to_record: list[int] = []
+        self._estimates_to_record: list[tuple[list[Estimate], int]] = []
         with self._writer_turns, self._sessions.begin() as session:  # see server.store.writer_lock
             inserted = insert_batches_once(session, [self._accepted(group[i], calls[i], base) for i in order])
             by_call: dict[int, list[int]] = {}
@@ -175,8 +210,7 @@ class BuildingTracking(RecoverableBuilding):
                     self.counters.duplicates += 1
                     results[i] = self._receipt(b, "duplicate", converted[i][1])
                     continue
-                if self.recorder is not None:
-                    self.recorder.record_batch(group[i].raw, group[i].received_ns)
+                to_record.append(i)
                 call = calls[i]
                 if call is None:
                     self.counters.late += 1
@@ -198,7 +232,13 @@ class BuildingTracking(RecoverableBuilding):
             if time.monotonic() - self._last_prune >= self.retention.prune_period_s:
                 self._prune(session)
         self.devices.saved(device_rows)
+        # recorded once committed: a batch whose transaction failed is not in the recording (a crash between
+        # the commit and these writes leaves an acknowledged batch out of it, never a refused one in)
         if self.recorder is not None:
+            for i in to_record:
+                self.recorder.record_batch(group[i].raw, group[i].received_ns)
+            for estimates, received_ns in self._estimates_to_record:
+                self.recorder.record_estimates(estimates, received_ns)
             self.recorder.flush()
         self.counters.batches += len(group)
         return GroupResult([r if r is not None else ProblemError("not processed") for r in results], messages)
@@ -224,8 +264,7 @@ class BuildingTracking(RecoverableBuilding):
         self.counters.encounter_detections += outcome.detections
         estimates = {u: self._estimate(u, row) for u, row in outcome.estimates.items()}
         self.counters.estimates += len(estimates)
-        if self.recorder is not None:
-            self.recorder.record_estimates(list(estimates.values()), group[now[0]].received_ns)
+        self._estimates_to_record.append((list(estimates.values()), group[now[0]].received_ns))
         stored_at_ms = int(heard * 1000)
         rows = [position_row(self.building_id, e, stored_at_ms) for e in estimates.values()]
         repo.add_positions(session, rows)

@@ -237,6 +237,9 @@ class BuildingTracker:
         for b in batches:
             reports[b.user].status = "tracking" if self.is_tracking(b.user) else "awaiting_fix"
         estimates = self._rows(sorted(b.user for b in batches if reports[b.user].status == "tracking"))
+        for user, row in estimates.items():  # an output is kept only finite: the caller then undoes the call
+            if not all(math.isfinite(v) for v in (row.x, row.y, *row.cov, *row.best, row.heading)):
+                raise ValueError(f"user {user!r}: the filter's estimate is not finite")
         return TrackerOutcome(reports, estimates, encounters, sorted(changed), detections)
 
     def _observe(

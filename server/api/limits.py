@@ -1,0 +1,73 @@
+"""Limits every request meets before any work is done: its body's size, checked on ``Content-Length`` and
+again while the body streams in, before the route reads it and before the caller's key is looked up.
+
+An anonymous caller could otherwise make the server hold a body of any size in memory only to answer 401
+(a 400 MiB ``POST /v1/buildings`` had grown the server by 1.1 GB). The batch route reads its body itself
+under its own limit (``CROWDSLAM_MAX_BATCH_BYTES``, ``server.api.batches``); every other route is held to
+``CROWDSLAM_MAX_REQUEST_BYTES``.
+"""
+
+from __future__ import annotations
+
+import re
+
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from server.errors import BodyTooLargeError, MalformedBodyError, ProblemError, problem_response_parts
+
+_BATCHES_PATH = re.compile(r"/v1/buildings/[^/]+/batches")
+
+
+class BodyLimit:
+    """Pure ASGI middleware: 413 for a declared or streamed body over the limit, before the app reads it."""
+
+    def __init__(self, app: ASGIApp, limit: int) -> None:
+        self.app = app
+        self.limit = limit
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http" or _BATCHES_PATH.fullmatch(scope["path"]):
+            await self.app(scope, receive, send)
+            return
+        for name, value in scope["headers"]:
+            if name == b"content-length":
+                declared = value.decode("latin-1")
+                if not declared.isdigit():
+                    await _answer(send, MalformedBodyError("the Content-Length header is not a number"))
+                    return
+                if int(declared) > self.limit:
+                    await _answer(send, BodyTooLargeError(int(declared), self.limit))
+                    return
+        received = 0
+        started = answered = False
+
+        async def limited_receive() -> Message:
+            nonlocal received, answered
+            message = await receive()
+            if message["type"] == "http.request":
+                received += len(message.get("body", b""))
+                if received > self.limit:
+                    # answered here, and the route sees the client leave: nothing more is read or kept
+                    if not started and not answered:
+                        answered = True
+                        await _answer(send, BodyTooLargeError(received, self.limit))
+                    return {"type": "http.disconnect"}
+            return message
+
+        async def guarded_send(message: Message) -> None:
+            nonlocal started
+            if answered:  # the route's own answer to the "disconnect" goes nowhere
+                return
+            started = started or message["type"] == "http.response.start"
+            await send(message)
+
+        await self.app(scope, limited_receive, guarded_send)
+
+
+async def _answer(send: Send, error: ProblemError) -> None:
+    status, body, headers = problem_response_parts(error.to_problem())
+    raw = [(k.encode("latin-1"), v.encode("latin-1")) for k, v in headers.items()]
+    raw.append((b"content-length", str(len(body)).encode("latin-1")))
+    raw.append((b"connection", b"close"))
+    await send({"type": "http.response.start", "status": status, "headers": raw})
+    await send({"type": "http.response.body", "body": body})
