@@ -81,11 +81,18 @@ Covariance2 = Annotated[
 ]
 
 
-class Position(WireModel):
-    """A point in the building's local frame (x east, y north)."""
+MAX_COORDINATE_M = 100_000.0
+"""100 km from the building's origin: beyond any building and its surroundings. A coordinate past it is
+refused (422) before anything is touched: a fix at 1e160 m had made its user's filter overflow."""
 
-    x_m: float
-    y_m: float
+Coordinate = Annotated[float, Field(ge=-MAX_COORDINATE_M, le=MAX_COORDINATE_M)]
+
+
+class Position(WireModel):
+    """A point in the building's local frame (x east, y north), within ``MAX_COORDINATE_M`` of its origin."""
+
+    x_m: Coordinate
+    y_m: Coordinate
 
 
 def wire_config(example: dict[str, Any]) -> ConfigDict:

@@ -45,6 +45,15 @@ MAX_BATCH_BYTES = 2 * 1024 * 1024
 """Largest accepted request body (bytes); larger bodies are refused with 413 before parsing."""
 
 
+MAX_SENSOR_VALUE = 10_000.0
+"""Any IMU axis's magnitude: above every phone sensor's range (accelerometers +-160 m/s^2, gyroscopes +-35
+rad/s, magnetometers +-5,000 uT), far below what could overflow the dead reckoning."""
+SensorValues = Annotated[
+    list[Annotated[float, Field(ge=-MAX_SENSOR_VALUE, le=MAX_SENSOR_VALUE)]],
+    Field(max_length=MAX_IMU_SAMPLES),
+]
+
+
 class _Stream(WireModel):
     t_ms: IncreasingTimes = Field(
         max_length=MAX_IMU_SAMPLES, description="Sample times, strictly increasing."
@@ -60,9 +69,9 @@ class _Stream(WireModel):
 class Vector3Stream(_Stream):
     """Three-axis samples in the phone frame (Android ``SensorEvent.values[0..2]``)."""
 
-    x: list[float] = Field(max_length=MAX_IMU_SAMPLES)
-    y: list[float] = Field(max_length=MAX_IMU_SAMPLES)
-    z: list[float] = Field(max_length=MAX_IMU_SAMPLES)
+    x: SensorValues
+    y: SensorValues
+    z: SensorValues
 
     @model_validator(mode="after")
     def _columns(self) -> Self:

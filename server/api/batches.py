@@ -40,9 +40,20 @@ async def ingest(state: AppState, caller: Principal, building_id: str, body: byt
             f"the batch names building {batch.building_id!r} but was posted to building {building_id!r}"
         )
     caller.require_device(building_id, batch.device_id)
+    span = batch.time_span_ms()
+    if span is not None and span[1] > time.time() * 1000 + MAX_CLOCK_AHEAD_MS:
+        ahead_s = (span[1] - time.time() * 1000) / 1000
+        raise InvalidInputError(
+            f"the batch's latest time is {ahead_s:.0f} s ahead of the server's clock; at most "
+            f"{MAX_CLOCK_AHEAD_MS // 1000} s are accepted (is the phone's clock set?)"
+        )
     worker = await state.tracking.worker(building_id)
     return await worker.submit(Submission.of(batch, body, time.time_ns()))
 
+
+MAX_CLOCK_AHEAD_MS = 300_000
+"""A batch timed more than five minutes ahead of the server's clock is refused: applied, it would set its
+user's timeline in the future and every later batch would look out of order."""
 
 _BATCHES_PATH = re.compile(r"/v1/buildings/([^/]+)/batches")
 _WANTED_HEADERS = (b"authorization", b"content-length")

@@ -294,6 +294,11 @@ class BuildingTracking(RecoverableBuilding):
                     f"{report.imu_samples_dropped} IMU samples skipped: not newer than the samples "
                     "already dead-reckoned for this user"
                 )
+            if report.clock_restarted:
+                warnings.append(
+                    "every time in this batch is over a minute behind the user's last one: the phone's clock "
+                    "went back, and its timeline restarts at this batch"
+                )
             if report.steps_dropped:
                 warnings.append(_dropped_warning(report.steps_dropped, report.status))
             results[i] = self._receipt(

@@ -114,6 +114,7 @@ class UserReport:
     fixes_applied: int = 0
     recentred: int = 0
     fingerprint_fixes: int = 0  # scans localised on the crowd fingerprint map and applied
+    clock_restarted: bool = False  # the phone's clock went back: the user's timeline restarted here
     anchor_joins: list[tuple[int, int]] = field(default_factory=list)
     """Per building-anchor detection applied (not signatures): its time and the crowd anchor it joined."""
 

@@ -33,6 +33,7 @@ Pure numerics: no I/O, no clock. Times are the phones' epoch milliseconds.
 from __future__ import annotations
 
 import math
+from array import array
 from dataclasses import replace
 
 import numpy as np
@@ -57,6 +58,10 @@ from slam_core.tracking.params import CROWD_SOLVERS, TrackerParams
 from slam_core.tracking.placement import SlotColumns
 from slam_core.tracking.rounds import Round, lay_steps, round_at
 from slam_core.tracking.trails import UserTrack
+
+CLOCK_JUMP_BACK_MS = 60_000
+"""A batch whose every time is this far behind its user's last one: the phone's clock went back (set by hand,
+a reset), and the user's timeline restarts there (``BuildingTracker._restart_timeline``)."""
 
 __all__ = [
     "CROWD_SOLVERS",
@@ -204,6 +209,12 @@ class BuildingTracker:
             if b.detect_type.size and np.any((b.detect_type < 0) | (b.detect_type >= self.n_types)):
                 raise ValueError(f"user batch of {b.user!r}: anchor type outside [0, {self.n_types})")
         reports = {b.user: UserReport() for b in batches}
+        for b in batches:
+            u = self._users.get(b.user)
+            latest = _latest_time(b)
+            if u is not None and u.last_t_ms >= 0 and 0 <= latest < u.last_t_ms - CLOCK_JUMP_BACK_MS:
+                self._restart_timeline(b.user, u)
+                reports[b.user].clock_restarted = True
         batches = [self._dead_reckon(b, reports[b.user]) for b in batches]
         for b in batches:
             if b.user not in self._users:
@@ -241,6 +252,16 @@ class BuildingTracker:
             if not all(math.isfinite(v) for v in (row.x, row.y, *row.cov, *row.best, row.heading)):
                 raise ValueError(f"user {user!r}: the filter's estimate is not finite")
         return TrackerOutcome(reports, estimates, encounters, sorted(changed), detections)
+
+    def _restart_timeline(self, user: str, u: UserTrack) -> None:
+        """The phone's clock went back: its user's timeline restarts at its next event (its filter, position
+        and maps kept), instead of every step being skipped as out of order until the clock catches up.
+        Readings from before the jump can no longer be placed on its trail."""
+        u.last_t_ms = -1
+        u.trail = array("d")
+        self.front_end.forget(user)
+        if u.slot >= 0:
+            self._columns.reset(u.slot)
 
     def _observe(
         self, batches: list[UserBatch], rounds: list[Round], reports: dict[str, UserReport], newest: int
@@ -470,6 +491,16 @@ class BuildingTracker:
             n: EstimateRow(self._users[n].last_t_ms, x, y, (xx, xy, yy), (bx, by), heading)
             for n, (x, y, xx, xy, yy, bx, by, heading) in zip(users, summary.tolist(), strict=True)
         }
+
+
+def _latest_time(b: UserBatch) -> int:
+    """The latest time anywhere in a batch, raw IMU included (-1: nothing timed)."""
+    latest = _heard_until(b)
+    if b.imu is not None:
+        for stream in (b.imu.acc, b.imu.gyr, b.imu.mag):
+            if stream is not None and stream.size:
+                latest = max(latest, int(stream[:, 0].max()))
+    return latest
 
 
 def _heard_until(b: UserBatch) -> int:

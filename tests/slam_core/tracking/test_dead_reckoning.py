@@ -143,3 +143,24 @@ def test_engine_shift_translates_particles_and_checks_its_input() -> None:
     with pytest.raises(ValueError, match="unknown user slot"):
         engine.shift(np.array([99]), np.zeros((1, 2)))
     np.testing.assert_allclose(engine.state.x[slot], before[0] + 1.5)
+
+
+def test_a_clock_that_jumps_back_restarts_the_users_timeline() -> None:
+    """A phone whose clock is set back by two hours: its next batches are not skipped as out of order
+    until the clock catches up; the timeline restarts there, position and filter kept. A batch only a
+    little behind (a late batch) is still out of order, its steps skipped."""
+    tracker = BuildingTracker(TrackerParams(), CAL, seed=0)
+    tracker.apply([_steps(T0, 10, math.pi / 2, None, fix=True)])
+    np.testing.assert_allclose(_dr(tracker), np.array([15.0, 7.0]), atol=1e-9)
+    late = tracker.apply([_steps(T0 - 5_000, 4, math.pi / 2, None, fix=False)]).reports["u"]
+    assert late.steps_dropped == 4
+    assert not late.clock_restarted
+    back = T0 - 2 * 3600 * 1000
+    report = tracker.apply([_steps(back, 10, 0.0, None, fix=False)]).reports["u"]
+    assert report.clock_restarted
+    assert report.steps_applied == 10
+    np.testing.assert_allclose(_dr(tracker), np.array([15.0, 17.0]), atol=1e-9)  # 10 m north of where it was
+    assert tracker.last_time_ms("u") == back + 5_000
+    going_on = tracker.apply([_steps(back + 5_000, 2, 0.0, None, fix=False)]).reports["u"]
+    assert going_on.steps_applied == 2
+    assert not going_on.clock_restarted

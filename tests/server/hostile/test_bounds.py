@@ -1,0 +1,85 @@
+"""Every number a client sends is finite and physically possible, and every time is near the server's
+clock: out-of-bounds input is refused (422, naming the field) before anything is touched, and the user it
+came from goes on being tracked."""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import httpx
+
+from tests.server.api.test_api import _batch
+from tests.server.conftest import Api
+
+
+def _post(api: Api, key: str, body: dict[str, Any]) -> httpx.Response:
+    return api.client.post("/v1/buildings/hq/batches", json=body, headers=api.auth(key))
+
+
+def test_an_absurd_fix_is_refused_and_its_user_goes_on(sqlite_api: Api) -> None:
+    api = sqlite_api
+    api.create_building()
+    key = api.key("hq", "device", "phone-1")
+    assert _post(api, key, _batch(0)).json()["status"] == "applied"
+    absurd = _batch(
+        1,
+        landmarks=[
+            {"kind": "fix", "t_ms": _batch(1)["steps"][0]["t_ms"], "position": {"x_m": 1e160, "y_m": 0}}
+        ],
+    )
+    response = _post(api, key, absurd)
+    assert response.status_code == 422, response.text
+    assert "landmarks.0.fix.position.x_m" in response.text
+    # nothing was kept: the same batch id, sane, applies
+    sane = _post(api, key, _batch(1))
+    assert sane.status_code == 200
+    assert sane.json()["status"] == "applied"
+    assert sane.json()["estimate"] is not None
+    assert _post(api, key, _batch(2)).json()["status"] == "applied"
+
+
+def test_an_anchor_cannot_be_pinned_far_away_and_imu_is_bounded(sqlite_api: Api) -> None:
+    api = sqlite_api
+    api.create_building()
+    response = api.client.put(
+        "/v1/buildings/hq/anchors/far",
+        json={"type": "door", "position": {"x_m": 1e308, "y_m": 0.0}},
+        headers=api.auth(api.operator),
+    )
+    assert response.status_code == 422, response.text
+    key = api.key("hq", "device", "phone-1")
+    t0 = _batch(0)["steps"][0]["t_ms"]
+    imu = _batch(
+        0,
+        steps=[],
+        accelerometer={"t_ms": [t0, t0 + 20], "x": [0.0, 1e300], "y": [0.0, 0.0], "z": [9.8, 9.8]},
+    )
+    response = _post(api, key, imu)
+    assert response.status_code == 422, response.text
+    assert "accelerometer.x.1" in response.text
+
+
+def test_a_batch_from_the_future_is_refused_and_freezes_nobody(sqlite_api: Api) -> None:
+    """Steps timed in 2099 had been accepted, and every later step of that user was then 'out of time
+    order' forever."""
+    api = sqlite_api
+    api.create_building()
+    key = api.key("hq", "device", "phone-1")
+    assert _post(api, key, _batch(0)).json()["status"] == "applied"
+    future = _batch(1)
+    for step in future["steps"]:
+        step["t_ms"] = 4_070_908_800_000 + step["t_ms"] % 10_000  # 2099
+    response = _post(api, key, future)
+    assert response.status_code == 422, response.text
+    assert "ahead of the server's clock" in response.json()["detail"]
+    soon = _batch(1)  # the same batch id, honest times
+    body = _post(api, key, soon).json()
+    assert body["status"] == "applied"
+    assert not any("out of time order" in w for w in body["warnings"])
+    # a phone clock a little ahead (under five minutes) is fine
+    ahead = _batch(2)
+    now_ms = int(time.time() * 1000)
+    for k, step in enumerate(ahead["steps"]):
+        step["t_ms"] = now_ms + 60_000 + k
+    assert _post(api, key, ahead).json()["status"] == "applied"
