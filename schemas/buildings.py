@@ -42,3 +42,15 @@ class Building(WireModel):
     name: str = Field(min_length=1, max_length=128)
     geo_reference: GeoReference | None = None
     floors: list[Floor] = Field(default_factory=list, max_length=250)
+
+
+class DeviceAssignment(WireModel):
+    """Which user a device's batches are for. A device posts as its own id, or as the user it first posted
+    as; an operator assigns it another (``PUT /v1/buildings/{id}/devices/{device}``)."""
+
+    device_id: Identifier
+    user_id: Identifier
+
+
+class DeviceAssignmentIn(WireModel):
+    user_id: Identifier

@@ -5,8 +5,9 @@ from __future__ import annotations
 from fastapi import APIRouter, status
 
 from schemas.api import KeyCreated, KeyCreateIn, KeyScope
-from schemas.buildings import Building, Floor, GeoReference
-from server.api.deps import Caller, DbSession
+from schemas.buildings import Building, DeviceAssignment, DeviceAssignmentIn, Floor, GeoReference
+from schemas.common import Identifier
+from server.api.deps import Caller, DbSession, State
 from server.auth import mint_key
 from server.errors import ConflictError, InvalidInputError, NotFoundError
 from server.store import repositories as repo
@@ -93,3 +94,15 @@ def create_key(building_id: str, body: KeyCreateIn, caller: Caller, session: DbS
         building_id=building_id,
         device_id=body.device_id if body.scope == KeyScope.DEVICE else None,
     )
+
+
+@router.put("/{building_id}/devices/{device_id}", response_model=DeviceAssignment)
+async def assign_device(
+    building_id: str, device_id: Identifier, body: DeviceAssignmentIn, caller: Caller, state: State
+) -> DeviceAssignment:
+    """Assign a device to a user (operator key): the device's batches are that user's from now on, and the
+    device may no longer post as the user it posted as before (a phone handed to someone else)."""
+    caller.require_operator(building_id)
+    worker = await state.tracking.worker(building_id)
+    await worker.call("assign_device", device_id, body.user_id)
+    return DeviceAssignment(device_id=device_id, user_id=body.user_id)

@@ -30,6 +30,30 @@ class DeviceLedger:
         self.building_id = building_id
         self._devices = {d: _Device(u, ble, seq, seq) for d, (u, ble, seq) in rows.items()}
 
+    def user_of(self, device_id: str) -> str | None:
+        """The user a device posts as (None: a device not seen yet)."""
+        device = self._devices.get(device_id)
+        return None if device is None else device.user_id
+
+    def may_post_as(self, device_id: str, user_id: str) -> bool:
+        """A device posts for its own id, or for the user it has posted as (or an operator assigned it). A
+        device not seen yet may take a user no other device posts as and no other device is named."""
+        if user_id == device_id:
+            return True
+        current = self.user_of(device_id)
+        if current is not None:
+            return current == user_id
+        return user_id not in self._devices and all(d.user_id != user_id for d in self._devices.values())
+
+    def assign(self, device_id: str, user_id: str) -> dict[str, object]:
+        """An operator's assignment of a device to a user; returns the device's row for SQL."""
+        device = self._devices.get(device_id)
+        if device is None:
+            self._devices[device_id] = _Device(user_id, None, None, None)
+        else:
+            device.user_id = user_id
+        return self._row(device_id)
+
     def last_seq(self, device_id: str) -> int | None:
         device = self._devices.get(device_id)
         return None if device is None else device.last_seq

@@ -27,7 +27,7 @@ from server.buildings.recovery import RecoverableBuilding
 from server.buildings.rows import anchor_row, position_row
 from server.buildings.submissions import BatchHeader, GroupResult, Submission
 from server.engine.config import load_calibration, tracker_params
-from server.errors import ConflictError, InvalidInputError, NotFoundError, ProblemError
+from server.errors import ConflictError, ForbiddenError, InvalidInputError, NotFoundError, ProblemError
 from server.ingestion import convert
 from server.recordings.recorder import BuildingRecorder
 from server.settings import Settings
@@ -130,6 +130,13 @@ class BuildingTracking(RecoverableBuilding):
         return merged, messages
 
     # ------------------------------------------------------------------ batches
+    def assign_device(self, device_id: str, user_id: str) -> None:
+        """An operator assigns a device to a user: its batches are for that user from now on."""
+        row = self.devices.assign(device_id, user_id)
+        with self._writer_turns, self._sessions.begin() as session:
+            repo.upsert_devices(session, [row])
+        self.devices.saved([row])
+
     def latest_estimate(self, user: str) -> Estimate | None:
         row = self.tracker.estimate(user)
         if row is None:
@@ -191,6 +198,15 @@ class BuildingTracking(RecoverableBuilding):
                 except ValueError as exc:
                     results[i] = InvalidInputError(str(exc))
                     continue
+            header = sub.header
+            if not self.devices.may_post_as(header.device_id, header.effective_user_id):
+                bound = self.devices.user_of(header.device_id) or header.device_id
+                results[i] = ForbiddenError(
+                    f"device {header.device_id!r} posts as user {bound!r} or as itself, not as "
+                    f"{header.effective_user_id!r} (an operator may assign it another user: PUT "
+                    f"/v1/buildings/{self.building_id}/devices/{header.device_id})"
+                )
+                continue
             converted[i] = (c.user_batch, c.warnings)
         messages: list[LiveMessage] = []
         order = list(converted)

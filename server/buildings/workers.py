@@ -26,7 +26,17 @@ from slam_core.geo import GeoFrame
 MAX_GROUP = 256
 
 
-CALLS = frozenset({"anchors", "get_anchor", "put_known_anchor", "delete_anchor", "merge_anchors", "context"})
+CALLS = frozenset(
+    {
+        "assign_device",
+        "anchors",
+        "get_anchor",
+        "put_known_anchor",
+        "delete_anchor",
+        "merge_anchors",
+        "context",
+    }
+)
 """The building's methods the API may call (``BuildingWorker.call``), in order with its batches."""
 
 

@@ -30,5 +30,7 @@ def test_a_building_worker_refuses_calls_it_does_not_offer() -> None:
 
     assert "process" not in CALLS  # batches go through submit, in order
     worker = BuildingWorker.__new__(BuildingWorker)  # the check comes before the session is touched
-    with pytest.raises(ValueError, match="unknown building call 'process'; valid: anchors, context"):
+    with pytest.raises(
+        ValueError, match="unknown building call 'process'; valid: anchors, assign_device, context"
+    ):
         asyncio.run(worker.call("process", []))

@@ -83,3 +83,42 @@ def test_a_batch_from_the_future_is_refused_and_freezes_nobody(sqlite_api: Api) 
     for k, step in enumerate(ahead["steps"]):
         step["t_ms"] = now_ms + 60_000 + k
     assert _post(api, key, ahead).json()["status"] == "applied"
+
+
+def test_a_device_key_cannot_move_another_user(sqlite_api: Api) -> None:
+    """phone-3's key posting as user phone-2 had teleported phone-2. A device posts as its own id or as the
+    user it has posted as; another user is 403 until an operator assigns the device to it."""
+    api = sqlite_api
+    api.create_building()
+    keys = {d: api.key("hq", "device", d) for d in ("phone-2", "phone-3")}
+    for seq in range(2):
+        for device, key in keys.items():
+            assert _post(api, key, _batch(seq, device)).json()["status"] == "applied"
+    before = api.client.get("/v1/buildings/hq/positions", headers=api.auth(api.operator)).json()
+    t2 = _batch(2)["steps"][0]["t_ms"]
+    teleport = _batch(2, "phone-3", user_id="phone-2")
+    teleport["landmarks"] = [{"kind": "fix", "t_ms": t2, "position": {"x_m": 55.0, "y_m": 5.0}}]
+    response = _post(api, keys["phone-3"], teleport)
+    assert response.status_code == 403, response.text
+    assert "phone-2" in response.json()["detail"]
+    after = api.client.get("/v1/buildings/hq/positions", headers=api.auth(api.operator)).json()
+    assert after == before
+    # a new device may not take a user another device posts as either
+    newcomer = api.key("hq", "device", "phone-9")
+    assert _post(api, newcomer, _batch(0, "phone-9", user_id="phone-2")).status_code == 403
+    # an operator hands phone-3 to user visitor-1: its batches are that user's, and no longer phone-3's
+    response = api.client.put(
+        "/v1/buildings/hq/devices/phone-3", json={"user_id": "visitor-1"}, headers=api.auth(api.operator)
+    )
+    assert response.status_code == 200, response.text
+    assert response.json() == {"device_id": "phone-3", "user_id": "visitor-1"}
+    refused = api.client.put(
+        "/v1/buildings/hq/devices/phone-3", json={"user_id": "x"}, headers=api.auth(keys["phone-3"])
+    )
+    assert refused.status_code == 403
+    moved = _batch(2, "phone-3", user_id="visitor-1")
+    moved["landmarks"] = [{"kind": "fix", "t_ms": t2, "position": {"x_m": 20.0, "y_m": 5.0}}]
+    body = _post(api, keys["phone-3"], moved).json()
+    assert body["status"] == "applied", body
+    assert body["estimate"]["user_id"] == "visitor-1"
+    assert _post(api, keys["phone-3"], _batch(3, "phone-3", user_id="phone-3")).status_code == 200
