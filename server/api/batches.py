@@ -13,6 +13,7 @@ from schemas.api import BatchReceipt
 from schemas.errors import Problem
 from schemas.sensors import SensorBatch
 from server.api.deps import AUTHORIZATION_PARAMETER, principal, token_principal
+from server.api.live import refuse
 from server.auth import Principal
 from server.buildings.submissions import Submission
 from server.errors import BodyTooLargeError, InvalidInputError, ProblemError, problem_response_parts
@@ -165,7 +166,7 @@ async def stream_batches(websocket: WebSocket, building_id: str, token: str | No
     try:
         caller = await token_principal(state, token)
     except ProblemError:
-        await websocket.close(code=4401, reason="unknown or missing key")
+        await refuse(websocket, 4401, "unknown or missing key")
         return
     await websocket.accept()
     try:

@@ -14,6 +14,16 @@ from server.state import AppState
 from server.store import repositories as repo
 
 router = APIRouter(prefix="/v1/buildings/{building_id}", tags=["live"])
+
+
+async def refuse(websocket: WebSocket, code: int, reason: str) -> None:
+    """Accept, then close with the documented code and reason: a socket closed before it is accepted reaches
+    the client as a bare HTTP 403, without either."""
+    await websocket.accept()
+    # a close frame's reason is at most 123 bytes of UTF-8
+    await websocket.close(code=code, reason=reason.encode()[:120].decode(errors="ignore"))
+
+
 HEARTBEAT_S = 10.0
 
 
@@ -27,11 +37,11 @@ async def live(websocket: WebSocket, building_id: str, token: str | None = None,
         caller = await token_principal(state, token)
         caller.require_reader(building_id)
     except ProblemError as exc:
-        await websocket.close(code=4401 if exc.status == 401 else 4403, reason=exc.detail[:120])
+        await refuse(websocket, 4401 if exc.status == 401 else 4403, exc.detail)
         return
     with state.sessions() as session:
         if repo.get_building(session, building_id) is None:
-            await websocket.close(code=4404, reason=f"no building {building_id!r}")
+            await refuse(websocket, 4404, f"no building {building_id!r}")
             return
     await websocket.accept()
     sub = state.broadcaster.subscribe(building_id)
