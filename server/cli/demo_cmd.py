@@ -7,12 +7,14 @@ import json
 from importlib import resources
 from pathlib import Path
 
+from server.cli.user_errors import port_number
+
 DEFAULT_SCENARIO = Path(__file__).resolve().parents[2].parent / "shared" / "scenarios" / "paper-testbed.json"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--host", default="127.0.0.1")
-    parser.add_argument("--port", type=int, default=8000)
+    parser.add_argument("--port", type=port_number, default=8000)
     parser.add_argument("--scenario", type=Path, default=None, help="default: the paper testbed")
     parser.add_argument("--speed", type=float, default=5.0, help="crowd pace, x real time (0: flat out)")
     parser.add_argument(

@@ -6,10 +6,12 @@ Subcommand modules are imported only when their command runs, so ``crowdslam --h
 
 from __future__ import annotations
 
-import argparse
 import importlib
 import sys
 from collections.abc import Sequence
+
+from server.cli import user_errors
+from server.cli.user_errors import OneLineParser
 
 # name -> (module implementing ``add_arguments(parser)`` and ``run(args) -> int``, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -42,12 +44,12 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+def build_parser() -> OneLineParser:
+    parser = OneLineParser(
         prog="crowdslam",
         description="Indoor localization server without a site survey (DynamicSLAM + SignalSLAM).",
     )
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True, parser_class=OneLineParser)
     for name, (module_name, help_text) in COMMANDS.items():
         command_parser = sub.add_parser(name, help=help_text, description=help_text)
         command_parser.set_defaults(_module=module_name)
@@ -78,6 +80,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except BrokenPipeError:  # output piped into `head` and closed early
         sys.stderr.close()
         return 0
+    except Exception as exc:
+        line = user_errors.message(exc)
+        if line is None:
+            raise  # a bug: the traceback is what a report needs
+        sys.stderr.write(f"crowdslam {args.command}: {line}\n")
+        return user_errors.EXIT_USER_ERROR
 
 
 if __name__ == "__main__":

@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
+
+from server.cli.user_errors import UserError
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -25,12 +28,11 @@ def run(args: argparse.Namespace) -> int:
     from server.replay import replay_offline, replay_to_server
     from server.settings import get_settings
 
-    if not args.file.exists():
-        print(f"error: no such recording {args.file}", file=sys.stderr)
-        return 2
+    with args.file.open("rb") as stream:  # a missing file is the user's error, said in one line
+        if stream.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
+            raise UserError(f"{args.file} is not an MCAP recording")
     if args.server and not args.key:
-        print("error: --server needs --key (an operator key)", file=sys.stderr)
-        return 2
+        raise UserError("--server needs --key (an operator key)")
     with tqdm(desc="batches", unit="batch") as bar:
         if args.offline:
             report = replay_offline(read_batches(args.file), get_settings(), bar.update)

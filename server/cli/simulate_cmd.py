@@ -6,6 +6,8 @@ import argparse
 import json
 from pathlib import Path
 
+from server.cli.user_errors import UserError
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
@@ -29,7 +31,12 @@ def run(args: argparse.Namespace) -> int:
     from server.simulation.crowd_client import device_keys, post_crowd, prepare_building
     from slam_core.sim.simulation import Scenario, simulate
 
-    scenario = Scenario.from_dict(json.loads(args.scenario.read_text()))
+    try:
+        scenario = Scenario.from_dict(json.loads(args.scenario.read_text()))
+    except (KeyError, TypeError, ValueError) as exc:
+        if isinstance(exc, json.JSONDecodeError):
+            raise
+        raise UserError(f"{args.scenario} is not a usable scenario: {exc!r}") from None
     sim = simulate(scenario, args.seed)
     with httpx.Client(base_url=args.post, timeout=60.0) as client:
         prepare_building(client, args.building, args.key, sim)
