@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from datetime import datetime
 from enum import StrEnum
 from typing import Literal, Self
 
@@ -38,6 +39,20 @@ class KeyCreated(WireModel):
     scope: KeyScope
     building_id: Identifier | None = None
     device_id: Identifier | None = None
+
+
+class KeyInfo(WireModel):
+    """A key as operators list it: never its secret."""
+
+    prefix: str
+    scope: KeyScope
+    building_id: Identifier | None = None
+    device_id: Identifier | None = None
+    created_at: datetime
+    last_used_at: datetime | None = Field(
+        default=None, description="To the minute; written every few seconds, not on every request."
+    )
+    revoked_at: datetime | None = None
 
 
 class BatchReceipt(WireModel):

@@ -29,6 +29,7 @@ from server.errors import InvalidInputError, ProblemError, field_problem, proble
 from server.gc_tuning import tune_gc_for_serving
 from server.live.broadcast import Broadcaster
 from server.metrics import Metrics
+from server.rate_limit import RateLimiter
 from server.settings import Settings
 from server.signal_maps.jobs import SignalMapService
 from server.state import AppState
@@ -101,6 +102,7 @@ def create_app(settings: Settings, tune_gc: bool = False) -> FastAPI:
                 settings.data_dir / "signal_maps", recordings, tuple(settings.signal_map_modalities)
             ),
             foxglove_live,
+            RateLimiter(settings.device_rate_per_s, settings.device_burst),
         )
         if tune_gc:
             tune_gc_for_serving()

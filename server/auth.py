@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import secrets
+import time
+from collections.abc import Collection
 from dataclasses import dataclass
+from datetime import UTC, datetime
 
 from sqlalchemy.orm import Session
 
@@ -90,12 +93,29 @@ class KeyCache:
         self.ttl_s = ttl_s
         self.max_entries = max_entries
         self._entries: dict[str, tuple[Principal, float]] = {}
+        self._used: dict[int, int] = {}  # key id -> minute of its latest use (Unix minutes)
 
     def get(self, secret: str, now: float) -> Principal | None:
         entry = self._entries.get(secret)
         if entry is None or entry[1] < now:
             return None
+        self.used(entry[0].key_id)
         return entry[0]
+
+    def used(self, key_id: int) -> None:
+        """A request was made with this key (its minute is written at the next revalidation)."""
+        self._used[key_id] = int(time.time()) // 60
+
+    def take_used(self) -> dict[int, datetime]:
+        """The keys used since the last call, with the minute of their latest use."""
+        used, self._used = self._used, {}
+        return {key_id: datetime.fromtimestamp(minute * 60, UTC) for key_id, minute in used.items()}
+
+    def forget(self, key_ids: Collection[int]) -> None:
+        """Keys revoked by this process: refused from the next request on (other processes refuse them
+        within ``ttl_s``)."""
+        gone = set(key_ids)
+        self._entries = {s: e for s, e in self._entries.items() if e[0].key_id not in gone}
 
     def put(self, secret: str, principal: Principal, now: float) -> None:
         if self.ttl_s <= 0:

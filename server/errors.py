@@ -89,6 +89,24 @@ class ConflictError(ProblemError):
     title = "Conflict"
 
 
+class BatchFailedError(ProblemError):
+    """A batch the server could not apply for a reason of its own (logged); nothing of it was kept."""
+
+    status = 500
+    title = "Internal server error"
+
+
+class TooManyRequestsError(ProblemError):
+    """The caller is over its rate; it may retry after ``retry_after_s``."""
+
+    status = 429
+    title = "Too many requests"
+
+    def __init__(self, detail: str, retry_after_s: float) -> None:
+        super().__init__(detail)
+        self.retry_after_s = retry_after_s
+
+
 class ServiceUnavailableError(ProblemError):
     """The request can be sent again (a building's process is restarting)."""
 

@@ -19,6 +19,7 @@ from server.errors import ProblemError
 from server.ingestion.decoding import decode_batch
 from server.recordings.recorder import RecordedBatch
 from server.settings import Settings
+from server.simulation.crowd_client import post_batch
 from server.store.db import make_engine, make_session_factory
 from server.store.migrate import upgrade
 from server.store.models import BuildingRow
@@ -123,11 +124,7 @@ def replay_to_server(
             if response.status_code != 201:
                 raise RuntimeError(f"cannot mint a device key: {response.status_code} {response.text}")
             keys[ident] = response.json()["key"]
-        response = client.post(
-            f"/v1/buildings/{batch.building_id}/batches",
-            content=recorded.raw,
-            headers={"Authorization": f"Bearer {keys[ident]}", "Content-Type": "application/json"},
-        )
+        response = post_batch(client, batch.building_id, recorded.raw, keys[ident])
         if response.status_code == 200:
             report.count(BatchReceipt.model_validate_json(response.content))
         else:

@@ -30,6 +30,22 @@ class Settings(BaseSettings):
         description="Largest body of any request but a batch; refused with 413 before it is read, before "
         "the key is checked.",
     )
+    device_rate_per_s: float = Field(
+        default=20.0,
+        ge=0.0,
+        description="Batches a device key may post per second, after a burst of device_burst (429 with "
+        "Retry-After beyond). 0 turns the limit off.",
+    )
+    device_burst: float = Field(
+        default=120.0, ge=1.0, description="Batches a device key may post at once (two minutes' worth)."
+    )
+    max_live_sockets_per_key: int = Field(
+        default=20, ge=1, description="Live WebSockets one key may hold open at once (4429 beyond)."
+    )
+    metrics_need_key: bool = Field(
+        default=False,
+        description="Serve /metrics only to a site-wide operator key (it names every building).",
+    )
     seed: int = Field(default=0, description="Root seed of every filter's random stream.")
     encounter_calibration: Path | None = Field(
         default=None,

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from sqlalchemy import Engine
@@ -12,6 +12,7 @@ from server.auth import KeyCache
 from server.buildings.registry import TrackingService
 from server.live.broadcast import Broadcaster
 from server.metrics import Metrics
+from server.rate_limit import RateLimiter
 from server.settings import Settings
 from server.signal_maps.jobs import SignalMapService
 
@@ -31,3 +32,6 @@ class AppState:
     keys: KeyCache
     signal_maps: SignalMapService
     foxglove: FoxgloveLive | None = None
+    rate: RateLimiter = field(default_factory=lambda: RateLimiter(0.0, 1.0))
+    live_sockets: dict[int, int] = field(default_factory=dict)
+    """Open live WebSockets per key id (``Settings.max_live_sockets_per_key``)."""

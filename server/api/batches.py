@@ -16,8 +16,15 @@ from server.api.deps import AUTHORIZATION_PARAMETER, principal, token_principal
 from server.api.live import refuse
 from server.auth import Principal
 from server.buildings.submissions import Submission
-from server.errors import BodyTooLargeError, InvalidInputError, ProblemError, problem_response_parts
+from server.errors import (
+    BodyTooLargeError,
+    InvalidInputError,
+    ProblemError,
+    TooManyRequestsError,
+    problem_response_parts,
+)
 from server.ingestion.decoding import decode_batch
+from server.rate_limit import retry_after_header
 from server.state import AppState
 
 router = APIRouter(prefix="/v1/buildings/{building_id}", tags=["batches"])
@@ -35,6 +42,13 @@ async def ingest(state: AppState, caller: Principal, building_id: str, body: byt
     """Validate, authorise, then hand the batch to its building; its ``BatchReceipt`` as JSON. Nothing is
     touched before all checks pass."""
     caller.require_device(building_id, None)
+    wait_s = state.rate.take(caller.key_id)
+    if wait_s > 0:
+        raise TooManyRequestsError(
+            f"this device key posts more than {state.settings.device_rate_per_s:g} batches a second; "
+            f"retry in {wait_s:.1f} s",
+            wait_s,
+        )
     batch = decode_batch(body, state.settings.max_batch_bytes)
     if batch.building_id != building_id:
         raise InvalidInputError(
@@ -91,7 +105,10 @@ async def _answer_batch(
             return None
         receipt = await ingest(state, caller, building_id, body)
     except ProblemError as exc:
-        return problem_response_parts(exc.to_problem())
+        status, problem, headers = problem_response_parts(exc.to_problem())
+        if isinstance(exc, TooManyRequestsError):
+            headers["retry-after"] = retry_after_header(exc.retry_after_s)
+        return status, problem, headers
     # serialised by the building (the route's response_model documents it)
     return 200, receipt, {"content-type": "application/json"}
 

@@ -1,17 +1,19 @@
-"""Buildings, their floors and geo-reference; keys minted for a building."""
+"""Buildings, their floors and geo-reference; a building's keys (minted, listed, revoked) and devices."""
 
 from __future__ import annotations
 
-from fastapi import APIRouter, status
+import asyncio
 
-from schemas.api import KeyCreated, KeyCreateIn, KeyScope
+from fastapi import APIRouter, Response, status
+
+from schemas.api import KeyCreated, KeyCreateIn, KeyInfo, KeyScope
 from schemas.buildings import Building, DeviceAssignment, DeviceAssignmentIn, Floor, GeoReference
 from schemas.common import Identifier
 from server.api.deps import Caller, DbSession, State
 from server.auth import mint_key
 from server.errors import ConflictError, InvalidInputError, NotFoundError
 from server.store import repositories as repo
-from server.store.models import BuildingRow, FloorRow
+from server.store.models import ApiKeyRow, BuildingRow, FloorRow
 
 router = APIRouter(prefix="/v1/buildings", tags=["buildings"])
 
@@ -94,6 +96,54 @@ def create_key(building_id: str, body: KeyCreateIn, caller: Caller, session: DbS
         building_id=building_id,
         device_id=body.device_id if body.scope == KeyScope.DEVICE else None,
     )
+
+
+def key_info(row: ApiKeyRow) -> KeyInfo:
+    return KeyInfo(
+        prefix=row.prefix,
+        scope=KeyScope(row.scope),
+        building_id=row.building_id,
+        device_id=row.device_id,
+        created_at=row.created_at,
+        last_used_at=row.last_used_at,
+        revoked_at=row.revoked_at,
+    )
+
+
+@router.get("/{building_id}/keys", response_model=list[KeyInfo])
+async def list_keys(building_id: str, caller: Caller, state: State) -> list[KeyInfo]:
+    """The building's keys, revoked ones included, with when each was last used (operator key). Never a
+    secret."""
+    caller.require_operator(building_id)
+    used = state.keys.take_used()  # what this process saw since its last revalidation, written first
+
+    def query() -> list[KeyInfo]:
+        with state.sessions.begin() as session:
+            if repo.get_building(session, building_id) is None:
+                raise NotFoundError(f"no building {building_id!r}")
+            repo.touch_keys(session, used)
+            return [key_info(row) for row in repo.list_keys(session, building_id)]
+
+    return await asyncio.to_thread(query)
+
+
+@router.delete(
+    "/{building_id}/keys/{prefix}", status_code=status.HTTP_204_NO_CONTENT, response_class=Response
+)
+async def revoke_key(building_id: str, prefix: str, caller: Caller, state: State) -> Response:
+    """Revoke a key of the building by its prefix (operator key): refused at once by this server, and by
+    every other within ``CROWDSLAM_KEY_CACHE_S``."""
+    caller.require_operator(building_id)
+
+    def revoke() -> list[int]:
+        with state.sessions.begin() as session:
+            return repo.revoke_keys(session, building_id, prefix)
+
+    revoked = await asyncio.to_thread(revoke)
+    if not revoked:
+        raise NotFoundError(f"no live key {prefix!r} in building {building_id!r}")
+    state.keys.forget(revoked)
+    return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 
 @router.put("/{building_id}/devices/{device_id}", response_model=DeviceAssignment)

@@ -53,6 +53,7 @@ async def principal(state: AppState, authorization: str | None) -> Principal:
             return authenticate(session, secret)
 
     found = await asyncio.to_thread(lookup)
+    state.keys.used(found.key_id)
     if secret is not None:
         state.keys.put(secret, found, now)
     return found
@@ -64,9 +65,11 @@ async def revalidate_keys(state: AppState) -> None:
     if not ids:
         return
     checked_at = time.monotonic()
+    used = state.keys.take_used()
 
     def query() -> set[int]:
-        with state.sessions() as session:
+        with state.sessions.begin() as session:
+            repo.touch_keys(session, used)  # when each was last used, for the operators' key lists
             return repo.valid_key_ids(session, ids)
 
     state.keys.revalidate(await asyncio.to_thread(query), checked_at)

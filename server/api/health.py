@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import time
+from typing import Annotated
 
-from fastapi import APIRouter, Response
+from fastapi import APIRouter, Header, Response
 from sqlalchemy import text
 
 from schemas.api import FailingBuilding, Health
-from server.api.deps import State
+from server.api.deps import State, principal
+from server.errors import ForbiddenError
 
 router = APIRouter(tags=["health"])
 
@@ -41,6 +43,13 @@ def healthz(state: State) -> Health:
 
 
 @router.get("/metrics", response_class=Response)
-def metrics(state: State) -> Response:
+async def metrics(state: State, authorization: Annotated[str | None, Header()] = None) -> Response:
+    """Prometheus metrics; with ``CROWDSLAM_METRICS_NEED_KEY`` only for a site-wide operator key (the
+    figures name every building)."""
+    if state.settings.metrics_need_key:
+        caller = await principal(state, authorization)
+        caller.require_operator()
+        if caller.building_id is not None:
+            raise ForbiddenError("/metrics names every building: it needs a site-wide operator key")
     body = state.metrics.render(state.tracking, state.broadcaster)
     return Response(body, media_type="text/plain; version=0.0.4")

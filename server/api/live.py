@@ -43,6 +43,20 @@ async def live(websocket: WebSocket, building_id: str, token: str | None = None,
         if repo.get_building(session, building_id) is None:
             await refuse(websocket, 4404, f"no building {building_id!r}")
             return
+    open_now = state.live_sockets.get(caller.key_id, 0)
+    if open_now >= state.settings.max_live_sockets_per_key:
+        await refuse(websocket, 4429, f"this key holds {open_now} live sockets already, the most allowed")
+        return
+    state.live_sockets[caller.key_id] = open_now + 1
+    try:
+        await _serve(websocket, state, building_id, batch)
+    finally:
+        left = state.live_sockets.pop(caller.key_id, 1) - 1
+        if left > 0:
+            state.live_sockets[caller.key_id] = left
+
+
+async def _serve(websocket: WebSocket, state: AppState, building_id: str, batch: bool) -> None:
     await websocket.accept()
     sub = state.broadcaster.subscribe(building_id)
     reported = 0

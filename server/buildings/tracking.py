@@ -27,7 +27,14 @@ from server.buildings.recovery import RecoverableBuilding
 from server.buildings.rows import anchor_row, position_row
 from server.buildings.submissions import BatchHeader, GroupResult, Submission
 from server.engine.config import load_calibration, tracker_params
-from server.errors import ConflictError, ForbiddenError, InvalidInputError, NotFoundError, ProblemError
+from server.errors import (
+    BatchFailedError,
+    ConflictError,
+    ForbiddenError,
+    InvalidInputError,
+    NotFoundError,
+    ProblemError,
+)
 from server.ingestion import convert
 from server.recordings.recorder import BuildingRecorder
 from server.settings import Settings
@@ -182,7 +189,7 @@ class BuildingTracking(RecoverableBuilding):
             if isinstance(exc, ValueError):  # the engine refused what the batch implies; nothing was kept
                 return GroupResult([InvalidInputError(f"the batch cannot be applied: {exc}")])
             logger.exception("building %s: batch %s failed", self.building_id, group[0].header.batch_id)
-            return GroupResult([ProblemError(f"the batch could not be applied ({type(exc).__name__})")])
+            return GroupResult([BatchFailedError(f"the batch could not be applied ({type(exc).__name__})")])
 
     def _process(self, group: list[Submission]) -> GroupResult:
         ctx: convert.BuildingContext | None = None  # only for batches not converted by the front

@@ -111,10 +111,8 @@ def post_crowd(
             delay = due - (time.perf_counter() - started)
             if delay > 0:
                 time.sleep(delay)
-        response = client.post(
-            f"/v1/buildings/{building_id}/batches",
-            content=batch.model_dump_json(exclude_none=True),
-            headers={"Authorization": f"Bearer {keys[batch.device_id]}", "Content-Type": "application/json"},
+        response = post_batch(
+            client, building_id, batch.model_dump_json(exclude_none=True), keys[batch.device_id]
         )
         report.batches += 1
         if response.status_code != 200:
@@ -163,3 +161,19 @@ def _renamed(batch: SensorBatch, prefix: str) -> SensorBatch:
             "bluetooth": bluetooth,
         }
     )
+
+
+def post_batch(
+    client: httpx.Client, building_id: str, body: str | bytes, key: str, max_waits: int = 20
+) -> httpx.Response:
+    """Post one batch as a phone should: on 429, wait as ``Retry-After`` says and send it again."""
+    for _ in range(max_waits):
+        response = client.post(
+            f"/v1/buildings/{building_id}/batches",
+            content=body,
+            headers={"Authorization": f"Bearer {key}", "Content-Type": "application/json"},
+        )
+        if response.status_code != 429:
+            return response
+        time.sleep(float(response.headers.get("retry-after", "1")))
+    return response

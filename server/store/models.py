@@ -92,6 +92,8 @@ class ApiKeyRow(Base):
     device_id: Mapped[str | None] = mapped_column(String(64))
     created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), server_default=func.now())
     revoked_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True))
+    last_used_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True))
+    """Written in bulk when the key cache is revalidated (``server.auth.KeyCache``), not on every request."""
 
 
 class BatchRow(Base):

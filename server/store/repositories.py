@@ -4,10 +4,10 @@ owns the transaction)."""
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Collection, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from datetime import UTC, datetime
 
-from sqlalchemy import ColumnElement, delete, insert, select
+from sqlalchemy import ColumnElement, delete, func, insert, select, update
 from sqlalchemy.orm import Session
 
 from server.store.db import execute_many, insert_once, upsert
@@ -94,6 +94,45 @@ def valid_key_ids(session: Session, key_ids: Collection[int], chunk: int = 500) 
         )
         valid.update(int(i) for i in session.execute(stmt).scalars())
     return valid
+
+
+def _of_building(building_id: str | None) -> ColumnElement[bool]:
+    """Keys of this building, or (``None``) the site-wide ones."""
+    if building_id is None:
+        return ApiKeyRow.building_id.is_(None)
+    return ApiKeyRow.building_id == building_id
+
+
+def list_keys(session: Session, building_id: str | None) -> list[ApiKeyRow]:
+    """A building's keys (``None``: the site-wide ones), oldest first, revoked ones included."""
+    where = (
+        ApiKeyRow.building_id == building_id if building_id is not None else ApiKeyRow.building_id.is_(None)
+    )
+    return list(session.execute(select(ApiKeyRow).where(where).order_by(ApiKeyRow.id)).scalars())
+
+
+def revoke_keys(session: Session, building_id: str | None, prefix: str) -> list[int]:
+    """Revoke the live keys of a building (``None``: site-wide) with this prefix; returns their ids."""
+    where = (
+        ApiKeyRow.building_id == building_id if building_id is not None else ApiKeyRow.building_id.is_(None)
+    )
+    stmt = (
+        update(ApiKeyRow)
+        .where(where, ApiKeyRow.prefix == prefix, ApiKeyRow.revoked_at.is_(None))
+        .values(revoked_at=func.now())
+        .returning(ApiKeyRow.id)
+    )
+    return [int(i) for i in session.execute(stmt).scalars()]
+
+
+def touch_keys(session: Session, last_used: Mapping[int, datetime]) -> None:
+    """Record when keys were last used: one statement per distinct time (the cache keeps minutes, so a
+    round of thousands of keys is a statement or two)."""
+    by_time: dict[datetime, list[int]] = {}
+    for key_id, used in last_used.items():
+        by_time.setdefault(used, []).append(key_id)
+    for used, ids in by_time.items():
+        session.execute(update(ApiKeyRow).where(ApiKeyRow.id.in_(ids)).values(last_used_at=used))
 
 
 # ----------------------------------------------------------------------------- devices

@@ -10,6 +10,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
+from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
 from server.app import create_app
@@ -65,7 +66,7 @@ def test_live_estimates_equal_the_offline_engine(live_server: tuple[str, str, Se
                     except TimeoutError:
                         break
         with (
-            pytest.raises(Exception, match="403"),
+            pytest.raises(ConnectionClosed, match="4401"),  # the documented close code, not a bare 403
             connect(base.replace("http", "ws", 1) + "/v1/buildings/sim/live?token=wrong") as bad,
         ):
             bad.recv(timeout=5)

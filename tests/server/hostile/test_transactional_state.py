@@ -77,6 +77,7 @@ def test_a_failing_batch_leaves_no_trace_and_fails_alone(
     refused = receipts[-1]
     assert isinstance(refused, ProblemError)
     assert isinstance(refused, InvalidInputError) == isinstance(failure, ValueError)
+    assert refused.status == (422 if isinstance(failure, ValueError) else 500)
     assert building.counters.failed_batches == 1
     assert building.counters.reloads == 2  # the group's, then the failing batch's own
     assert _estimates(building) == _estimates(reference)  # bit for bit: nothing of the failed call kept
