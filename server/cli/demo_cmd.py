@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import secrets
 from importlib import resources
 from pathlib import Path
 
@@ -85,16 +86,20 @@ def run(args: argparse.Namespace) -> int:
             print("  Ctrl-C stops.", flush=True)
             round_number = 0
             epoch_ms = EPOCH_MS
+            # this run's devices and batch ids are its own: a demo run again in the same folder walks new
+            # phones, whose batches are not duplicates of the last run's
+            run = secrets.token_hex(3)
             while args.rounds == 0 or round_number < args.rounds:
                 # new people walking the same building (its anchors and access points), after the last crowd
                 sim = simulate(scenario, round_number, world_seed=0)
-                prefix = f"r{round_number}-"
+                prefix = f"{run}-r{round_number}-"
                 keys = device_keys(client, args.building, operator_key, len(sim.users), prefix)
                 report = post_crowd(client, sim, args.building, keys, args.speed, prefix, epoch_ms=epoch_ms)
                 epoch_ms += round(max(float(tr.t[-1]) for tr in sim.users) * 1000.0) + 60_000
                 s = report.summary()
                 print(
                     f"  crowd {round_number}: {s['batches']} batches, {s['errors']} errors, "
+                    f"{s['duplicates']} duplicates, "
                     f"{s['encounters']} encounters, error median {s['median_m']:.2f} m, "
                     f"p90 {s['p90_m']:.2f} m, {s['seconds']:.0f} s",
                     flush=True,

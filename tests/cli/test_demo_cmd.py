@@ -58,3 +58,34 @@ def test_a_world_seed_keeps_the_building_and_changes_the_walks() -> None:
     # without a world seed the world follows the seed, as every evaluation has used it
     np.testing.assert_array_equal(simulate(scenario, 0).world.anchor_xy, first.world.anchor_xy)
     assert not np.array_equal(simulate(scenario, 1).world.anchor_xy, first.world.anchor_xy)
+
+
+def test_a_demo_run_again_in_the_same_folder_moves_a_new_crowd(tmp_path: Path) -> None:
+    """Run again in the same folder, the demo had posted the first run's batch ids: 8,830 duplicates and
+    nothing moving. Each run's phones are its own."""
+    env = {**os.environ, "CROWDSLAM_DATA_DIR": str(tmp_path / "data")}
+    env.pop("CROWDSLAM_DATABASE_URL", None)
+    raw = json.loads((SHARED / "scenarios" / "paper-testbed.json").read_text())
+    raw["users"]["count"] = 4
+    raw["users"]["walk_length_m"] = 40.0
+    scenario = tmp_path / "tiny.json"
+    scenario.write_text(json.dumps(raw))
+    pattern = r"crowd 0: (\d+) batches, (\d+) errors, (\d+) duplicates, .* error median ([\d.]+) m"
+    for _ in range(2):
+        args = [
+            "demo",
+            "--rounds",
+            "1",
+            "--speed",
+            "0",
+            "--port",
+            str(free_port()),
+            "--scenario",
+            str(scenario),
+        ]
+        done = subprocess.run([*CLI, *args], env=env, capture_output=True, text=True, timeout=600)
+        assert done.returncode == 0, done.stderr[-2000:]
+        batches, errors, duplicates, median = re.findall(pattern, done.stdout)[0]
+        assert int(batches) > 50
+        assert (int(errors), int(duplicates)) == (0, 0)
+        assert float(median) < 3.0
