@@ -25,11 +25,17 @@ from server.buildings.registry import TrackingService
 from server.buildings.tracking import tracking_config
 from server.engine.config import load_calibration, tracker_params
 from server.engine.warmup import compile_kernels_in_child, warm_kernels
-from server.errors import InvalidInputError, ProblemError, field_problem, problem_response_parts
+from server.errors import (
+    InvalidInputError,
+    ProblemError,
+    TooManyRequestsError,
+    field_problem,
+    problem_response_parts,
+)
 from server.gc_tuning import tune_gc_for_serving
 from server.live.broadcast import Broadcaster
 from server.metrics import Metrics
-from server.rate_limit import RateLimiter
+from server.rate_limit import RateLimiter, retry_after_header
 from server.settings import Settings
 from server.signal_maps.jobs import SignalMapService
 from server.state import AppState
@@ -178,7 +184,10 @@ def _install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(ProblemError)
     async def _problem(_: Request, exc: ProblemError) -> Response:
-        return problem_response(exc.to_problem())
+        response = problem_response(exc.to_problem())
+        if isinstance(exc, TooManyRequestsError):
+            response.headers["retry-after"] = retry_after_header(exc.retry_after_s)
+        return response
 
     @app.exception_handler(RequestValidationError)
     async def _validation(_: Request, exc: RequestValidationError) -> Response:

@@ -141,7 +141,7 @@ def _frame(message: object) -> bytes:
 # ------------------------------------------------------------------------------------ building side
 def serve_building(building_id: str, settings: Settings, sock: socket.socket, front_pid: int) -> None:
     """Entry point of a building's process: load the building, then serve the front until it closes."""
-    _die_with(front_pid)
+    die_with(front_pid)
     # One core per building: its batch kernels run on its own thread. With numba's thread pool, OpenMP's
     # workers spun between the back-to-back launches (half a core), or, told to sleep, took a wake-up per
     # launch.
@@ -159,8 +159,9 @@ def serve_building(building_id: str, settings: Settings, sock: socket.socket, fr
     _BuildingLoop(building, sock).run()
 
 
-def _die_with(front_pid: int) -> None:
-    """Be killed when the front dies (Linux); elsewhere the closed socket ends the loop."""
+def die_with(front_pid: int) -> None:
+    """Be killed when the process that started this one dies (Linux); elsewhere the caller notices otherwise
+    (a building's closed socket ends its loop)."""
     if sys.platform.startswith("linux"):
         with contextlib.suppress(OSError, AttributeError):
             ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG

@@ -7,6 +7,7 @@ survive a restart; a build still queued or running when the server stops is mark
 from __future__ import annotations
 
 import multiprocessing
+import os
 import threading
 import uuid
 from concurrent.futures import Future, ProcessPoolExecutor
@@ -15,11 +16,14 @@ from pathlib import Path
 from typing import Any
 
 from schemas.signal_maps import SignalMapJob, SignalMapStatus
-from server.errors import ConflictError, NotFoundError
+from server.buildings.process import die_with
+from server.errors import ConflictError, NotFoundError, TooManyRequestsError
 from server.ingestion.convert import BuildingContext
 from server.signal_maps.build import build_signal_maps
 
 RECORD = "job.json"
+MAX_PENDING_BUILDS = 4
+"""Builds queued or running at once, over all buildings; one more is refused (429) until one ends."""
 
 
 class SignalMapService:
@@ -59,6 +63,13 @@ class SignalMapService:
         files = sorted((self.recordings / ctx.building_id).glob("*.mcap"))
         if not files:
             raise ConflictError(f"building {ctx.building_id!r} has no recordings yet")
+        with self._lock:
+            if len(self._futures) >= MAX_PENDING_BUILDS:
+                raise TooManyRequestsError(
+                    f"{len(self._futures)} signal-map builds are queued or running, the most allowed; "
+                    "start this one when one has ended",
+                    60.0,
+                )
         job = SignalMapJob(
             id=uuid.uuid4().hex[:12],
             building_id=ctx.building_id,
@@ -73,7 +84,8 @@ class SignalMapService:
                     max_workers=1, mp_context=multiprocessing.get_context("spawn")
                 )
             future = self._pool.submit(
-                build_signal_maps,
+                _run_build,
+                os.getpid(),
                 [str(f) for f in files],
                 str(self._folder(ctx.building_id, job.id)),
                 ctx,
@@ -99,12 +111,7 @@ class SignalMapService:
         record = self._folder(building_id, job_id) / RECORD
         if not job_id.isalnum() or not record.is_file():
             raise NotFoundError(f"no signal-map build {job_id!r} for building {building_id!r}")
-        job = SignalMapJob.model_validate_json(record.read_text())
-        with self._lock:
-            future = self._futures.get(job_id)
-        if job.status == SignalMapStatus.QUEUED and future is not None and future.running():
-            job = job.model_copy(update={"status": SignalMapStatus.RUNNING})
-        return job
+        return SignalMapJob.model_validate_json(record.read_text())
 
     def list(self, building_id: str) -> list[SignalMapJob]:
         jobs = [self.get(building_id, r.parent.name) for r in (self.root / building_id).glob(f"*/{RECORD}")]
@@ -123,3 +130,18 @@ class SignalMapService:
             if self._pool is not None:
                 self._pool.shutdown(wait=False, cancel_futures=True)
                 self._pool = None
+
+
+def _run_build(
+    server_pid: int, files: list[str], folder: str, ctx: BuildingContext, modalities: tuple[str, ...]
+) -> dict[str, Any]:
+    """In the build's process: die with the server (a worker left behind by ``kill -9`` would hold a core
+    and a job nobody reads), say the job runs (the pool takes a queued job off its queue before it starts,
+    so the server cannot tell), then build."""
+    die_with(server_pid)
+    record = Path(folder) / RECORD
+    job = SignalMapJob.model_validate_json(record.read_text())
+    tmp = record.with_suffix(".tmp")
+    tmp.write_text(job.model_copy(update={"status": SignalMapStatus.RUNNING}).model_dump_json(indent=2))
+    tmp.replace(record)
+    return build_signal_maps(files, folder, ctx, modalities)

@@ -138,3 +138,31 @@ def test_build_errors(sqlite_api: Api) -> None:
     dashboard = api.auth(api.key("hq", "dashboard"))
     assert api.client.post("/v1/buildings/hq/signal-maps", headers=dashboard).status_code == 403
     assert api.client.get("/v1/buildings/nowhere/signal-maps", headers=op).status_code in (403, 404)
+
+
+def test_queued_builds_say_so_and_the_queue_is_bounded(sqlite_api: Api) -> None:
+    """Builds run one at a time: the others are reported queued, not running (the pool takes the next job
+    off its queue before it starts it); past ``MAX_PENDING_BUILDS`` a new one is refused with 429."""
+    from server.signal_maps.jobs import MAX_PENDING_BUILDS
+
+    api = sqlite_api
+    api.create_building()
+    op = api.auth(api.operator)
+    _post(api, _walk("phone-a", 0.0, 28.0, 20), "phone-a")
+    started = [api.client.post("/v1/buildings/hq/signal-maps", headers=op) for _ in range(MAX_PENDING_BUILDS)]
+    assert all(r.status_code == 202 for r in started)
+    refused = api.client.post("/v1/buildings/hq/signal-maps", headers=op)
+    assert refused.status_code == 429
+    assert int(refused.headers["retry-after"]) >= 1
+    seen_running = 0
+    deadline = time.monotonic() + 240
+    while time.monotonic() < deadline:
+        statuses = [j["status"] for j in api.client.get("/v1/buildings/hq/signal-maps", headers=op).json()]
+        assert statuses.count("running") <= 1, statuses
+        seen_running = max(seen_running, statuses.count("running"))
+        if all(s in ("done", "failed") for s in statuses):
+            break
+        time.sleep(0.05)
+    assert all(s == "done" for s in statuses), statuses
+    assert seen_running == 1
+    assert api.client.post("/v1/buildings/hq/signal-maps", headers=op).status_code == 202  # room again
