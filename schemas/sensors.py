@@ -346,7 +346,8 @@ BATCH_EXAMPLE: dict[str, Any] = {
 
 class SensorBatch(WireModel):
     """What a phone posts, about once a second. ``(device_id, batch_id)`` is unique: a retried batch is
-    recognised and not applied twice. ``seq`` increases by one per batch of a device and orders them."""
+    recognised and not applied twice. ``seq`` increases by one per batch of a device and orders them, within
+    its install (``install_ms``)."""
 
     model_config = wire_config(BATCH_EXAMPLE)
 
@@ -355,6 +356,13 @@ class SensorBatch(WireModel):
     user_id: Identifier | None = Field(default=None, description="Defaults to the device id.")
     batch_id: Identifier = Field(description="Client-unique id of this batch; reuse it when retrying.")
     seq: int = Field(ge=0, le=2**62, description="Per-device sequence number, +1 per batch.")
+    install_ms: TimeMs | None = Field(
+        default=None,
+        description="When the app was installed (or its data cleared) on this phone. A batch with a later "
+        "install_ms than the device's last starts its seq anew (a reinstalled phone may start at 0 again); "
+        "a batch of an earlier install is late. Keep batch_id unique across installs (e.g. prefix it with "
+        "install_ms).",
+    )
     ble_advertised_id: Identifier | None = Field(
         default=None,
         description="This phone's own Bluetooth LE advertised id, so peers' sightings can be matched.",

@@ -2,9 +2,12 @@
 each, and which device rows SQL must learn.
 
 A batch whose ``seq`` is not after its device's last applied one is late: recorded, never applied (filters
-cannot rewind). A device's batches in one group are applied one per engine call, in order. Both are decided
-before anything is written, so each batch row is inserted with the engine call that will apply it (the log a
-restart replays) and no update follows. Device rows are written when a device appears or its user or
+cannot rewind). Sequence numbers count within an install (``SensorBatch.install_ms``): a batch of a later
+install starts its device's count again (a reinstalled phone posts from 0 with no operator action), and a
+batch of an earlier install is late whatever its ``seq``. A batch without ``install_ms`` counts in the
+device's current install. A device's batches in one group are applied one per engine call, in order. Both are
+decided before anything is written, so each batch row is inserted with the engine call that will apply it (the
+log a restart replays) and no update follows. Device rows are written when a device appears or its user or
 Bluetooth id changes; the last applied sequence numbers are written with each tracker snapshot, and a
 restart takes the newer ones from the batches it replays.
 """
@@ -22,13 +25,29 @@ class _Device:
     ble_advertised_id: str | None
     last_seq: int | None
     stored_seq: int | None
+    install_ms: int | None = None
+    stored_install_ms: int | None = None
+
+
+def _place(install_ms: int | None, current: int | None) -> str:
+    """Where a batch's install stands against its device's current one: "same", "newer" or "older"."""
+    if install_ms is None or install_ms == current:
+        return "same"
+    if current is None or install_ms > current:
+        return "newer"
+    return "older"
 
 
 class DeviceLedger:
-    def __init__(self, building_id: str, rows: dict[str, tuple[str, str | None, int | None]]) -> None:
-        """``rows``: the building's stored devices, id -> (user id, Bluetooth id, last applied seq)."""
+    def __init__(
+        self, building_id: str, rows: dict[str, tuple[str, str | None, int | None, int | None]]
+    ) -> None:
+        """``rows``: the building's stored devices, id -> (user id, Bluetooth id, last applied seq, its
+        install)."""
         self.building_id = building_id
-        self._devices = {d: _Device(u, ble, seq, seq) for d, (u, ble, seq) in rows.items()}
+        self._devices = {
+            d: _Device(u, ble, seq, seq, install, install) for d, (u, ble, seq, install) in rows.items()
+        }
 
     def user_of(self, device_id: str) -> str | None:
         """The user a device posts as (None: a device not seen yet)."""
@@ -61,15 +80,19 @@ class DeviceLedger:
     def plan(self, batches: list[BatchHeader]) -> list[int | None]:
         """Per batch (in arrival order): the engine call of this group that applies it (1, 2, ...: a user's
         k-th batch here goes in the k-th call) or None when it is late. Nothing is recorded yet."""
-        last: dict[str, int | None] = {}
+        last: dict[str, tuple[int | None, int | None]] = {}  # device -> (install, seq) so far in the group
         calls: dict[str, int] = {}
         out: list[int | None] = []
         for b in batches:
-            previous = last[b.device_id] if b.device_id in last else self.last_seq(b.device_id)
-            if previous is not None and b.seq <= previous:
+            device = self._devices.get(b.device_id)
+            install, previous = last.get(
+                b.device_id, (None, None) if device is None else (device.install_ms, device.last_seq)
+            )
+            place = _place(b.install_ms, install)
+            if place == "older" or (place == "same" and previous is not None and b.seq <= previous):
                 out.append(None)
                 continue
-            last[b.device_id] = b.seq
+            last[b.device_id] = (b.install_ms if place == "newer" else install, b.seq)
             user = b.effective_user_id
             calls[user] = calls.get(user, 0) + 1
             out.append(calls[user])
@@ -81,14 +104,16 @@ class DeviceLedger:
         device = self._devices.get(batch.device_id)
         ble = batch.ble_advertised_id
         if device is None:
-            self._devices[batch.device_id] = _Device(batch.effective_user_id, ble, batch.seq, None)
+            self._devices[batch.device_id] = _Device(
+                batch.effective_user_id, ble, batch.seq, None, batch.install_ms, None
+            )
             return self._row(batch.device_id)
         changed = device.user_id != batch.effective_user_id or (
             ble is not None and ble != device.ble_advertised_id
         )
         device.user_id = batch.effective_user_id
         device.ble_advertised_id = ble if ble is not None else device.ble_advertised_id
-        device.last_seq = batch.seq if device.last_seq is None else max(device.last_seq, batch.seq)
+        _count(device, batch)
         if not changed:
             return None
         return self._row(batch.device_id)
@@ -99,21 +124,26 @@ class DeviceLedger:
         device = self._devices.get(batch.device_id)
         if device is None:
             self._devices[batch.device_id] = _Device(
-                batch.effective_user_id, batch.ble_advertised_id, batch.seq, None
+                batch.effective_user_id, batch.ble_advertised_id, batch.seq, None, batch.install_ms, None
             )
-        elif device.last_seq is None or batch.seq > device.last_seq:
-            device.last_seq = batch.seq
+        else:
+            _count(device, batch)
 
     def unsaved_rows(self) -> list[dict[str, object]]:
         """The rows of devices whose last seq SQL does not have yet (``saved`` once they are committed)."""
-        return [self._row(d) for d, device in self._devices.items() if device.last_seq != device.stored_seq]
+        return [
+            self._row(d)
+            for d, device in self._devices.items()
+            if (device.last_seq, device.install_ms) != (device.stored_seq, device.stored_install_ms)
+        ]
 
     def saved(self, rows: list[dict[str, object]]) -> None:
         """These rows (from ``unsaved_rows`` or ``applied``) are committed."""
         for row in rows:
             device = self._devices[str(row["id"])]
-            seq = row["last_seq"]
+            seq, install = row["last_seq"], row["install_ms"]
             device.stored_seq = seq if isinstance(seq, int) else None
+            device.stored_install_ms = install if isinstance(install, int) else None
 
     def _row(self, device_id: str) -> dict[str, object]:
         device = self._devices[device_id]
@@ -123,4 +153,14 @@ class DeviceLedger:
             "user_id": device.user_id,
             "ble_advertised_id": device.ble_advertised_id,
             "last_seq": device.last_seq,
+            "install_ms": device.install_ms,
         }
+
+
+def _count(device: _Device, batch: BatchHeader) -> None:
+    """An applied (or replayed) batch moves its device's count on: from its seq in a later install, else to
+    the larger of the two."""
+    if _place(batch.install_ms, device.install_ms) == "newer":
+        device.install_ms, device.last_seq = batch.install_ms, batch.seq
+    elif device.last_seq is None or batch.seq > device.last_seq:
+        device.last_seq = batch.seq

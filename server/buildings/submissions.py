@@ -24,6 +24,8 @@ class BatchHeader(NamedTuple):
     ble_advertised_id: str | None
     span_ms: tuple[int, int] | None
     """First and last sensor time in the batch, None for an empty batch."""
+    install_ms: int | None = None
+    """The app's install time on the phone: ``seq`` counts within it (``server.buildings.ledger``)."""
 
     @classmethod
     def of(cls, batch: SensorBatch) -> BatchHeader:
@@ -34,6 +36,7 @@ class BatchHeader(NamedTuple):
             batch.seq,
             batch.ble_advertised_id,
             batch.time_span_ms(),
+            batch.install_ms,
         )
 
 

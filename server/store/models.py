@@ -70,6 +70,8 @@ class DeviceRow(Base):
     user_id: Mapped[str] = mapped_column(String(64))
     ble_advertised_id: Mapped[str | None] = mapped_column(String(64))
     last_seq: Mapped[int | None] = mapped_column(BigInteger)
+    install_ms: Mapped[int | None] = mapped_column(BigInteger)
+    """The install ``last_seq`` counts in (``SensorBatch.install_ms``)."""
     created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), server_default=func.now())
 
 

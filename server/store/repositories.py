@@ -138,20 +138,22 @@ def touch_keys(session: Session, last_used: Mapping[int, datetime]) -> None:
 # ----------------------------------------------------------------------------- devices
 
 
-def devices(session: Session, building_id: str) -> dict[str, tuple[str, str | None, int | None]]:
-    """The building's devices: id -> (user id, Bluetooth advertised id, last applied sequence number)."""
-    stmt = select(DeviceRow.id, DeviceRow.user_id, DeviceRow.ble_advertised_id, DeviceRow.last_seq).where(
-        DeviceRow.building_id == building_id
-    )
+def devices(session: Session, building_id: str) -> dict[str, tuple[str, str | None, int | None, int | None]]:
+    """The building's devices: id -> (user id, Bluetooth advertised id, last applied sequence number, the
+    install it counts in)."""
+    stmt = select(
+        DeviceRow.id, DeviceRow.user_id, DeviceRow.ble_advertised_id, DeviceRow.last_seq, DeviceRow.install_ms
+    ).where(DeviceRow.building_id == building_id)
     return {
-        device: (user, ble, None if seq is None else int(seq))
-        for device, user, ble, seq in session.execute(stmt)
+        device: (user, ble, None if seq is None else int(seq), None if install is None else int(install))
+        for device, user, ble, seq, install in session.execute(stmt)
     }
 
 
 def upsert_devices(session: Session, rows: Sequence[dict[str, object]]) -> None:
     """Create or update many devices in one statement. Each row gives building_id, id, user_id,
-    ble_advertised_id and last_seq; the caller passes only sequence numbers that advance."""
+    ble_advertised_id, last_seq and install_ms; the caller passes only sequence numbers that advance (or
+    start again in a later install)."""
     upsert(session, DeviceRow, list(rows), ["building_id", "id"], keep_when_null=("ble_advertised_id",))
 
 

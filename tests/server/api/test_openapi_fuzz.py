@@ -3,6 +3,7 @@ a running server with valid keys for each scope: whatever it sends, the server n
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -41,10 +42,14 @@ def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, dict
         yield base, keys, app.openapi()
 
 
-def _fuzz(operation: Any, base: str, headers: dict[str, str], failures: list[str]) -> None:
+EXAMPLES = int(os.environ.get("CROWDSLAM_FUZZ_EXAMPLES", "12"))
+"""Generated requests per operation: 12 in the suite; ``CROWDSLAM_FUZZ_EXAMPLES=60`` for a long run."""
+
+
+def _fuzz(operation: Any, base: str, headers: dict[str, str], failures: list[str], sent: list[int]) -> None:
     @given(case=operation.as_strategy())
     @settings(
-        max_examples=12,
+        max_examples=EXAMPLES,
         deadline=None,
         suppress_health_check=list(HealthCheck),
         database=None,
@@ -52,6 +57,7 @@ def _fuzz(operation: Any, base: str, headers: dict[str, str], failures: list[str
     )
     def check(case: Any) -> None:
         response = case.call(base_url=base, headers=headers, timeout=30)
+        sent[0] += 1
         if response.status_code >= 500:
             failures.append(
                 f"{case.method} {case.formatted_path}: {response.status_code} {response.text[:300]}"
@@ -65,6 +71,7 @@ def test_no_request_from_the_spec_makes_the_server_fail(
 ) -> None:
     base, keys, spec = served
     failures: list[str] = []
+    sent = [0]
     operations = 0
     for result in schemathesis.openapi.from_dict(spec).get_all_operations():
         if isinstance(result, Err):
@@ -72,6 +79,8 @@ def test_no_request_from_the_spec_makes_the_server_fail(
         operation = result.ok()
         operations += 1
         scope = "device" if operation.path.endswith("/batches") else "operator"
-        _fuzz(operation, base, {"Authorization": f"Bearer {keys[scope]}"}, failures)
+        _fuzz(operation, base, {"Authorization": f"Bearer {keys[scope]}"}, failures, sent)
     assert operations >= 10
+    assert sent[0] >= operations  # every operation was called
+    print(f"schemathesis: {sent[0]} requests over {operations} operations, {len(failures)} 5xx")
     assert not failures, "\n".join(failures[:10])

@@ -122,3 +122,28 @@ def test_a_device_key_cannot_move_another_user(sqlite_api: Api) -> None:
     assert body["status"] == "applied", body
     assert body["estimate"]["user_id"] == "visitor-1"
     assert _post(api, keys["phone-3"], _batch(3, "phone-3", user_id="phone-3")).status_code == 200
+
+
+def test_a_reinstalled_phone_posts_again_and_old_batches_never_apply(api: Api) -> None:
+    """After a reinstall that starts seq at 1 again every batch had answered 'late', with no way out. With
+    install_ms the new install's count starts again; a batch of the old install re-sent is late (a new id)
+    or a duplicate (its id): never applied twice. On SQLite and PostgreSQL."""
+    api.create_building()
+    key = api.key("hq", "device", "phone-1")
+    old, new = 1_767_225_600_000, 1_767_312_000_000
+
+    def batch(seq: int, install: int) -> dict[str, Any]:
+        body = _batch(seq)
+        body["install_ms"] = install
+        body["batch_id"] = f"{install}-{seq}"
+        return body
+
+    for seq in range(3):
+        assert _post(api, key, batch(seq, old)).json()["status"] == "applied"
+    for seq in (0, 1):  # reinstalled: from 0 again
+        body = _post(api, key, batch(seq, new)).json()
+        assert body["status"] == "applied", body
+    assert _post(api, key, batch(2, old)).json()["status"] == "duplicate"  # re-sent as it was
+    resent = batch(3, old)
+    assert _post(api, key, resent).json()["status"] == "late"  # an old install's batch under a new id
+    assert _post(api, key, batch(2, new)).json()["status"] == "applied"

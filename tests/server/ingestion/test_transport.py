@@ -158,7 +158,7 @@ def test_only_batches_without_landmarks_convert_without_their_building() -> None
 def test_a_submission_holds_the_batch_or_its_conversion() -> None:
     batch = _sensor_batch()
     header = BatchHeader.of(batch)
-    assert header == ("phone-1", "phone-1", "b-1", 4, None, None)
+    assert header == ("phone-1", "phone-1", "b-1", 4, None, None, None)
     converted = convert.without_context(batch)
     assert converted is not None
     with pytest.raises(ValueError, match="either the batch or its conversion"):
