@@ -58,7 +58,7 @@ def running_server(
         yield f"http://{host}:{port}"
     finally:
         server.should_exit = True
-        thread.join(timeout=10)
+        thread.join(timeout=120)  # the lifespan's shutdown snapshots every building
 
 
 def serve_process(

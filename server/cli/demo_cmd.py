@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import secrets
+import signal
 from importlib import resources
 from pathlib import Path
 
@@ -47,6 +48,10 @@ def run(args: argparse.Namespace) -> int:
     from server.store.migrate import upgrade
     from slam_core.sim.simulation import Scenario, simulate
 
+    # SIGINT and SIGTERM both stop the demo cleanly (its buildings snapshotted): started in the background
+    # a program inherits SIGINT ignored, and SIGTERM (docker stop, kill) would end it without a snapshot
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, _interrupt)
     settings = get_settings()
     engine = make_engine(settings.resolved_database_url)
     upgrade(engine)
@@ -111,3 +116,7 @@ def run(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         pass
     return 0
+
+
+def _interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt

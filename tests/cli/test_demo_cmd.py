@@ -7,12 +7,16 @@ from __future__ import annotations
 import json
 import os
 import re
+import signal
 import subprocess
+import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from server.cli.background_server import CLI, free_port
+from server.store.db import make_engine
 from slam_core.sim.simulation import Scenario, simulate
 from tests.conftest import SHARED
 
@@ -89,3 +93,52 @@ def test_a_demo_run_again_in_the_same_folder_moves_a_new_crowd(tmp_path: Path) -
         assert int(batches) > 50
         assert (int(errors), int(duplicates)) == (0, 0)
         assert float(median) < 3.0
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_the_demo_stops_cleanly_on_sigint_and_sigterm_even_in_the_background(
+    tmp_path: Path, signum: int
+) -> None:
+    """Started in the background (SIGINT ignored, as a shell's `&` leaves it), the demo had ignored Ctrl-C
+    and died on SIGTERM without a snapshot. Both now stop it, and the final snapshot covers every batch
+    (no logged body is left to replay)."""
+    env = {**os.environ, "CROWDSLAM_DATA_DIR": str(tmp_path / "data")}
+    env.pop("CROWDSLAM_DATABASE_URL", None)
+    scenario = _small_testbed(tmp_path / "small.json")
+    args = ["demo", "--rounds", "0", "--speed", "5", "--port", str(free_port()), "--scenario", str(scenario)]
+    process = subprocess.Popen(
+        [*CLI, *args],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN),
+    )
+    try:
+        assert process.stdout is not None
+        for line in process.stdout:
+            if "Ctrl-C stops." in line:
+                break
+        time.sleep(3)  # the crowd is walking
+        process.send_signal(signum)
+        assert process.wait(timeout=120) == 0
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+        if process.stdout is not None:
+            process.stdout.close()
+    engine = make_engine(f"sqlite:///{tmp_path / 'data' / 'crowdslam.sqlite3'}")
+    try:
+        with engine.connect() as connection:
+            logged = connection.exec_driver_sql(
+                "SELECT COUNT(*) FROM batches WHERE body IS NOT NULL"
+            ).scalar()
+            accepted = connection.exec_driver_sql("SELECT COUNT(*) FROM batches").scalar()
+            snapshots = connection.exec_driver_sql("SELECT COUNT(*) FROM tracker_snapshots").scalar()
+    finally:
+        engine.dispose()
+    assert accepted is not None
+    assert accepted > 0
+    assert snapshots == 1
+    assert logged == 0
