@@ -66,6 +66,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="accepted and ignored: every evaluation runs through the server's tracker",
     )
+    parser.add_argument(
+        "--liars",
+        type=int,
+        default=0,
+        metavar="N",
+        help="with --scenario: N simulated users lie (copied scans, made-up sightings, false fixes); only "
+        "the honest users are scored",
+    )
     parser.add_argument("--sweep", choices=("particles", "density", "anchor-density"))
     parser.add_argument(
         "--compare", action="store_true", help="run pdr, semanticslam and dynamicslam; one CDF (Figure 14)"
@@ -294,5 +302,6 @@ def _replay_options(args: argparse.Namespace) -> ReplayOptions:
         crowd_solver=args.crowd_solver,
         seed=args.seed,
         filter_seed=args.filter_seed,
+        liars=getattr(args, "liars", 0),
         fingerprints=args.fingerprints is not False,
     )

@@ -59,6 +59,8 @@ class ReplayOptions:
     fingerprints: bool = True
     """In ``dynamicslam`` mode, also localise scans on the crowd-learned WiFi fingerprint map
     (``slam_core.crowd.fingerprints``), as the server does by default."""
+    liars: int = 0
+    """Simulated users who lie (``server.simulation.liars``); only the honest users are scored."""
 
     @property
     def tracker_seed(self) -> int:
@@ -67,6 +69,8 @@ class ReplayOptions:
     def __post_init__(self) -> None:
         if self.mode not in MODES:
             raise ValueError(f"unknown mode {self.mode!r}; valid: {', '.join(MODES)}")
+        if self.liars < 0:
+            raise ValueError("liars must be >= 0")
         if self.warm_split is not None and not 0.0 < self.warm_split < 1.0:
             raise ValueError("warm_split must be in (0, 1)")
 

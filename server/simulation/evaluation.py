@@ -23,6 +23,7 @@ import numpy as np
 
 from server.engine.config import ReplayOptions, replay_params
 from server.ingestion.convert import BuildingContext, anchor_type_index, to_user_batch
+from server.simulation.liars import liar_devices, lying
 from server.simulation.phones import EPOCH_MS, device_id, known_anchors, simulated_batches
 from slam_core.encounters.models import Calibration
 from slam_core.sim.encounters import meetings_per_user
@@ -51,14 +52,15 @@ def evaluate_scenario(
         known[f"known-{k}"] = (float(anchor.position[0]), float(anchor.position[1]))
     ctx = BuildingContext("simulated", None, known)
     users = {device_id(u): u for u in range(len(sim.users))}
+    liars = liar_devices(len(sim.users), options.liars) if options.liars else set()
     score = _Score(sim, users)
-    for batch in simulated_batches(sim, "simulated"):
+    for batch in lying(simulated_batches(sim, "simulated"), liars):
         user_batch = to_user_batch(batch, ctx).user_batch
         outcome = tracker.apply([user_batch])
         score.outcome(outcome)
         if progress is not None:
             progress(1)
-        if not batch.steps or not tracker.is_tracking(user_batch.user):
+        if not batch.steps or not tracker.is_tracking(user_batch.user) or batch.device_id in liars:
             continue
         if options.mode == "pdr":
             xy, t_ms = tracker.dead_reckoning(user_batch.user), tracker.last_time_ms(user_batch.user)
@@ -74,6 +76,7 @@ def evaluate_scenario(
         "mode": options.mode,
         "seed": options.seed,
         "filter_seed": options.tracker_seed,
+        "liars": options.liars,
         "sampling": options.sampling,
         "particles": options.particles,
         "motion_model": options.motion_model,
