@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import re
 import time
 from typing import Any
 
@@ -13,6 +12,7 @@ from schemas.api import BatchReceipt
 from schemas.errors import Problem
 from schemas.sensors import SensorBatch
 from server.api.deps import AUTHORIZATION_PARAMETER, principal, token_principal
+from server.api.limits import BATCHES_PATH, send_response
 from server.api.live import refuse
 from server.auth import Principal
 from server.buildings.submissions import Submission
@@ -70,7 +70,6 @@ MAX_CLOCK_AHEAD_MS = 300_000
 """A batch timed more than five minutes ahead of the server's clock is refused: applied, it would set its
 user's timeline in the future and every later batch would look out of order."""
 
-_BATCHES_PATH = re.compile(r"/v1/buildings/([^/]+)/batches")
 _WANTED_HEADERS = (b"authorization", b"content-length")
 
 
@@ -124,7 +123,7 @@ class BatchFastPath:
         self.app = app
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        match = _BATCHES_PATH.fullmatch(scope["path"]) if scope["type"] == "http" else None
+        match = BATCHES_PATH.fullmatch(scope["path"]) if scope["type"] == "http" else None
         if match is None or scope["method"] != "POST":
             await self.app(scope, receive, send)
             return
@@ -140,11 +139,7 @@ class BatchFastPath:
         )
         if answer is None:
             return
-        status, body, extra = answer
-        raw = [(name.encode("latin-1"), value.encode("latin-1")) for name, value in extra.items()]
-        raw.append((b"content-length", str(len(body)).encode("latin-1")))
-        await send({"type": "http.response.start", "status": status, "headers": raw})
-        await send({"type": "http.response.body", "body": body})
+        await send_response(send, *answer)
 
 
 @router.post(

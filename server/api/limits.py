@@ -15,7 +15,8 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from server.errors import BodyTooLargeError, MalformedBodyError, ProblemError, problem_response_parts
 
-_BATCHES_PATH = re.compile(r"/v1/buildings/[^/]+/batches")
+BATCHES_PATH = re.compile(r"/v1/buildings/([^/]+)/batches")
+"""The batch route: read under its own limit by ``server.api.batches.BatchFastPath``."""
 
 
 class BodyLimit:
@@ -26,7 +27,7 @@ class BodyLimit:
         self.limit = limit
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http" or _BATCHES_PATH.fullmatch(scope["path"]):
+        if scope["type"] != "http" or BATCHES_PATH.fullmatch(scope["path"]):
             await self.app(scope, receive, send)
             return
         for name, value in scope["headers"]:
@@ -66,8 +67,12 @@ class BodyLimit:
 
 async def _answer(send: Send, error: ProblemError) -> None:
     status, body, headers = problem_response_parts(error.to_problem())
+    await send_response(send, status, body, {**headers, "connection": "close"})  # the rest goes unread
+
+
+async def send_response(send: Send, status: int, body: bytes, headers: dict[str, str]) -> None:
+    """A whole response from a pure ASGI middleware: status, headers (with the length) and body."""
     raw = [(k.encode("latin-1"), v.encode("latin-1")) for k, v in headers.items()]
     raw.append((b"content-length", str(len(body)).encode("latin-1")))
-    raw.append((b"connection", b"close"))
     await send({"type": "http.response.start", "status": status, "headers": raw})
     await send({"type": "http.response.body", "body": body})

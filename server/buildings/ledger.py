@@ -104,9 +104,7 @@ class DeviceLedger:
         device = self._devices.get(batch.device_id)
         ble = batch.ble_advertised_id
         if device is None:
-            self._devices[batch.device_id] = _Device(
-                batch.effective_user_id, ble, batch.seq, None, batch.install_ms, None
-            )
+            self.replayed(batch)  # a new device, as a replayed batch makes one
             return self._row(batch.device_id)
         changed = device.user_id != batch.effective_user_id or (
             ble is not None and ble != device.ble_advertised_id

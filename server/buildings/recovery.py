@@ -52,9 +52,11 @@ class RecoverableBuilding:
         self._background = tracker_snapshot.BackgroundSnapshots(building_id)
         self._load()
 
-    def _load(self) -> None:
+    def _load(self, snapshot_always: bool = True) -> None:
         """The building as its SQL holds it: the last snapshot plus the batches logged since, replayed in
-        their original engine calls (or, without a usable snapshot, the SQL anchor map)."""
+        their original engine calls (or, without a usable snapshot, the SQL anchor map). Then a snapshot
+        covering the whole log, unless ``snapshot_always`` is off and the one in SQL was used: it still
+        is the state before the log, which the log replays to the same filters."""
         params, calibration, seed = self._config.params, self._config.calibration, self._config.seed
         self.ids = AnchorIds()
         self._device_of_user: dict[str, str] = {}
@@ -92,13 +94,14 @@ class RecoverableBuilding:
                     )
                     self.ids.link(index, row.public_id, row.label)
         self._replay(logged)
-        self.snapshot(clear_log=True)  # it covers the whole log now
+        if snapshot_always or not restored:
+            self.snapshot(clear_log=True)  # it covers the whole log now
 
     def reload(self) -> None:
         """Throw the in-memory state away and load the building again from SQL, exactly as a restart does:
         what a rolled-back transaction had changed in the tracker is gone, what committed is all there."""
         self._background.discard()  # a snapshot taken from the state thrown away is never written
-        self._load()
+        self._load(snapshot_always=False)  # a reload pickles nothing: the snapshot in SQL is still right
         self.counters.reloads += 1
 
     def context(self) -> convert.BuildingContext:

@@ -196,15 +196,6 @@ class BuildingTracking(RecoverableBuilding):
         results: list[BatchReceipt | ProblemError | None] = [None] * len(group)
         converted: dict[int, tuple[UserBatch, list[str]]] = {}
         for i, sub in enumerate(group):
-            c = sub.converted
-            if c is None:
-                assert sub.batch is not None  # a Submission holds one or the other
-                ctx = ctx or self.context()
-                try:
-                    c = convert.to_user_batch(sub.batch, ctx)
-                except ValueError as exc:
-                    results[i] = InvalidInputError(str(exc))
-                    continue
             header = sub.header
             if not self.devices.may_post_as(header.device_id, header.effective_user_id):
                 bound = self.devices.user_of(header.device_id) or header.device_id
@@ -214,6 +205,15 @@ class BuildingTracking(RecoverableBuilding):
                     f"/v1/buildings/{self.building_id}/devices/{header.device_id})"
                 )
                 continue
+            c = sub.converted
+            if c is None:
+                assert sub.batch is not None  # a Submission holds one or the other
+                ctx = ctx or self.context()
+                try:
+                    c = convert.to_user_batch(sub.batch, ctx)
+                except ValueError as exc:
+                    results[i] = InvalidInputError(str(exc))
+                    continue
             converted[i] = (c.user_batch, c.warnings)
         messages: list[LiveMessage] = []
         order = list(converted)
@@ -223,7 +223,7 @@ class BuildingTracking(RecoverableBuilding):
         base = self._round
         device_rows: list[dict[str, object]] = []
         to_record: list[int] = []
-        self._estimates_to_record: list[tuple[list[Estimate], int]] = []
+        estimates_to_record: list[tuple[list[Estimate], int]] = []
         with self._writer_turns, self._sessions.begin() as session:  # see server.store.writer_lock
             inserted = insert_batches_once(session, [self._accepted(group[i], calls[i], base) for i in order])
             by_call: dict[int, list[int]] = {}
@@ -249,7 +249,7 @@ class BuildingTracking(RecoverableBuilding):
             for call in sorted(by_call):
                 now = by_call[call]
                 self._round = base + call
-                self._apply(session, group, converted, now, results, messages)
+                self._apply(session, group, converted, now, results, messages, estimates_to_record)
             device_rows += self._periodic_snapshot(session)
             self._clear_log(session, max(1, int(self.retention.log_clear_per_batch * len(group))))
             if time.monotonic() - self._last_prune >= self.retention.prune_period_s:
@@ -260,7 +260,7 @@ class BuildingTracking(RecoverableBuilding):
         if self.recorder is not None:
             for i in to_record:
                 self.recorder.record_batch(group[i].raw, group[i].received_ns)
-            for estimates, received_ns in self._estimates_to_record:
+            for estimates, received_ns in estimates_to_record:
                 self.recorder.record_estimates(estimates, received_ns)
             self.recorder.flush()
         self.counters.batches += len(group)
@@ -274,9 +274,10 @@ class BuildingTracking(RecoverableBuilding):
         now: list[int],
         results: list[BatchReceipt | ProblemError | None],
         messages: list[LiveMessage],
+        estimates_to_record: list[tuple[list[Estimate], int]],
     ) -> None:
         """One engine call over these batches (at most one per user); their receipts, positions, anchor
-        changes and live messages."""
+        changes and live messages, and the estimates to record once the transaction commits."""
         outcome = self.tracker.apply([converted[i][0] for i in now])
         heard = time.time()
         for i in now:
@@ -287,7 +288,7 @@ class BuildingTracking(RecoverableBuilding):
         self.counters.encounter_detections += outcome.detections
         estimates = {u: self._estimate(u, row) for u, row in outcome.estimates.items()}
         self.counters.estimates += len(estimates)
-        self._estimates_to_record.append((list(estimates.values()), group[now[0]].received_ns))
+        estimates_to_record.append((list(estimates.values()), group[now[0]].received_ns))
         stored_at_ms = int(heard * 1000)
         rows = [position_row(self.building_id, e, stored_at_ms) for e in estimates.values()]
         repo.add_positions(session, rows)

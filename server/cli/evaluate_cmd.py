@@ -127,8 +127,8 @@ def _msindoor(args: argparse.Namespace) -> int:
     from server.settings import Settings
     from slam_core.sim.statistics import empirical_cdf
 
-    if args.sweep or args.compare:
-        print("crowdslam evaluate: --sweep and --compare apply to --scenario only")
+    if args.sweep or args.compare or args.liars:
+        print("crowdslam evaluate: --sweep, --compare and --liars apply to --scenario only")
         return 2
     try:
         options = _replay_options(args)
@@ -302,6 +302,6 @@ def _replay_options(args: argparse.Namespace) -> ReplayOptions:
         crowd_solver=args.crowd_solver,
         seed=args.seed,
         filter_seed=args.filter_seed,
-        liars=getattr(args, "liars", 0),
+        liars=args.liars,
         fingerprints=args.fingerprints is not False,
     )
