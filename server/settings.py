@@ -42,6 +42,13 @@ class Settings(BaseSettings):
     max_live_sockets_per_key: int = Field(
         default=20, ge=1, description="Live WebSockets one key may hold open at once (4429 beyond)."
     )
+    extent_margin_m: float = Field(
+        default=1000.0,
+        ge=0.0,
+        le=100_000.0,
+        description="How far beyond a building's floors (their width and height) a fix, tag or anchor may "
+        "lie; one farther is refused with 422.",
+    )
     metrics_need_key: bool = Field(
         default=False,
         description="Serve /metrics only to a site-wide operator key (it names every building).",

@@ -37,3 +37,5 @@ class TrackingConfig:
     seed: int = 0
     snapshot_period_s: float = 60.0
     retention: Retention = field(default_factory=Retention)
+    extent_margin_m: float = 1000.0
+    """How far beyond its floors a position posted to a building may lie (``server.ingestion.extent``)."""

@@ -8,6 +8,7 @@ periodically and when asked, and clears the logged batch bodies a snapshot cover
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import logging
 import math
@@ -26,6 +27,7 @@ from server.buildings.ledger import DeviceLedger
 from server.buildings.submissions import BatchHeader
 from server.errors import NotFoundError
 from server.ingestion import convert
+from server.ingestion.extent import Extent
 from server.store import repositories as repo
 from server.store.batches import LoggedBatch, clear_covered_bodies, logged_batches
 from slam_core.encounters.models import Calibration
@@ -70,6 +72,10 @@ class RecoverableBuilding:
                 if building.origin_lat_deg is not None and building.origin_lon_deg is not None
                 else None
             )
+            self.extent = Extent.of_floors(
+                ((f.width_m, f.height_m) for f in repo.list_floors(session, self.building_id)),
+                self._config.extent_margin_m,
+            )
             self.devices = DeviceLedger(self.building_id, repo.devices(session, self.building_id))
             restored = self._restore(session, params, calibration)
             logged = logged_batches(session, self.building_id, after_round=self._round if restored else None)
@@ -112,7 +118,7 @@ class RecoverableBuilding:
                 mean, _, _, is_known, _, _ = self.tracker.crowd.anchor(index)
                 if is_known:
                     known[public_id] = (float(mean[0]), float(mean[1]))
-        return convert.BuildingContext(self.building_id, self.geo, known)
+        return convert.BuildingContext(self.building_id, self.geo, known, extent=self.extent)
 
     def _restore(self, session: Session, params: TrackerParams, calibration: Calibration) -> bool:
         """Load the building's snapshot; False when there is none or it cannot be used."""
@@ -136,7 +142,8 @@ class RecoverableBuilding:
         """Re-apply the batches acknowledged after the snapshot, in their original engine calls. Their
         positions and anchors are already in SQL; only the in-memory filters are rebuilt."""
         for applied_round, items in itertools.groupby(logged, key=lambda b: b.applied_round):
-            ctx = self.context()
+            # a logged batch was accepted: it is replayed even if the margin has narrowed since
+            ctx = dataclasses.replace(self.context(), extent=None)
             batches = []
             for item in items:
                 batch = SensorBatch.model_validate_json(item.body)

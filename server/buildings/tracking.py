@@ -98,6 +98,10 @@ class BuildingTracking(RecoverableBuilding):
         index = self.ids.index.get(public_id)
         if index is not None and not self.tracker.crowd.is_live(index):
             raise ConflictError(f"anchor {public_id!r} was deleted or merged; pick a new id")
+        if self.extent is not None:
+            refusal = self.extent.refusal("the anchor", body.position.x_m, body.position.y_m)
+            if refusal is not None:
+                raise InvalidInputError(refusal)
         xy = np.array([body.position.x_m, body.position.y_m])
         type_index = convert.anchor_type_index(body.type)
         index = self.tracker.pin_anchor(xy, type_index, index)
@@ -403,6 +407,7 @@ def tracking_config(settings: Settings) -> TrackingConfig:
         settings.seed,
         settings.snapshot_period_s,
         retention,
+        settings.extent_margin_m,
     )
 
 

@@ -25,6 +25,7 @@ from schemas.sensors import (
     Vector3Stream,
     WifiScan,
 )
+from server.ingestion.extent import Extent
 from server.ingestion.transport import PackedBatch, pack_lists
 from slam_core.encounters.models import MODEL_BLUETOOTH, MODEL_WIFI_FINGERPRINT
 from slam_core.geo import GeoFrame
@@ -46,6 +47,9 @@ class BuildingContext:
     geo: GeoFrame | None
     known_anchors: Mapping[str, tuple[float, float]]  # public id -> local position
     detection_sigma_m: float = 0.5
+    extent: Extent | None = None
+    """Where positions may be (None: anywhere the schema allows); a fix, GPS fix or tag outside it refuses
+    the batch."""
 
 
 _NO_CONTEXT = BuildingContext("", None, {})
@@ -83,6 +87,8 @@ def to_user_batch(batch: SensorBatch, ctx: BuildingContext) -> Converted:
             warnings.append(f"landmarks.{i}: {placed}")
             continue
         (x, y), sigma, azimuth = placed
+        if ctx.extent is not None and (refusal := ctx.extent.refusal(f"landmarks.{i}", x, y)) is not None:
+            raise ValueError(refusal)
         fix_t.append(mark.t_ms)
         fix_xy.append((x, y))
         fix_sigma.append(sigma)

@@ -26,8 +26,12 @@ class Api:
     def auth(self, key: str) -> dict[str, str]:
         return {"Authorization": f"Bearer {key}"}
 
-    def create_building(self, building_id: str = "hq", geo: bool = False) -> None:
+    def create_building(
+        self, building_id: str = "hq", geo: bool = False, size_m: tuple[float, float] | None = None
+    ) -> None:
         body: dict[str, object] = {"id": building_id, "name": building_id.upper()}
+        if size_m is not None:
+            body["floors"] = [{"level": 0, "name": "Ground", "width_m": size_m[0], "height_m": size_m[1]}]
         if geo:
             body["geo_reference"] = {"origin_lat_deg": 47.6, "origin_lon_deg": -122.3, "rotation_rad": 0.3}
         response = self.client.post("/v1/buildings", json=body, headers=self.auth(self.operator))

@@ -60,6 +60,56 @@ def test_an_anchor_cannot_be_pinned_far_away_and_imu_is_bounded(sqlite_api: Api)
     assert "accelerometer.x.1" in response.text
 
 
+def test_positions_outside_the_buildings_extent_are_refused(api: Api) -> None:
+    """A building's floors give its extent; a fix, GPS fix or anchor beyond it plus the operator's margin
+    (1 km by default) is 422 and changes nothing. On SQLite and PostgreSQL: the floors come from the store."""
+    api.create_building(geo=True, size_m=(60.0, 50.0))
+    key = api.key("hq", "device", "phone-1")
+    assert _post(api, key, _batch(0)).json()["status"] == "applied"
+    positions = api.client.get("/v1/buildings/hq/positions", headers=api.auth(api.operator)).json()
+    t1 = _batch(1)["steps"][0]["t_ms"]
+    far = _batch(1, landmarks=[{"kind": "fix", "t_ms": t1, "position": {"x_m": 1100.0, "y_m": 20.0}}])
+    response = _post(api, key, far)
+    assert response.status_code == 422, response.text
+    detail = response.json()["detail"]
+    assert "outside the building" in detail
+    assert "x 0..60 m" in detail
+    assert "1000 m beyond" in detail
+    # a GPS fix ~5.6 km north of the origin, through the geo-reference
+    gps = _batch(1, landmarks=[{"kind": "gps", "t_ms": t1, "lat_deg": 47.65, "lon_deg": -122.3}])
+    assert _post(api, key, gps).status_code == 422
+    pinned = api.client.put(
+        "/v1/buildings/hq/anchors/far",
+        json={"type": "door", "position": {"x_m": 30.0, "y_m": -1051.0}},
+        headers=api.auth(api.operator),
+    )
+    assert pinned.status_code == 422, pinned.text
+    assert "the anchor at (30.0, -1051.0) m is outside the building" in pinned.json()["detail"]
+    assert api.client.get("/v1/buildings/hq/anchors", headers=api.auth(api.operator)).json() == []
+    after = api.client.get("/v1/buildings/hq/positions", headers=api.auth(api.operator)).json()
+    assert after == positions
+    # within the margin (an entrance, a car park) is fine, and the refused batch's id is still free
+    near = _batch(1, landmarks=[{"kind": "fix", "t_ms": t1, "position": {"x_m": -900.0, "y_m": 20.0}}])
+    body = _post(api, key, near).json()
+    assert body["status"] == "applied", body
+    assert body["estimate"]["position"]["x_m"] < -800.0
+    door = api.client.put(
+        "/v1/buildings/hq/anchors/door",
+        json={"type": "door", "position": {"x_m": 60.0, "y_m": 1049.0}},
+        headers=api.auth(api.operator),
+    )
+    assert door.status_code == 200, door.text
+
+
+def test_without_floor_sizes_only_the_physical_bound_applies(sqlite_api: Api) -> None:
+    api = sqlite_api
+    api.create_building()  # no floors: the building's size is unknown
+    key = api.key("hq", "device", "phone-1")
+    t0 = _batch(0)["steps"][0]["t_ms"]
+    body = _batch(0, landmarks=[{"kind": "fix", "t_ms": t0, "position": {"x_m": 5000.0, "y_m": 0.0}}])
+    assert _post(api, key, body).json()["status"] == "applied"
+
+
 def test_a_batch_from_the_future_is_refused_and_freezes_nobody(sqlite_api: Api) -> None:
     """Steps timed in 2099 had been accepted, and every later step of that user was then 'out of time
     order' forever."""
