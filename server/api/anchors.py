@@ -9,6 +9,7 @@ from fastapi import APIRouter, Query, Response, status
 from schemas.anchors import AnchorMergeIn, BuildingAnchor, KnownAnchorIn
 from schemas.common import MAX_TIME_MS, MIN_TIME_MS, Identifier
 from server.api.deps import Caller, DbSession, State
+from server.api.links import BUILDING, SAME_BUILDING, link, links
 from server.buildings.workers import Worker
 from server.errors import InvalidInputError
 from server.store import repositories as repo
@@ -37,7 +38,16 @@ async def get_anchor(building_id: str, anchor_id: Identifier, caller: Caller, st
     return anchor
 
 
-@router.put("/anchors/{anchor_id}", response_model=BuildingAnchor)
+_ANCHOR = f"{BUILDING}/anchors/{{anchor_id}}"
+_THIS_ANCHOR = {"building_id": SAME_BUILDING, "anchor_id": "$response.body#/id"}
+_ANCHOR_LINKS = links(
+    200,
+    GetAnchor=link("GET", _ANCHOR, "The anchor.", **_THIS_ANCHOR),
+    DeleteAnchor=link("DELETE", _ANCHOR, "Delete the anchor.", **_THIS_ANCHOR),
+)
+
+
+@router.put("/anchors/{anchor_id}", response_model=BuildingAnchor, responses=_ANCHOR_LINKS)
 async def put_known_anchor(
     building_id: str, anchor_id: Identifier, body: KnownAnchorIn, caller: Caller, state: State
 ) -> BuildingAnchor:
@@ -59,7 +69,7 @@ async def delete_anchor(building_id: str, anchor_id: Identifier, caller: Caller,
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 
-@router.post("/anchors/merge", response_model=BuildingAnchor)
+@router.post("/anchors/merge", response_model=BuildingAnchor, responses=_ANCHOR_LINKS)
 async def merge_anchors(
     building_id: str, body: AnchorMergeIn, caller: Caller, state: State
 ) -> BuildingAnchor:

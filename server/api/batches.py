@@ -13,6 +13,7 @@ from schemas.errors import Problem
 from schemas.sensors import SensorBatch
 from server.api.deps import AUTHORIZATION_PARAMETER, principal, token_principal
 from server.api.limits import BATCHES_PATH, send_response
+from server.api.links import BUILDING, SAME_BUILDING, link
 from server.api.live import refuse
 from server.auth import Principal
 from server.buildings.submissions import Submission
@@ -147,6 +148,17 @@ class BatchFastPath:
     response_model=BatchReceipt,
     openapi_extra=_BATCH_BODY,
     responses={
+        200: {
+            "links": {
+                "UserHistory": link(
+                    "GET",
+                    f"{BUILDING}/users/{{user_id}}/positions",
+                    "The device's positions.",
+                    building_id=SAME_BUILDING,
+                    user_id="$request.body#/device_id",
+                )
+            }
+        },
         400: {"model": Problem},
         404: {"model": Problem},
         413: {"model": Problem},

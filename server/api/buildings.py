@@ -10,6 +10,7 @@ from schemas.api import KeyCreated, KeyCreateIn, KeyInfo, KeyScope
 from schemas.buildings import Building, DeviceAssignment, DeviceAssignmentIn, Floor, GeoReference
 from schemas.common import Identifier
 from server.api.deps import Caller, DbSession, State
+from server.api.links import BUILDING, SAME_BUILDING, link, links
 from server.auth import mint_key
 from server.errors import ConflictError, InvalidInputError, NotFoundError
 from server.store import repositories as repo
@@ -39,7 +40,28 @@ def _building(row: BuildingRow, floors: list[FloorRow]) -> Building:
     )
 
 
-@router.post("", status_code=status.HTTP_201_CREATED, response_model=Building)
+_NEW_BUILDING = "$response.body#/id"
+
+
+@router.post(
+    "",
+    status_code=status.HTTP_201_CREATED,
+    response_model=Building,
+    responses=links(
+        201,
+        GetBuilding=link("GET", BUILDING, "The building created.", building_id=_NEW_BUILDING),
+        CreateKey=link("POST", f"{BUILDING}/keys", "Mint its keys.", building_id=_NEW_BUILDING),
+        ListKeys=link("GET", f"{BUILDING}/keys", "Its keys.", building_id=_NEW_BUILDING),
+        PinAnchor=link(
+            "PUT", f"{BUILDING}/anchors/{{anchor_id}}", "Pin a known anchor.", building_id=_NEW_BUILDING
+        ),
+        ListAnchors=link("GET", f"{BUILDING}/anchors", "Its anchor map.", building_id=_NEW_BUILDING),
+        LatestPositions=link("GET", f"{BUILDING}/positions", "Its users.", building_id=_NEW_BUILDING),
+        StartSignalMap=link(
+            "POST", f"{BUILDING}/signal-maps", "Build its signal maps.", building_id=_NEW_BUILDING
+        ),
+    ),
+)
 def create_building(body: Building, caller: Caller, session: DbSession) -> Building:
     """Create a building (operator key). Its id is permanent; a taken id is 409."""
     caller.require_operator(body.id)
@@ -81,7 +103,28 @@ def get_building(building_id: str, caller: Caller, session: DbSession) -> Buildi
     return _building(row, repo.list_floors(session, building_id))
 
 
-@router.post("/{building_id}/keys", status_code=status.HTTP_201_CREATED, response_model=KeyCreated)
+@router.post(
+    "/{building_id}/keys",
+    status_code=status.HTTP_201_CREATED,
+    response_model=KeyCreated,
+    responses=links(
+        201,
+        RevokeKey=link(
+            "DELETE",
+            f"{BUILDING}/keys/{{prefix}}",
+            "Revoke the key minted.",
+            building_id=SAME_BUILDING,
+            prefix="$response.body#/prefix",
+        ),
+        AssignDevice=link(
+            "PUT",
+            f"{BUILDING}/devices/{{device_id}}",
+            "Assign the key's device to a user.",
+            building_id=SAME_BUILDING,
+            device_id="$response.body#/device_id",
+        ),
+    ),
+)
 def create_key(building_id: str, body: KeyCreateIn, caller: Caller, session: DbSession) -> KeyCreated:
     """Mint a device, dashboard or building operator key (operator key). The secret is shown only here."""
     caller.require_operator(building_id)

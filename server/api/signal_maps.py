@@ -7,11 +7,26 @@ from fastapi.responses import FileResponse
 
 from schemas.signal_maps import SignalMapJob
 from server.api.deps import Caller, State
+from server.api.links import BUILDING, SAME_BUILDING, link, links
 
 router = APIRouter(prefix="/v1/buildings/{building_id}/signal-maps", tags=["signal maps"])
 
 
-@router.post("", response_model=SignalMapJob, status_code=status.HTTP_202_ACCEPTED)
+@router.post(
+    "",
+    response_model=SignalMapJob,
+    status_code=status.HTTP_202_ACCEPTED,
+    responses=links(
+        202,
+        GetBuild=link(
+            "GET",
+            f"{BUILDING}/signal-maps/{{job_id}}",
+            "The build's status.",
+            building_id=SAME_BUILDING,
+            job_id="$response.body#/id",
+        ),
+    ),
+)
 async def start_build(building_id: str, caller: Caller, state: State) -> SignalMapJob:
     """Start a build over every recording of the building (operator key). Walks between two landmarks
     (position fixes, known-anchor readings, tags with a position) are optimised jointly with WiFi signal

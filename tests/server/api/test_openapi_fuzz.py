@@ -1,10 +1,14 @@
-"""Schemathesis generates requests from the OpenAPI spec (bounded examples per operation) and sends them to
-a running server with valid keys for each scope: whatever it sends, the server never answers 5xx."""
+"""Schemathesis generates requests from the OpenAPI spec (bounded examples per operation, then sequences
+that follow the spec's links from one response to the next request) and sends them to a running server with
+valid keys for each scope: whatever it sends, the server never answers 5xx."""
 
 from __future__ import annotations
 
+import contextlib
 import os
+import shutil
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -23,11 +27,26 @@ from server.store.migrate import upgrade
 from server.store.models import BuildingRow
 
 
+@dataclass(frozen=True)
+class Served:
+    base: str
+    keys: dict[str, str]
+    spec: dict[str, Any]
+    template: Path
+    """The database as the server started on it: building hq, an operator key and phone-1's device key."""
+
+
+@contextlib.contextmanager
+def _server(database: Path) -> Iterator[tuple[str, dict[str, Any]]]:
+    app = create_app(Settings(data_dir=database.parent, database_url=f"sqlite:///{database}", record=False))
+    with running_server(app, "127.0.0.1", free_port()) as base:
+        yield base, app.openapi()
+
+
 @pytest.fixture(scope="module")
-def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, dict[str, str], object]]:
-    data: Path = tmp_path_factory.mktemp("fuzz")
-    url = f"sqlite:///{data / 'db.sqlite3'}"
-    engine = make_engine(url)
+def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Served]:
+    template = tmp_path_factory.mktemp("fuzz-template") / "db.sqlite3"
+    engine = make_engine(f"sqlite:///{template}")
     upgrade(engine)
     with make_session_factory(engine).begin() as session:
         session.add(BuildingRow(id="hq", name="HQ", rotation_rad=0.0))
@@ -37,13 +56,21 @@ def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, dict
             "device": mint_key(session, KeyScope.DEVICE, "hq", "phone-1")[0],
         }
     engine.dispose()
-    app = create_app(Settings(data_dir=data, database_url=url, record=False))
-    with running_server(app, "127.0.0.1", free_port()) as base:
-        yield base, keys, app.openapi()
+    database = tmp_path_factory.mktemp("fuzz") / "db.sqlite3"
+    shutil.copy(template, database)
+    with _server(database) as (base, spec):
+        yield Served(base, keys, spec, template)
 
 
 EXAMPLES = int(os.environ.get("CROWDSLAM_FUZZ_EXAMPLES", "12"))
-"""Generated requests per operation: 12 in the suite; ``CROWDSLAM_FUZZ_EXAMPLES=60`` for a long run."""
+"""Generated requests per operation: 12 in the suite; ``CROWDSLAM_FUZZ_EXAMPLES=60`` for a long run. As many
+stateful sequences are run (of up to ``STEPS`` requests each)."""
+STEPS = 6
+
+
+def _headers(operation: Any, keys: dict[str, str]) -> dict[str, str]:
+    scope = "device" if operation.path.endswith("/batches") else "operator"
+    return {"Authorization": f"Bearer {keys[scope]}"}
 
 
 def _fuzz(operation: Any, base: str, headers: dict[str, str], failures: list[str], sent: list[int]) -> None:
@@ -66,10 +93,8 @@ def _fuzz(operation: Any, base: str, headers: dict[str, str], failures: list[str
     check()
 
 
-def test_no_request_from_the_spec_makes_the_server_fail(
-    served: tuple[str, dict[str, str], dict[str, object]],
-) -> None:
-    base, keys, spec = served
+def test_no_request_from_the_spec_makes_the_server_fail(served: Served) -> None:
+    base, keys, spec = served.base, served.keys, served.spec
     failures: list[str] = []
     sent = [0]
     operations = 0
@@ -78,9 +103,65 @@ def test_no_request_from_the_spec_makes_the_server_fail(
             raise AssertionError(f"the OpenAPI spec has an invalid operation: {result.err()}")
         operation = result.ok()
         operations += 1
-        scope = "device" if operation.path.endswith("/batches") else "operator"
-        _fuzz(operation, base, {"Authorization": f"Bearer {keys[scope]}"}, failures, sent)
+        _fuzz(operation, base, _headers(operation, keys), failures, sent)
     assert operations >= 10
     assert sent[0] >= operations  # every operation was called
     print(f"schemathesis: {sent[0]} requests over {operations} operations, {len(failures)} 5xx")
+    assert not failures, "\n".join(failures[:10])
+
+
+def test_sequences_through_the_links_make_no_5xx(
+    served: Served, tmp_path_factory: pytest.TempPathFactory
+) -> None:
+    """Stateful: a building created, then its keys minted and revoked, anchors pinned, read and deleted,
+    builds started and polled, with the values each response gives, along the spec's links (and those
+    schemathesis infers). Each sequence runs on a server of its own, started on a copy of the same
+    database: Hypothesis draws a sequence's next step from the answers so far, which must not depend on
+    earlier sequences."""
+    keys = served.keys
+    failures: list[str] = []
+    sent = [0]
+    followed: dict[str, dict[str, int]] = {"declared": {}, "inferred": {}}
+    machine = schemathesis.openapi.from_dict(served.spec).as_state_machine()
+
+    class Sequences(machine):  # type: ignore[misc, valid-type]
+        def setup(self) -> None:
+            database = tmp_path_factory.mktemp("sequence") / "db.sqlite3"
+            shutil.copy(served.template, database)
+            self.server = contextlib.ExitStack()
+            self.base, _ = self.server.enter_context(_server(database))
+
+        def teardown(self) -> None:
+            self.server.close()
+
+        def step(self, input: Any) -> Any:
+            if input.transition is not None and input.is_applied:
+                name = input.transition.id.split("] ")[1].split(" -> ")[0]  # "A -> [201] Name -> B"
+                kind = "inferred" if input.transition.is_inferred else "declared"
+                followed[kind][name] = followed[kind].get(name, 0) + 1
+            return super().step(input)
+
+        def get_call_kwargs(self, case: Any) -> dict[str, Any]:
+            return {"base_url": self.base, "headers": _headers(case.operation, keys), "timeout": 30}
+
+        def validate_response(self, response: Any, case: Any, *args: Any, **kwargs: Any) -> None:
+            sent[0] += 1
+            if response.status_code >= 500:
+                failures.append(
+                    f"{case.method} {case.formatted_path}: {response.status_code} {response.text[:300]}"
+                )
+
+    Sequences.run(
+        settings=settings(
+            max_examples=EXAMPLES * 2,
+            stateful_step_count=STEPS,
+            deadline=None,
+            suppress_health_check=list(HealthCheck),
+            database=None,
+            derandomize=True,
+        )
+    )
+    print(f"schemathesis stateful: {sent[0]} requests, links followed {followed}, {len(failures)} 5xx")
+    assert sum(followed["declared"].values()) + sum(followed["inferred"].values()) >= EXAMPLES, followed
+    assert followed["declared"], followed  # the spec's own links among them
     assert not failures, "\n".join(failures[:10])
