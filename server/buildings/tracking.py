@@ -8,6 +8,7 @@ phones.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
@@ -171,12 +172,14 @@ class BuildingTracking(RecoverableBuilding):
         non-finite estimate, a database error), the building is loaded again from SQL (``reload``: what
         the tracker had changed is gone, as after a restart) and the group is applied again one batch at
         a time, so that a batch that fails fails alone and every other user of the group is served."""
+        counted = dataclasses.replace(self.counters)
         try:
             return self._process(group)
         except Exception as exc:
             logger.warning(
                 "building %s: a group of %d failed (%r); reloading", self.building_id, len(group), exc
             )
+            vars(self.counters).update(vars(counted))  # the metrics count what committed, like the store
             self.reload()
             if len(group) > 1:
                 results: list[BatchReceipt | ProblemError] = []

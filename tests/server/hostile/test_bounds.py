@@ -135,10 +135,10 @@ def test_a_batch_from_the_future_is_refused_and_freezes_nobody(sqlite_api: Api) 
     assert _post(api, key, ahead).json()["status"] == "applied"
 
 
-def test_a_device_key_cannot_move_another_user(sqlite_api: Api) -> None:
+def test_a_device_key_cannot_move_another_user(api: Api) -> None:
     """phone-3's key posting as user phone-2 had teleported phone-2. A device posts as its own id or as the
-    user it has posted as; another user is 403 until an operator assigns the device to it."""
-    api = sqlite_api
+    user it has posted as; another user is 403 until an operator assigns the device to it. On SQLite and
+    PostgreSQL: the binding lives in the store."""
     api.create_building()
     keys = {d: api.key("hq", "device", d) for d in ("phone-2", "phone-3")}
     for seq in range(2):

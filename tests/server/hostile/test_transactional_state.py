@@ -81,6 +81,9 @@ def test_a_failing_batch_leaves_no_trace_and_fails_alone(
     assert building.counters.failed_batches == 1
     assert building.counters.reloads == 2  # the group's, then the failing batch's own
     assert _estimates(building) == _estimates(reference)  # bit for bit: nothing of the failed call kept
+    # nor of its counts: the metrics count what committed
+    for name in ("batches", "estimates", "encounters", "steps_dropped", "duplicates", "late", "snapshots"):
+        assert getattr(building.counters, name) == getattr(reference.counters, name), name
 
     # the failed batch is not in the log (a retry applies it now) nor in the recording
     retry = building.process([liar]).receipts[0]
