@@ -19,10 +19,12 @@ from server.simulation.crowd_client import device_keys, prepare_building
 from server.simulation.phones import simulated_batches
 from slam_core.sim.simulation import Scenario, simulate
 from tests.conftest import SHARED
+from tests.server.signal_maps.test_jobs import _walk
 
 
 def _building_processes(data_dir: Path) -> list[int]:
-    """Processes serving buildings of this data directory (Linux /proc)."""
+    """Processes a server of this data directory spawned: its buildings', its signal-map builds' (Linux
+    /proc)."""
     found = []
     for entry in Path("/proc").iterdir():
         try:
@@ -107,3 +109,44 @@ def test_kill_9_loses_no_acknowledged_batch_and_tracking_resumes(tmp_path: Path,
     assert resumed
     assert all(r.tracking for r in resumed)
     assert f'crowdslam_replayed_total{{building="hq"}} {float(cut)}' in metrics
+
+
+def test_kill_9_leaves_no_signal_map_build_behind(tmp_path: Path) -> None:
+    """A signal-map build's process had been orphaned by ``kill -9`` of the server, holding a core for a job
+    nobody would read. It dies with the server."""
+    env = {**os.environ, "CROWDSLAM_DATA_DIR": str(tmp_path)}
+    subprocess.run([*CLI, "migrate"], env=env, check=True, capture_output=True)
+    created = subprocess.run(
+        [*CLI, "keys", "create", "--scope", "operator"], env=env, check=True, capture_output=True, text=True
+    )
+    auth = {"Authorization": f"Bearer {created.stdout.strip().splitlines()[-1]}"}
+    port = free_port()
+    server = serve_process(env, port, tmp_path / "server.log")
+    try:
+        with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=30.0) as client:
+            assert (
+                client.post("/v1/buildings", json={"id": "hq", "name": "HQ"}, headers=auth).status_code == 201
+            )
+            minted = client.post(
+                "/v1/buildings/hq/keys", json={"scope": "device", "device_id": "a"}, headers=auth
+            )
+            device = {"Authorization": f"Bearer {minted.json()['key']}"}
+            for body in _walk("a", 0.0, 28.0, 20):
+                assert client.post("/v1/buildings/hq/batches", json=body, headers=device).status_code == 200
+            job = client.post("/v1/buildings/hq/signal-maps", headers=auth).json()
+            deadline = time.monotonic() + 120.0
+            while (
+                client.get(f"/v1/buildings/hq/signal-maps/{job['id']}", headers=auth).json()["status"]
+                == "queued"
+            ):
+                assert time.monotonic() < deadline, "the build never started"
+                time.sleep(0.02)
+            builders = _building_processes(tmp_path)  # the build's process, spawned by the server
+            assert builders
+    finally:
+        server.send_signal(signal.SIGKILL)
+        server.wait()
+    deadline = time.monotonic() + 10.0
+    while _building_processes(tmp_path) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert _building_processes(tmp_path) == [], "a build's process outlived the server"
