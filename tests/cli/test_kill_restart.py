@@ -98,9 +98,10 @@ def test_kill_9_loses_no_acknowledged_batch_and_tracking_resumes(tmp_path: Path,
             assert retried.duplicate
             after = [post(client, keys, i) for i in range(cut, len(batches))]
             metrics = client.get("/metrics").text
+            positions_at_stop = client.get("/v1/buildings/hq/positions", headers=auth).json()
     finally:
-        server.send_signal(signal.SIGTERM)
-        server.wait(timeout=60)
+        server.send_signal(signal.SIGTERM)  # as `docker stop` does to the image's `crowdslam serve`
+        server.wait(timeout=60)  # uvicorn shuts down, then exits by the signal it caught (-15)
     assert all(r.status == "applied" for r in after)
     # every user the crash interrupted is still tracked: no new start fix was needed
     tracked_before = {r.estimate.user_id for r in before if r.estimate is not None}
@@ -109,6 +110,17 @@ def test_kill_9_loses_no_acknowledged_batch_and_tracking_resumes(tmp_path: Path,
     assert resumed
     assert all(r.tracking for r in resumed)
     assert f'crowdslam_replayed_total{{building="hq"}} {float(cut)}' in metrics
+    # SIGTERM stopped it cleanly: its last snapshot covers every batch, so the next start replays none
+    server = serve_process(env, port, tmp_path / "server.log")
+    try:
+        with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=30.0) as client:
+            auth = {"Authorization": f"Bearer {operator}"}
+            assert client.get("/v1/buildings/hq/positions", headers=auth).json() == positions_at_stop
+            assert client.get("/v1/buildings/hq/anchors", headers=auth).status_code == 200  # loads it
+            assert 'crowdslam_replayed_total{building="hq"} 0.0' in client.get("/metrics").text
+    finally:
+        server.send_signal(signal.SIGKILL)
+        server.wait()
 
 
 def test_kill_9_leaves_no_signal_map_build_behind(tmp_path: Path) -> None:
