@@ -11,6 +11,7 @@ from schemas.api import BatchReceipt, KeyCreated, KeyCreateIn
 from schemas.buildings import BUILDING_EXAMPLE, Building
 from schemas.errors import PROBLEM_EXAMPLE, Problem
 from schemas.estimates import ESTIMATE_EXAMPLE, EncounterEvent, Estimate
+from schemas.floor_plans import FLOOR_PLAN_EXAMPLE, FloorPlan
 from schemas.live import LIVE_MESSAGE_ADAPTER, LiveBatch
 from schemas.sensors import BATCH_EXAMPLE, SensorBatch
 from schemas.signal_maps import SIGNAL_MAP_JOB_EXAMPLE, SignalMapJob
@@ -30,6 +31,7 @@ PUBLIC_MODELS: dict[str, type[BaseModel] | TypeAdapter[Any]] = {
     "KeyCreateIn": KeyCreateIn,
     "KeyCreated": KeyCreated,
     "SignalMapJob": SignalMapJob,
+    "FloorPlan": FloorPlan,
 }
 
 EXAMPLES: dict[str, dict[str, Any]] = {
@@ -39,6 +41,7 @@ EXAMPLES: dict[str, dict[str, Any]] = {
     "building": BUILDING_EXAMPLE,
     "problem": PROBLEM_EXAMPLE,
     "signal-map-job": SIGNAL_MAP_JOB_EXAMPLE,
+    "floor-plan": FLOOR_PLAN_EXAMPLE,
 }
 """Named examples, each valid against its model (a test checks)."""
 
@@ -49,6 +52,7 @@ EXAMPLE_MODELS: dict[str, type[BaseModel]] = {
     "building": Building,
     "problem": Problem,
     "signal-map-job": SignalMapJob,
+    "floor-plan": FloorPlan,
 }
 
 

@@ -140,7 +140,7 @@ def create_app(settings: Settings, tune_gc: bool = False) -> FastAPI:
     for module in (health, buildings, batches, positions, anchors, live, signal_maps):
         app.include_router(module.router)
     app.add_middleware(batches.BatchFastPath)
-    app.add_middleware(BodyLimit, limit=settings.max_request_bytes)
+    app.add_middleware(BodyLimit, limit=settings.max_request_bytes, plan_limit=settings.max_plan_bytes)
     _document_raw_bodies(app)
     return app
 

@@ -30,6 +30,11 @@ class Settings(BaseSettings):
         description="Largest body of any request but a batch; refused with 413 before it is read, before "
         "the key is checked.",
     )
+    max_plan_bytes: int = Field(
+        default=8 * 1024 * 1024,
+        gt=0,
+        description="Largest floor plan (GeoJSON) an operator may upload; 413 before it is read.",
+    )
     device_rate_per_s: float = Field(
         default=20.0,
         ge=0.0,

@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import asyncio
+from typing import Annotated
 
-from fastapi import APIRouter, Response, status
+from fastapi import APIRouter, Path, Response, status
 
 from schemas.api import KeyCreated, KeyCreateIn, KeyInfo, KeyScope
 from schemas.buildings import Building, DeviceAssignment, DeviceAssignmentIn, Floor, GeoReference
 from schemas.common import Identifier
+from schemas.errors import Problem
+from schemas.floor_plans import FloorPlan
 from server.api.deps import Caller, DbSession, State
 from server.api.links import BUILDING, SAME_BUILDING, link, links
 from server.auth import mint_key
@@ -199,3 +202,44 @@ async def assign_device(
     worker = await state.tracking.worker(building_id)
     await worker.call("assign_device", device_id, body.user_id)
     return DeviceAssignment(device_id=device_id, user_id=body.user_id)
+
+
+Level = Annotated[int, Path(ge=-20, le=200, description="The floor's level (0 is the ground floor).")]
+
+
+@router.put(
+    "/{building_id}/floors/{level}/plan",
+    response_model=FloorPlan,
+    responses={404: {"model": Problem}, 413: {"model": Problem}, 422: {"model": Problem}},
+)
+async def put_floor_plan(
+    building_id: str, level: Level, body: FloorPlan, caller: Caller, state: State
+) -> FloorPlan:
+    """Upload a floor's plan (operator key): GeoJSON features of kind ``walkable`` (the floor's outline),
+    ``obstacle`` (shops, rooms: their outlines are walls with unknown doors) and ``wall``, in the local frame
+    or in WGS-84 through the building's geo-reference, within the building's extent. It replaces the floor's
+    plan; the plan of floor 0, where users are tracked, weighs their steps from the next batch on. Answers the
+    plan as stored, in the local frame."""
+    caller.require_operator(building_id)
+    worker = await state.tracking.worker(building_id)
+    plan: FloorPlan = await worker.call("put_floor_plan", level, body)
+    return plan
+
+
+@router.get(
+    "/{building_id}/floors/{level}/plan", response_model=FloorPlan, responses={404: {"model": Problem}}
+)
+async def get_floor_plan(building_id: str, level: Level, caller: Caller, state: State) -> Response:
+    """The floor's plan in the local frame (dashboard or operator key)."""
+    caller.require_reader(building_id)
+
+    def query() -> str | None:
+        with state.sessions() as session:
+            if repo.get_building(session, building_id) is None:
+                raise NotFoundError(f"no building {building_id!r}")
+            return repo.floor_plan(session, building_id, level)
+
+    text = await asyncio.to_thread(query)
+    if text is None:
+        raise NotFoundError(f"floor {level} of building {building_id!r} has no plan")
+    return Response(text, media_type="application/json")

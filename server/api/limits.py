@@ -4,7 +4,7 @@ again while the body streams in, before the route reads it and before the caller
 An anonymous caller could otherwise make the server hold a body of any size in memory only to answer 401
 (a 400 MiB ``POST /v1/buildings`` had grown the server by 1.1 GB). The batch route reads its body itself
 under its own limit (``CROWDSLAM_MAX_BATCH_BYTES``, ``server.api.batches``); every other route is held to
-``CROWDSLAM_MAX_REQUEST_BYTES``.
+``CROWDSLAM_MAX_REQUEST_BYTES``, but floor plans, held to ``CROWDSLAM_MAX_PLAN_BYTES``.
 """
 
 from __future__ import annotations
@@ -17,27 +17,31 @@ from server.errors import BodyTooLargeError, MalformedBodyError, ProblemError, p
 
 BATCHES_PATH = re.compile(r"/v1/buildings/([^/]+)/batches")
 """The batch route: read under its own limit by ``server.api.batches.BatchFastPath``."""
+PLAN_PATH = re.compile(r"/v1/buildings/[^/]+/floors/[^/]+/plan")
+"""Floor plans are larger than other requests (a mall floor's GeoJSON is ~0.1-0.3 MB)."""
 
 
 class BodyLimit:
     """Pure ASGI middleware: 413 for a declared or streamed body over the limit, before the app reads it."""
 
-    def __init__(self, app: ASGIApp, limit: int) -> None:
+    def __init__(self, app: ASGIApp, limit: int, plan_limit: int) -> None:
         self.app = app
-        self.limit = limit
+        self.default_limit = limit
+        self.plan_limit = plan_limit
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http" or BATCHES_PATH.fullmatch(scope["path"]):
             await self.app(scope, receive, send)
             return
+        limit = self.plan_limit if PLAN_PATH.fullmatch(scope["path"]) else self.default_limit
         for name, value in scope["headers"]:
             if name == b"content-length":
                 declared = value.decode("latin-1")
                 if not declared.isdigit():
                     await _answer(send, MalformedBodyError("the Content-Length header is not a number"))
                     return
-                if int(declared) > self.limit:
-                    await _answer(send, BodyTooLargeError(int(declared), self.limit))
+                if int(declared) > limit:
+                    await _answer(send, BodyTooLargeError(int(declared), limit))
                     return
         received = 0
         started = answered = False
@@ -47,11 +51,11 @@ class BodyLimit:
             message = await receive()
             if message["type"] == "http.request":
                 received += len(message.get("body", b""))
-                if received > self.limit:
+                if received > limit:
                     # answered here, and the route sees the client leave: nothing more is read or kept
                     if not started and not answered:
                         answered = True
-                        await _answer(send, BodyTooLargeError(received, self.limit))
+                        await _answer(send, BodyTooLargeError(received, limit))
                     return {"type": "http.disconnect"}
             return message
 

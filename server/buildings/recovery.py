@@ -18,6 +18,7 @@ import numpy as np
 from sqlalchemy.orm import Session, sessionmaker
 
 from schemas.anchors import AnchorType
+from schemas.floor_plans import FloorPlan
 from schemas.sensors import SensorBatch
 from server.buildings import snapshot as tracker_snapshot
 from server.buildings.anchor_ids import AnchorIds
@@ -28,6 +29,7 @@ from server.buildings.submissions import BatchHeader
 from server.errors import NotFoundError
 from server.ingestion import convert
 from server.ingestion.extent import Extent
+from server.ingestion.floor_plans import engine_plan
 from server.store import repositories as repo
 from server.store.batches import LoggedBatch, clear_covered_bodies, logged_batches
 from slam_core.encounters.models import Calibration
@@ -35,6 +37,10 @@ from slam_core.geo import GeoFrame
 from slam_core.tracking.tracker import BuildingTracker, TrackerParams
 
 logger = logging.getLogger(__name__)
+
+TRACKED_LEVEL = 0
+"""The floor users are tracked on (estimates say floor 0): its plan weighs their steps. Plans of other floors
+are kept and served, and constrain no one until users are tracked across floors."""
 
 
 class RecoverableBuilding:
@@ -99,6 +105,11 @@ class RecoverableBuilding:
                         row.signature.decode() if row.signature else "",
                     )
                     self.ids.link(index, row.public_id, row.label)
+            plan = repo.floor_plan(session, self.building_id, TRACKED_LEVEL)
+        # the plan is not in the snapshot: set before the log replays, as it was when the batches applied
+        self.tracker.set_floor_plan(
+            None if plan is None else engine_plan(FloorPlan.model_validate_json(plan))
+        )
         self._replay(logged)
         if snapshot_always or not restored:
             self.snapshot(clear_log=True)  # it covers the whole log now

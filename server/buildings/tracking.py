@@ -22,9 +22,10 @@ from sqlalchemy.orm import Session, sessionmaker
 from schemas.anchors import BuildingAnchor, KnownAnchorIn
 from schemas.api import BatchReceipt
 from schemas.estimates import EncounterEvent, Estimate, EstimateSource
+from schemas.floor_plans import FloorPlan
 from schemas.live import AnchorMessage, EncounterMessage, LiveMessage, PositionMessage
 from server.buildings.config import Retention, TrackingConfig
-from server.buildings.recovery import RecoverableBuilding
+from server.buildings.recovery import TRACKED_LEVEL, RecoverableBuilding
 from server.buildings.rows import anchor_row, position_row
 from server.buildings.submissions import BatchHeader, GroupResult, Submission
 from server.engine.config import load_calibration, tracker_params
@@ -36,7 +37,7 @@ from server.errors import (
     NotFoundError,
     ProblemError,
 )
-from server.ingestion import convert
+from server.ingestion import convert, floor_plans
 from server.recordings.recorder import BuildingRecorder
 from server.settings import Settings
 from server.store import repositories as repo
@@ -140,6 +141,28 @@ class BuildingTracking(RecoverableBuilding):
         messages: list[LiveMessage] = [AnchorMessage(anchor=merged)]
         messages += [AnchorMessage(anchor=a, deleted=True) for a in olds[1:]]
         return merged, messages
+
+    # ------------------------------------------------------------------ floor plans
+    def put_floor_plan(self, level: int, body: FloorPlan) -> FloorPlan:
+        """Store a floor's plan, in the local frame and within the building's extent; the tracked floor's
+        plan weighs every user's steps from the next batch on. Returns the plan as stored."""
+        with self._sessions() as session:
+            levels = [f.level for f in repo.list_floors(session, self.building_id)]
+        if level not in levels:
+            raise NotFoundError(
+                f"building {self.building_id!r} has no floor {level}; its floors: "
+                f"{', '.join(map(str, levels)) or 'none (create the building with floors)'}"
+            )
+        try:
+            local = floor_plans.to_local(body, self.geo, self.extent)
+            index = floor_plans.engine_plan(local)
+        except ValueError as exc:
+            raise InvalidInputError(f"the floor plan cannot be used: {exc}") from None
+        with self._writer_turns, self._sessions.begin() as session:
+            repo.save_floor_plan(session, self.building_id, level, local.model_dump_json())
+        if level == TRACKED_LEVEL:
+            self.tracker.set_floor_plan(index)
+        return local
 
     # ------------------------------------------------------------------ batches
     def assign_device(self, device_id: str, user_id: str) -> None:

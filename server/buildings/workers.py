@@ -34,6 +34,7 @@ CALLS = frozenset(
         "put_known_anchor",
         "delete_anchor",
         "merge_anchors",
+        "put_floor_plan",
         "context",
     }
 )

@@ -17,6 +17,7 @@ from sqlalchemy import (
     LargeBinary,
     MetaData,
     String,
+    Text,
     UniqueConstraint,
     func,
     text,
@@ -60,6 +61,22 @@ class FloorRow(Base):
     elevation_m: Mapped[float | None] = mapped_column(Float)
     width_m: Mapped[float | None] = mapped_column(Float)
     height_m: Mapped[float | None] = mapped_column(Float)
+
+
+class FloorPlanRow(Base):
+    """A floor's plan (``schemas.floor_plans.FloorPlan``) as GeoJSON text in the building's local frame."""
+
+    __tablename__ = "floor_plans"
+    __table_args__ = (
+        ForeignKeyConstraint(
+            ["building_id", "level"], ["floors.building_id", "floors.level"], ondelete="CASCADE"
+        ),
+    )
+
+    building_id: Mapped[str] = mapped_column(String(64), primary_key=True)
+    level: Mapped[int] = mapped_column(Integer, primary_key=True)
+    geojson: Mapped[str] = mapped_column(Text)
+    updated_at: Mapped[datetime] = mapped_column(DateTime(timezone=True))
 
 
 class DeviceRow(Base):

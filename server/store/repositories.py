@@ -17,6 +17,7 @@ from server.store.models import (
     BatchRow,
     BuildingRow,
     DeviceRow,
+    FloorPlanRow,
     FloorRow,
     LatestPositionRow,
     PositionSnapshotRow,
@@ -59,6 +60,18 @@ def insert_building(session: Session, row: BuildingRow, floors: Sequence[FloorRo
 def list_floors(session: Session, building_id: str) -> list[FloorRow]:
     stmt = select(FloorRow).where(FloorRow.building_id == building_id).order_by(FloorRow.level)
     return list(session.execute(stmt).scalars())
+
+
+def floor_plan(session: Session, building_id: str, level: int) -> str | None:
+    """The floor's plan as local-frame GeoJSON text, or None."""
+    row = session.get(FloorPlanRow, (building_id, level))
+    return None if row is None else row.geojson
+
+
+def save_floor_plan(session: Session, building_id: str, level: int, geojson: str) -> None:
+    """Insert or replace the floor's plan (the floor must exist)."""
+    values = {"building_id": building_id, "level": level, "geojson": geojson, "updated_at": datetime.now(UTC)}
+    upsert(session, FloorPlanRow, [values], ["building_id", "level"])
 
 
 # ----------------------------------------------------------------------------- keys

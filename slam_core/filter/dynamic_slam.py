@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from slam_core.filter.dense_ids import unique_ints
+from slam_core.filter.floor_plan import FloorPlan
 from slam_core.filter.kernels.building import (
     building_anchor_update,
     building_anchor_update_serial,
@@ -38,6 +39,7 @@ from slam_core.filter.params import FilterParams
 from slam_core.filter.state import FilterState, SlotAllocator, user_key
 
 SUMMARY_FIELDS = ("x", "y", "cov_xx", "cov_xy", "cov_yy", "best_x", "best_y", "heading")
+_NO_PLAN = FloorPlan.empty()
 
 
 @dataclass(frozen=True)
@@ -79,6 +81,9 @@ class EncounterOutcome:
 
 
 class DynamicSlam:
+    floor_plan: FloorPlan | None = None
+    """The floor plan that weighs each step (beyond the papers), set by the tracker; None: no plan."""
+
     def __init__(
         self,
         params: FilterParams,
@@ -96,6 +101,12 @@ class DynamicSlam:
         self._admitted = 0
         self._type_posterior = params.anchors.type_posterior
         self._n_types = self._type_posterior.shape[0]
+
+    def __getstate__(self) -> dict[str, object]:
+        """Pickled without its floor plan: the plan lives in the building's store and is set again on load."""
+        state = self.__dict__.copy()
+        state.pop("floor_plan", None)
+        return state
 
     # ----------------------------------------------------------------- users
     def add_user(
@@ -194,6 +205,8 @@ class DynamicSlam:
         self._moved(users)
         motion = self.params.motion
         model = MODEL_PAPER if motion.model == "paper" else MODEL_BIAS_SCALE
+        plan = self.floor_plan
+        use_plan = plan is not None and not plan.is_empty
         pick(motion_update, motion_update_serial, users.shape[0], self.parallel_min_users)(
             s.arrays(),
             users,
@@ -207,7 +220,11 @@ class DynamicSlam:
                 motion.heading_walk_sigma_rad,
                 self.params.human.control_covariance_cap_m2,
             ),
+            (plan or _NO_PLAN).arrays(),
+            (use_plan, *self.params.floor_plan.log_weights),
         )
+        if use_plan:
+            self._resample(users)  # particles stopped by walls give way to those in the corridors
 
     def observe_building_anchors(
         self, users: np.ndarray, detected_types: np.ndarray, crowd_ids: np.ndarray | None = None

@@ -174,12 +174,33 @@ class ResamplingParams:
 
 
 @dataclass(frozen=True)
+class FloorPlanParams:
+    """Beyond both papers: how a floor plan weighs each particle's step (``slam_core.filter.floor_plan``).
+    Soft, because doors are not on a plan and walks enter shops: a step through a wall keeps
+    ``wall_crossing_likelihood`` of its weight, a step ending outside the walkable area
+    ``outside_likelihood``. The same for every building; nothing is fitted to a floor."""
+
+    wall_crossing_likelihood: float = 0.1
+    outside_likelihood: float = 0.01
+
+    def __post_init__(self) -> None:
+        for name in ("wall_crossing_likelihood", "outside_likelihood"):
+            if not 0.0 < getattr(self, name) <= 1.0:
+                raise ValueError(f"{name} must be in (0, 1]")
+
+    @property
+    def log_weights(self) -> tuple[float, float]:
+        return math.log(self.wall_crossing_likelihood), math.log(self.outside_likelihood)
+
+
+@dataclass(frozen=True)
 class FilterParams:
     n_particles: int = 75  # Table 2
     motion: MotionParams = field(default_factory=MotionParams)
     human: HumanAnchorParams = field(default_factory=HumanAnchorParams)
     anchors: BuildingAnchorParams = field(default_factory=BuildingAnchorParams)
     resampling: ResamplingParams = field(default_factory=ResamplingParams)
+    floor_plan: FloorPlanParams = field(default_factory=FloorPlanParams)
     use_human_anchors: bool = True
     """False gives the paper's baseline, SemanticSLAM (building anchors only)."""
 

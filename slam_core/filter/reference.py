@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from slam_core.filter.floor_plan import FloorPlan
 from slam_core.filter.params import FilterParams
 from slam_core.filter.state import FilterState
 
@@ -115,8 +116,30 @@ def _normalise(user: ReferenceUser) -> None:
         p.logw -= total
 
 
-def motion(user: ReferenceUser, length: float, obs_heading: float, params: FilterParams) -> None:
+def crosses_any_wall(walls: np.ndarray, x0: float, y0: float, x1: float, y1: float) -> bool:
+    """Whether the step properly crosses any of ``walls`` (S, 4), testing every wall (no index)."""
+    ax, ay, bx, by = walls.T
+
+    def orientation(
+        px: np.ndarray | float, py: np.ndarray | float, qx: np.ndarray | float, qy: np.ndarray | float,
+        rx: np.ndarray | float, ry: np.ndarray | float,
+    ) -> np.ndarray:  # fmt: skip
+        return np.asarray((qx - px) * (ry - py) - (qy - py) * (rx - px))
+
+    d1, d2 = orientation(ax, ay, bx, by, x0, y0), orientation(ax, ay, bx, by, x1, y1)
+    d3, d4 = orientation(x0, y0, x1, y1, ax, ay), orientation(x0, y0, x1, y1, bx, by)
+    return bool(np.any((d1 * d2 < 0) & (d3 * d4 < 0)))
+
+
+def motion(
+    user: ReferenceUser,
+    length: float,
+    obs_heading: float,
+    params: FilterParams,
+    plan: FloorPlan | None = None,
+) -> None:
     mp = params.motion
+    log_crossing, log_outside = params.floor_plan.log_weights
     d_obs = 0.0 if math.isnan(user.last_obs_heading) else wrap(obs_heading - user.last_obs_heading)
     for p in user.particles:
         n_len = user.rng.normal()
@@ -129,8 +152,16 @@ def motion(user: ReferenceUser, length: float, obs_heading: float, params: Filte
             step = p.scale * length + mp.step_length_sigma_m * n_len
             h = obs_heading + p.bias + p.walk
         p.heading = wrap(h)
+        x0, y0 = p.x, p.y
         p.x += step * math.cos(p.heading)  # Eq. 7
         p.y += step * math.sin(p.heading)  # Eq. 8
+        if plan is not None:
+            if crosses_any_wall(plan.walls, x0, y0, p.x, p.y):
+                p.logw += log_crossing
+            if not plan.walkable(np.array([[p.x, p.y]]))[0]:
+                p.logw += log_outside
+    if plan is not None:
+        _normalise(user)
     user.last_obs_heading = obs_heading
     rot = np.array(
         [[math.cos(obs_heading), -math.sin(obs_heading)], [math.sin(obs_heading), math.cos(obs_heading)]]

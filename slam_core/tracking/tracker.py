@@ -46,6 +46,7 @@ from slam_core.encounters.detection import EncounterDetector
 from slam_core.encounters.models import Calibration
 from slam_core.encounters.selection import EncounterSelector
 from slam_core.filter.dynamic_slam import DynamicSlam
+from slam_core.filter.floor_plan import FloorPlan
 from slam_core.sensing.front_end import FrontEnd, RadioArrays
 from slam_core.tracking.batches import (
     EncounterResult,
@@ -98,6 +99,10 @@ class BuildingTracker:
         self._started = 0
         self.n_types = fp.anchors.type_posterior.shape[0]
         self._columns = SlotColumns()
+
+    def set_floor_plan(self, plan: FloorPlan | None) -> None:
+        """The floor plan that weighs every user's steps from now on (beyond the papers); None: none."""
+        self.engine.floor_plan = plan
 
     # built on first use (snapshots from before it lack it)
     _detector_slots: radio.DetectorSlots | None = None

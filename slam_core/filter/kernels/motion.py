@@ -8,6 +8,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from slam_core.filter.floor_plan import PlanArrays
 from slam_core.filter.kernels.arrays import (
     BIAS,
     CTRL_COV,
@@ -25,6 +26,8 @@ from slam_core.filter.kernels.arrays import (
 from slam_core.filter.kernels.linalg2 import wrap_angle
 from slam_core.filter.kernels.rng import normal, normal_at
 from slam_core.filter.kernels.serial import serial_twin
+from slam_core.filter.kernels.walls import step_log_likelihood
+from slam_core.filter.kernels.weights import normalise_log_weights
 
 MODEL_PAPER = 0
 MODEL_BIAS_SCALE = 1
@@ -39,8 +42,12 @@ def _advance_user(
     step_length: np.ndarray,
     step_heading: np.ndarray,
     motion: tuple[int, float, float, float, float],
+    plan: PlanArrays,
+    plan_weights: tuple[bool, float, float],
 ) -> None:
     x, y, heading = arrays[X], arrays[Y], arrays[HEADING]
+    logw = arrays[LOGW]
+    use_plan, log_crossing, log_outside = plan_weights
     bias, scale, walk = arrays[BIAS], arrays[SCALE], arrays[WALK]
     ctrl_cov, last_obs_heading = arrays[CTRL_COV], arrays[LAST_OBS_HEADING]
     rng_key, rng_ctr = arrays[RNG_KEY], arrays[RNG_CTR]
@@ -72,8 +79,11 @@ def _advance_user(
                 h = obs + bias[u, m] + walk[u, m]
             h = wrap_angle(h)
             heading[u, m] = h
-            x[u, m] += step * math.cos(h)  # Eq. 7
-            y[u, m] += step * math.sin(h)  # Eq. 8
+            x0, y0 = x[u, m], y[u, m]
+            x[u, m] = x0 + step * math.cos(h)  # Eq. 7
+            y[u, m] = y0 + step * math.sin(h)  # Eq. 8
+            if use_plan:  # beyond the paper: the floor plan's likelihood of the step
+                logw[u, m] += step_log_likelihood(plan, x0, y0, x[u, m], y[u, m], log_crossing, log_outside)
         last_obs_heading[u] = obs
         # P_t: covariance of the control data since the last correction (along/across the step).
         c = math.cos(obs)
@@ -87,6 +97,8 @@ def _advance_user(
         lim = 0.999 * math.sqrt(ctrl_cov[u, 0] * ctrl_cov[u, 2])
         ctrl_cov[u, 1] = max(-lim, min(lim, ctrl_cov[u, 1]))
     rng_ctr[u] = counter
+    if use_plan and stop > first:
+        normalise_log_weights(logw, u)  # the penalties are finite: the row always normalises
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -97,10 +109,15 @@ def motion_update(
     step_length: np.ndarray,
     step_heading: np.ndarray,
     motion: tuple[int, float, float, float, float],
+    plan: PlanArrays,
+    plan_weights: tuple[bool, float, float],
 ) -> None:
     """Advance ``users[i]`` by its steps ``offsets[i]:offsets[i+1]`` (lengths in metres, observed headings in
     rad counter-clockwise from east). Users must be distinct within one call. ``motion`` is the model's
-    code and parameters: (model, sigma_l, sigma_phi, sigma_walk, control covariance cap).
+    code and parameters: (model, sigma_l, sigma_phi, sigma_walk, control covariance cap). With
+    ``plan_weights`` = (True, log-likelihood of crossing a wall, of ending outside the walkable area), each
+    particle's step is weighted by the floor plan (``slam_core.filter.kernels.walls``) and the user's weights
+    normalised after its steps; with False the plan is not read.
 
     Per particle and step, two normals are drawn in this order: length noise, then heading noise (paper
     model) or the heading walk's increment (bias-scale model); ``slam_core.filter.reference`` draws them
@@ -108,7 +125,17 @@ def motion_update(
     inlined loops 2.5x.
     """
     for i in prange(users.shape[0]):
-        _advance_user(arrays, users[i], offsets[i], offsets[i + 1], step_length, step_heading, motion)
+        _advance_user(
+            arrays,
+            users[i],
+            offsets[i],
+            offsets[i + 1],
+            step_length,
+            step_heading,
+            motion,
+            plan,
+            plan_weights,
+        )
 
 
 @njit(cache=True, nogil=True)

@@ -1,0 +1,189 @@
+"""A floor plan as the motion update reads it: wall segments in a grid index, and the walkable area as a
+raster.
+
+Beyond both papers (neither uses a plan; IndoorAtlas, Situm and Anyplace do): a particle whose step crosses
+a wall, or ends outside the walkable area, is made less likely (``FloorPlanParams``;
+``slam_core.filter.kernels.walls``). The penalty is soft, because doors are not on the plan and walks do
+enter shops.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+MAX_RASTER_CELLS = 4_000_000
+"""The walkable raster and the wall grid each hold at most this many cells: a large site gets coarser cells,
+never a raster of gigabytes."""
+
+PlanArrays = tuple[
+    float, float, float, int, int, np.ndarray, np.ndarray, np.ndarray, float, float, float, np.ndarray
+]
+"""What the kernels take (``FloorPlan.arrays``): grid origin x, y, cell size, columns, rows, CSR starts, wall
+indices, walls (S, 4), raster origin x, y, raster cell size, raster (rows, columns) of uint8."""
+
+
+@dataclass(frozen=True)
+class FloorPlan:
+    walls: np.ndarray
+    """(S, 4) float64: x0, y0, x1, y1 in the local frame (metres)."""
+    walkable_rings: tuple[np.ndarray, ...]
+    """Rings (k, 2) bounding the walkable area by the even-odd rule (outline and holes); none: anywhere."""
+    cell_m: float
+    origin: tuple[float, float]
+    grid_shape: tuple[int, int]
+    """(rows, columns) of the wall grid."""
+    cell_start: np.ndarray
+    """(rows * columns + 1,) int64: cell c's walls are ``cell_walls[cell_start[c]:cell_start[c + 1]]``."""
+    cell_walls: np.ndarray
+    raster_m: float
+    raster_origin: tuple[float, float]
+    raster: np.ndarray
+    """(rows, columns) uint8, 1 where walkable; (0, 0) when the plan has no walkable area."""
+
+    @classmethod
+    def build(
+        cls,
+        walls: np.ndarray,
+        walkable_rings: Sequence[np.ndarray] = (),
+        cell_m: float = 2.0,
+        raster_m: float = 0.5,
+    ) -> FloorPlan:
+        """Index ``walls`` (S, 4) and rasterise the area inside ``walkable_rings`` (even-odd rule)."""
+        walls = np.ascontiguousarray(walls, dtype=np.float64).reshape(-1, 4)
+        rings = tuple(np.ascontiguousarray(r, dtype=np.float64).reshape(-1, 2) for r in walkable_rings)
+        if not (np.all(np.isfinite(walls)) and all(np.all(np.isfinite(r)) for r in rings)):
+            raise ValueError("floor plan: coordinates must be finite")
+        if any(r.shape[0] < 3 for r in rings):
+            raise ValueError("floor plan: a walkable ring needs at least three points")
+        if not (cell_m > 0 and raster_m > 0):
+            raise ValueError("floor plan: cell sizes must be positive")
+        points = [walls[:, :2], walls[:, 2:], *rings]
+        everything = np.concatenate(points) if sum(p.shape[0] for p in points) else np.zeros((1, 2))
+        low, high = everything.min(axis=0), everything.max(axis=0)
+        cell_m = _coarse_enough(cell_m, high - low)
+        origin = (float(low[0] - cell_m), float(low[1] - cell_m))
+        columns = math.ceil((high[0] - low[0]) / cell_m) + 3
+        rows = math.ceil((high[1] - low[1]) / cell_m) + 3
+        cell_start, cell_walls = _wall_grid(walls, origin, cell_m, rows, columns)
+        if rings:
+            ring_points = np.concatenate(rings)
+            r_low, r_high = ring_points.min(axis=0), ring_points.max(axis=0)
+            raster_m = _coarse_enough(raster_m, r_high - r_low)
+            raster_origin = (float(r_low[0]), float(r_low[1]))
+            raster = _rasterise(rings, raster_origin, raster_m, r_high)
+        else:
+            raster_origin, raster = (0.0, 0.0), np.zeros((0, 0), dtype=np.uint8)
+        return cls(
+            walls,
+            rings,
+            cell_m,
+            origin,
+            (rows, columns),
+            cell_start,
+            cell_walls,
+            raster_m,
+            raster_origin,
+            raster,
+        )
+
+    @classmethod
+    def empty(cls) -> FloorPlan:
+        """No walls, no area: every step is as likely as without a plan."""
+        return cls.build(np.zeros((0, 4)))
+
+    @property
+    def is_empty(self) -> bool:
+        return self.walls.shape[0] == 0 and self.raster.size == 0
+
+    def arrays(self) -> PlanArrays:
+        rows, columns = self.grid_shape
+        return (
+            self.origin[0],
+            self.origin[1],
+            self.cell_m,
+            columns,
+            rows,
+            self.cell_start,
+            self.cell_walls,
+            self.walls,
+            self.raster_origin[0],
+            self.raster_origin[1],
+            self.raster_m,
+            self.raster,
+        )
+
+    def walkable(self, xy: np.ndarray) -> np.ndarray:
+        """Whether each point (n, 2) lies in the walkable area (all True without one), by the raster."""
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        if self.raster.size == 0:
+            return np.ones(xy.shape[0], dtype=bool)
+        col = np.floor((xy[:, 0] - self.raster_origin[0]) / self.raster_m).astype(np.int64)
+        row = np.floor((xy[:, 1] - self.raster_origin[1]) / self.raster_m).astype(np.int64)
+        rows, columns = self.raster.shape
+        inside = (col >= 0) & (col < columns) & (row >= 0) & (row < rows)
+        out = np.zeros(xy.shape[0], dtype=bool)
+        out[inside] = self.raster[row[inside], col[inside]] == 1
+        return out
+
+
+def _coarse_enough(cell_m: float, span: np.ndarray) -> float:
+    """``cell_m``, or the smallest size that keeps a grid over ``span`` within ``MAX_RASTER_CELLS``."""
+    cells = (span[0] / cell_m + 3) * (span[1] / cell_m + 3)
+    if cells <= MAX_RASTER_CELLS:
+        return cell_m
+    return float(math.sqrt(span[0] * span[1] / MAX_RASTER_CELLS)) + cell_m
+
+
+def _wall_grid(
+    walls: np.ndarray, origin: tuple[float, float], cell_m: float, rows: int, columns: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """CSR of the walls each cell may meet: every wall is sampled every half cell and listed in the cell of
+    each sample and its eight neighbours, a superset of the cells it passes through."""
+    if walls.shape[0] == 0:
+        return np.zeros(rows * columns + 1, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    lengths = np.hypot(walls[:, 2] - walls[:, 0], walls[:, 3] - walls[:, 1])
+    samples = np.ceil(lengths / (0.5 * cell_m)).astype(np.int64) + 1
+    wall_of = np.repeat(np.arange(walls.shape[0]), samples)
+    first = np.repeat(np.cumsum(samples) - samples, samples)
+    t = (np.arange(wall_of.shape[0]) - first) / np.maximum(samples[wall_of] - 1, 1)
+    x = walls[wall_of, 0] + t * (walls[wall_of, 2] - walls[wall_of, 0])
+    y = walls[wall_of, 1] + t * (walls[wall_of, 3] - walls[wall_of, 1])
+    col = np.floor((x - origin[0]) / cell_m).astype(np.int64)
+    row = np.floor((y - origin[1]) / cell_m).astype(np.int64)
+    cells, owners = [], []
+    for dr in (-1, 0, 1):
+        for dc in (-1, 0, 1):
+            r, c = row + dr, col + dc
+            ok = (r >= 0) & (r < rows) & (c >= 0) & (c < columns)
+            cells.append(r[ok] * columns + c[ok])
+            owners.append(wall_of[ok])
+    pairs = np.unique(np.stack([np.concatenate(cells), np.concatenate(owners)], axis=1), axis=0)
+    counts = np.bincount(pairs[:, 0], minlength=rows * columns)
+    cell_start = np.zeros(rows * columns + 1, dtype=np.int64)
+    np.cumsum(counts, out=cell_start[1:])
+    return cell_start, np.ascontiguousarray(pairs[:, 1], dtype=np.int64)
+
+
+def _rasterise(
+    rings: tuple[np.ndarray, ...], origin: tuple[float, float], cell_m: float, high: np.ndarray
+) -> np.ndarray:
+    """Scan-line fill by the even-odd rule: a cell is walkable when its centre is inside."""
+    columns = math.ceil((high[0] - origin[0]) / cell_m) + 1
+    rows = math.ceil((high[1] - origin[1]) / cell_m) + 1
+    edges = np.concatenate([np.hstack([r, np.roll(r, -1, axis=0)]) for r in rings])
+    x0, y0, x1, y1 = edges.T
+    raster = np.zeros((rows, columns), dtype=np.uint8)
+    centres_x = origin[0] + (np.arange(columns) + 0.5) * cell_m
+    for row in range(rows):
+        yc = origin[1] + (row + 0.5) * cell_m
+        spans = ((y0 <= yc) & (yc < y1)) | ((y1 <= yc) & (yc < y0))
+        if not spans.any():
+            continue
+        xs = np.sort(x0[spans] + (yc - y0[spans]) * (x1[spans] - x0[spans]) / (y1[spans] - y0[spans]))
+        inside = np.searchsorted(xs, centres_x, side="right") % 2 == 1
+        raster[row, inside] = 1
+    return raster

@@ -1,0 +1,146 @@
+"""The floor plan in the motion update: its index and raster against brute force, the kernel against the
+NumPy reference, the filter's invariants, and what a plan does to a drifting walker."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from matplotlib.path import Path as PolygonPath
+
+from slam_core.filter import reference
+from slam_core.filter.dynamic_slam import DynamicSlam
+from slam_core.filter.floor_plan import FloorPlan
+from slam_core.filter.kernels.walls import crosses_wall, walkable
+from slam_core.filter.params import FilterParams, FloorPlanParams, ResamplingParams
+from tests.slam_core.filter.helpers import assert_matches, to_reference
+
+SQUARE = np.array([[0.0, 0.0], [40.0, 0.0], [40.0, 30.0], [0.0, 30.0]])
+HOLE = np.array([[10.0, 10.0], [20.0, 10.0], [20.0, 20.0], [10.0, 20.0]])
+
+
+def _random_walls(rng: np.random.Generator, n: int) -> np.ndarray:
+    start = rng.uniform(0, 40, size=(n, 2))
+    angle = rng.uniform(0, 2 * math.pi, n)
+    length = rng.exponential(4.0, n)
+    return np.column_stack([start, start + length[:, None] * np.column_stack([np.cos(angle), np.sin(angle)])])
+
+
+def test_the_grid_finds_every_crossing_brute_force_finds() -> None:
+    rng = np.random.default_rng(1)
+    walls = _random_walls(rng, 300)
+    plan = FloorPlan.build(walls, cell_m=2.0)
+    arrays = plan.arrays()
+    crossings = 0
+    for _ in range(3000):
+        p0 = rng.uniform(-2, 42, 2)
+        p1 = p0 + rng.normal(0, 1.0, 2)
+        expected = reference.crosses_any_wall(walls, *p0, *p1)
+        assert crosses_wall(arrays, *p0, *p1) == expected, (p0, p1)
+        crossings += expected
+    assert 300 < crossings < 2700  # both answers were exercised
+
+
+def test_the_raster_is_the_even_odd_inside_of_the_rings() -> None:
+    plan = FloorPlan.build(np.zeros((0, 4)), [SQUARE, HOLE], raster_m=0.25)
+    rng = np.random.default_rng(2)
+    points = rng.uniform(-5, 45, size=(5000, 2))
+    expected = PolygonPath(SQUARE).contains_points(points) & ~PolygonPath(HOLE).contains_points(points)
+    got = plan.walkable(points)
+    # the raster answers for its cell's centre: only points within a cell of an edge may differ
+    near_edge = np.zeros(len(points), dtype=bool)
+    for ring in (SQUARE, HOLE):
+        for a, b in zip(ring, np.roll(ring, -1, axis=0), strict=True):
+            t = np.clip(((points - a) @ (b - a)) / ((b - a) @ (b - a)), 0, 1)
+            near_edge |= np.linalg.norm(points - (a + t[:, None] * (b - a)), axis=1) < 0.25 * math.sqrt(2)
+    assert np.array_equal(got[~near_edge], expected[~near_edge])
+    arrays = plan.arrays()
+    assert all(walkable(arrays, *p) == g for p, g in zip(points[:500], got[:500], strict=True))
+    assert FloorPlan.empty().walkable(points).all()
+
+
+def test_a_huge_site_gets_coarser_cells_not_a_huge_raster() -> None:
+    site = np.array([[0.0, 0.0], [20_000.0, 0.0], [20_000.0, 20_000.0], [0.0, 20_000.0]])
+    plan = FloorPlan.build(np.array([[0.0, 0.0, 20_000.0, 20_000.0]]), [site])
+    assert plan.raster.size <= 4_100_000
+    assert plan.cell_start.size <= 4_100_000
+
+
+def test_invalid_plans_are_refused() -> None:
+    with pytest.raises(ValueError, match="finite"):
+        FloorPlan.build(np.array([[0.0, 0.0, np.nan, 1.0]]))
+    with pytest.raises(ValueError, match="three points"):
+        FloorPlan.build(np.zeros((0, 4)), [np.array([[0.0, 0.0], [1.0, 1.0]])])
+    with pytest.raises(ValueError, match="in \\(0, 1\\]"):
+        FloorPlanParams(wall_crossing_likelihood=0.0)
+
+
+def _corridor() -> FloorPlan:
+    """A corridor 3 m wide along x from 0 to 60 m, walls on both sides, between two large rooms' walls."""
+    walls = np.array(
+        [[0.0, 0.0, 60.0, 0.0], [0.0, 3.0, 60.0, 3.0], [0.0, 0.0, 0.0, 3.0], [60.0, 0.0, 60.0, 3.0]]
+    )
+    outline = np.array([[-1.0, -1.0], [61.0, -1.0], [61.0, 4.0], [-1.0, 4.0]])
+    return FloorPlan.build(walls, [outline])
+
+
+def test_the_kernel_weighs_steps_as_the_reference_does() -> None:
+    params = FilterParams(n_particles=16, resampling=ResamplingParams(ess_threshold=1e-9))
+    engine = DynamicSlam(params, seed=5)
+    plan = _corridor()
+    engine.floor_plan = plan
+    u = engine.add_user(2.0, 1.5, heading=0.0, position_sigma=0.8)
+    ref = to_reference(engine, u)
+    for _ in range(20):
+        engine.step(np.array([u]), np.array([0, 1]), np.array([0.7]), np.array([0.15]))
+        reference.motion(ref, 0.7, 0.15, params, plan)
+    assert_matches(engine, u, ref)
+    w = np.exp(engine.state.logw[u])
+    assert np.isclose(w.sum(), 1.0)
+    assert w.max() > 5 * w.min()  # the walls told particles apart
+
+
+def _drift(plan: FloorPlan | None, seed: int) -> np.ndarray:
+    """A walker going east along the corridor's middle while its phone's heading reads 8 degrees left."""
+    engine = DynamicSlam(FilterParams(), seed=seed)
+    engine.floor_plan = plan
+    u = engine.add_user(1.0, 1.5, heading=0.0, position_sigma=0.3)
+    track = []
+    for _ in range(70):
+        engine.step(np.array([u]), np.array([0, 1]), np.array([0.7]), np.array([math.radians(8.0)]))
+        state = engine.state
+        assert np.all(np.isfinite(state.x[u]))
+        assert np.all(np.isfinite(state.logw[u]))
+        assert np.isclose(np.exp(state.logw[u]).sum(), 1.0)
+        track.append(engine.means(np.array([u]))[0])
+    return np.array(track)
+
+
+def test_a_plan_keeps_a_drifting_walker_in_its_corridor() -> None:
+    for seed in range(3):
+        free = _drift(None, seed)
+        held = _drift(_corridor(), seed)
+        assert free[-1, 1] > 6.0  # 49 m at 8 degrees: ~7 m north of the corridor's middle
+        assert 0.0 < held[-1, 1] < 3.0, held[-1]
+        assert held[-1, 0] > 35.0  # it still walked east
+
+
+def test_without_a_plan_the_update_is_the_plain_motion_update() -> None:
+    a, b = DynamicSlam(FilterParams(), seed=2), DynamicSlam(FilterParams(), seed=2)
+    b.floor_plan = FloorPlan.empty()
+    ua, ub = a.add_user(0.0, 0.0), b.add_user(0.0, 0.0)
+    for engine, u in ((a, ua), (b, ub)):
+        engine.step(np.array([u]), np.array([0, 3]), np.array([0.7, 0.7, 0.6]), np.array([0.1, 0.2, 0.1]))
+    np.testing.assert_array_equal(a.state.x, b.state.x)
+    np.testing.assert_array_equal(a.state.logw, b.state.logw)
+
+
+def test_the_plan_is_not_pickled_with_the_filter() -> None:
+    import pickle
+
+    engine = DynamicSlam(replace(FilterParams(), n_particles=8), seed=1)
+    engine.floor_plan = _corridor()
+    restored = pickle.loads(pickle.dumps(engine))
+    assert restored.floor_plan is None
