@@ -3,9 +3,11 @@ plain-NumPy textbook FastSLAM on identical inputs.
 
     python bench/engine.py [--users 10000] [--json OUT]
 
-Prints one JSON object: motion_ms, step_ms, human_anchor_us, reference_ratio (the engine's kernels in
-parallel, as over a whole building) and reference_ratio_serial (as the engine runs a call of 100 users by
-default: serially, ``slam_core.filter.kernels.serial``), and what they were measured on.
+Prints one JSON object: motion_ms; motion_on_floor_ms and motion_plan_ms (the same users on a mall floor,
+without and with its plan of walls and walkable area, ``--plan-floor``) and plan_overhead; step_ms,
+human_anchor_us, reference_ratio (the engine's kernels in parallel, as over a whole building) and
+reference_ratio_serial (as the engine runs a call of 100 users by default: serially,
+``slam_core.filter.kernels.serial``), and what they were measured on.
 """
 
 from __future__ import annotations
@@ -63,6 +65,33 @@ def bench_motion(engine: DynamicSlam, users: np.ndarray, rng: np.random.Generato
 
     tick()  # warm
     return _median_ms(tick, 7)
+
+
+def bench_motion_plan(n_users: int, params: FilterParams, floor: Path) -> tuple[float, float]:
+    """The motion update of users spread over a mall floor's walkable area, without and with its plan (the
+    plan's update also resamples the users whose weights the walls spread): medians of alternating runs."""
+    from server.datasets.msindoor import floor_plan, read_floor
+    from server.ingestion.floor_plans import engine_plan
+
+    wire = floor_plan(read_floor(floor))
+    if wire is None:
+        raise SystemExit(f"{floor} has no geojson_map.json")
+    plan = engine_plan(wire)
+    rng = np.random.default_rng(1)
+    cells = np.argwhere(plan.raster == 1)
+    engine = DynamicSlam(params, seed=1, initial_capacity=n_users)
+    starts = (cells[rng.integers(0, len(cells), n_users)][:, ::-1] + 0.5) * plan.raster_m
+    users = np.array([engine.add_user(*(xy + plan.raster_origin)) for xy in starts])
+    offsets = np.arange(users.size + 1)
+    plain, planned = [], []
+    for k in range(16):
+        lengths = 0.7 + 0.05 * rng.standard_normal(users.size)
+        headings = rng.uniform(-3, 3, users.size)
+        engine.floor_plan = plan if k % 2 else None
+        t0 = time.perf_counter()
+        engine.step(users, offsets, lengths, headings)
+        (planned if k % 2 else plain).append((time.perf_counter() - t0) * 1e3)
+    return statistics.median(plain[1:]), statistics.median(planned[1:])
 
 
 def bench_tick(engine: DynamicSlam, users: np.ndarray, rng: np.random.Generator) -> float:
@@ -146,11 +175,18 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--users", type=int, default=10_000)
     parser.add_argument("--json", type=Path, metavar="OUT")
+    parser.add_argument(
+        "--plan-floor",
+        type=Path,
+        default=Path(__file__).resolve().parents[2] / "shared" / "data" / "msindoor20" / "site1" / "F1",
+        help="a floor of the Indoor Location 2.0 data set whose plan the motion update is timed with",
+    )
     args = parser.parse_args()
     params = FilterParams()
     rng = np.random.default_rng(0)
     engine, users = _engine(args.users, params)
     motion_ms = bench_motion(engine, users, rng)
+    plain_ms, plan_ms = bench_motion_plan(args.users, params, args.plan_floor)
     step_ms = bench_tick(engine, users, rng)
     human_us = bench_human_anchor(params)
     # warm the small-input path of every kernel before timing it against the reference
@@ -166,6 +202,10 @@ def main() -> int:
         "particles": params.n_particles,
         "threads": numba.get_num_threads(),
         "motion_ms": round(motion_ms, 3),
+        "motion_on_floor_ms": round(plain_ms, 3),
+        "motion_plan_ms": round(plan_ms, 3),
+        "plan_overhead": round(plan_ms / plain_ms, 2),
+        "plan_floor": "/".join(args.plan_floor.parts[-2:]),
         "step_ms": round(step_ms, 3),
         "human_anchor_us": round(human_us, 2),
         "reference_ratio": round(ratio, 1),

@@ -74,6 +74,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="with --scenario: N simulated users lie (copied scans, made-up sightings, false fixes); only "
         "the honest users are scored",
     )
+    parser.add_argument(
+        "--no-floor-plan",
+        dest="floor_plan",
+        action="store_false",
+        help="with --msindoor: do not weigh steps by the floor's plan (geojson_map.json)",
+    )
     parser.add_argument("--sweep", choices=("particles", "density", "anchor-density"))
     parser.add_argument(
         "--compare", action="store_true", help="run pdr, semanticslam and dynamicslam; one CDF (Figure 14)"
@@ -304,4 +310,5 @@ def _replay_options(args: argparse.Namespace) -> ReplayOptions:
         filter_seed=args.filter_seed,
         liars=args.liars,
         fingerprints=args.fingerprints is not False,
+        floor_plan=args.floor_plan,
     )

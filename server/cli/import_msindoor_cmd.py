@@ -1,4 +1,6 @@
-"""``crowdslam import-msindoor DIR --out FILE.mcap``: public Indoor Location 2.0 walks as a recording."""
+"""``crowdslam import-msindoor DIR --out FILE.mcap``: public Indoor Location 2.0 walks as a recording, and the
+floor's plan (its ``geojson_map.json``) beside it as ``FILE.plan.json``, ready for
+``PUT /v1/buildings/{id}/floors/0/plan``."""
 
 from __future__ import annotations
 
@@ -20,7 +22,7 @@ def run(args: argparse.Namespace) -> int:
     # deferred: the command's dependencies load when it runs (`crowdslam --help` loads none)
     from tqdm import tqdm
 
-    from server.datasets.msindoor import read_trace
+    from server.datasets.msindoor import floor_plan, read_floor, read_trace
     from server.datasets.msindoor_batches import trace_batches
     from server.recordings.recorder import BuildingRecorder
 
@@ -45,4 +47,13 @@ def run(args: argparse.Namespace) -> int:
     (staging / args.building).rmdir()
     staging.rmdir()
     print(f"{len(walks)} walks, {n} batches -> {args.out}")
+    if (args.dir / "floor_info.json").is_file():
+        plan = floor_plan(read_floor(args.dir))
+        if plan is not None:
+            plan_file = args.out.with_suffix(".plan.json")
+            plan_file.write_text(plan.model_dump_json(exclude_none=True))
+            print(
+                f"floor plan ({len(plan.features)} features) -> {plan_file}; upload it with "
+                f"PUT /v1/buildings/{args.building}/floors/0/plan"
+            )
     return 0

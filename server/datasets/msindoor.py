@@ -14,8 +14,11 @@ import json
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+
+from schemas.floor_plans import FloorPlan
 
 VECTOR_TYPES = {
     "TYPE_ACCELEROMETER": "accelerometer",
@@ -223,6 +226,50 @@ def read_floor(floor_dir: Path) -> FloorInfo:
     image = floor_dir / "floor_image.png"
     traces = sorted((floor_dir / "path_data_files").glob("*.txt"))
     return FloorInfo(width, height, geojson, image if image.exists() else None, traces)
+
+
+def floor_plan(info: FloorInfo) -> FloorPlan | None:
+    """The floor's ``geojson_map.json`` as a plan in the local frame: the largest feature (the floor's
+    outline) is the walkable area, every other polygon (shops, facilities) an obstacle. The map's WGS-84
+    positions are placed by the outline's bounds, which span the floor's width and height (on both shipped
+    floors every surveyed waypoint lies inside the outline and none inside a shop). None without a map."""
+    raw: Any = info.geojson
+    features = [f for f in raw.get("features", []) if isinstance(f, dict)]
+    polygons = [f for f in features if f.get("geometry", {}).get("type") in ("Polygon", "MultiPolygon")]
+    if not polygons:
+        return None
+
+    def positions(feature: dict[str, Any]) -> np.ndarray:
+        coordinates = feature["geometry"]["coordinates"]
+        polygons = [coordinates] if feature["geometry"]["type"] == "Polygon" else coordinates
+        return np.array([p for polygon in polygons for ring in polygon for p in ring], dtype=np.float64)
+
+    def area(feature: dict[str, Any]) -> float:
+        span = np.ptp(positions(feature), axis=0)
+        return float(span[0] * span[1])
+
+    outline = max(polygons, key=area)
+    low = positions(outline).min(axis=0)
+    span = np.ptp(positions(outline), axis=0)
+    scale = np.array([info.width_m, info.height_m]) / span
+
+    def local(coordinates: Any) -> Any:
+        if coordinates and isinstance(coordinates[0], int | float):
+            x, y = (np.asarray(coordinates[:2], dtype=np.float64) - low) * scale
+            return [round(float(x), 3), round(float(y), 3)]
+        return [local(c) for c in coordinates]
+
+    out = []
+    for feature in polygons:
+        kind = "walkable" if feature is outline else "obstacle"
+        name = feature.get("properties", {}).get("name")
+        name = name[:128] if isinstance(name, str) and name else None
+        geometry = {
+            "type": feature["geometry"]["type"],
+            "coordinates": local(feature["geometry"]["coordinates"]),
+        }
+        out.append({"type": "Feature", "geometry": geometry, "properties": {"kind": kind, "name": name}})
+    return FloorPlan.model_validate({"type": "FeatureCollection", "frame": "local", "features": out})
 
 
 def iter_windows(trace: Trace, window_ms: int = 1000, cuts: Sequence[int] = ()) -> Iterator[tuple[int, int]]:

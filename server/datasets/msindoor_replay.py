@@ -25,10 +25,11 @@ import numpy as np
 
 from schemas.common import Position
 from schemas.sensors import PositionFix
-from server.datasets.msindoor import Trace, iter_windows, read_floor, read_trace, shifted
+from server.datasets.msindoor import Trace, floor_plan, iter_windows, read_floor, read_trace, shifted
 from server.datasets.msindoor_batches import trace_windows
 from server.engine.config import ReplayOptions, replay_params
 from server.ingestion.convert import BuildingContext, to_user_batch
+from server.ingestion.floor_plans import engine_plan
 from slam_core.encounters.models import Calibration
 from slam_core.sim.statistics import error_summary
 from slam_core.tracking.tracker import BuildingTracker, TrackerParams, UserBatch
@@ -70,6 +71,8 @@ def replay_floor(
     n_warm = 0 if options.warm_split is None else int(len(traces) * options.warm_split)
     phases = [traces[:n_warm], traces[n_warm:]] if n_warm else [traces]
     tracker = BuildingTracker(replay_params(base_params, options), calibration, seed=options.tracker_seed)
+    plan = floor_plan(floor) if options.floor_plan else None
+    tracker.set_floor_plan(None if plan is None else engine_plan(plan))
     ctx = BuildingContext(building_id=floor_dir.name, geo=None, known_anchors={})
     base = REPLAY_BASE_MS
     scored: list[_Walk] = []
@@ -102,6 +105,7 @@ def replay_floor(
         "motion_model": options.motion_model,
         "crowd_solver": options.crowd_solver,
         "warm_split": options.warm_split,
+        "floor_plan": plan is not None,
         **error_summary(errors),
         "n_waypoints": int(errors.size),
         "n_walks": len(traces),

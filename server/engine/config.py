@@ -61,6 +61,8 @@ class ReplayOptions:
     (``slam_core.crowd.fingerprints``), as the server does by default."""
     liars: int = 0
     """Simulated users who lie (``server.simulation.liars``); only the honest users are scored."""
+    floor_plan: bool = True
+    """Weigh steps by the floor's plan where the world has one (the data set's ``geojson_map.json``)."""
 
     @property
     def tracker_seed(self) -> int:

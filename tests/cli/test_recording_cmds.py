@@ -31,6 +31,29 @@ def test_import_msindoor_records_every_batch_of_every_walk(tmp_path: Path) -> No
         assert seqs == list(range(len(seqs)))
 
 
+def test_import_msindoor_writes_the_floor_plan_beside_the_recording(tmp_path: Path) -> None:
+    """The data set's map in the local frame: its outline walkable, its shops obstacles; the surveyed
+    waypoints of a walk lie in the walkable area."""
+    from schemas.floor_plans import FloorPlan, PlanKind
+    from server.datasets.msindoor import read_trace
+    from server.ingestion.floor_plans import engine_plan
+
+    floor = tmp_path / "F1"
+    (floor / "path_data_files").mkdir(parents=True)
+    for name in ("floor_info.json", "geojson_map.json"):
+        shutil.copy(MSINDOOR_FLOOR / name, floor / name)
+    smallest = sorted(WALKS.glob("*.txt"), key=lambda p: p.stat().st_size)[0]
+    shutil.copy(smallest, floor / "path_data_files" / smallest.name)
+    out = tmp_path / "f1.mcap"
+    assert main(["import-msindoor", str(floor), "--out", str(out)]) == 0
+    plan = FloorPlan.model_validate_json((tmp_path / "f1.plan.json").read_text())
+    kinds = [f.properties.kind for f in plan.features]
+    assert kinds.count(PlanKind.WALKABLE) == 1
+    assert kinds.count(PlanKind.OBSTACLE) > 100
+    waypoints = read_trace(smallest).waypoints
+    assert engine_plan(plan).walkable(waypoints[:, 1:]).all()
+
+
 def test_replay_offline_of_the_golden_recording(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "replay.json"
     code = main(
