@@ -82,7 +82,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--sweep", choices=("particles", "density", "anchor-density"))
     parser.add_argument(
-        "--compare", action="store_true", help="run pdr, semanticslam and dynamicslam; one CDF (Figure 14)"
+        "--compare",
+        action="store_true",
+        help="run pdr, semanticslam and dynamicslam; their CDFs on one figure (Figure 14)",
     )
     parser.add_argument("--json", type=Path, required=True, metavar="OUT", help="where to write the metrics")
     parser.add_argument(
@@ -125,6 +127,8 @@ def run(args: argparse.Namespace) -> int:
 
 def _msindoor(args: argparse.Namespace) -> int:
     # deferred: the command's dependencies load when it runs (`crowdslam --help` loads none)
+    from dataclasses import replace
+
     from tqdm import tqdm
 
     from server.datasets.msindoor import TraceFormatError
@@ -132,9 +136,10 @@ def _msindoor(args: argparse.Namespace) -> int:
     from server.engine.config import load_calibration, tracker_params
     from server.settings import Settings
     from slam_core.sim.statistics import empirical_cdf
+    from slam_core.tracking.params import MODES
 
-    if args.sweep or args.compare or args.liars:
-        print("crowdslam evaluate: --sweep, --compare and --liars apply to --scenario only")
+    if args.sweep or args.liars:
+        print("crowdslam evaluate: --sweep and --liars apply to --scenario only")
         return 2
     try:
         options = _replay_options(args)
@@ -142,26 +147,36 @@ def _msindoor(args: argparse.Namespace) -> int:
     except (OSError, ValueError) as error:
         print(f"crowdslam evaluate: {error}")
         return 2
-    with tqdm(desc=f"replay {args.msindoor.name} ({args.mode})", unit="batch") as bar:
+    modes = MODES if args.compare else (args.mode,)
+    results: dict[str, Any] = {}
+    lines = []
+    for mode in modes:
+        with tqdm(desc=f"replay {args.msindoor.name} ({mode})", unit="batch") as bar:
 
-        def progress(n: int, total: int) -> None:
-            bar.total = total
-            bar.update(n)
+            def progress(n: int, total: int) -> None:
+                bar.total = total
+                bar.update(n)
 
-        try:
-            params = tracker_params(Settings())
-            result, errors = replay_floor(args.msindoor, options, params, calibration, progress)
-        except (TraceFormatError, ValueError, OSError) as error:
-            print(f"crowdslam evaluate: {error}")
-            return 2
+            try:
+                params = tracker_params(Settings())
+                result, errors = replay_floor(
+                    args.msindoor, replace(options, mode=mode), params, calibration, progress
+                )
+            except (TraceFormatError, ValueError, OSError) as error:
+                print(f"crowdslam evaluate: {error}")
+                return 2
+        results[mode] = result
+        x, p = empirical_cdf(errors)
+        lines.append((x, p, f"{mode} (median {result['median_m']:.2f} m, p90 {result['p90_m']:.2f} m)"))
     plot = args.plot or args.json.with_suffix(".png")
-    x, p = empirical_cdf(errors)
-    label = f"{args.mode} (median {result['median_m']:.2f} m, p90 {result['p90_m']:.2f} m)"
     title = f"{args.msindoor} crowd replay" + (f", warm split {args.warm_split}" if args.warm_split else "")
-    _plot_lines(plot, [(x, p, label)], "waypoint error (m)", "CDF", title)
+    if not options.floor_plan:
+        title += ", no floor plan"
+    _plot_lines(plot, lines, "waypoint error (m)", "CDF", title)
+    out = results if args.compare else results[args.mode]
     args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps(result, indent=2) + "\n")
-    print(json.dumps(result, indent=2))
+    args.json.write_text(json.dumps(out, indent=2) + "\n")
+    print(json.dumps(out, indent=2))
     print(f"wrote {args.json} and {plot}")
     return 0
 
