@@ -112,7 +112,16 @@ def create_app(settings: Settings, tune_gc: bool = False) -> FastAPI:
         )
         if tune_gc:
             tune_gc_for_serving()
-        revalidation = asyncio.get_running_loop().create_task(_revalidate_keys_forever(app.state.crowdslam))
+        loop = asyncio.get_running_loop()
+        revalidation = loop.create_task(_revalidate_keys_forever(app.state.crowdslam))
+        loading: set[asyncio.Task[None]] = set()  # held until done: the loop keeps only weak references
+
+        def built(building_id: str) -> None:
+            task = loop.create_task(_load_radio_map(tracking, building_id))
+            loading.add(task)
+            task.add_done_callback(loading.discard)
+
+        app.state.crowdslam.signal_maps.on_built = lambda b: loop.call_soon_threadsafe(built, b)
         try:
             yield
         finally:
@@ -143,6 +152,17 @@ def create_app(settings: Settings, tune_gc: bool = False) -> FastAPI:
     app.add_middleware(BodyLimit, limit=settings.max_request_bytes, plan_limit=settings.max_plan_bytes)
     _document_raw_bodies(app)
     return app
+
+
+async def _load_radio_map(tracking: TrackingService, building_id: str) -> None:
+    """A finished build's radio map joins its building's fingerprints, in order with its batches."""
+    try:
+        worker = await tracking.worker(building_id)
+        await worker.call("load_radio_map")
+    except Exception:
+        logger.exception(
+            "building %s: loading its new radio map failed; it loads at the next start", building_id
+        )
 
 
 async def _revalidate_keys_forever(state: AppState) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 
 from slam_core.encounters.models import Calibration
 from slam_core.tracking.tracker import TrackerParams
@@ -37,5 +38,7 @@ class TrackingConfig:
     seed: int = 0
     snapshot_period_s: float = 60.0
     retention: Retention = field(default_factory=Retention)
+    signal_maps_dir: Path | None = None
+    """Where signal-map builds are written: a building's tracker loads its latest build's radio map."""
     extent_margin_m: float = 1000.0
     """How far beyond its floors a position posted to a building may lie (``server.ingestion.extent``)."""

@@ -30,6 +30,7 @@ from server.errors import NotFoundError
 from server.ingestion import convert
 from server.ingestion.extent import Extent
 from server.ingestion.floor_plans import engine_plan
+from server.ingestion.radio_maps import latest_radio_map
 from server.store import repositories as repo
 from server.store.batches import LoggedBatch, clear_covered_bodies, logged_batches
 from slam_core.encounters.models import Calibration
@@ -110,9 +111,30 @@ class RecoverableBuilding:
         self.tracker.set_floor_plan(
             None if plan is None else engine_plan(FloorPlan.model_validate_json(plan))
         )
+        self.load_radio_map()
         self._replay(logged)
         if snapshot_always or not restored:
             self.snapshot(clear_log=True)  # it covers the whole log now
+
+    def load_radio_map(self) -> int:
+        """Load the radio map of the building's latest finished signal-map build into the tracker's
+        fingerprints (once per build); returns the scans that joined. A map that cannot be read is logged
+        and skipped: the building tracks without it."""
+        root = self._config.signal_maps_dir
+        if root is None:
+            return 0
+        try:
+            radio = latest_radio_map(root, self.building_id)
+        except ValueError as exc:
+            logger.warning("building %s: radio map skipped: %s", self.building_id, exc)
+            return 0
+        if radio is None:
+            return 0
+        added = self.tracker.load_radio_map(radio.map_id, radio.xy, radio.bssids, radio.rss, radio.t_ms)
+        logger.info(
+            "building %s: %d scans of build %s joined its fingerprints", self.building_id, added, radio.map_id
+        )
+        return added
 
     def reload(self) -> None:
         """Throw the in-memory state away and load the building again from SQL, exactly as a restart does:

@@ -433,6 +433,7 @@ def tracking_config(settings: Settings) -> TrackingConfig:
         settings.seed,
         settings.snapshot_period_s,
         retention,
+        settings.data_dir / "signal_maps",
         settings.extent_margin_m,
     )
 

@@ -35,6 +35,7 @@ CALLS = frozenset(
         "delete_anchor",
         "merge_anchors",
         "put_floor_plan",
+        "load_radio_map",
         "context",
     }
 )

@@ -158,7 +158,7 @@ def _sensor_columns(
         "beacon_rss": [s.rssi_dbm for s in beacons],
     }
     strings = {
-        "scan_bssid": tuple(ap.bssid for ap in aps),
+        "scan_bssid": tuple(ap.bssid.lower() for ap in aps),  # one AP whatever case a phone writes
         "peer_id": tuple(p.peer_advertised_id for p in peers),
         "beacon_mac": tuple(s.mac for s in beacons),
     }

@@ -27,6 +27,7 @@ from pydantic import ValidationError
 from schemas.sensors import SensorBatch
 from server.datasets.signalslam_plots import LTE_CELL, MAGNETIC, write_column_maps, write_scan_maps
 from server.ingestion.convert import BuildingContext, to_user_batch
+from server.ingestion.radio_maps import write_radio_map
 from server.recordings.recorder import read_batches
 from slam_core.sensing.detectors import integrate_headings
 from slam_core.sensing.pdr.heading import with_final_offset
@@ -244,6 +245,11 @@ def build_signal_maps(
         written += write_column_maps(
             folder, np.vstack(mag_xy), np.vstack(mag_values), ["magnetic magnitude"], MAGNETIC, 1, to_wgs84
         )
+    if rows:  # every scan at its SignalSLAM position: the radio map the building's tracker loads
+        names = _Columns.names(columns.aps)
+        scans = [{names[c]: rss for c, rss in scan.items()} for s in segments for scan in s.scans]
+        scan_t = np.concatenate([s.scan_t for s in segments if s.scan_t.size])
+        written.append(write_radio_map(folder, np.vstack(placed), scans, scan_t))
     tracks = folder / "trajectories.json"
     tracks.write_text(json.dumps([
         {"device_id": s.device, "t_ms": s.walk.t_ms.tolist(), "xy_m": np.round(xy, 3).tolist()}

@@ -10,6 +10,7 @@ import multiprocessing
 import os
 import threading
 import uuid
+from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor
 from datetime import UTC, datetime
 from pathlib import Path
@@ -19,15 +20,17 @@ from schemas.signal_maps import SignalMapJob, SignalMapStatus
 from server.buildings.process import die_with
 from server.errors import ConflictError, NotFoundError, TooManyRequestsError
 from server.ingestion.convert import BuildingContext
+from server.ingestion.radio_maps import RECORD
 from server.signal_maps.build import build_signal_maps
 
-RECORD = "job.json"
 MAX_PENDING_BUILDS = 4
 """Builds queued or running at once, over all buildings; one more is refused (429) until one ends."""
 
 
 class SignalMapService:
     def __init__(self, root: Path, recordings: Path | None, modalities: tuple[str, ...] = ("wifi",)) -> None:
+        self.on_built: Callable[[str], None] | None = None
+        """Called with the building's id when one of its builds is done (from the pool's thread)."""
         self.root = root
         self.recordings = recordings
         self.modalities = modalities
@@ -104,6 +107,8 @@ class SignalMapService:
                                               "error": str(error) or type(error).__name__}))  # fmt: skip
         else:
             self._save(job.model_copy(update={"status": SignalMapStatus.DONE, "finished_at": now, **summary}))
+            if self.on_built is not None:
+                self.on_built(job.building_id)
         with self._lock:
             self._futures.pop(job.id, None)
 

@@ -111,6 +111,11 @@ class FingerprintParams:
             raise ValueError("cell_refresh_ms must be >= 0")
 
 
+SURVEY_OWNER = -2
+"""The owner of scans placed by a signal-map build (``CrowdFingerprints.add``): no user's, so every user's
+scans are located on them."""
+
+
 class CrowdFingerprints:
     """Placed scans in at most ``max_references`` rows, bounded per cell of the floor, posted in an inverted
     index by interned BSSID."""

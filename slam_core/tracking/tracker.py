@@ -40,7 +40,7 @@ import numpy as np
 
 import slam_core.tracking.radio as radio
 from slam_core.crowd.anchor_map import CrowdMapBuilder
-from slam_core.crowd.fingerprints import CrowdFingerprints
+from slam_core.crowd.fingerprints import SURVEY_OWNER, CrowdFingerprints
 from slam_core.crowd.graph import CrowdGraph, GraphParams
 from slam_core.encounters.detection import EncounterDetector
 from slam_core.encounters.models import Calibration
@@ -99,6 +99,28 @@ class BuildingTracker:
         self._started = 0
         self.n_types = fp.anchors.type_posterior.shape[0]
         self._columns = SlotColumns()
+
+    _radio_map_id: str | None = None  # snapshots from before radio maps lack it
+
+    def load_radio_map(
+        self, map_id: str, xy: np.ndarray, bssids: list[list[str]], rss: list[np.ndarray], t_ms: np.ndarray
+    ) -> int:
+        """Add the scans of a signal-map build (SignalSLAM's positions) to the crowd's fingerprint map, owned
+        by no user; returns how many joined (the map's per-cell bound applies). A map already loaded (by
+        ``map_id``, which snapshots keep) is not loaded again."""
+        if map_id == self._radio_map_id:
+            return 0
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        if not (len(bssids) == len(rss) == xy.shape[0] == len(t_ms)) or not np.all(np.isfinite(xy)):
+            raise ValueError("radio map: one finite position, BSSID list, RSS array and time per scan")
+        added = sum(
+            self.fingerprints.add(
+                SURVEY_OWNER, xy[i], bssids[i], np.asarray(rss[i], dtype=np.float64), int(t_ms[i])
+            )
+            for i in range(xy.shape[0])
+        )
+        self._radio_map_id = map_id
+        return added
 
     def set_floor_plan(self, plan: FloorPlan | None) -> None:
         """The floor plan that weighs every user's steps from now on (beyond the papers); None: none."""

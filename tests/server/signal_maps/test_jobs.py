@@ -7,6 +7,7 @@ import math
 import time
 from typing import Any
 
+from slam_core.crowd.fingerprints import SURVEY_OWNER
 from tests.server.conftest import Api
 
 T0 = 1_767_225_600_000
@@ -121,6 +122,16 @@ def test_a_build_from_recordings_serves_maps(sqlite_api: Api) -> None:
     assert 35.0 < min(means) < max(means) < 65.0  # |(20 + x, 10, -35)| over x in [0, 28]
     listed = api.client.get("/v1/buildings/hq/signal-maps", headers=op).json()
     assert [j["id"] for j in listed] == [job["id"]]
+    # the build's radio map: every scan at its SignalSLAM position, loaded into the building's fingerprints
+    radio = json.loads(api.client.get(f"{base}/radio_map.json", headers=op).content)["scans"]
+    assert len(radio) == 20  # a scan every 2 s of two 20 s walks
+    assert all(abs(s["y_m"]) < 1.0 and set(s["aps"]) <= set(APS) for s in radio)
+    tracker: Any = api.client.app.state.crowdslam.tracking.workers["hq"].building.tracker  # type: ignore[attr-defined]
+    deadline = time.monotonic() + 10
+    while tracker._radio_map_id != job["id"] and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert tracker._radio_map_id == job["id"]
+    assert tracker.fingerprints._per_owner[SURVEY_OWNER] >= 5  # at most 4 a 4 m cell: the 28 m corridor
 
 
 def test_build_errors(sqlite_api: Api) -> None:
