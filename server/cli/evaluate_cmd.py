@@ -80,6 +80,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_false",
         help="with --msindoor: do not weigh steps by the floor's plan (geojson_map.json)",
     )
+    parser.add_argument(
+        "--radio-map",
+        action=argparse.BooleanOptionalAction,
+        default=False,
+        help="with --msindoor --warm-split: build the warm walks into a radio map (SignalSLAM, each walk "
+        "tagged at its first and last waypoints, as a server's signal-map build) that the tracker loads",
+    )
     parser.add_argument("--sweep", choices=("particles", "density", "anchor-density"))
     parser.add_argument(
         "--compare",
@@ -135,6 +142,7 @@ def _msindoor(args: argparse.Namespace) -> int:
     from server.datasets.msindoor_replay import replay_floor
     from server.engine.config import load_calibration, tracker_params
     from server.settings import Settings
+    from server.signal_maps.tagged_walks import radio_map_of_walks
     from slam_core.sim.statistics import empirical_cdf
     from slam_core.tracking.params import MODES
 
@@ -160,7 +168,12 @@ def _msindoor(args: argparse.Namespace) -> int:
             try:
                 params = tracker_params(Settings())
                 result, errors = replay_floor(
-                    args.msindoor, replace(options, mode=mode), params, calibration, progress
+                    args.msindoor,
+                    replace(options, mode=mode),
+                    params,
+                    calibration,
+                    progress,
+                    radio_map_of_walks if options.radio_map else None,
                 )
             except (TraceFormatError, ValueError, OSError) as error:
                 print(f"crowdslam evaluate: {error}")
@@ -326,4 +339,5 @@ def _replay_options(args: argparse.Namespace) -> ReplayOptions:
         liars=args.liars,
         fingerprints=args.fingerprints is not False,
         floor_plan=args.floor_plan,
+        radio_map=args.radio_map,
     )

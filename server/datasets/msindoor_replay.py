@@ -30,6 +30,7 @@ from server.datasets.msindoor_batches import trace_windows
 from server.engine.config import ReplayOptions, replay_params
 from server.ingestion.convert import BuildingContext, to_user_batch
 from server.ingestion.floor_plans import engine_plan
+from server.ingestion.radio_maps import RadioMap
 from slam_core.encounters.models import Calibration
 from slam_core.sim.statistics import error_summary
 from slam_core.tracking.tracker import BuildingTracker, TrackerParams, UserBatch
@@ -57,10 +58,13 @@ def replay_floor(
     base_params: TrackerParams,
     calibration: Calibration,
     progress: Callable[[int, int], None] | None = None,
+    radio_map_of: Callable[[list[Trace]], RadioMap | None] | None = None,
 ) -> tuple[dict[str, Any], np.ndarray]:
     """Replay the floor's walks with the server's tracker (``base_params``, in the options' mode); returns
     the metrics (the simulated evaluation's fields plus ``n_waypoints``) and every scored waypoint's error
-    in metres."""
+    in metres. With a warm split and ``radio_map_of`` (``server.signal_maps.tagged_walks``), the warm walks
+    are built into a radio map, as a server's signal-map build, which the tracker loads before the scored
+    walks."""
     started = time.perf_counter()
     floor = read_floor(floor_dir)
     traces = [read_trace(p) for p in floor.traces]
@@ -89,11 +93,25 @@ def replay_floor(
         0,
     )
     total_windows = sum(_windows(t, options.window_ms) for t in traces)
+    fix_errors: list[float] = []
+    radio_scans = 0
+
+    def advance(n: int) -> None:
+        _tick(progress, n, total_windows)
+
     for phase, phase_traces in enumerate(phases):
         walks = [_prepare(t, base) for t in phase_traces]
-        end = _replay_phase(tracker, walks, ctx, options, counts, lambda n: _tick(progress, n, total_windows))
-        if phase == len(phases) - 1:
+        last = phase == len(phases) - 1
+        errors_here: list[float] = fix_errors if last else []
+        end = _replay_phase(tracker, walks, ctx, options, counts, advance, errors_here)
+        if last:
             scored = walks
+        elif radio_map_of is not None:
+            radio = radio_map_of(phase_traces)
+            if radio is not None:
+                radio_scans = tracker.load_radio_map(
+                    radio.map_id, radio.xy, radio.bssids, radio.rss, radio.t_ms
+                )
         base = end + PHASE_GAP_MS
     errors = np.array([e for w in scored for e in w.errors])
     result: dict[str, Any] = {
@@ -120,6 +138,8 @@ def replay_floor(
         "signature_observations_gated": counts["signatures_gated"],
         "fingerprints": tracker.params.fingerprints.enabled,
         "fingerprint_fixes": counts["fingerprint_fixes"],
+        "fingerprint_fix_error_m": error_summary(np.array(fix_errors)) if fix_errors else None,
+        "radio_map_scans": radio_scans,
         "seconds": time.perf_counter() - started,
     }
     return result, errors
@@ -148,6 +168,7 @@ def _replay_phase(
     options: ReplayOptions,
     counts: dict[str, int],
     advance: Callable[[int], None],
+    fix_errors: list[float],
 ) -> int:
     """Replay these walks concurrently; returns the replay time of the last window's end."""
     queue: list[tuple[int, int, UserBatch]] = []
@@ -172,7 +193,7 @@ def _replay_phase(
     for item in queue:
         end, index, _ = item
         if call and (end > call_end or any(i == index for _, i, _ in call)):
-            _apply(tracker, walks, call, options, counts)
+            _apply(tracker, walks, call, options, counts, fix_errors)
             advance(len(call))
             call = []
         if not call:
@@ -180,7 +201,7 @@ def _replay_phase(
         call.append(item)
         last_end = max(last_end, end)
     if call:
-        _apply(tracker, walks, call, options, counts)
+        _apply(tracker, walks, call, options, counts, fix_errors)
         advance(len(call))
     for walk in walks:  # waypoints after the walk's last sample: its final estimate
         _score(tracker, walk, math.inf, options.mode)
@@ -193,6 +214,7 @@ def _apply(
     call: list[tuple[int, int, UserBatch]],
     options: ReplayOptions,
     counts: dict[str, int],
+    fix_errors: list[float],
 ) -> None:
     outcome = tracker.apply([b for _, _, b in call])
     counts["steps"] += sum(r.steps_detected for r in outcome.reports.values())
@@ -202,8 +224,13 @@ def _apply(
     counts["encounter_detections"] += outcome.detections
     counts["encounters"] += len(outcome.encounters)
     counts["encounters_applied"] += sum(e.applied for e in outcome.encounters)
-    for end, index, _ in call:
+    for end, index, batch in call:
         _score(tracker, walks[index], end, options.mode)
+        fix = outcome.reports[batch.user].fingerprint_fix
+        waypoints = walks[index].waypoints
+        if fix is not None and waypoints[0, 0] <= end <= waypoints[-1, 0]:  # the surveyed track, interpolated
+            truth = np.array([np.interp(end, waypoints[:, 0], waypoints[:, k]) for k in (1, 2)])
+            fix_errors.append(float(np.linalg.norm(np.asarray(fix) - truth)))
 
 
 def _score(tracker: BuildingTracker, walk: _Walk, until_ms: float, mode: str) -> None:

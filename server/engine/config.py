@@ -63,6 +63,9 @@ class ReplayOptions:
     """Simulated users who lie (``server.simulation.liars``); only the honest users are scored."""
     floor_plan: bool = True
     """Weigh steps by the floor's plan where the world has one (the data set's ``geojson_map.json``)."""
+    radio_map: bool = False
+    """With a warm split: build the warm walks into a radio map (SignalSLAM, tagged at each walk's first and
+    last waypoints) that the tracker loads before the scored walks."""
 
     @property
     def tracker_seed(self) -> int:

@@ -195,8 +195,11 @@ class CrowdFingerprints:
         cell = (math.floor(float(xy[0]) / p.cell_m), math.floor(float(xy[1]) / p.cell_m))
         rows = self._cells.get(cell)
         # either way round: a phone whose clock runs far ahead must not hold a cell for everyone else
-        if rows is not None and len(rows) >= p.per_cell and abs(t_ms - self._t[rows[-1]]) < p.cell_refresh_ms:
-            return False
+        if rows is not None and len(rows) >= p.per_cell:
+            if abs(t_ms - self._t[rows[-1]]) < p.cell_refresh_ms:
+                return False
+            if owner != SURVEY_OWNER and all(self._owner[r] == SURVEY_OWNER for r in rows):
+                return False  # a build placed these better than any estimate: they keep their cell
         heard, gains = self._gains(bssids, rss)
         if len(heard) < p.min_aps:
             return False
@@ -204,7 +207,7 @@ class CrowdFingerprints:
             (self._columns.setdefault(b, len(self._columns)) for b in heard), np.int64, len(heard)
         )
         self._grow_columns(len(self._columns))
-        row = self._free_row(cell)
+        row = self._free_row(cell, survey=owner == SURVEY_OWNER)
         self._serial_next += 1
         serial = self._serial_next
         need = index.room_needed(cols, self._length, self._capacity)
@@ -235,12 +238,13 @@ class CrowdFingerprints:
             self._compact()
         return True
 
-    def _free_row(self, cell: tuple[int, int]) -> int:
-        """A row for a new reference in ``cell``: the cell's oldest when the cell is full, else a new row
-        while the map is below ``max_references``, else the map's oldest."""
+    def _free_row(self, cell: tuple[int, int], survey: bool = False) -> int:
+        """A row for a new reference in ``cell``: the cell's oldest when the cell is full (for a user's scan,
+        its oldest user's scan: a build's scans stay), else a new row while the map is below
+        ``max_references``, else the map's oldest."""
         rows = self._cells.get(cell)
         if rows is not None and len(rows) >= self.params.per_cell:
-            row = rows[0]
+            row = rows[0] if survey else next(r for r in rows if self._owner[r] != SURVEY_OWNER)
         elif self._size < self.params.max_references:
             row = self._size
             self._size += 1

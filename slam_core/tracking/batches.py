@@ -114,6 +114,8 @@ class UserReport:
     fixes_applied: int = 0
     recentred: int = 0
     fingerprint_fixes: int = 0  # scans localised on the crowd fingerprint map and applied
+    fingerprint_fix: tuple[float, float] | None = None
+    """Where the call's fingerprint fix placed the user (carried to its latest step), when it got one."""
     clock_restarted: bool = False  # the phone's clock went back: the user's timeline restarted here
     anchor_joins: list[tuple[int, int]] = field(default_factory=list)
     """Per building-anchor detection applied (not signatures): its time and the crowd anchor it joined."""

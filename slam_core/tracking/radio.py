@@ -98,17 +98,18 @@ def apply_fingerprint_fixes(
     fingerprints: CrowdFingerprints,
     params: FingerprintParams,
     located: list[tuple[int, int, np.ndarray, np.ndarray, list[Scan]]],
-) -> list[bool]:
+) -> list[np.ndarray | None]:
     """For each (slot, owner, estimate now, its covariance, the user's scans of this call in time order):
     the latest scan the map can place, carried to now, is a robust fix
     (``DynamicSlam.observe_position_robust``, all of a call's fixes in one engine call), then the confident
-    users' scans join the map (``CrowdFingerprints.fix_and_places``). Returns whether each user got a fix."""
-    slots, fixes, got = [], [], []
+    users' scans join the map (``CrowdFingerprints.fix_and_places``). Returns each user's fix, or None."""
+    slots, fixes = [], []
+    got: list[np.ndarray | None] = []
     places: list[Place] = []
     for slot, owner, xy, cov, scans in located:
         fix, joining = fingerprints.fix_and_places(owner, xy, cov, scans)
         places += joining
-        got.append(fix is not None)
+        got.append(fix)
         if fix is not None:
             slots.append(slot)
             fixes.append(fix)
@@ -162,7 +163,9 @@ def fingerprint_fixes(
         located.append((u.slot, u.number, np.array([row.x, row.y]), cov, scans))
     got = apply_fingerprint_fixes(engine, fingerprints, params.fingerprints, located)
     for name, fixed in zip(names, got, strict=True):
-        reports[name].fingerprint_fixes += int(fixed)
+        if fixed is not None:
+            reports[name].fingerprint_fixes += 1
+            reports[name].fingerprint_fix = (float(fixed[0]), float(fixed[1]))
 
 
 BACKGROUND_SCANS = 16

@@ -8,7 +8,13 @@ import pickle
 import numpy as np
 import pytest
 
-from slam_core.crowd.fingerprints import STALE_BOUND, CrowdFingerprints, FingerprintParams, Scan
+from slam_core.crowd.fingerprints import (
+    STALE_BOUND,
+    SURVEY_OWNER,
+    CrowdFingerprints,
+    FingerprintParams,
+    Scan,
+)
 from slam_core.filter.dynamic_slam import DynamicSlam
 from slam_core.filter.params import FilterParams
 from slam_core.signalslam.maps import FingerprintGrid, localise_knn
@@ -187,6 +193,25 @@ def test_a_full_cell_takes_a_scan_only_once_its_newest_is_cell_refresh_ms_old() 
     assert at[0] == 3.5
     unlimited = CrowdFingerprints(FingerprintParams(per_cell=1, cell_refresh_ms=0))
     assert all(unlimited.add(1, np.array([1.0, 1.0]), aps, np.full(3, -50.0), 0) for _ in range(3))
+
+
+def test_a_builds_scans_keep_their_cell_and_are_every_users() -> None:
+    """Scans of a signal-map build (``SURVEY_OWNER``) are located on by every user; a user's scan takes a
+    full cell's oldest user scan, never a build's, and a cell full of a build's scans takes none."""
+    params = FingerprintParams(k=1, min_references=1, per_cell=2, cell_refresh_ms=0, max_spread_m=1e9)
+    db = CrowdFingerprints(params)
+    aps = ["a", "b", "c"]
+    assert db.add(SURVEY_OWNER, np.array([1.0, 1.0]), aps, np.full(3, -50.0), 0)
+    assert db.add(7, np.array([2.0, 1.0]), aps, np.full(3, -60.0), 1)
+    assert db.add(8, np.array([3.0, 1.0]), aps, np.full(3, -70.0), 2)  # full: user 7's scan leaves
+    assert db._per_owner == {SURVEY_OWNER: 1, 8: 1}
+    located = db.locate(8, aps, np.full(3, -52.0))  # user 8 is located on the build's scan
+    assert located is not None
+    assert located[0] == 1.0
+    assert db.add(SURVEY_OWNER, np.array([5.0, 1.0]), aps, np.full(3, -50.0), 3)
+    assert db.add(SURVEY_OWNER, np.array([6.0, 1.0]), aps, np.full(3, -50.0), 4)
+    assert not db.add(9, np.array([7.0, 1.0]), aps, np.full(3, -50.0), 5)  # the build holds that cell
+    assert db._per_owner == {SURVEY_OWNER: 3, 8: 1}
 
 
 def test_fingerprint_params_are_checked() -> None:
