@@ -17,6 +17,7 @@ from server.datasets.msindoor_replay import replay_floor
 from server.engine.config import ReplayOptions, load_calibration, replay_params, tracker_params
 from server.ingestion.convert import BuildingContext, to_user_batch
 from server.settings import Settings
+from server.signal_maps.tagged_walks import radio_map_of_walks
 from slam_core.crowd.fingerprints import FingerprintParams
 from slam_core.tracking.tracker import BuildingTracker
 from tests.datasets.conftest import FLOOR, WALKS
@@ -101,6 +102,46 @@ def test_fingerprint_fixes_come_from_the_warm_crowds_scans(small_floor: Path) ->
     assert result["fingerprint_fixes"] > 0
     assert np.all(np.isfinite(errors))
     assert result["median_m"] < 8.0
+
+
+def test_walks_tagged_at_both_ends_build_a_radio_map_near_the_surveyed_track() -> None:
+    """The server's signal-map build over three walks, each tagged at its first and last waypoint: every
+    scan of them placed by SignalSLAM near where the surveyor was."""
+    traces = [read_trace(FLOOR / "path_data_files" / f"{n}.txt") for n in WALKS[:3]]
+    radio = radio_map_of_walks(traces)
+    assert radio is not None
+    truth = []
+    for trace in traces:
+        wp = trace.waypoints
+        scan_t = np.array([s.t_ms for s in trace.wifi if wp[0, 0] <= s.t_ms <= wp[-1, 0]], dtype=float)
+        truth.append(np.column_stack([np.interp(scan_t, wp[:, 0], wp[:, k]) for k in (1, 2)]))
+    by_time = {int(t): xy for t, xy in zip(radio.t_ms, radio.xy, strict=True)}
+    errors = [
+        float(np.linalg.norm(by_time[int(t)] - xy))
+        for trace, points in zip(traces, truth, strict=True)
+        for t, xy in zip(
+            [s.t_ms for s in trace.wifi if trace.waypoints[0, 0] <= s.t_ms <= trace.waypoints[-1, 0]],
+            points,
+            strict=True,
+        )
+        if int(t) in by_time
+    ]
+    assert len(radio) >= 10
+    assert len(errors) >= 0.8 * len(radio)
+    assert float(np.median(errors)) < 1.5, np.median(errors)  # measured 0.56 m
+    assert all(b == b.lower() for scan in radio.bssids for b in scan)
+
+
+def test_the_warm_walks_radio_map_joins_the_fingerprints_before_the_scored_walks(small_floor: Path) -> None:
+    result, errors = replay_floor(
+        small_floor,
+        ReplayOptions(mode="dynamicslam", warm_split=0.5, particles=30, radio_map=True),
+        tracker_params(Settings()),
+        load_calibration(None),
+        radio_map_of=radio_map_of_walks,
+    )
+    assert result["radio_map_scans"] > 10
+    assert np.all(np.isfinite(errors))
 
 
 def test_fingerprint_fixes_are_dynamicslams_like_human_anchors() -> None:
