@@ -50,6 +50,41 @@ class _Walk:
     waypoints: np.ndarray  # (K, 3) t, x, y in replay time
     pending: int = 1  # the next waypoint to score
     errors: list[float] = field(default_factory=list)
+    before: tuple[np.ndarray, np.ndarray] | None = None  # the estimate and displacement after the last call
+
+    def truth(self, t_ms: float) -> np.ndarray | None:
+        """The surveyed position at ``t_ms`` (straight between clicks), inside the surveyed span only."""
+        w = self.waypoints
+        if not w[0, 0] <= t_ms <= w[-1, 0]:
+            return None
+        return np.array([np.interp(t_ms, w[:, 0], w[:, 1]), np.interp(t_ms, w[:, 0], w[:, 2])])
+
+
+CORRECTIONS = ("building_anchor", "signature_anchor", "human_anchor", "fingerprint_fix", "none")
+"""What moved a user in a call, beyond its steps (``none``: steps alone, with the floor plan's weights)."""
+
+
+@dataclass
+class _Audit:
+    """Per kind of correction: calls that applied it, those after which the user was farther from the
+    surveyed track than its steps alone would have left it, and the sum of that change (metres)."""
+
+    applied: dict[str, int] = field(default_factory=lambda: dict.fromkeys(CORRECTIONS, 0))
+    away: dict[str, int] = field(default_factory=lambda: dict.fromkeys(CORRECTIONS, 0))
+    change_m: dict[str, float] = field(default_factory=lambda: dict.fromkeys(CORRECTIONS, 0.0))
+    fix_errors: list[float] = field(default_factory=list)
+
+    def summary(self) -> dict[str, dict[str, float | int]]:
+        return {
+            kind: {
+                "applied": self.applied[kind],
+                "moved_away_share": self.away[kind] / self.applied[kind] if self.applied[kind] else 0.0,
+                "mean_error_change_m": self.change_m[kind] / self.applied[kind]
+                if self.applied[kind]
+                else 0.0,
+            }
+            for kind in CORRECTIONS
+        }
 
 
 def replay_floor(
@@ -93,7 +128,7 @@ def replay_floor(
         0,
     )
     total_windows = sum(_windows(t, options.window_ms) for t in traces)
-    fix_errors: list[float] = []
+    audit = _Audit()
     radio_scans = 0
 
     def advance(n: int) -> None:
@@ -102,8 +137,8 @@ def replay_floor(
     for phase, phase_traces in enumerate(phases):
         walks = [_prepare(t, base) for t in phase_traces]
         last = phase == len(phases) - 1
-        errors_here: list[float] = fix_errors if last else []
-        end = _replay_phase(tracker, walks, ctx, options, counts, advance, errors_here)
+        audited = audit if last else _Audit()  # the scored walks only
+        end = _replay_phase(tracker, walks, ctx, options, counts, advance, audited)
         if last:
             scored = walks
         elif radio_map_of is not None:
@@ -138,7 +173,8 @@ def replay_floor(
         "signature_observations_gated": counts["signatures_gated"],
         "fingerprints": tracker.params.fingerprints.enabled,
         "fingerprint_fixes": counts["fingerprint_fixes"],
-        "fingerprint_fix_error_m": error_summary(np.array(fix_errors)) if fix_errors else None,
+        "fingerprint_fix_error_m": error_summary(np.array(audit.fix_errors)) if audit.fix_errors else None,
+        "corrections": audit.summary(),
         "radio_map_scans": radio_scans,
         "seconds": time.perf_counter() - started,
     }
@@ -168,7 +204,7 @@ def _replay_phase(
     options: ReplayOptions,
     counts: dict[str, int],
     advance: Callable[[int], None],
-    fix_errors: list[float],
+    audit: _Audit,
 ) -> int:
     """Replay these walks concurrently; returns the replay time of the last window's end."""
     queue: list[tuple[int, int, UserBatch]] = []
@@ -193,7 +229,7 @@ def _replay_phase(
     for item in queue:
         end, index, _ = item
         if call and (end > call_end or any(i == index for _, i, _ in call)):
-            _apply(tracker, walks, call, options, counts, fix_errors)
+            _apply(tracker, walks, call, options, counts, audit)
             advance(len(call))
             call = []
         if not call:
@@ -201,7 +237,7 @@ def _replay_phase(
         call.append(item)
         last_end = max(last_end, end)
     if call:
-        _apply(tracker, walks, call, options, counts, fix_errors)
+        _apply(tracker, walks, call, options, counts, audit)
         advance(len(call))
     for walk in walks:  # waypoints after the walk's last sample: its final estimate
         _score(tracker, walk, math.inf, options.mode)
@@ -214,7 +250,7 @@ def _apply(
     call: list[tuple[int, int, UserBatch]],
     options: ReplayOptions,
     counts: dict[str, int],
-    fix_errors: list[float],
+    audit: _Audit,
 ) -> None:
     outcome = tracker.apply([b for _, _, b in call])
     counts["steps"] += sum(r.steps_detected for r in outcome.reports.values())
@@ -224,13 +260,37 @@ def _apply(
     counts["encounter_detections"] += outcome.detections
     counts["encounters"] += len(outcome.encounters)
     counts["encounters_applied"] += sum(e.applied for e in outcome.encounters)
+    human = {n for e in outcome.encounters if e.applied for n in (e.detection.user_a, e.detection.user_b)}
     for end, index, batch in call:
-        _score(tracker, walks[index], end, options.mode)
-        fix = outcome.reports[batch.user].fingerprint_fix
-        waypoints = walks[index].waypoints
-        if fix is not None and waypoints[0, 0] <= end <= waypoints[-1, 0]:  # the surveyed track, interpolated
-            truth = np.array([np.interp(end, waypoints[:, 0], waypoints[:, k]) for k in (1, 2)])
-            fix_errors.append(float(np.linalg.norm(np.asarray(fix) - truth)))
+        walk = walks[index]
+        _score(tracker, walk, end, options.mode)
+        report = outcome.reports[batch.user]
+        truth = walk.truth(end)
+        if report.fingerprint_fix is not None and truth is not None:
+            audit.fix_errors.append(float(np.linalg.norm(np.asarray(report.fingerprint_fix) - truth)))
+        row, moved = tracker.estimate(batch.user), tracker.displacement(batch.user)
+        if row is None or moved is None or report.fixes_applied:  # not started, or (re)started by a fix
+            walk.before = None
+            continue
+        now = np.array([row.x, row.y])
+        if walk.before is not None and truth is not None:
+            steps_alone = walk.before[0] + (moved - walk.before[1])
+            change = float(np.linalg.norm(now - truth) - np.linalg.norm(steps_alone - truth))
+            kinds = [
+                kind
+                for kind, applied in (
+                    ("building_anchor", report.detections_applied),
+                    ("signature_anchor", report.signatures_applied),
+                    ("human_anchor", batch.user in human),
+                    ("fingerprint_fix", report.fingerprint_fixes),
+                )
+                if applied
+            ] or ["none"]
+            for kind in kinds:
+                audit.applied[kind] += 1
+                audit.away[kind] += change > 0.0
+                audit.change_m[kind] += change
+        walk.before = (now, moved)
 
 
 def _score(tracker: BuildingTracker, walk: _Walk, until_ms: float, mode: str) -> None:

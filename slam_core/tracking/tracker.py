@@ -203,6 +203,14 @@ class BuildingTracker:
         if not 0 <= anchor_type < self.n_types:
             raise ValueError(f"anchor type must be in [0, {self.n_types})")
 
+    def displacement(self, user: str) -> np.ndarray | None:
+        """The user's dead-reckoned displacement since its start, as its applied steps integrate it (not
+        re-rotated): the difference between two calls is what the motion update moved it by."""
+        u = self._users.get(user)
+        if u is None or u.slot < 0:
+            return None
+        return u.displacement.copy()
+
     def dead_reckoning(self, user: str) -> np.ndarray | None:
         """Plain PDR: the user's starting fix plus every applied step, ignoring every observation (the
         baseline the filter is measured against). Steps from the PDR front-end's gyroscope heading are
