@@ -26,7 +26,7 @@ from slam_core.filter.kernels.arrays import (
 from slam_core.filter.kernels.linalg2 import wrap_angle
 from slam_core.filter.kernels.rng import normal, normal_at
 from slam_core.filter.kernels.serial import serial_twin
-from slam_core.filter.kernels.walls import step_log_likelihood
+from slam_core.filter.kernels.walls import crosses_wall, walkable
 from slam_core.filter.kernels.weights import normalise_log_weights
 
 MODEL_PAPER = 0
@@ -48,6 +48,10 @@ def _advance_user(
     x, y, heading = arrays[X], arrays[Y], arrays[HEADING]
     logw = arrays[LOGW]
     use_plan, log_crossing, log_outside = plan_weights
+    grid = (plan[0], plan[1], plan[2], plan[3], plan[4])
+    cell_start, cell_walls, walls = plan[5], plan[6], plan[7]
+    raster_frame, raster = (plan[8], plan[9], plan[10]), plan[11]
+    penalised = False
     bias, scale, walk = arrays[BIAS], arrays[SCALE], arrays[WALK]
     ctrl_cov, last_obs_heading = arrays[CTRL_COV], arrays[LAST_OBS_HEADING]
     rng_key, rng_ctr = arrays[RNG_KEY], arrays[RNG_CTR]
@@ -83,7 +87,13 @@ def _advance_user(
             x[u, m] = x0 + step * math.cos(h)  # Eq. 7
             y[u, m] = y0 + step * math.sin(h)  # Eq. 8
             if use_plan:  # beyond the paper: the floor plan's likelihood of the step
-                logw[u, m] += step_log_likelihood(plan, x0, y0, x[u, m], y[u, m], log_crossing, log_outside)
+                x1, y1 = x[u, m], y[u, m]
+                if crosses_wall(grid, cell_start, cell_walls, walls, x0, y0, x1, y1):
+                    logw[u, m] += log_crossing
+                    penalised = True
+                if not walkable(raster_frame, raster, x1, y1):
+                    logw[u, m] += log_outside
+                    penalised = True
         last_obs_heading[u] = obs
         # P_t: covariance of the control data since the last correction (along/across the step).
         c = math.cos(obs)
@@ -97,7 +107,7 @@ def _advance_user(
         lim = 0.999 * math.sqrt(ctrl_cov[u, 0] * ctrl_cov[u, 2])
         ctrl_cov[u, 1] = max(-lim, min(lim, ctrl_cov[u, 1]))
     rng_ctr[u] = counter
-    if use_plan and stop > first:
+    if penalised:
         normalise_log_weights(logw, u)  # the penalties are finite: the row always normalises
 
 

@@ -1,13 +1,15 @@
 """The floor plan's likelihood of one particle's step (``slam_core.filter.floor_plan``): walls it crosses, and
-whether it ends in the walkable area. Beyond both papers."""
+whether it ends in the walkable area. Beyond both papers.
+
+The motion kernel unpacks the plan's arrays once per user and passes them on: taking an array out of the
+plan's tuple inside the particle loop counted a reference each time, and cost more than the tests."""
 
 from __future__ import annotations
 
 import math
 
+import numpy as np
 from numba import njit
-
-from slam_core.filter.floor_plan import PlanArrays
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -15,18 +17,29 @@ def _orientation(ax: float, ay: float, bx: float, by: float, px: float, py: floa
     return (bx - ax) * (py - ay) - (by - ay) * (px - ax)
 
 
-@njit(cache=True, nogil=True)
-def crosses_wall(plan: PlanArrays, x0: float, y0: float, x1: float, y1: float) -> bool:
+@njit(cache=True, nogil=True, inline="always")
+def crosses_wall(
+    grid: tuple[float, float, float, int, int],
+    cell_start: np.ndarray,
+    cell_walls: np.ndarray,
+    walls: np.ndarray,
+    x0: float,
+    y0: float,
+    x1: float,
+    y1: float,
+) -> bool:
     """Whether the step (x0, y0) -> (x1, y1) properly crosses a wall (touching is not crossing). Only the
-    walls listed in the grid cells the step's bounding box covers are tested."""
-    ox, oy, cell, columns, rows = plan[0], plan[1], plan[2], plan[3], plan[4]
-    cell_start, cell_walls, walls = plan[5], plan[6], plan[7]
-    if walls.shape[0] == 0:
-        return False
-    c0 = max(0, math.floor((min(x0, x1) - ox) / cell))
-    c1 = min(columns - 1, math.floor((max(x0, x1) - ox) / cell))
-    r0 = max(0, math.floor((min(y0, y1) - oy) / cell))
-    r1 = min(rows - 1, math.floor((max(y0, y1) - oy) / cell))
+    walls listed in the grid cells (origin x, y, 1 / cell size, columns, rows) the step's box covers are
+    tested; most steps stay in one cell, often without walls, and test none."""
+    ox, oy, per_m, columns, rows = grid
+    c0 = max(0, math.floor((min(x0, x1) - ox) * per_m))
+    c1 = min(columns - 1, math.floor((max(x0, x1) - ox) * per_m))
+    r0 = max(0, math.floor((min(y0, y1) - oy) * per_m))
+    r1 = min(rows - 1, math.floor((max(y0, y1) - oy) * per_m))
+    if c0 == c1 and r0 == r1:  # the common case, without the loops
+        first = r0 * columns + c0
+        if cell_start[first] == cell_start[first + 1]:
+            return False
     for r in range(r0, r1 + 1):
         for c in range(c0, c1 + 1):
             cell_index = r * columns + c
@@ -44,29 +57,16 @@ def crosses_wall(plan: PlanArrays, x0: float, y0: float, x1: float, y1: float) -
     return False
 
 
-@njit(cache=True, nogil=True)
-def walkable(plan: PlanArrays, x: float, y: float) -> bool:
-    """Whether (x, y) is in the walkable area (everywhere when the plan has none)."""
-    rx, ry, raster_m, raster = plan[8], plan[9], plan[10], plan[11]
+@njit(cache=True, nogil=True, inline="always")
+def walkable(frame: tuple[float, float, float], raster: np.ndarray, x: float, y: float) -> bool:
+    """Whether (x, y) is in the walkable area (raster origin x, y and 1 / cell size; everywhere when the
+    plan has no area)."""
     rows, columns = raster.shape
     if rows == 0:
         return True
-    c = math.floor((x - rx) / raster_m)
-    r = math.floor((y - ry) / raster_m)
+    rx, ry, per_m = frame
+    c = math.floor((x - rx) * per_m)
+    r = math.floor((y - ry) * per_m)
     if c < 0 or c >= columns or r < 0 or r >= rows:
         return False
     return bool(raster[r, c] == 1)
-
-
-@njit(cache=True, nogil=True)
-def step_log_likelihood(
-    plan: PlanArrays, x0: float, y0: float, x1: float, y1: float, log_crossing: float, log_outside: float
-) -> float:
-    """The plan's log-likelihood of a step: ``log_crossing`` if it crosses a wall, plus ``log_outside`` if it
-    ends outside the walkable area; 0 otherwise."""
-    out = 0.0
-    if crosses_wall(plan, x0, y0, x1, y1):
-        out += log_crossing
-    if not walkable(plan, x1, y1):
-        out += log_outside
-    return out
