@@ -54,6 +54,11 @@ class Settings(BaseSettings):
         description="How far beyond a building's floors (their width and height) a fix, tag or anchor may "
         "lie; one farther is refused with 422.",
     )
+    cold_start: bool = Field(
+        default=False,
+        description="Place phones that post no fix by the crowd's WiFi fingerprint map (dynamicslam); their "
+        "receipts say tracking once the estimate is confident.",
+    )
     metrics_need_key: bool = Field(
         default=False,
         description="Serve /metrics only to a site-wide operator key (it names every building).",

@@ -173,7 +173,8 @@ class BuildingTracking(RecoverableBuilding):
         self.devices.saved([row])
 
     def latest_estimate(self, user: str) -> Estimate | None:
-        row = self.tracker.estimate(user)
+        """The user's estimate, once placed (a phone started without a fix is not reported until then)."""
+        row = self.tracker.estimate(user) if self.tracker.is_placed(user) else None
         if row is None:
             return None
         return self._estimate(user, row)
@@ -405,7 +406,7 @@ class BuildingTracking(RecoverableBuilding):
             batch_id=batch.batch_id,
             status=status,
             duplicate=status == "duplicate",
-            tracking=self.tracker.is_tracking(user),
+            tracking=self.tracker.is_placed(user),
             estimate=estimate,
             encounters=encounters or [],
             warnings=warnings,
@@ -415,7 +416,8 @@ class BuildingTracking(RecoverableBuilding):
 def _dropped_warning(n: int, status: str) -> str:
     if status != "tracking":
         return (
-            f"{n} steps skipped: the user has no position yet (send a fix, a tag or a known-anchor reading)"
+            f"{n} steps skipped: the user has no position yet (send a fix, a tag or a known-anchor reading; "
+            "or WiFi scans, which place the phone where the crowd's map knows the place)"
         )
     return f"{n} steps skipped: out of time order, or turns without any azimuth to start from"
 

@@ -48,8 +48,25 @@ class _Walk:
     name: str
     trace: Trace
     waypoints: np.ndarray  # (K, 3) t, x, y in replay time
-    pending: int = 1  # the next waypoint to score
+    pending: int = 1  # the next waypoint to score (the first is the start fix; without one, it is scored)
     errors: list[float] = field(default_factory=list)
+    scored: list[tuple[float, float]] = field(default_factory=list)
+    """(time, error) of every scored waypoint, inf while the user had no reported position."""
+
+    def seconds_to(self, metres: float) -> float:
+        """Walking time from the first scored waypoint until the error stays within ``metres`` (inf if it
+        never does)."""
+        if not self.scored:
+            return math.inf
+        times = np.array([t for t, _ in self.scored])
+        errors = np.array([e for _, e in self.scored])
+        above = np.flatnonzero(errors > metres)
+        if above.size == 0:
+            return 0.0
+        if above[-1] == errors.size - 1:
+            return math.inf
+        return float(times[above[-1] + 1] - times[0]) / 1000.0
+
     before: tuple[np.ndarray, np.ndarray] | None = None  # the estimate and displacement after the last call
 
     def truth(self, t_ms: float) -> np.ndarray | None:
@@ -135,10 +152,11 @@ def replay_floor(
         _tick(progress, n, total_windows)
 
     for phase, phase_traces in enumerate(phases):
-        walks = [_prepare(t, base) for t in phase_traces]
         last = phase == len(phases) - 1
+        start_fix = options.start_fix or not last  # the warm crowd always starts at its first waypoint
+        walks = [_prepare(t, base, start_fix) for t in phase_traces]
         audited = audit if last else _Audit()  # the scored walks only
-        end = _replay_phase(tracker, walks, ctx, options, counts, advance, audited)
+        end = _replay_phase(tracker, walks, ctx, options, counts, advance, audited, start_fix)
         if last:
             scored = walks
         elif radio_map_of is not None:
@@ -159,6 +177,10 @@ def replay_floor(
         "crowd_solver": options.crowd_solver,
         "warm_split": options.warm_split,
         "floor_plan": plan is not None,
+        "start_fix": options.start_fix,
+        "unplaced_waypoints": sum(1 for w in scored for _, e in w.scored if not math.isfinite(e)),
+        "seconds_to_5m": _median_or_none([w.seconds_to(5.0) for w in scored]),
+        "walks_within_5m": sum(math.isfinite(w.seconds_to(5.0)) for w in scored) / max(1, len(scored)),
         **error_summary(errors),
         "n_waypoints": int(errors.size),
         "n_walks": len(traces),
@@ -191,10 +213,10 @@ def _tick(progress: Callable[[int, int], None] | None, n: int, total: int) -> No
         progress(n, total)
 
 
-def _prepare(trace: Trace, base_ms: int) -> _Walk:
+def _prepare(trace: Trace, base_ms: int, start_fix: bool) -> _Walk:
     first = min(float(s[0, 0]) for s in trace.streams.values() if len(s))
     moved = shifted(trace, base_ms - int(first))
-    return _Walk(trace.path.stem, moved, moved.waypoints)
+    return _Walk(trace.path.stem, moved, moved.waypoints, pending=1 if start_fix else 0)
 
 
 def _replay_phase(
@@ -205,12 +227,14 @@ def _replay_phase(
     counts: dict[str, int],
     advance: Callable[[int], None],
     audit: _Audit,
+    start_fix: bool = True,
 ) -> int:
-    """Replay these walks concurrently; returns the replay time of the last window's end."""
+    """Replay these walks concurrently, each started by a fix at its first waypoint unless ``start_fix`` is
+    off; returns the replay time of the last window's end."""
     queue: list[tuple[int, int, UserBatch]] = []
     for index, walk in enumerate(walks):
         start_t = int(walk.waypoints[0, 0])
-        fixed = False
+        fixed = not start_fix
         cuts = walk.waypoints[:, 0].astype(np.int64).tolist()
         for end, batch in trace_windows(walk.trace, ctx.building_id, walk.name, options.window_ms, cuts=cuts):
             if not fixed and end > start_t:
@@ -293,14 +317,23 @@ def _apply(
         walk.before = (now, moved)
 
 
+def _median_or_none(values: list[float]) -> float | None:
+    """The median, or None when it is infinite (most walks never got there)."""
+    median = float(np.median(values)) if values else math.inf
+    return median if math.isfinite(median) else None
+
+
 def _score(tracker: BuildingTracker, walk: _Walk, until_ms: float, mode: str) -> None:
     """Score the walk's waypoints up to ``until_ms`` with the position the server holds now."""
     while walk.pending < len(walk.waypoints) and walk.waypoints[walk.pending, 0] <= until_ms:
         if mode == "pdr":
             position = tracker.dead_reckoning(walk.name)
-        else:
-            row = tracker.estimate(walk.name)
+        else:  # what the phone is told: nothing while a cold start is not yet placed
+            row = tracker.estimate(walk.name) if tracker.is_placed(walk.name) else None
             position = None if row is None else np.array([row.x, row.y])
+        error = math.inf
         if position is not None:
-            walk.errors.append(float(np.linalg.norm(position - walk.waypoints[walk.pending, 1:])))
+            error = float(np.linalg.norm(position - walk.waypoints[walk.pending, 1:]))
+            walk.errors.append(error)
+        walk.scored.append((float(walk.waypoints[walk.pending, 0]), error))
         walk.pending += 1

@@ -18,7 +18,7 @@ from slam_core.filter.params import (
     MotionParams,
     extended_confusion,
 )
-from slam_core.tracking.params import MODES, TrackerParams
+from slam_core.tracking.params import MODES, ColdStartParams, TrackerParams
 
 
 def load_calibration(path: Path | None) -> Calibration:
@@ -40,6 +40,7 @@ def tracker_params(settings: Settings) -> TrackerParams:
         detection=DetectionParams(wifi_model=settings.encounter_wifi_model),
         # other users' scans, like human anchors: off in semanticslam mode (building anchors only)
         fingerprints=FingerprintParams(enabled=settings.fingerprint_fixes and settings.mode == "dynamicslam"),
+        cold_start=ColdStartParams(enabled=settings.cold_start),
     )
 
 
@@ -63,6 +64,9 @@ class ReplayOptions:
     """Simulated users who lie (``server.simulation.liars``); only the honest users are scored."""
     floor_plan: bool = True
     """Weigh steps by the floor's plan where the world has one (the data set's ``geojson_map.json``)."""
+    start_fix: bool = True
+    """Start each scored walk at its first waypoint; off, the phones are placed by the crowd's map
+    (``ColdStartParams``) and scored from their first waypoint on."""
     radio_map: bool = False
     """With a warm split: build the warm walks into a radio map (SignalSLAM, tagged at each walk's first and
     last waypoints) that the tracker loads before the scored walks."""
@@ -94,6 +98,8 @@ def replay_params(base: TrackerParams, options: ReplayOptions) -> TrackerParams:
             use_human_anchors=options.mode == "dynamicslam",
         ),
         crowd_solver=options.crowd_solver,
+        # a scored walk without its start fix is placed by the crowd's map, whatever the server's default
+        cold_start=replace(base.cold_start, enabled=base.cold_start.enabled or not options.start_fix),
         fingerprints=replace(
             base.fingerprints, enabled=options.fingerprints and options.mode == "dynamicslam"
         ),

@@ -60,7 +60,7 @@ def evaluate_scenario(
         score.outcome(outcome)
         if progress is not None:
             progress(1)
-        if not batch.steps or not tracker.is_tracking(user_batch.user) or batch.device_id in liars:
+        if not batch.steps or not tracker.is_placed(user_batch.user) or batch.device_id in liars:
             continue
         if options.mode == "pdr":
             xy, t_ms = tracker.dead_reckoning(user_batch.user), tracker.last_time_ms(user_batch.user)

@@ -116,6 +116,10 @@ SURVEY_OWNER = -2
 scans are located on them."""
 
 
+NOBODY = -3
+"""The owner of a query from a user not yet started: every stored scan is another user's."""
+
+
 class CrowdFingerprints:
     """Placed scans in at most ``max_references`` rows, bounded per cell of the floor, posted in an inverted
     index by interned BSSID."""
@@ -323,7 +327,34 @@ class CrowdFingerprints:
 
     def locate(self, owner: int, bssids: list[str], rss: np.ndarray) -> np.ndarray | None:
         """Weighted-kNN position of a scan over the other users' stored scans, or None when the map cannot
-        say (too few references, too few APs in common)."""
+        say (too few references, too few APs in common, neighbours too far apart)."""
+        found = self._neighbours(owner, bssids, rss)
+        if found is None:
+            return None
+        rows, d = found
+        x, y, spread = index.knn_position(self._xy, rows, d)
+        if spread > self.params.max_spread_m:  # the neighbours disagree: the map does not know this place
+            return None
+        return np.array([x, y])
+
+    def candidates(
+        self, owner: int, bssids: list[str], rss: np.ndarray, max_spread_m: float = math.inf
+    ) -> tuple[np.ndarray, np.ndarray] | None:
+        """The k nearest stored scans in signal space: their positions (k, 2) and kNN weights (1 / distance),
+        or None as ``locate``, or when they lie farther apart than ``max_spread_m`` (weighted RMS about their
+        kNN position)."""
+        found = self._neighbours(owner, bssids, rss)
+        if found is None:
+            return None
+        rows, d = found
+        if math.isfinite(max_spread_m) and index.knn_position(self._xy, rows, d)[2] > max_spread_m:
+            return None
+        return self._xy[rows].copy(), 1.0 / np.maximum(d, 1e-3)
+
+    def _neighbours(
+        self, owner: int, bssids: list[str], rss: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray] | None:
+        """The rows of the k nearest other users' scans and their union distances, or None."""
         p = self.params
         if len(bssids) < p.min_aps:
             return None
@@ -342,10 +373,7 @@ class CrowdFingerprints:
         )  # fmt: skip
         if candidates < p.k:  # fewer than k references share an AP with the scan
             return None
-        x, y, spread = index.knn_position(self._xy, rows, d)
-        if spread > p.max_spread_m:  # the neighbours disagree: the map does not know this place
-            return None
-        return np.array([x, y])
+        return rows, d
 
     def fix_and_places(
         self, owner: int, xy: np.ndarray, cov: np.ndarray, scans: list[Scan]

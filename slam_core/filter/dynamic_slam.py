@@ -153,6 +153,92 @@ class DynamicSlam:
             self.merge_crowd_map(np.array([slot]), crowd_map)  # seeding is a merge into an empty map
         return slot
 
+    def add_user_among(
+        self,
+        candidates: np.ndarray,
+        weights: np.ndarray,
+        sigma: float,
+        heading: float = 0.0,
+        crowd_map: CrowdMap | None = None,
+    ) -> int:
+        """Admit a user with no start fix, its particles spread over candidate places (beyond both papers,
+        which start every user at a known position): each particle is drawn at one candidate, chosen by
+        weight, plus N(0, sigma^2 I); with a floor plan, a particle outside its walkable area weighs
+        ``outside_likelihood`` as much. Its draws come from the filter's seed and the user's admission."""
+        candidates = np.asarray(candidates, dtype=np.float64).reshape(-1, 2)
+        weights = np.asarray(weights, dtype=np.float64)
+        if candidates.shape[0] == 0 or weights.shape != (candidates.shape[0],):
+            raise ValueError("add_user_among needs one weight per candidate and at least one candidate")
+        if not (np.all(np.isfinite(candidates)) and np.all(np.isfinite(weights)) and np.all(weights > 0)):
+            raise ValueError("candidates must be finite and weights finite and positive")
+        if not (math.isfinite(sigma) and sigma >= 0):
+            raise ValueError("sigma must be finite and >= 0")
+        p = weights / weights.sum()
+        mean = p @ candidates
+        admission = self._admitted
+        slot = self.add_user(float(mean[0]), float(mean[1]), heading, 0.0, crowd_map)
+        rng = np.random.default_rng([self.seed, admission, 1])
+        n = self.params.n_particles
+        xy = candidates[rng.choice(candidates.shape[0], size=n, p=p)] + sigma * rng.standard_normal((n, 2))
+        s = self.state
+        s.x[slot], s.y[slot] = xy[:, 0], xy[:, 1]
+        plan = self.floor_plan
+        if plan is not None and not plan.is_empty:
+            _, log_outside = self.params.floor_plan.log_weights
+            logw = np.where(plan.walkable(xy), 0.0, log_outside)
+            top = logw.max()
+            s.logw[slot] = logw - (top + math.log(np.exp(logw - top).sum()))
+        return slot
+
+    def observe_places(
+        self,
+        slot: int,
+        centres: np.ndarray,
+        weights: np.ndarray,
+        sigma: float,
+        outlier_probability: float,
+        outlier_radius_m: float,
+        inject: float = 0.0,
+    ) -> None:
+        """Weigh one user's particles by a multi-modal position observation (beyond both papers): a mixture
+        of N(centre_j, sigma^2 I) by ``weights``, plus an outlier term uniform over a disc of
+        ``outlier_radius_m``; then resample. For a phone placed from nothing, whose WiFi scan may match
+        several places: across its walk the places that agree with its steps (and the floor plan) keep
+        their particles. First, the ``inject`` share of its least likely particles is drawn anew among the
+        centres (augmented Monte Carlo localisation), so that a cloud settled at a wrong place can still
+        find the right one. NumPy, for the few users being placed."""
+        self._check_users(np.array([slot]))
+        centres = np.asarray(centres, dtype=np.float64).reshape(-1, 2)
+        weights = np.asarray(weights, dtype=np.float64)
+        if centres.shape[0] == 0 or weights.shape != (centres.shape[0],) or not np.all(weights > 0):
+            raise ValueError("observe_places needs one positive weight per centre")
+        if not (np.all(np.isfinite(centres)) and sigma > 0 and 0.0 <= outlier_probability < 1.0):
+            raise ValueError(
+                "observe_places needs finite centres, sigma > 0 and outlier_probability in [0, 1)"
+            )
+        s = self.state
+        p = weights / weights.sum()
+        n_new = int(inject * self.params.n_particles)
+        if n_new:
+            rng = np.random.default_rng([self.seed, int(s.rng_key[slot]), int(s.rng_ctr[slot]), 2])
+            s.rng_ctr[slot] += 1  # the next injection draws anew
+            worst = np.argsort(s.logw[slot])[:n_new]
+            drawn = centres[rng.choice(centres.shape[0], size=n_new, p=p)] + sigma * rng.standard_normal(
+                (n_new, 2)
+            )
+            s.x[slot, worst], s.y[slot, worst] = drawn[:, 0], drawn[:, 1]
+            s.logw[slot, worst] = np.median(s.logw[slot])
+        xy = np.column_stack([s.x[slot], s.y[slot]])
+        d2 = ((xy[:, None, :] - centres[None, :, :]) ** 2).sum(axis=2)
+        density = (np.exp(-0.5 * d2 / sigma**2) / (2 * math.pi * sigma**2)) @ p
+        likelihood = (1 - outlier_probability) * density + outlier_probability / (
+            math.pi * outlier_radius_m**2
+        )
+        logw = s.logw[slot] + np.log(likelihood)
+        top = logw.max()
+        s.logw[slot] = logw - (top + math.log(np.exp(logw - top).sum()))
+        self._resample(np.array([slot]))
+
     # Particle maps sized by use. The maps hold up to ``anchors.capacity`` anchors a particle (48), but a
     # state allocated for all of them costs ~0.2 MB a user however few anchors the building has, and every
     # doubling of the user slots copied all of it: ~0.4 GB at 2,048 slots, which stalled a building

@@ -102,7 +102,8 @@ class UserBatch:
 class UserReport:
     """What happened to one user's batch."""
 
-    status: str = "awaiting_fix"  # "tracking" once started
+    status: str = "awaiting_fix"  # "placing" while a cold start is not confident; "tracking" once placed
+    cold_started: bool = False  # placed among the crowd's candidate places in this call, with no fix
     steps_detected: int = 0  # by the PDR front-end from raw IMU
     imu_samples_dropped: int = 0  # older than what the front-end had consumed (late or re-sent)
     anchors_detected: int = 0  # by the front-end's detectors

@@ -18,6 +18,28 @@ CROWD_SOLVERS = ("fusion", "graph")
 
 
 @dataclass(frozen=True)
+class ColdStartParams:
+    """A phone with no start fix is placed by the crowd's fingerprint map (beyond both papers): at its first
+    scan the map can place, its particles spread over the scan's k nearest stored scans (each
+    ``candidate_sigma_m`` wide, those off the floor plan's walkable area weighed down), and it is tracked but
+    not yet reported. It counts as placed once its estimate's larger sigma falls to ``confident_sigma_m``.
+    Needs the fingerprint map (dynamicslam)."""
+
+    enabled: bool = False
+    """Off by default: on the shipped floors a phone placed this way was often placed far from where it
+    was (``docs/experiments.md``), and a wrong confident position is worse than none."""
+    candidate_sigma_m: float = 4.0
+    """The fingerprint map's cell: a stored scan stands for a place about this wide."""
+    confident_sigma_m: float = 5.0
+    inject: float = 0.1
+    """Share of a placing user's least likely particles drawn anew among each scan's candidates."""
+
+    def __post_init__(self) -> None:
+        if not (self.candidate_sigma_m > 0 and self.confident_sigma_m > 0):
+            raise ValueError("cold start sigmas must be positive")
+
+
+@dataclass(frozen=True)
 class TrackerParams:
     filter: FilterParams = field(default_factory=FilterParams)
     detection: DetectionParams = field(default_factory=DetectionParams)
@@ -44,6 +66,7 @@ class TrackerParams:
     """The crowd-learned WiFi fingerprint map and its robust position fixes
     (``slam_core.crowd.fingerprints``). Off here, so that the core's defaults are the paper's DynamicSLAM;
     the server and ``evaluate --msindoor`` turn it on in dynamicslam mode."""
+    cold_start: ColdStartParams = field(default_factory=ColdStartParams)
     revise_headings: bool = True
     """When the PDR front-end's north offset estimate moves, translate the user's particles by the revision
     of the path dead-reckoned since its last absolute observation (``BuildingTracker._revise_headings``)."""

@@ -40,7 +40,7 @@ import numpy as np
 
 import slam_core.tracking.radio as radio
 from slam_core.crowd.anchor_map import CrowdMapBuilder
-from slam_core.crowd.fingerprints import SURVEY_OWNER, CrowdFingerprints
+from slam_core.crowd.fingerprints import NOBODY, SURVEY_OWNER, CrowdFingerprints
 from slam_core.crowd.graph import CrowdGraph, GraphParams
 from slam_core.encounters.detection import EncounterDetector
 from slam_core.encounters.models import Calibration
@@ -59,6 +59,7 @@ from slam_core.tracking.params import CROWD_SOLVERS, TrackerParams
 from slam_core.tracking.placement import SlotColumns
 from slam_core.tracking.rounds import Round, lay_steps, round_at
 from slam_core.tracking.trails import UserTrack
+from slam_core.wifi.pairs import fresh_mask
 
 CLOCK_JUMP_BACK_MS = 60_000
 """A batch whose every time is this far behind its user's last one: the phone's clock went back (set by hand,
@@ -140,8 +141,15 @@ class BuildingTracker:
         return list(self._users)
 
     def is_tracking(self, user: str) -> bool:
+        """Whether the user has a filter (started by a fix, or being placed by the crowd's map)."""
         u = self._users.get(user)
         return u is not None and u.slot >= 0
+
+    def is_placed(self, user: str) -> bool:
+        """Whether the user is tracked and its position is reported: started by a fix, or a cold start whose
+        estimate has become confident (``ColdStartParams``)."""
+        u = self._users.get(user)
+        return u is not None and u.slot >= 0 and u.placed
 
     def last_time_ms(self, user: str) -> int:
         u = self._users.get(user)
@@ -265,6 +273,7 @@ class BuildingTracker:
         scans = radio.start_scan_detection(self.detector, batches)
         try:
             changed = self._observe(batches, rounds, reports, newest)
+            self._observe_places(batches, reports)
             self._columns.update(callers, [_heard_until(b) for b in batches])
             encounters, detections = radio.encounters(
                 self.engine,
@@ -280,13 +289,28 @@ class BuildingTracker:
             )
         finally:
             scans.join()
+        self._confirm_placements([b.user for b in batches])
         for b in batches:
-            reports[b.user].status = "tracking" if self.is_tracking(b.user) else "awaiting_fix"
+            tracked = self.is_tracking(b.user)
+            placed = tracked and self._users[b.user].placed
+            reports[b.user].status = "tracking" if placed else ("placing" if tracked else "awaiting_fix")
         estimates = self._rows(sorted(b.user for b in batches if reports[b.user].status == "tracking"))
         for user, row in estimates.items():  # an output is kept only finite: the caller then undoes the call
             if not all(math.isfinite(v) for v in (row.x, row.y, *row.cov, *row.best, row.heading)):
                 raise ValueError(f"user {user!r}: the filter's estimate is not finite")
         return TrackerOutcome(reports, estimates, encounters, sorted(changed), detections)
+
+    def _confirm_placements(self, names: list[str]) -> None:
+        """Users being placed whose estimate is now confident count as placed (for good)."""
+        placing = [n for n in names if self.is_tracking(n) and not self._users[n].placed]
+        if not placing:
+            return
+        limit = self.params.cold_start.confident_sigma_m**2
+        for name, row in self._rows(placing).items():
+            xx, xy, yy = row.cov
+            half_trace, half_gap = (xx + yy) / 2.0, (xx - yy) / 2.0
+            if half_trace + math.sqrt(half_gap * half_gap + xy * xy) <= limit:
+                self._users[name].placed = True
 
     def _restart_timeline(self, user: str, u: UserTrack) -> None:
         """The phone's clock went back: its user's timeline restarts at its next event (its filter, position
@@ -365,9 +389,12 @@ class BuildingTracker:
         for b in batches:
             u = self._users[b.user]
             report = reports[b.user]
-            # (time, kind order, index): fixes first at equal times, then steps, then detections
+            # (time, kind order, index): fixes first at equal times, then steps, then detections; a phone with
+            # no fix yet may be placed at its first scan the crowd's map can place (index -1)
+            placing = None if u.slot >= 0 or b.fix_t.size else self._cold_start_at(b)
             events = sorted(
                 [(int(t), 0, i) for i, t in enumerate(b.fix_t)]
+                + ([] if placing is None else [(placing[0], 0, -1)])
                 + [(int(t), 1, i) for i, t in enumerate(b.step_t)]
                 + [(int(t), 2, i) for i, t in enumerate(b.detect_t)]
             )
@@ -400,7 +427,12 @@ class BuildingTracker:
                     rnd.add_steps(b.user, lengths, headings, times, offsets)
                     report.steps_applied += len(lengths)
                     lengths, headings, times, offsets = [], [], [], []
-                if kind == 0:
+                if kind == 0 and i < 0:
+                    assert placing is not None
+                    self._start_among(b.user, placing[1], placing[2])
+                    started = True
+                    report.cold_started = True
+                elif kind == 0:
                     if not started:
                         self._start(b.user, b.fix_xy[i], float(b.fix_sigma[i]), float(b.fix_azimuth[i]))
                         started = True
@@ -434,13 +466,76 @@ class BuildingTracker:
             return u.heading + turn
         return math.nan
 
+    def _observe_places(self, batches: list[UserBatch], reports: dict[str, UserReport]) -> None:
+        """Users being placed: their latest scan's candidate places weigh their particles as a mixture
+        (``DynamicSlam.observe_places``), except in the call that started them from those places."""
+        cold = self.params.cold_start
+        fp = self.params.fingerprints
+        for b in batches:
+            u = self._users[b.user]
+            if u.slot < 0 or u.placed or reports[b.user].cold_started:
+                continue
+            found = self._candidates(b, latest=True)
+            if found is not None:
+                _, centres, weights = found
+                self.engine.observe_places(
+                    u.slot,
+                    centres,
+                    weights,
+                    cold.candidate_sigma_m,
+                    fp.outlier_probability,
+                    fp.outlier_radius_m,
+                    cold.inject,
+                )
+
+    def _cold_start_at(self, b: UserBatch) -> tuple[int, np.ndarray, np.ndarray] | None:
+        """The first of the batch's scans the crowd's fingerprint map can place: (its time, the candidate
+        places, their weights); None when cold starts are off or no scan can be placed."""
+        if not (self.params.cold_start.enabled and self.params.fingerprints.enabled):
+            return None
+        return self._candidates(b, latest=False)
+
+    def _candidates(self, b: UserBatch, latest: bool) -> tuple[int, np.ndarray, np.ndarray] | None:
+        """The first (or latest) of the batch's scans the fingerprint map can place: its time, candidate
+        places and their weights. A cold start waits for a scan whose candidates agree (within the
+        fingerprint fixes' ``max_spread_m``): where the map does not know the place, its nearest places in
+        signal space are anywhere; a user being placed is weighed by every scan's."""
+        if not b.scan_t.size:
+            return None
+        spread = math.inf if latest else self.params.fingerprints.max_spread_m
+        stale = self.params.detection.stale_ap_ms
+        order = np.argsort(b.scan_t, kind="stable")
+        for c in order[::-1] if latest else order:
+            lo, hi = int(b.scan_offsets[c]), int(b.scan_offsets[c + 1])
+            t = int(b.scan_t[c])
+            fresh = fresh_mask(t, b.scan_last_seen[lo:hi], stale)
+            bssids = [str(x) for x, f in zip(b.scan_bssid[lo:hi], fresh, strict=True) if f]
+            found = self.fingerprints.candidates(NOBODY, bssids, b.scan_rss[lo:hi][fresh], spread)
+            if found is not None:
+                return t, found[0], found[1]
+        return None
+
+    def _start_among(self, user: str, candidates: np.ndarray, weights: np.ndarray) -> None:
+        """Start a user with no fix over the crowd's candidate places; it is placed once confident."""
+        u = self._users[user]
+        sigma = self.params.cold_start.candidate_sigma_m
+        slot = self.engine.add_user_among(candidates, weights, sigma, 0.0, self.crowd.snapshot())
+        u.placed = False
+        self._admit(user, slot, (weights / weights.sum()) @ candidates)
+
     def _start(self, user: str, xy: np.ndarray, sigma: float, azimuth: float) -> None:
         u = self._users[user]
         heading = math.pi / 2 - azimuth if math.isfinite(azimuth) else 0.0
         if math.isfinite(azimuth):
             u.heading = heading
         sigma = max(sigma, self.params.start_sigma_floor_m)
-        u.slot = self.engine.add_user(float(xy[0]), float(xy[1]), heading, sigma, self.crowd.snapshot())
+        slot = self.engine.add_user(float(xy[0]), float(xy[1]), heading, sigma, self.crowd.snapshot())
+        u.placed = True
+        self._admit(user, slot, xy)
+
+    def _admit(self, user: str, slot: int, xy: np.ndarray) -> None:
+        u = self._users[user]
+        u.slot = slot
         self._columns.reset(u.slot)
         self._slot_table().set(self.detector, user, u.slot)
         u.number = self._started

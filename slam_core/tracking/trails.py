@@ -32,6 +32,8 @@ def cap_speed(vx: float, vy: float, limit: float = MAX_SPEED_M_PER_MS) -> tuple[
 class UserTrack:
     number: int = -1  # start order: the crowd graph's user id
     slot: int = -1
+    placed: bool = True
+    """False while a user started without a fix is still spread over its candidate places."""
     last_t_ms: int = -1
     heading: float = math.nan  # counter-clockwise from east, of the last step
     displacement: np.ndarray = field(default_factory=lambda: np.zeros(2))
@@ -61,7 +63,7 @@ class UserTrack:
         return (
             self.number, self.slot, self.last_t_ms, self.heading, self.walked, self.heading_offset,
             self.trail, float(d[0]), float(d[1]), float(o[0]), float(o[1]), float(g[0]), float(g[1]),
-            float(sg[0]), float(sg[1]), float(sl[0]), float(sl[1]),
+            float(sg[0]), float(sg[1]), float(sl[0]), float(sl[1]), self.placed,
         )  # fmt: skip
 
     def __setstate__(self, state: tuple[object, ...] | dict[str, object]) -> None:
@@ -70,9 +72,11 @@ class UserTrack:
             for name in self._VECTORS:
                 self.__dict__[name] = np.array(state[name], dtype=np.float64)
             return
+        if len(state) == 17:  # written before cold starts: every started user had a fix
+            state = (*state, True)
         (
             self.number, self.slot, self.last_t_ms, self.heading, self.walked, self.heading_offset,
-            self.trail, dx, dy, ox, oy, gx, gy, sgx, sgy, slx, sly,
+            self.trail, dx, dy, ox, oy, gx, gy, sgx, sgy, slx, sly, self.placed,
         ) = state  # type: ignore[assignment]  # fmt: skip
         self.displacement = np.array([dx, dy])
         self.origin = np.array([ox, oy])

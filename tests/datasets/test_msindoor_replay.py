@@ -74,6 +74,23 @@ def test_the_floor_plan_puts_dynamicslam_ahead_of_dead_reckoning_on_the_second_b
     assert runs["plan"]["median_m"] < 0.9 * runs["no plan"]["median_m"]
 
 
+def test_phones_with_no_start_fix_are_placed_by_the_crowds_map_on_the_second_building() -> None:
+    """The scored walks of site2/F2 get no fix: the crowd's fingerprint map places them (reported once
+    confident) and every waypoint from the first is scored. Measured: p50 6.75 m over the placed
+    waypoints, 76 of 128 waypoints before a confident placement, 18 % of the walks within 5 m for good."""
+    result, errors = replay_floor(
+        FLOOR.parents[1] / "site2" / "F2",
+        ReplayOptions(mode="dynamicslam", warm_split=0.5, start_fix=False),
+        tracker_params(Settings()),
+        load_calibration(None),
+    )
+    assert result["start_fix"] is False
+    assert result["n_waypoints"] == errors.size > 20
+    assert 0 < result["unplaced_waypoints"] < result["n_waypoints"] + result["unplaced_waypoints"]
+    assert 0.0 < result["walks_within_5m"] < 1.0
+    assert result["median_m"] <= 8.0
+
+
 def test_warm_split_scores_only_the_later_walks(small_floor: Path) -> None:
     result, errors = replay_floor(
         small_floor,
@@ -221,7 +238,7 @@ def test_evaluate_cli_compares_the_modes_on_one_figure(small_floor: Path, tmp_pa
     args = ["evaluate", "--msindoor", str(small_floor), "--compare", "--particles", "20", "--json", str(out)]
     assert main(args) == 0
     results = json.loads(out.read_text())
-    assert set(results) == {"pdr", "semanticslam", "dynamicslam"}
+    assert set(results) == {"pdr", "semanticslam", "dynamicslam"}  # no warm split: no cold-start run
     assert all(r["n_waypoints"] == results["pdr"]["n_waypoints"] > 0 for r in results.values())
     assert out.with_suffix(".png").stat().st_size > 1000
 

@@ -63,6 +63,7 @@ def test_a_pickled_track_is_restored_exactly() -> None:
     track.number, track.slot, track.heading, track.heading_offset = 7, 3, 0.25, -0.125
     track.since_gyro, track.since_laid = np.array([0.5, -1.5]), np.array([2.5, 3.5])
     track.gyro_displacement = np.array([-4.0, 8.0])
+    track.placed = False
     restored = pickle.loads(pickle.dumps(track, protocol=pickle.HIGHEST_PROTOCOL))
     for f in dataclasses.fields(UserTrack):
         got, want = getattr(restored, f.name), getattr(track, f.name)
