@@ -20,11 +20,24 @@ MAX_RASTER_CELLS = 4_000_000
 never a raster of gigabytes."""
 
 PlanArrays = tuple[
-    float, float, float, int, int, np.ndarray, np.ndarray, np.ndarray, float, float, float, np.ndarray
+    float,
+    float,
+    float,
+    int,
+    int,
+    np.ndarray,
+    np.ndarray,
+    np.ndarray,
+    float,
+    float,
+    float,
+    np.ndarray,
+    np.ndarray,
 ]
 """What the kernels take (``FloorPlan.arrays``), flat (a parallel kernel takes no nested tuple): the wall
 grid's origin x, y, cells per metre, columns and rows, its CSR starts and wall indices, the walls (S, 4), the
-raster's origin x, y and cells per metre, and the raster (rows, columns) of uint8."""
+raster's origin x, y and cells per metre, the raster (rows, columns) of uint8, and the wall grid's free cells
+(uint8 per cell: no wall and wholly walkable)."""
 
 
 @dataclass(frozen=True)
@@ -44,6 +57,9 @@ class FloorPlan:
     raster_origin: tuple[float, float]
     raster: np.ndarray
     """(rows, columns) uint8, 1 where walkable; (0, 0) when the plan has no walkable area."""
+    free: np.ndarray
+    """(rows * columns,) uint8 over the wall grid: 1 where a cell holds no wall and lies wholly in the
+    walkable area. A user whose particles' steps all stay in free cells needs no test."""
 
     @classmethod
     def build(
@@ -78,6 +94,7 @@ class FloorPlan:
             raster = _rasterise(rings, raster_origin, raster_m, r_high)
         else:
             raster_origin, raster = (0.0, 0.0), np.zeros((0, 0), dtype=np.uint8)
+        free = _free_cells(cell_start, origin, cell_m, rows, columns, raster, raster_origin, raster_m)
         return cls(
             walls,
             rings,
@@ -89,6 +106,7 @@ class FloorPlan:
             raster_m,
             raster_origin,
             raster,
+            free,
         )
 
     @classmethod
@@ -115,6 +133,7 @@ class FloorPlan:
             self.raster_origin[1],
             1.0 / self.raster_m,
             self.raster,
+            self.free,
         )
 
     def walkable(self, xy: np.ndarray) -> np.ndarray:
@@ -201,6 +220,36 @@ def _segment_meets_boxes(
         lo = np.maximum(lo, np.minimum(t_a, t_b))
         hi = np.minimum(hi, np.maximum(t_a, t_b))
     return ok & (lo <= hi)
+
+
+def _free_cells(
+    cell_start: np.ndarray,
+    origin: tuple[float, float],
+    cell_m: float,
+    rows: int,
+    columns: int,
+    raster: np.ndarray,
+    raster_origin: tuple[float, float],
+    raster_m: float,
+) -> np.ndarray:
+    """1 for each wall-grid cell with no wall whose whole square is walkable (every raster cell it touches),
+    by a summed-area table of the raster's unwalkable cells."""
+    free: np.ndarray = (np.diff(cell_start) == 0).astype(np.uint8)
+    if raster.size == 0:
+        return free
+    blocked = np.zeros((raster.shape[0] + 1, raster.shape[1] + 1), dtype=np.int64)
+    blocked[1:, 1:] = np.cumsum(np.cumsum(raster == 0, axis=0), axis=1)
+    r, c = np.divmod(np.arange(rows * columns), columns)
+    x0 = np.floor((origin[0] + c * cell_m - raster_origin[0]) / raster_m).astype(np.int64)
+    x1 = np.floor((origin[0] + (c + 1) * cell_m - raster_origin[0]) / raster_m).astype(np.int64)
+    y0 = np.floor((origin[1] + r * cell_m - raster_origin[1]) / raster_m).astype(np.int64)
+    y1 = np.floor((origin[1] + (r + 1) * cell_m - raster_origin[1]) / raster_m).astype(np.int64)
+    inside = (x0 >= 0) & (y0 >= 0) & (x1 < raster.shape[1]) & (y1 < raster.shape[0])
+    x0, x1 = np.clip(x0, 0, raster.shape[1] - 1), np.clip(x1, 0, raster.shape[1] - 1)
+    y0, y1 = np.clip(y0, 0, raster.shape[0] - 1), np.clip(y1, 0, raster.shape[0] - 1)
+    count = blocked[y1 + 1, x1 + 1] - blocked[y0, x1 + 1] - blocked[y1 + 1, x0] + blocked[y0, x0]
+    free &= (inside & (count == 0)).astype(np.uint8)
+    return free
 
 
 def _rasterise(

@@ -26,7 +26,7 @@ from slam_core.filter.kernels.arrays import (
 from slam_core.filter.kernels.linalg2 import wrap_angle
 from slam_core.filter.kernels.rng import normal, normal_at
 from slam_core.filter.kernels.serial import serial_twin
-from slam_core.filter.kernels.walls import crosses_wall, walkable
+from slam_core.filter.kernels.walls import all_free, crosses_wall, walkable
 from slam_core.filter.kernels.weights import normalise_log_weights
 
 MODEL_PAPER = 0
@@ -50,8 +50,10 @@ def _advance_user(
     use_plan, log_crossing, log_outside = plan_weights
     grid = (plan[0], plan[1], plan[2], plan[3], plan[4])
     cell_start, cell_walls, walls = plan[5], plan[6], plan[7]
-    raster_frame, raster = (plan[8], plan[9], plan[10]), plan[11]
+    raster_frame, raster, free = (plan[8], plan[9], plan[10]), plan[11], plan[12]
     penalised = False
+    n_scratch = x.shape[1] if use_plan else 0
+    x_before, y_before = np.empty(n_scratch), np.empty(n_scratch)
     bias, scale, walk = arrays[BIAS], arrays[SCALE], arrays[WALK]
     ctrl_cov, last_obs_heading = arrays[CTRL_COV], arrays[LAST_OBS_HEADING]
     rng_key, rng_ctr = arrays[RNG_KEY], arrays[RNG_CTR]
@@ -65,6 +67,8 @@ def _advance_user(
         obs = step_heading[s]
         previous = last_obs_heading[u]
         d_obs = 0.0 if math.isnan(previous) else wrap_angle(obs - previous)
+        low_x = low_y = math.inf
+        high_x = high_y = -math.inf
         for m in range(n_particles):
             n_len = normal_at(key, counter)
             n_h = normal_at(key, counter + one)
@@ -84,10 +88,18 @@ def _advance_user(
             h = wrap_angle(h)
             heading[u, m] = h
             x0, y0 = x[u, m], y[u, m]
-            x[u, m] = x0 + step * math.cos(h)  # Eq. 7
-            y[u, m] = y0 + step * math.sin(h)  # Eq. 8
-            if use_plan:  # beyond the paper: the floor plan's likelihood of the step
-                x1, y1 = x[u, m], y[u, m]
+            x1, y1 = x0 + step * math.cos(h), y0 + step * math.sin(h)
+            x[u, m] = x1  # Eq. 7
+            y[u, m] = y1  # Eq. 8
+            if use_plan:
+                x_before[m], y_before[m] = x0, y0
+                low_x, high_x = min(low_x, x0, x1), max(high_x, x0, x1)
+                low_y, high_y = min(low_y, y0, y1), max(high_y, y0, y1)
+        # beyond the paper: the floor plan's likelihood of each particle's step, unless every step stayed
+        # in cells without walls, wholly walkable
+        if use_plan and not all_free(grid, free, low_x, low_y, high_x, high_y):
+            for m in range(n_particles):
+                x0, y0, x1, y1 = x_before[m], y_before[m], x[u, m], y[u, m]
                 if crosses_wall(grid, cell_start, cell_walls, walls, x0, y0, x1, y1):
                     logw[u, m] += log_crossing
                     penalised = True

@@ -70,3 +70,26 @@ def walkable(frame: tuple[float, float, float], raster: np.ndarray, x: float, y:
     if c < 0 or c >= columns or r < 0 or r >= rows:
         return False
     return bool(raster[r, c] == 1)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def all_free(
+    grid: tuple[float, float, float, int, int],
+    free: np.ndarray,
+    low_x: float,
+    low_y: float,
+    high_x: float,
+    high_y: float,
+) -> bool:
+    """Whether every wall-grid cell the box covers is free (no wall, wholly walkable): then no step inside
+    it crosses a wall or ends off the walkable area. A box reaching past the grid is not free."""
+    ox, oy, per_m, columns, rows = grid
+    c0, c1 = math.floor((low_x - ox) * per_m), math.floor((high_x - ox) * per_m)
+    r0, r1 = math.floor((low_y - oy) * per_m), math.floor((high_y - oy) * per_m)
+    if c0 < 0 or r0 < 0 or c1 >= columns or r1 >= rows:
+        return False
+    for r in range(r0, r1 + 1):
+        for c in range(c0, c1 + 1):
+            if free[r * columns + c] == 0:
+                return False
+    return True

@@ -63,6 +63,26 @@ def test_the_raster_is_the_even_odd_inside_of_the_rings() -> None:
     assert FloorPlan.empty().walkable(points).all()
 
 
+def test_free_cells_hold_no_wall_and_only_walkable_ground() -> None:
+    """A free cell of the wall grid (the motion update skips users whose steps stay in free cells) holds no
+    wall and every point in it is walkable; a corridor of free cells runs between the walls."""
+    walls = np.array([[0.0, 0.0, 40.0, 0.0], [0.0, 10.0, 40.0, 10.0]])
+    plan = FloorPlan.build(walls, [SQUARE, HOLE], cell_m=2.0, raster_m=0.25)
+    rng = np.random.default_rng(5)
+    columns = plan.grid_shape[1]
+    free = np.flatnonzero(plan.free)
+    assert free.size > 20
+    for cell in free:
+        assert plan.cell_start[cell] == plan.cell_start[cell + 1]
+        r, c = divmod(int(cell), columns)
+        corner = np.array(plan.origin) + np.array([c, r]) * plan.cell_m
+        assert plan.walkable(corner + rng.uniform(0, plan.cell_m, size=(20, 2))).all()
+    # a cell crossed by a wall, or in the hole, is never free
+    for point in ([5.0, 0.0], [15.0, 15.0]):
+        c, r = ((np.array(point) - plan.origin) // plan.cell_m).astype(int)
+        assert plan.free[r * columns + c] == 0
+
+
 def test_a_huge_site_gets_coarser_cells_not_a_huge_raster() -> None:
     site = np.array([[0.0, 0.0], [20_000.0, 0.0], [20_000.0, 20_000.0], [0.0, 20_000.0]])
     plan = FloorPlan.build(np.array([[0.0, 0.0, 20_000.0, 20_000.0]]), [site])
