@@ -44,7 +44,7 @@ def _advance_user(
     motion: tuple[int, float, float, float, float],
     plan: PlanArrays,
     plan_weights: tuple[bool, float, float],
-) -> None:
+) -> bool:
     x, y, heading = arrays[X], arrays[Y], arrays[HEADING]
     logw = arrays[LOGW]
     use_plan, log_crossing, log_outside = plan_weights
@@ -121,6 +121,7 @@ def _advance_user(
     rng_ctr[u] = counter
     if penalised:
         normalise_log_weights(logw, u)  # the penalties are finite: the row always normalises
+    return penalised
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -133,13 +134,14 @@ def motion_update(
     motion: tuple[int, float, float, float, float],
     plan: PlanArrays,
     plan_weights: tuple[bool, float, float],
+    penalised: np.ndarray,
 ) -> None:
     """Advance ``users[i]`` by its steps ``offsets[i]:offsets[i+1]`` (lengths in metres, observed headings in
     rad counter-clockwise from east). Users must be distinct within one call. ``motion`` is the model's
     code and parameters: (model, sigma_l, sigma_phi, sigma_walk, control covariance cap). With
     ``plan_weights`` = (True, log-likelihood of crossing a wall, of ending outside the walkable area), each
-    particle's step is weighted by the floor plan (``slam_core.filter.kernels.walls``) and the user's weights
-    normalised after its steps; with False the plan is not read.
+    particle's step is weighted by the floor plan (``slam_core.filter.kernels.walls``) and, where a step was
+    penalised, the user's weights normalised and ``penalised[i]`` set; with False the plan is not read.
 
     Per particle and step, two normals are drawn in this order: length noise, then heading noise (paper
     model) or the heading walk's increment (bias-scale model); ``slam_core.filter.reference`` draws them
@@ -147,7 +149,7 @@ def motion_update(
     inlined loops 2.5x.
     """
     for i in prange(users.shape[0]):
-        _advance_user(
+        penalised[i] = _advance_user(
             arrays,
             users[i],
             offsets[i],
