@@ -158,68 +158,73 @@ def _coarse_enough(cell_m: float, span: np.ndarray) -> float:
     return float(math.sqrt(span[0] * span[1] / MAX_RASTER_CELLS)) + cell_m
 
 
+MAX_WALL_CELLS = 20_000_000
+"""Cells of the walls' bounding boxes a plan may span in all (a mall floor's: ~50,000); past it the plan is
+refused before the index is built, which would hold every one of them in memory at once."""
+
+
 def _wall_grid(
     walls: np.ndarray, origin: tuple[float, float], cell_m: float, rows: int, columns: int
 ) -> tuple[np.ndarray, np.ndarray]:
     """CSR of the walls each cell meets: a wall is listed in exactly the cells its segment passes through
-    (or touches), found by clipping it to each cell of its bounding box (Liang-Barsky). A step tests only
-    the walls of the cells its own box covers, so shorter lists are a faster motion update."""
+    (or touches), found by clipping it to each cell of its bounding box (Liang-Barsky), every wall at once.
+    A step tests only the walls of the cells its own box covers, so shorter lists are a faster motion
+    update."""
     if walls.shape[0] == 0:
         return np.zeros(rows * columns + 1, dtype=np.int64), np.zeros(0, dtype=np.int64)
-    cells_of: list[np.ndarray] = []
-    owners: list[np.ndarray] = []
     ox, oy = origin
-    for w, (x0, y0, x1, y1) in enumerate(walls):
-        c0, c1 = int((min(x0, x1) - ox) // cell_m), int((max(x0, x1) - ox) // cell_m)
-        r0, r1 = int((min(y0, y1) - oy) // cell_m), int((max(y0, y1) - oy) // cell_m)
-        grid_c, grid_r = np.meshgrid(np.arange(c0, c1 + 1), np.arange(r0, r1 + 1))
-        cc, rr = grid_c.ravel(), grid_r.ravel()
-        if cc.size > 1:  # keep the cells of the box the segment enters
-            hit = _segment_meets_boxes(
-                x0,
-                y0,
-                x1,
-                y1,
-                ox + cc * cell_m,
-                oy + rr * cell_m,
-                ox + (cc + 1) * cell_m,
-                oy + (rr + 1) * cell_m,
-            )
-            cc, rr = cc[hit], rr[hit]
-        inside = (rr >= 0) & (rr < rows) & (cc >= 0) & (cc < columns)
-        cells_of.append(rr[inside] * columns + cc[inside])
-        owners.append(np.full(int(inside.sum()), w, dtype=np.int64))
-    cells = np.concatenate(cells_of)
+    x0, y0, x1, y1 = walls.T
+    c0 = np.floor((np.minimum(x0, x1) - ox) / cell_m).astype(np.int64)
+    c1 = np.floor((np.maximum(x0, x1) - ox) / cell_m).astype(np.int64)
+    r0 = np.floor((np.minimum(y0, y1) - oy) / cell_m).astype(np.int64)
+    r1 = np.floor((np.maximum(y0, y1) - oy) / cell_m).astype(np.int64)
+    width = c1 - c0 + 1
+    sizes = width * (r1 - r0 + 1)
+    total = int(sizes.sum())
+    if total > MAX_WALL_CELLS:
+        raise ValueError(
+            f"floor plan: its walls' boxes span {total:,} cells of {cell_m:g} m; at most {MAX_WALL_CELLS:,}"
+        )
+    wall_of = np.repeat(np.arange(walls.shape[0]), sizes)
+    within = np.arange(total) - np.repeat(np.cumsum(sizes) - sizes, sizes)
+    cc = c0[wall_of] + within % width[wall_of]
+    rr = r0[wall_of] + within // width[wall_of]
+    hit = _segment_meets_boxes(
+        x0[wall_of], y0[wall_of], x1[wall_of], y1[wall_of],
+        ox + cc * cell_m, oy + rr * cell_m, ox + (cc + 1) * cell_m, oy + (rr + 1) * cell_m,
+    )  # fmt: skip
+    keep = (hit | (sizes[wall_of] == 1)) & (rr >= 0) & (rr < rows) & (cc >= 0) & (cc < columns)
+    cells = rr[keep] * columns + cc[keep]
     order = np.argsort(cells, kind="stable")
     counts = np.bincount(cells, minlength=rows * columns)
     cell_start = np.zeros(rows * columns + 1, dtype=np.int64)
     np.cumsum(counts, out=cell_start[1:])
-    return cell_start, np.ascontiguousarray(np.concatenate(owners)[order], dtype=np.int64)
+    return cell_start, np.ascontiguousarray(wall_of[keep][order], dtype=np.int64)
 
 
 def _segment_meets_boxes(
-    x0: float,
-    y0: float,
-    x1: float,
-    y1: float,
+    x0: np.ndarray,
+    y0: np.ndarray,
+    x1: np.ndarray,
+    y1: np.ndarray,
     bx0: np.ndarray,
     by0: np.ndarray,
     bx1: np.ndarray,
     by1: np.ndarray,
 ) -> np.ndarray:
-    """Whether the segment meets each closed box (Liang-Barsky clipping, vectorised over boxes)."""
-    dx, dy = x1 - x0, y1 - y0
+    """Whether each segment meets its closed box (Liang-Barsky clipping, vectorised)."""
     lo = np.zeros(bx0.shape)
     hi = np.ones(bx0.shape)
     ok = np.ones(bx0.shape, dtype=bool)
-    for p, q_lo, q_hi in ((dx, x0 - bx0, bx1 - x0), (dy, y0 - by0, by1 - y0)):
-        if p == 0.0:
-            ok &= (q_lo >= 0) & (q_hi >= 0)
-            continue
-        t_a, t_b = -q_lo / p, q_hi / p
-        lo = np.maximum(lo, np.minimum(t_a, t_b))
-        hi = np.minimum(hi, np.maximum(t_a, t_b))
-    return ok & (lo <= hi)
+    for p, q_lo, q_hi in ((x1 - x0, x0 - bx0, bx1 - x0), (y1 - y0, y0 - by0, by1 - y0)):
+        flat = p == 0.0
+        ok &= ~flat | ((q_lo >= 0) & (q_hi >= 0))
+        safe = np.where(flat, 1.0, p)
+        t_a, t_b = -q_lo / safe, q_hi / safe
+        lo = np.where(flat, lo, np.maximum(lo, np.minimum(t_a, t_b)))
+        hi = np.where(flat, hi, np.minimum(hi, np.maximum(t_a, t_b)))
+    result: np.ndarray = ok & (lo <= hi)
+    return result
 
 
 def _free_cells(

@@ -95,6 +95,9 @@ def test_invalid_plans_are_refused() -> None:
         FloorPlan.build(np.array([[0.0, 0.0, np.nan, 1.0]]))
     with pytest.raises(ValueError, match="three points"):
         FloorPlan.build(np.zeros((0, 4)), [np.array([[0.0, 0.0], [1.0, 1.0]])])
+    diagonals = np.tile([0.0, 0.0, 1000.0, 1000.0], (100, 1))  # each wall's box: 250,000 cells
+    with pytest.raises(ValueError, match="boxes span"):
+        FloorPlan.build(diagonals)
     with pytest.raises(ValueError, match="in \\(0, 1\\]"):
         FloorPlanParams(wall_crossing_likelihood=0.0)
 
