@@ -192,7 +192,8 @@ def _msindoor(args: argparse.Namespace) -> int:
         x, p = empirical_cdf(errors)
         lines.append((x, p, f"{name} (median {result['median_m']:.2f} m, p90 {result['p90_m']:.2f} m)"))
     plot = args.plot or args.json.with_suffix(".png")
-    title = f"{args.msindoor} crowd replay" + (f", warm split {args.warm_split}" if args.warm_split else "")
+    floor = "/".join(args.msindoor.resolve().parts[-2:])
+    title = f"{floor} crowd replay" + (f", warm split {args.warm_split}" if args.warm_split else "")
     if not options.floor_plan:
         title += ", no floor plan"
     _plot_lines(plot, lines, "waypoint error (m)", "CDF", title)
