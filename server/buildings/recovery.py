@@ -124,7 +124,7 @@ class RecoverableBuilding:
         if root is None:
             return 0
         try:
-            radio = latest_radio_map(root, self.building_id)
+            radio = latest_radio_map(root, self.building_id, unless=self.tracker.radio_map_id)
         except ValueError as exc:
             logger.warning("building %s: radio map skipped: %s", self.building_id, exc)
             return 0

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from schemas.floor_plans import FloorPlan
+from server.ingestion.floor_plans import map_positions
 
 VECTOR_TYPES = {
     "TYPE_ACCELEROMETER": "accelerometer",
@@ -253,11 +254,9 @@ def floor_plan(info: FloorInfo) -> FloorPlan | None:
     span = np.ptp(positions(outline), axis=0)
     scale = np.array([info.width_m, info.height_m]) / span
 
-    def local(coordinates: Any) -> Any:
-        if coordinates and isinstance(coordinates[0], int | float):
-            x, y = (np.asarray(coordinates[:2], dtype=np.float64) - low) * scale
-            return [round(float(x), 3), round(float(y), 3)]
-        return [local(c) for c in coordinates]
+    def local(position: Any) -> list[float]:
+        x, y = (np.asarray(position[:2], dtype=np.float64) - low) * scale
+        return [round(float(x), 3), round(float(y), 3)]
 
     out = []
     for feature in polygons:
@@ -266,7 +265,7 @@ def floor_plan(info: FloorInfo) -> FloorPlan | None:
         name = name[:128] if isinstance(name, str) and name else None
         geometry = {
             "type": feature["geometry"]["type"],
-            "coordinates": local(feature["geometry"]["coordinates"]),
+            "coordinates": map_positions(feature["geometry"]["coordinates"], local),
         }
         out.append({"type": "Feature", "geometry": geometry, "properties": {"kind": kind, "name": name}})
     return FloorPlan.model_validate({"type": "FeatureCollection", "frame": "local", "features": out})

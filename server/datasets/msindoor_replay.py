@@ -40,7 +40,7 @@ REPLAY_BASE_MS = 1_700_000_000_000
 PHASE_GAP_MS = 60_000
 """Between the warm-up crowd's last sample and the scored crowd's first."""
 START_SIGMA_M = 1.0
-"""The first waypoint is a surveyor's click: about a metre."""
+"""A surveyed waypoint is a surveyor's click: about a metre (a walk's start fix, a tagged walk's ends)."""
 
 
 @dataclass

@@ -27,7 +27,7 @@ def to_local(plan: FloorPlan, geo: GeoFrame | None, extent: Extent | None) -> Fl
 
         raw = plan.model_dump(mode="json")
         for feature in raw["features"]:
-            feature["geometry"]["coordinates"] = _map_positions(feature["geometry"]["coordinates"], place)
+            feature["geometry"]["coordinates"] = map_positions(feature["geometry"]["coordinates"], place)
         raw["frame"] = "local"
         plan = FloorPlan.model_validate(raw)
     if extent is not None:
@@ -40,11 +40,11 @@ def to_local(plan: FloorPlan, geo: GeoFrame | None, extent: Extent | None) -> Fl
     return plan
 
 
-def _map_positions(coordinates: Any, place: Callable[[Any], list[float]]) -> Any:
-    """``coordinates`` of any GeoJSON geometry with each [lon, lat] position replaced by ``place``'s."""
+def map_positions(coordinates: Any, place: Callable[[Any], list[float]]) -> Any:
+    """``coordinates`` of any GeoJSON geometry with each position replaced by ``place``'s."""
     if coordinates and isinstance(coordinates[0], int | float):
         return place(coordinates)
-    return [_map_positions(c, place) for c in coordinates]
+    return [map_positions(c, place) for c in coordinates]
 
 
 def engine_plan(plan: FloorPlan) -> EnginePlan:

@@ -58,9 +58,10 @@ def read_radio_map(path: Path, map_id: str) -> RadioMap:
     return RadioMap(map_id, xy, bssids, rss, t_ms)
 
 
-def latest_radio_map(root: Path, building_id: str) -> RadioMap | None:
+def latest_radio_map(root: Path, building_id: str, unless: str | None = None) -> RadioMap | None:
     """The radio map of the building's latest finished build under ``root`` (the signal maps' folder), or
-    None when no finished build wrote one."""
+    None when no finished build wrote one, or when the latest is build ``unless`` (already loaded: its file,
+    which may be megabytes, is not read again)."""
     done = []
     for record in (root / building_id).glob(f"*/{RECORD}"):
         try:
@@ -72,4 +73,6 @@ def latest_radio_map(root: Path, building_id: str) -> RadioMap | None:
     if not done:
         return None
     latest = max(done, key=lambda j: (j.finished_at or j.created_at, j.id))
+    if latest.id == unless:
+        return None
     return read_radio_map(root / building_id / latest.id / RADIO_MAP, latest.id)

@@ -43,6 +43,7 @@ from foxglove.messages import (
 
 from schemas.estimates import EncounterEvent, Estimate
 from schemas.live import AnchorMessage, EncounterMessage, LiveMessage, PositionMessage
+from slam_core.filter.kernels.linalg2 import largest_eigenvalue2
 
 ENCOUNTER_SHOWN_S = 5
 USER_COLOUR = Color(r=0.2, g=0.5, b=1.0, a=0.8)
@@ -60,9 +61,7 @@ def _yaw(heading_rad: float) -> Quaternion:
 
 
 def _larger_sigma(cov: tuple[float, float, float]) -> float:
-    xx, xy, yy = cov
-    half_trace = 0.5 * (xx + yy)
-    return math.sqrt(max(half_trace + math.sqrt(max(half_trace**2 - (xx * yy - xy * xy), 0.0)), 0.0))
+    return math.sqrt(max(largest_eigenvalue2(*cov), 0.0))
 
 
 @dataclass

@@ -13,13 +13,11 @@ from schemas.common import Position
 from schemas.sensors import PositionFix
 from server.datasets.msindoor import Trace
 from server.datasets.msindoor_batches import trace_windows
+from server.datasets.msindoor_replay import START_SIGMA_M
 from server.ingestion.convert import BuildingContext
 from server.ingestion.radio_maps import RADIO_MAP, RadioMap, read_radio_map
 from server.recordings.recorder import BuildingRecorder
 from server.signal_maps.build import build_signal_maps
-
-TAG_SIGMA_M = 1.0
-"""A surveyor's click: about a metre."""
 
 
 def radio_map_of_walks(
@@ -46,7 +44,7 @@ def radio_map_of_walks(
                         PositionFix(
                             t_ms=int(t[0]),
                             position=Position(x_m=float(t[1]), y_m=float(t[2])),
-                            sigma_m=TAG_SIGMA_M,
+                            sigma_m=START_SIGMA_M,
                         )
                         for t in due
                     ]

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from slam_core.crowd import fingerprint_index as index
+from slam_core.filter.kernels.linalg2 import largest_eigenvalue2
 
 STALE_BOUND = 1.25
 """The index is compacted once its slabs hold more than this many postings per live one. A query walks
@@ -387,8 +388,6 @@ class CrowdFingerprints:
             if (found := self.locate(owner, scan.bssids, scan.rss)) is not None:
                 fix = found + scan.shift
                 break
-        half_trace, half_gap = (cov[0, 0] + cov[1, 1]) / 2.0, (cov[0, 0] - cov[1, 1]) / 2.0
-        largest = half_trace + math.sqrt(half_gap * half_gap + cov[0, 1] * cov[1, 0])  # of a 2x2 SPD matrix
-        if largest > self.params.max_reference_std_m**2:
+        if largest_eigenvalue2(cov[0, 0], cov[0, 1], cov[1, 1]) > self.params.max_reference_std_m**2:
             return fix, []
         return fix, [Place(owner, xy - scan.shift, scan.bssids, scan.rss, scan.t_ms) for scan in scans]

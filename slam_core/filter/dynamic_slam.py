@@ -10,6 +10,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.special import logsumexp
 
 from slam_core.filter.dense_ids import unique_ints
 from slam_core.filter.floor_plan import FloorPlan
@@ -186,8 +187,7 @@ class DynamicSlam:
         if plan is not None and not plan.is_empty:
             _, log_outside = self.params.floor_plan.log_weights
             logw = np.where(plan.walkable(xy), 0.0, log_outside)
-            top = logw.max()
-            s.logw[slot] = logw - (top + math.log(np.exp(logw - top).sum()))
+            s.logw[slot] = logw - logsumexp(logw)
         return slot
 
     def observe_places(
@@ -235,8 +235,7 @@ class DynamicSlam:
             math.pi * outlier_radius_m**2
         )
         logw = s.logw[slot] + np.log(likelihood)
-        top = logw.max()
-        s.logw[slot] = logw - (top + math.log(np.exp(logw - top).sum()))
+        s.logw[slot] = logw - logsumexp(logw)
         self._resample(np.array([slot]))
 
     # Particle maps sized by use. The maps hold up to ``anchors.capacity`` anchors a particle (48), but a

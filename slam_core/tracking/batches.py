@@ -8,6 +8,7 @@ import numpy as np
 
 from slam_core.encounters.detection import RangedDetection
 from slam_core.sensing.pdr.online import ImuSamples
+from slam_core.wifi.pairs import fresh_mask
 
 
 def _i64(n: int = 0) -> np.ndarray:
@@ -96,6 +97,14 @@ class UserBatch:
             raise ValueError(
                 f"user batch of {self.user!r}: non-finite values, sigma <= 0 or negative lengths"
             )
+
+    def fresh_scan(self, c: int, stale_ms: int) -> tuple[int, list[str], np.ndarray]:
+        """Scan ``c``'s time and its fresh entries (``slam_core.wifi.pairs.fresh_mask``): BSSIDs and RSS."""
+        lo, hi = int(self.scan_offsets[c]), int(self.scan_offsets[c + 1])
+        t = int(self.scan_t[c])
+        fresh = fresh_mask(t, self.scan_last_seen[lo:hi], stale_ms)
+        bssids = [str(x) for x, f in zip(self.scan_bssid[lo:hi], fresh, strict=True) if f]
+        return t, bssids, self.scan_rss[lo:hi][fresh]
 
 
 @dataclass

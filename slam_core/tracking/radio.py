@@ -27,7 +27,6 @@ from slam_core.tracking.params import TrackerParams
 from slam_core.tracking.placement import SlotColumns, TrackTable, carried_since, carry_variance, trail_lookup
 from slam_core.tracking.rounds import Round
 from slam_core.tracking.trails import UserTrack
-from slam_core.wifi.pairs import fresh_mask
 
 
 def observe_signatures(
@@ -152,11 +151,8 @@ def fingerprint_fixes(
         row = rows[b.user]
         scans = []
         for c in range(b.scan_t.size):
-            lo, hi = int(b.scan_offsets[c]), int(b.scan_offsets[c + 1])
-            t = int(b.scan_t[c])
-            fresh = fresh_mask(t, b.scan_last_seen[lo:hi], stale)
-            bssids = [str(x) for x, f in zip(b.scan_bssid[lo:hi], fresh, strict=True) if f]
-            scans.append(Scan(bssids, b.scan_rss[lo:hi][fresh], carried[first + c], t))
+            t, bssids, rss = b.fresh_scan(c, stale)
+            scans.append(Scan(bssids, rss, carried[first + c], t))
         first += b.scan_t.size
         cov = np.array([[row.cov[0], row.cov[1]], [row.cov[1], row.cov[2]]])
         names.append(b.user)

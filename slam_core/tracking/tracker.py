@@ -47,6 +47,7 @@ from slam_core.encounters.models import Calibration
 from slam_core.encounters.selection import EncounterSelector
 from slam_core.filter.dynamic_slam import DynamicSlam
 from slam_core.filter.floor_plan import FloorPlan
+from slam_core.filter.kernels.linalg2 import largest_eigenvalue2
 from slam_core.sensing.front_end import FrontEnd, RadioArrays
 from slam_core.tracking.batches import (
     EncounterResult,
@@ -59,7 +60,6 @@ from slam_core.tracking.params import CROWD_SOLVERS, TrackerParams
 from slam_core.tracking.placement import SlotColumns
 from slam_core.tracking.rounds import Round, lay_steps, round_at
 from slam_core.tracking.trails import UserTrack
-from slam_core.wifi.pairs import fresh_mask
 
 CLOCK_JUMP_BACK_MS = 60_000
 """A batch whose every time is this far behind its user's last one: the phone's clock went back (set by hand,
@@ -102,6 +102,11 @@ class BuildingTracker:
         self._columns = SlotColumns()
 
     _radio_map_id: str | None = None  # snapshots from before radio maps lack it
+
+    @property
+    def radio_map_id(self) -> str | None:
+        """The signal-map build whose radio map the fingerprints hold (None: none loaded)."""
+        return self._radio_map_id
 
     def load_radio_map(
         self, map_id: str, xy: np.ndarray, bssids: list[list[str]], rss: list[np.ndarray], t_ms: np.ndarray
@@ -307,9 +312,7 @@ class BuildingTracker:
             return
         limit = self.params.cold_start.confident_sigma_m**2
         for name, row in self._rows(placing).items():
-            xx, xy, yy = row.cov
-            half_trace, half_gap = (xx + yy) / 2.0, (xx - yy) / 2.0
-            if half_trace + math.sqrt(half_gap * half_gap + xy * xy) <= limit:
+            if largest_eigenvalue2(*row.cov) <= limit:
                 self._users[name].placed = True
 
     def _restart_timeline(self, user: str, u: UserTrack) -> None:
@@ -506,11 +509,8 @@ class BuildingTracker:
         stale = self.params.detection.stale_ap_ms
         order = np.argsort(b.scan_t, kind="stable")
         for c in order[::-1] if latest else order:
-            lo, hi = int(b.scan_offsets[c]), int(b.scan_offsets[c + 1])
-            t = int(b.scan_t[c])
-            fresh = fresh_mask(t, b.scan_last_seen[lo:hi], stale)
-            bssids = [str(x) for x, f in zip(b.scan_bssid[lo:hi], fresh, strict=True) if f]
-            found = self.fingerprints.candidates(NOBODY, bssids, b.scan_rss[lo:hi][fresh], spread)
+            t, bssids, rss = b.fresh_scan(int(c), stale)
+            found = self.fingerprints.candidates(NOBODY, bssids, rss, spread)
             if found is not None:
                 return t, found[0], found[1]
         return None

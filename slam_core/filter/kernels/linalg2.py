@@ -20,6 +20,13 @@ def inv2(a: float, b: float, c: float) -> tuple[float, float, float]:
     return c / d, -b / d, a / d
 
 
+@njit(cache=True, nogil=True)
+def largest_eigenvalue2(a: float, b: float, c: float) -> float:
+    """The larger eigenvalue of [[a, b], [b, c]]: a covariance's larger variance."""
+    half_gap = 0.5 * (a - c)
+    return 0.5 * (a + c) + math.sqrt(half_gap * half_gap + b * b)
+
+
 @njit(cache=True, nogil=True, inline="always")
 def gauss_logpdf2(dx: float, dy: float, a: float, b: float, c: float) -> float:
     """log N((dx, dy); 0, [[a, b], [b, c]])."""
