@@ -43,11 +43,7 @@ class SignalMapService:
         return self.root / building_id / job_id
 
     def _save(self, job: SignalMapJob) -> None:
-        folder = self._folder(job.building_id, job.id)
-        folder.mkdir(parents=True, exist_ok=True)
-        tmp = folder / (RECORD + ".tmp")
-        tmp.write_text(job.model_dump_json(indent=2))
-        tmp.replace(folder / RECORD)
+        _write_record(self._folder(job.building_id, job.id), job)
 
     def _fail_interrupted(self) -> None:
         for record in self.root.glob(f"*/*/{RECORD}"):
@@ -99,14 +95,14 @@ class SignalMapService:
         return job
 
     def _finish(self, job: SignalMapJob, future: Future[dict[str, Any]]) -> None:
-        now = datetime.now(UTC)
+        """The build's process recorded how it ended (``_run_build``); a process that died could not, and
+        its job is recorded failed here."""
         try:
-            summary = future.result()
-        except Exception as error:  # the build's own errors say what was missing; keep the message
-            self._save(job.model_copy(update={"status": SignalMapStatus.FAILED, "finished_at": now,
-                                              "error": str(error) or type(error).__name__}))  # fmt: skip
+            future.result()
+        except Exception as error:
+            if self.get(job.building_id, job.id).status != SignalMapStatus.FAILED:
+                self._save(_ended(job, error=error))
         else:
-            self._save(job.model_copy(update={"status": SignalMapStatus.DONE, "finished_at": now, **summary}))
             if self.on_built is not None:
                 self.on_built(job.building_id)
         with self._lock:
@@ -142,11 +138,38 @@ def _run_build(
 ) -> dict[str, Any]:
     """In the build's process: die with the server (a worker left behind by ``kill -9`` would hold a core
     and a job nobody reads), say the job runs (the pool takes a queued job off its queue before it starts,
-    so the server cannot tell), then build."""
+    so the server cannot tell), build, and say how it ended before the process takes the next job: builds
+    run one at a time, so at most one is ever reported running."""
     die_with(server_pid)
-    record = Path(folder) / RECORD
-    job = SignalMapJob.model_validate_json(record.read_text())
-    tmp = record.with_suffix(".tmp")
-    tmp.write_text(job.model_copy(update={"status": SignalMapStatus.RUNNING}).model_dump_json(indent=2))
-    tmp.replace(record)
-    return build_signal_maps(files, folder, ctx, modalities)
+    job = SignalMapJob.model_validate_json((Path(folder) / RECORD).read_text())
+    _write_record(Path(folder), job.model_copy(update={"status": SignalMapStatus.RUNNING}))
+    try:
+        summary = build_signal_maps(files, folder, ctx, modalities)
+    except Exception as error:  # the build's own errors say what was missing; keep the message
+        _write_record(Path(folder), _ended(job, error=error))
+        raise
+    _write_record(Path(folder), _ended(job, summary))
+    return summary
+
+
+def _write_record(folder: Path, job: SignalMapJob) -> None:
+    """Replace the job's record at once (readers never see half of one)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    tmp = folder / (RECORD + ".tmp")
+    tmp.write_text(job.model_dump_json(indent=2))
+    tmp.replace(folder / RECORD)
+
+
+def _ended(
+    job: SignalMapJob, summary: dict[str, Any] | None = None, error: Exception | None = None
+) -> SignalMapJob:
+    """The job done with the build's summary, or failed with its error's message."""
+    now = datetime.now(UTC)
+    if error is not None:
+        failed = {
+            "status": SignalMapStatus.FAILED,
+            "finished_at": now,
+            "error": str(error) or type(error).__name__,
+        }
+        return job.model_copy(update=failed)
+    return job.model_copy(update={"status": SignalMapStatus.DONE, "finished_at": now, **(summary or {})})
