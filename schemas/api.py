@@ -55,6 +55,14 @@ class KeyInfo(WireModel):
     revoked_at: datetime | None = None
 
 
+class KeyIdentity(WireModel):
+    """The key presented (``GET /v1/key``): what it may do, so a client shows only what it will be allowed."""
+
+    scope: KeyScope
+    building_id: Identifier | None = Field(default=None, description="None: a site-wide operator key.")
+    device_id: Identifier | None = None
+
+
 class BatchReceipt(WireModel):
     """The answer to a posted batch. ``status``: applied; duplicate (this batch id was accepted before and
     nothing changed); late (its ``seq`` is not after the last applied one: recorded, not applied, counted)."""

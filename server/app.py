@@ -17,11 +17,12 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from schemas.errors import Problem
 from schemas.sensors import SensorBatch
-from server.api import anchors, batches, buildings, health, live, positions, signal_maps
+from server.api import anchors, batches, buildings, current_key, health, live, positions, signal_maps
 from server.api.deps import revalidate_keys
 from server.api.limits import BodyLimit
 from server.auth import KeyCache
 from server.buildings.registry import TrackingService
+from server.dashboard.pages import install_pages
 from server.buildings.tracking import tracking_config
 from server.engine.config import load_calibration, tracker_params
 from server.engine.warmup import compile_kernels_in_child, warm_kernels
@@ -144,10 +145,13 @@ def create_app(settings: Settings, tune_gc: bool = False) -> FastAPI:
             403: {"model": Problem, "description": "The key's scope does not allow this"},
         },
         telemetry=None if settings.fastapi_telemetry else {"tracing": False, "metrics": False, "logs": False},
+        docs_url=None,  # served by install_pages from local assets
+        redoc_url=None,
     )
     _install_error_handlers(app)
-    for module in (health, buildings, batches, positions, anchors, live, signal_maps):
+    for module in (health, current_key, buildings, batches, positions, anchors, live, signal_maps):
         app.include_router(module.router)
+    install_pages(app)
     app.add_middleware(batches.BatchFastPath)
     app.add_middleware(BodyLimit, limit=settings.max_request_bytes, plan_limit=settings.max_plan_bytes)
     _document_raw_bodies(app)

@@ -226,6 +226,15 @@ async def put_floor_plan(
     return plan
 
 
+@router.get("/{building_id}/floor-plans", response_model=list[int], responses={404: {"model": Problem}})
+def floor_plan_levels(building_id: str, caller: Caller, session: DbSession) -> list[int]:
+    """The levels whose floor has a plan (dashboard or operator key)."""
+    caller.require_reader(building_id)
+    if repo.get_building(session, building_id) is None:
+        raise NotFoundError(f"no building {building_id!r}")
+    return repo.floor_plan_levels(session, building_id)
+
+
 @router.get(
     "/{building_id}/floors/{level}/plan", response_model=FloorPlan, responses={404: {"model": Problem}}
 )

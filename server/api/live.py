@@ -16,23 +16,48 @@ from server.store import repositories as repo
 router = APIRouter(prefix="/v1/buildings/{building_id}", tags=["live"])
 
 
+SUBPROTOCOL = "crowdslam.live"
+"""The subprotocol a browser offers, beside ``bearer.<key>``, to authenticate without a query string."""
+BEARER_PREFIX = "bearer."
+
+
+def offered_key(websocket: WebSocket) -> str | None:
+    """The key offered as the subprotocol ``bearer.<key>`` (a browser cannot set a WebSocket's headers, and
+    a query string lands in access logs)."""
+    for offered in websocket.scope.get("subprotocols", []):
+        if offered.startswith(BEARER_PREFIX):
+            return str(offered[len(BEARER_PREFIX) :])
+    return None
+
+
+def chosen_subprotocol(websocket: WebSocket) -> str | None:
+    """The subprotocol to accept: a browser that offered some fails the handshake unless one is chosen."""
+    return SUBPROTOCOL if SUBPROTOCOL in websocket.scope.get("subprotocols", []) else None
+
+
 async def refuse(websocket: WebSocket, code: int, reason: str) -> None:
     """Accept, then close with the documented code and reason: a socket closed before it is accepted reaches
     the client as a bare HTTP 403, without either."""
-    await websocket.accept()
+    await websocket.accept(subprotocol=chosen_subprotocol(websocket))
     # a close frame's reason is at most 123 bytes of UTF-8
     await websocket.close(code=code, reason=reason.encode()[:120].decode(errors="ignore"))
 
 
 HEARTBEAT_S = 10.0
+KEY_RECHECK_S = 2.0
+"""How often an open socket's key is checked again (through the key cache): a revoked key's sockets close
+with 4401 within this time on the server that revoked it, within ``CROWDSLAM_KEY_CACHE_S`` on others."""
 
 
 @router.websocket("/live")
 async def live(websocket: WebSocket, building_id: str, token: str | None = None, batch: bool = False) -> None:
-    """``?token=<dashboard or operator key>``. Each text frame is one LiveMessage (JSON, union on ``type``);
-    a heartbeat every 10 s reports messages dropped because this subscriber was slow. With ``&batch=true``
-    each frame is a ``LiveBatch`` of every message waiting (for busy buildings)."""
+    """A dashboard or operator key, as the subprotocols ``crowdslam.live, bearer.<key>`` (browsers; no key
+    in a URL that logs keep) or ``?token=<key>``. Each text frame is one LiveMessage (JSON, union on
+    ``type``); a heartbeat every 10 s of quiet reports messages dropped because this subscriber was slow.
+    With ``&batch=true`` each frame is a ``LiveBatch`` of every message waiting (for busy buildings). A key
+    revoked while its socket is open closes it with 4401."""
     state: AppState = websocket.app.state.crowdslam
+    token = offered_key(websocket) or token
     try:
         caller = await token_principal(state, token)
         caller.require_reader(building_id)
@@ -49,21 +74,34 @@ async def live(websocket: WebSocket, building_id: str, token: str | None = None,
         return
     state.live_sockets[caller.key_id] = open_now + 1
     try:
-        await _serve(websocket, state, building_id, batch)
+        await _serve(websocket, state, building_id, batch, token)
     finally:
         left = state.live_sockets.pop(caller.key_id, 1) - 1
         if left > 0:
             state.live_sockets[caller.key_id] = left
 
 
-async def _serve(websocket: WebSocket, state: AppState, building_id: str, batch: bool) -> None:
-    await websocket.accept()
+async def _serve(
+    websocket: WebSocket, state: AppState, building_id: str, batch: bool, token: str | None
+) -> None:
+    await websocket.accept(subprotocol=chosen_subprotocol(websocket))
     sub = state.broadcaster.subscribe(building_id)
     reported = 0
+    sent_at = checked_at = time.monotonic()
     try:
         while True:
-            chunks = await sub.next(HEARTBEAT_S)
+            chunks = await sub.next(KEY_RECHECK_S)
+            now = time.monotonic()
+            if now - checked_at >= KEY_RECHECK_S:
+                checked_at = now
+                try:
+                    (await token_principal(state, token)).require_reader(building_id)
+                except ProblemError as exc:
+                    await websocket.close(code=4401 if exc.status == 401 else 4403, reason="key revoked")
+                    return
             if not chunks:
+                if now - sent_at < HEARTBEAT_S:
+                    continue
                 heartbeat = HeartbeatMessage(t_ms=int(time.time() * 1000), dropped=sub.dropped - reported)
                 reported = sub.dropped
                 text = live_json(heartbeat)
@@ -72,10 +110,12 @@ async def _serve(websocket: WebSocket, state: AppState, building_id: str, batch:
                 await websocket.send_text(
                     '{"type":"batch","messages":[' + ",".join(c.joined for c in chunks) + "]}"
                 )
+                sent_at = now
                 continue
             for chunk in chunks:
                 for text in chunk.texts:
                     await websocket.send_text(text)
+            sent_at = now
     except (WebSocketDisconnect, RuntimeError):
         return
     finally:

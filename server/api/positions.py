@@ -31,11 +31,28 @@ def estimate_from_row(row: PositionSnapshotRow | LatestPositionRow) -> Estimate:
 
 
 @router.get("/positions", response_model=list[Estimate])
-def latest_positions(building_id: str, caller: Caller, session: DbSession) -> list[Estimate]:
-    """Every user's latest estimate (dashboard or operator key)."""
+def latest_positions(
+    building_id: str,
+    caller: Caller,
+    session: DbSession,
+    at_ms: Annotated[
+        int | None,
+        Query(
+            ge=MIN_TIME_MS,
+            le=MAX_TIME_MS,
+            description="The building as it was then: each user's newest stored estimate within "
+            "`window_ms` before it (from the position history, which the server keeps "
+            "`CROWDSLAM_POSITION_HISTORY_DAYS`).",
+        ),
+    ] = None,
+    window_ms: Annotated[int, Query(ge=1, le=3_600_000)] = 30_000,
+) -> list[Estimate]:
+    """Every user's latest estimate (dashboard or operator key), or with ``at_ms`` as it was then."""
     caller.require_reader(building_id)
     if repo.get_building(session, building_id) is None:
         raise NotFoundError(f"no building {building_id!r}")
+    if at_ms is not None:
+        return [estimate_from_row(r) for r in repo.positions_at(session, building_id, at_ms, window_ms)]
     return [estimate_from_row(r) for r in repo.latest_positions(session, building_id)]
 
 

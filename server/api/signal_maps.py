@@ -40,22 +40,23 @@ async def start_build(building_id: str, caller: Caller, state: State) -> SignalM
 
 @router.get("", response_model=list[SignalMapJob])
 async def list_builds(building_id: str, caller: Caller, state: State) -> list[SignalMapJob]:
-    caller.require_operator(building_id)
+    """The building's builds (dashboard or operator key: dashboards overlay finished maps)."""
+    caller.require_reader(building_id)
     await state.tracking.worker(building_id)  # 404 for an unknown building
     return state.signal_maps.list(building_id)
 
 
 @router.get("/{job_id}", response_model=SignalMapJob)
 async def get_build(building_id: str, job_id: str, caller: Caller, state: State) -> SignalMapJob:
-    caller.require_operator(building_id)
+    caller.require_reader(building_id)
     await state.tracking.worker(building_id)  # 404 for an unknown building
     return state.signal_maps.get(building_id, job_id)
 
 
 @router.get("/{job_id}/files/{name}", response_class=FileResponse)
 async def get_file(building_id: str, job_id: str, name: str, caller: Caller, state: State) -> FileResponse:
-    """One output of a finished build (``image/png`` or ``application/json``)."""
-    caller.require_operator(building_id)
+    """One output of a finished build (``image/png`` or ``application/json``; dashboard or operator key)."""
+    caller.require_reader(building_id)
     await state.tracking.worker(building_id)
     path = state.signal_maps.file(building_id, job_id, name)
     media = {".png": "image/png", ".geojson": "application/geo+json"}.get(path.suffix, "application/json")

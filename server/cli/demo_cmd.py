@@ -74,6 +74,7 @@ def run(args: argparse.Namespace) -> int:
             ).json()["key"]
             ws_base = base.replace("http", "ws", 1)
             print(f"crowdslam demo: database {settings.resolved_database_url}", flush=True)
+            print(f"  dashboard:           {base}/dashboard/#key={dashboard}&building={args.building}")
             print(f"  API docs (OpenAPI):  {base}/docs")
             print(f"  live positions (WS): {ws_base}/v1/buildings/{args.building}/live?token={dashboard}")
             building_url = f"{base}/v1/buildings/{args.building}"

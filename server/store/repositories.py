@@ -68,6 +68,14 @@ def floor_plan(session: Session, building_id: str, level: int) -> str | None:
     return None if row is None else row.geojson
 
 
+def floor_plan_levels(session: Session, building_id: str) -> list[int]:
+    """The levels of the building's floors that have a plan."""
+    stmt = (
+        select(FloorPlanRow.level).where(FloorPlanRow.building_id == building_id).order_by(FloorPlanRow.level)
+    )
+    return [int(level) for level in session.execute(stmt).scalars()]
+
+
 def save_floor_plan(session: Session, building_id: str, level: int, geojson: str) -> None:
     """Insert or replace the floor's plan (the floor must exist)."""
     values = {"building_id": building_id, "level": level, "geojson": geojson, "updated_at": datetime.now(UTC)}
@@ -295,6 +303,27 @@ def position_history(
         )
         .order_by(PositionSnapshotRow.t_ms, PositionSnapshotRow.id)
         .limit(limit)
+    )
+    return list(session.execute(stmt).scalars())
+
+
+def positions_at(session: Session, building_id: str, at_ms: int, window_ms: int) -> list[PositionSnapshotRow]:
+    """Each user's latest snapshot in ``[at_ms - window_ms, at_ms]``: the building as it was at ``at_ms``."""
+    in_window = (
+        PositionSnapshotRow.building_id == building_id,
+        PositionSnapshotRow.t_ms >= at_ms - window_ms,
+        PositionSnapshotRow.t_ms <= at_ms,
+    )
+    newest = (
+        select(PositionSnapshotRow.user_id, func.max(PositionSnapshotRow.id).label("id"))
+        .where(*in_window)
+        .group_by(PositionSnapshotRow.user_id)
+        .subquery()
+    )
+    stmt = (
+        select(PositionSnapshotRow)
+        .join(newest, PositionSnapshotRow.id == newest.c.id)
+        .order_by(PositionSnapshotRow.user_id)
     )
     return list(session.execute(stmt).scalars())
 

@@ -1,0 +1,330 @@
+// The floor drawn on a canvas in metres: the plan (or the floor's extent), a signal-map overlay, anchors,
+// encounters, people with their 2-sigma ellipse and trail, a scale bar and a north arrow. Pan by dragging,
+// zoom with the wheel; hit-testing gives what was clicked.
+
+export const ANCHOR_STYLE = {
+  elevator: ["#6a4c93", "E"], stairs: ["#8d5524", "S"], escalator: ["#8d5524", "Es"], door: ["#386641", "D"],
+  turn: ["#1982c4", "T"], magnetic: ["#d62828", "M"], beacon: ["#f77f00", "B"], wifi: ["#0081a7", "W"],
+  organic: ["#6c757d", "O"], tag: ["#212529", "Q"],
+};
+const STALE_MS = 30000;
+const ENCOUNTER_FADE_MS = 6000;
+const HIT_PX = 10;
+
+// Eigen-decomposition of a 2x2 covariance: the 2-sigma ellipse's radii and angle (radians, local frame).
+export function ellipse(cov) {
+  const a = cov[0][0], b = cov[0][1], c = cov[1][1];
+  const mid = (a + c) / 2, half = Math.sqrt(((a - c) / 2) ** 2 + b * b);
+  const l1 = Math.max(mid + half, 0), l2 = Math.max(mid - half, 0);
+  return { rx: 2 * Math.sqrt(l1), ry: 2 * Math.sqrt(l2), angle: 0.5 * Math.atan2(2 * b, a - c), sigma: Math.sqrt(l1) };
+}
+
+// Viridis, sampled: enough for a legible heat map without a library.
+const VIRIDIS = [[68, 1, 84], [72, 40, 120], [62, 74, 137], [49, 104, 142], [38, 130, 142], [31, 158, 137],
+  [53, 183, 121], [110, 206, 88], [181, 222, 43], [253, 231, 37]];
+export function viridis(t) {
+  const x = Math.min(Math.max(t, 0), 1) * (VIRIDIS.length - 1);
+  const i = Math.min(Math.floor(x), VIRIDIS.length - 2), f = x - i;
+  return VIRIDIS[i].map((v, k) => Math.round(v + f * (VIRIDIS[i + 1][k] - v)));
+}
+
+function niceLength(metres) {
+  const p = 10 ** Math.floor(Math.log10(metres));
+  for (const m of [1, 2, 5, 10]) if (m * p >= metres) return m * p;
+  return 10 * p;
+}
+
+export class MapView {
+  constructor(canvas) {
+    this.canvas = canvas;
+    this.ctx = canvas.getContext("2d");
+    this.scale = 4; // pixels per metre
+    this.ox = 40;
+    this.oy = 400;
+    this.dirty = true;
+    this.scene = null;
+    this.bounds = null;
+    this.onFrame = null;
+    new ResizeObserver(() => this.resize()).observe(canvas);
+    this.resize();
+  }
+
+  resize() {
+    const dpr = window.devicePixelRatio || 1;
+    const w = this.canvas.clientWidth, h = this.canvas.clientHeight;
+    this.canvas.width = Math.max(1, Math.round(w * dpr));
+    this.canvas.height = Math.max(1, Math.round(h * dpr));
+    this.dpr = dpr;
+    if (this.bounds && !this.userMoved) this.fit(this.bounds);
+    this.dirty = true;
+  }
+
+  toScreen(x, y) { return [this.ox + x * this.scale, this.oy - y * this.scale]; }
+  toWorld(px, py) { return [(px - this.ox) / this.scale, (this.oy - py) / this.scale]; }
+
+  fit(bounds) {
+    this.bounds = bounds;
+    const [x0, y0, x1, y1] = bounds;
+    const w = this.canvas.clientWidth || 800, h = this.canvas.clientHeight || 600;
+    const pad = 30;
+    this.scale = Math.max(0.05, Math.min((w - 2 * pad) / Math.max(x1 - x0, 1), (h - 2 * pad) / Math.max(y1 - y0, 1)));
+    this.ox = (w - (x1 - x0) * this.scale) / 2 - x0 * this.scale;
+    this.oy = (h + (y1 - y0) * this.scale) / 2 + y0 * this.scale;
+    this.dirty = true;
+  }
+
+  zoomAt(px, py, factor) {
+    const [wx, wy] = this.toWorld(px, py);
+    this.scale = Math.min(Math.max(this.scale * factor, 0.05), 400);
+    this.ox = px - wx * this.scale;
+    this.oy = py + wy * this.scale;
+    this.userMoved = true;
+    this.dirty = true;
+  }
+
+  pan(dx, dy) {
+    this.ox += dx;
+    this.oy += dy;
+    this.userMoved = true;
+    this.dirty = true;
+  }
+
+  // What is under a screen point: a person first, then an anchor.
+  hit(px, py, scene) {
+    let best = null, bestD = HIT_PX;
+    for (const u of scene.users.values()) {
+      const [sx, sy] = this.toScreen(u.est.position.x_m, u.est.position.y_m);
+      const d = Math.hypot(sx - px, sy - py);
+      if (d < bestD) { best = { kind: "user", id: u.est.user_id }; bestD = d; }
+    }
+    if (best) return best;
+    for (const a of scene.anchors.values()) {
+      if (a.floor !== scene.floor) continue;
+      const [sx, sy] = this.toScreen(a.position.x_m, a.position.y_m);
+      const d = Math.hypot(sx - px, sy - py);
+      if (d < bestD) { best = { kind: "anchor", id: a.id }; bestD = d; }
+    }
+    return best;
+  }
+
+  draw(scene, nowMs) {
+    const ctx = this.ctx, dpr = this.dpr;
+    ctx.setTransform(dpr, 0, 0, dpr, 0, 0);
+    const w = this.canvas.clientWidth, h = this.canvas.clientHeight;
+    ctx.clearRect(0, 0, w, h);
+    this.drawFloor(scene);
+    if (scene.overlay) this.drawOverlay(scene.overlay);
+    this.drawAnchors(scene);
+    const fading = this.drawEncounters(scene, nowMs);
+    this.drawUsers(scene);
+    this.drawScaleBar(h);
+    this.drawNorth(scene.geo, w);
+    this.dirty = fading;
+  }
+
+  drawFloor(scene) {
+    const ctx = this.ctx;
+    const path = (ring) => {
+      ring.forEach(([x, y], i) => {
+        const [sx, sy] = this.toScreen(x, y);
+        if (i === 0) ctx.moveTo(sx, sy); else ctx.lineTo(sx, sy);
+      });
+      ctx.closePath();
+    };
+    const polygons = (geometry) => (geometry.type === "Polygon" ? [geometry.coordinates]
+      : geometry.type === "MultiPolygon" ? geometry.coordinates : []);
+    const lines = (geometry) => (geometry.type === "LineString" ? [geometry.coordinates]
+      : geometry.type === "MultiLineString" ? geometry.coordinates : []);
+    if (scene.plan) {
+      for (const kind of ["walkable", "obstacle", "wall"]) {
+        for (const f of scene.plan.features) {
+          if (f.properties.kind !== kind) continue;
+          ctx.beginPath();
+          for (const poly of polygons(f.geometry)) for (const ring of poly) path(ring);
+          if (kind === "walkable") { ctx.fillStyle = "#ffffff"; ctx.fill("evenodd"); ctx.strokeStyle = "#7d8a96"; ctx.lineWidth = 2; ctx.stroke(); }
+          if (kind === "obstacle") { ctx.fillStyle = "#dfe4ea"; ctx.fill("evenodd"); ctx.strokeStyle = "#9aa6b2"; ctx.lineWidth = 1; ctx.stroke(); }
+          if (kind === "wall") { ctx.strokeStyle = "#4a5663"; ctx.lineWidth = 2; ctx.stroke(); }
+          if (kind === "wall") {
+            ctx.beginPath();
+            for (const line of lines(f.geometry)) line.forEach(([x, y], i) => {
+              const [sx, sy] = this.toScreen(x, y);
+              if (i === 0) ctx.moveTo(sx, sy); else ctx.lineTo(sx, sy);
+            });
+            ctx.stroke();
+          }
+        }
+      }
+    } else if (scene.extent) {
+      const [x0, y0, x1, y1] = scene.extent;
+      const [sx0, sy0] = this.toScreen(x0, y1), [sx1, sy1] = this.toScreen(x1, y0);
+      ctx.fillStyle = "#ffffff";
+      ctx.fillRect(sx0, sy0, sx1 - sx0, sy1 - sy0);
+      ctx.setLineDash([6, 4]);
+      ctx.strokeStyle = "#7d8a96";
+      ctx.lineWidth = 1.5;
+      ctx.strokeRect(sx0, sy0, sx1 - sx0, sy1 - sy0);
+      ctx.setLineDash([]);
+    }
+  }
+
+  drawOverlay(overlay) {
+    const ctx = this.ctx;
+    const [sx, sy] = this.toScreen(overlay.x0, overlay.y0 + overlay.rows * overlay.cell);
+    ctx.save();
+    ctx.globalAlpha = 0.6;
+    ctx.imageSmoothingEnabled = false;
+    ctx.drawImage(overlay.image, sx, sy, overlay.cols * overlay.cell * this.scale, overlay.rows * overlay.cell * this.scale);
+    ctx.restore();
+  }
+
+  drawAnchors(scene) {
+    const ctx = this.ctx;
+    for (const a of scene.anchors.values()) {
+      if (a.floor !== scene.floor) continue;
+      const [sx, sy] = this.toScreen(a.position.x_m, a.position.y_m);
+      const [colour, letter] = ANCHOR_STYLE[a.type] || ["#333", "?"];
+      const selected = scene.selectedAnchors.has(a.id);
+      if (!a.known) {
+        const e = ellipse(a.covariance_m2);
+        if (e.rx * this.scale > 3) {
+          ctx.beginPath();
+          ctx.ellipse(sx, sy, e.rx * this.scale, Math.max(e.ry * this.scale, 1), -e.angle, 0, 2 * Math.PI);
+          ctx.strokeStyle = colour;
+          ctx.globalAlpha = 0.5;
+          ctx.setLineDash([3, 3]);
+          ctx.lineWidth = 1;
+          ctx.stroke();
+          ctx.setLineDash([]);
+          ctx.globalAlpha = 1;
+        }
+      }
+      const r = 7;
+      ctx.beginPath();
+      ctx.rect(sx - r, sy - r, 2 * r, 2 * r);
+      ctx.fillStyle = a.known ? colour : "#ffffff";
+      ctx.fill();
+      ctx.lineWidth = selected ? 3 : 1.5;
+      ctx.strokeStyle = selected ? "#000000" : colour;
+      ctx.stroke();
+      ctx.fillStyle = a.known ? "#ffffff" : colour;
+      ctx.font = "bold 9px system-ui, sans-serif";
+      ctx.textAlign = "center";
+      ctx.textBaseline = "middle";
+      ctx.fillText(letter, sx, sy + 0.5);
+    }
+  }
+
+  drawEncounters(scene, nowMs) {
+    const ctx = this.ctx;
+    let fading = false;
+    scene.encounters = scene.encounters.filter((e) => nowMs - e.seenMs < ENCOUNTER_FADE_MS);
+    for (const e of scene.encounters) {
+      const a = scene.users.get(e.user_a), b = scene.users.get(e.user_b);
+      if (!a || !b) continue;
+      fading = true;
+      const [ax, ay] = this.toScreen(a.est.position.x_m, a.est.position.y_m);
+      const [bx, by] = this.toScreen(b.est.position.x_m, b.est.position.y_m);
+      ctx.globalAlpha = Math.max(0, 1 - (nowMs - e.seenMs) / ENCOUNTER_FADE_MS);
+      ctx.strokeStyle = e.applied ? "#2a9d5b" : "#9aa6b2";
+      ctx.setLineDash(e.applied ? [] : [4, 4]);
+      ctx.lineWidth = 2;
+      ctx.beginPath();
+      ctx.moveTo(ax, ay);
+      ctx.lineTo(bx, by);
+      ctx.stroke();
+    }
+    ctx.setLineDash([]);
+    ctx.globalAlpha = 1;
+    return fading;
+  }
+
+  drawUsers(scene) {
+    const ctx = this.ctx;
+    const newest = scene.newestMs;
+    for (const u of scene.users.values()) {
+      if (u.est.floor !== scene.floor) continue;
+      const stale = newest - u.est.t_ms > STALE_MS;
+      const colour = stale ? "#9aa6b2" : u.colour;
+      if (u.trail.length > 1) {
+        ctx.beginPath();
+        u.trail.forEach(([x, y], i) => {
+          const [sx, sy] = this.toScreen(x, y);
+          if (i === 0) ctx.moveTo(sx, sy); else ctx.lineTo(sx, sy);
+        });
+        ctx.strokeStyle = colour;
+        ctx.globalAlpha = 0.45;
+        ctx.lineWidth = 1.5;
+        ctx.stroke();
+      }
+      const [sx, sy] = this.toScreen(u.est.position.x_m, u.est.position.y_m);
+      const e = u.ellipse;
+      ctx.beginPath();
+      ctx.ellipse(sx, sy, Math.max(e.rx * this.scale, 2), Math.max(e.ry * this.scale, 2), -e.angle, 0, 2 * Math.PI);
+      ctx.fillStyle = colour;
+      ctx.globalAlpha = 0.14;
+      ctx.fill();
+      ctx.globalAlpha = 0.6;
+      ctx.lineWidth = 1;
+      ctx.strokeStyle = colour;
+      ctx.stroke();
+      ctx.globalAlpha = 1;
+      ctx.beginPath();
+      ctx.arc(sx, sy, u.id === scene.selectedUser ? 6 : 4.5, 0, 2 * Math.PI);
+      ctx.fillStyle = colour;
+      ctx.fill();
+      ctx.lineWidth = u.id === scene.selectedUser ? 2.5 : 1.2;
+      ctx.strokeStyle = u.id === scene.selectedUser ? "#000000" : "#ffffff";
+      ctx.stroke();
+    }
+  }
+
+  drawScaleBar(h) {
+    const ctx = this.ctx;
+    const metres = niceLength(100 / this.scale);
+    const px = metres * this.scale;
+    const x = 14, y = h - 14;
+    ctx.fillStyle = "rgba(255,255,255,0.85)";
+    ctx.fillRect(x - 6, y - 22, px + 12, 28);
+    ctx.strokeStyle = "#1b2530";
+    ctx.lineWidth = 2;
+    ctx.beginPath();
+    ctx.moveTo(x, y - 6); ctx.lineTo(x, y); ctx.lineTo(x + px, y); ctx.lineTo(x + px, y - 6);
+    ctx.stroke();
+    ctx.fillStyle = "#1b2530";
+    ctx.font = "12px system-ui, sans-serif";
+    ctx.textAlign = "center";
+    ctx.textBaseline = "alphabetic";
+    ctx.fillText(metres >= 1000 ? `${metres / 1000} km` : `${metres} m`, x + px / 2, y - 9);
+  }
+
+  // North from the geo-reference: local (x, y) turns counter-clockwise by rotation_rad into (east, north), so
+  // north in the local frame is (sin r, cos r).
+  drawNorth(geo, w) {
+    const ctx = this.ctx;
+    const cx = w - 34, cy = 40;
+    ctx.fillStyle = "rgba(255,255,255,0.85)";
+    ctx.beginPath();
+    ctx.arc(cx, cy, 24, 0, 2 * Math.PI);
+    ctx.fill();
+    ctx.font = "bold 11px system-ui, sans-serif";
+    ctx.textAlign = "center";
+    ctx.textBaseline = "middle";
+    if (!geo) {
+      ctx.fillStyle = "#9aa6b2";
+      ctx.fillText("N ?", cx, cy);
+      return;
+    }
+    const r = geo.rotation_rad;
+    const dx = Math.sin(r), dy = -Math.cos(r); // screen y grows downwards
+    ctx.strokeStyle = "#1b2530";
+    ctx.fillStyle = "#c0392b";
+    ctx.beginPath();
+    ctx.moveTo(cx + dx * 16, cy + dy * 16);
+    ctx.lineTo(cx - dy * 5 - dx * 6, cy + dx * 5 - dy * 6);
+    ctx.lineTo(cx + dy * 5 - dx * 6, cy - dx * 5 - dy * 6);
+    ctx.closePath();
+    ctx.fill();
+    ctx.fillStyle = "#1b2530";
+    ctx.fillText("N", cx - dx * 14, cy - dy * 14);
+  }
+}
