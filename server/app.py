@@ -22,8 +22,8 @@ from server.api.deps import revalidate_keys
 from server.api.limits import BodyLimit
 from server.auth import KeyCache
 from server.buildings.registry import TrackingService
-from server.dashboard.pages import install_pages
 from server.buildings.tracking import tracking_config
+from server.dashboard.pages import install_pages
 from server.engine.config import load_calibration, tracker_params
 from server.engine.warmup import compile_kernels_in_child, warm_kernels
 from server.errors import (
