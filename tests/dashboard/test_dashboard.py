@@ -1,0 +1,212 @@
+"""The dashboard as people use it, in headless Chromium against a running demo: log in (link and form), see
+the crowd move, pin an anchor, be refused what the key may not do, outlive a server restart, and be logged
+out when the key is revoked; the page and the API docs never reach past loopback or log a console error."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+from playwright.sync_api import Browser, Page, expect
+
+from server.cli.background_server import CLI, free_port, serve_process
+from tests.dashboard.conftest import Demo, Watch, open_page
+
+
+def root_data(page: Page, name: str) -> str:
+    value = page.locator("#app").get_attribute(f"data-{name}")
+    return value or ""
+
+
+def wait_for(predicate: object, timeout_s: float, what: str) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():  # type: ignore[operator]
+            return
+        time.sleep(0.2)
+    raise AssertionError(f"not within {timeout_s:.0f} s: {what}")
+
+
+def auth(key: str) -> dict[str, str]:
+    return {"Authorization": f"Bearer {key}"}
+
+
+def test_the_link_logs_in_and_the_crowd_moves_as_the_api_says(browser: Browser, demo: Demo) -> None:
+    watch = Watch()
+    page = open_page(browser, watch)
+    page.goto(demo.dashboard_link)
+    expect(page.locator("#app")).to_have_attribute("data-building", demo.building, timeout=20_000)
+    expect(page.locator("#app")).to_have_attribute("data-connection", "connected", timeout=20_000)
+    assert "key=" not in page.url  # the key left the address bar (and the history) at once
+    wait_for(lambda: int(root_data(page, "updated-ms")) > 0, 60, "the crowd's first estimates drawn")
+    first = int(root_data(page, "updated-ms"))
+    wait_for(lambda: int(root_data(page, "updated-ms")) > first, 30, "data-updated-ms advances")
+
+    def drawn_matches_api() -> bool:
+        listed = httpx.get(
+            f"{demo.base}/v1/buildings/demo/positions", headers=auth(demo.dashboard_key)
+        ).json()
+        return int(root_data(page, "users")) == len(listed) > 0
+
+    wait_for(drawn_matches_api, 20, "data-users equals the API's positions")
+    # a person's details: id, sigma, last update
+    page.evaluate(
+        "() => { const d = window.crowdslamDashboard;"
+        " d.scene.selectedUser = [...d.scene.users.keys()][0]; d.renderDetails(); }"
+    )
+    details = page.locator("#details-body").inner_text()
+    assert "sigma" in details
+    assert "last update" in details
+    expect(page.locator("#tools")).to_be_hidden()  # a dashboard key sees no operator tools
+    watch.assert_clean()
+    page.context.close()
+
+
+def test_the_form_logs_in_and_a_wrong_key_is_told_why(browser: Browser, demo: Demo) -> None:
+    watch = Watch()
+    page = open_page(browser, watch)
+    page.goto(f"{demo.base}/")  # the root leads to the dashboard
+    assert page.url.endswith("/dashboard/")
+    page.fill("#key-input", "csk_00000000_not-a-key")
+    page.click("#login-form button[type=submit]")
+    expect(page.locator("#login-message")).to_contain_text("key", timeout=10_000)
+    assert root_data(page, "building") == ""
+    page.fill("#key-input", demo.dashboard_key)
+    page.click("#login-form button[type=submit]")
+    expect(page.locator("#app")).to_have_attribute("data-building", demo.building, timeout=20_000)
+    expect(page.locator("#building-name")).not_to_be_empty()
+    assert watch.off_loopback == []
+    # the browser's own note of the wrong key's 401, and nothing else
+    assert watch.console_errors == [
+        "Failed to load resource: the server responded with a status of 401 (Unauthorized)"
+    ]
+    page.context.close()
+
+
+def test_an_operator_pins_an_anchor_and_the_api_has_it(browser: Browser, demo: Demo) -> None:
+    watch = Watch()
+    page = open_page(browser, watch)
+    page.goto(f"{demo.base}/dashboard/#key={demo.operator_key}&building={demo.building}")
+    expect(page.locator("#app")).to_have_attribute("data-building", demo.building, timeout=20_000)
+    expect(page.locator("#tools")).to_be_visible()
+    page.select_option("#pin-type", "elevator")
+    page.fill("#pin-label", "lift by the atrium")
+    page.fill("#pin-x", "12.5")
+    page.fill("#pin-y", "31")
+    page.click("#pin-submit")
+    expect(page.locator("#message")).to_contain_text("Pinned elevator anchor", timeout=10_000)
+    anchors = httpx.get(f"{demo.base}/v1/buildings/demo/anchors", headers=auth(demo.dashboard_key)).json()
+    pinned = [a for a in anchors if a["label"] == "lift by the atrium"]
+    assert len(pinned) == 1
+    assert pinned[0]["known"] is True
+    assert pinned[0]["type"] == "elevator"
+    assert (pinned[0]["position"]["x_m"], pinned[0]["position"]["y_m"]) == (12.5, 31.0)
+    # and deletes it again through the page (the button asks twice)
+    page.click("#anchor-delete")
+    page.click("#anchor-delete")
+    expect(page.locator("#message")).to_contain_text(f"Deleted {pinned[0]['id']}", timeout=10_000)
+    anchors = httpx.get(f"{demo.base}/v1/buildings/demo/anchors", headers=auth(demo.dashboard_key)).json()
+    assert all(a["id"] != pinned[0]["id"] for a in anchors)
+    watch.assert_clean()
+    page.context.close()
+
+
+def test_a_dashboard_key_is_refused_an_operator_tool_and_sees_why(browser: Browser, demo: Demo) -> None:
+    page = open_page(browser, Watch())
+    page.goto(demo.dashboard_link)
+    expect(page.locator("#app")).to_have_attribute("data-building", demo.building, timeout=20_000)
+    expect(page.locator("#tools")).to_be_hidden()
+    before = httpx.get(f"{demo.base}/v1/buildings/demo/anchors", headers=auth(demo.dashboard_key)).json()
+    # a person who unhides the tools still goes through the API, which refuses and says why
+    page.evaluate("() => { document.getElementById('tools').hidden = false; }")
+    page.fill("#pin-x", "5")
+    page.fill("#pin-y", "5")
+    page.click("#pin-submit")
+    expect(page.locator("#message")).to_contain_text("needs an operator key", timeout=10_000)
+    after = httpx.get(f"{demo.base}/v1/buildings/demo/anchors", headers=auth(demo.dashboard_key)).json()
+    assert after == before
+    page.context.close()
+
+
+def test_a_revoked_key_logs_the_page_out(browser: Browser, demo: Demo) -> None:
+    minted = httpx.post(
+        f"{demo.base}/v1/buildings/demo/keys", json={"scope": "dashboard"}, headers=auth(demo.operator_key)
+    ).json()
+    page = open_page(browser, Watch())
+    page.goto(f"{demo.base}/dashboard/#key={minted['key']}&building={demo.building}")
+    expect(page.locator("#app")).to_have_attribute("data-connection", "connected", timeout=20_000)
+    revoked = httpx.delete(
+        f"{demo.base}/v1/buildings/demo/keys/{minted['prefix']}", headers=auth(demo.operator_key)
+    )
+    assert revoked.status_code == 204
+    expect(page.locator("#login")).to_be_visible(timeout=15_000)
+    expect(page.locator("#login-message")).to_contain_text("Logged out")
+    assert root_data(page, "building") == ""
+    assert page.evaluate("() => sessionStorage.getItem('crowdslam.key')") is None
+    page.context.close()
+
+
+def test_the_api_docs_work_offline(browser: Browser, demo: Demo) -> None:
+    watch = Watch()
+    page = open_page(browser, watch)
+    page.goto(f"{demo.base}/docs")
+    expect(page.locator(".swagger-ui .info .title")).to_contain_text("crowdslam", timeout=20_000)
+    page.goto(f"{demo.base}/redoc")
+    expect(page.locator("h1").first).to_contain_text("crowdslam", timeout=20_000)
+    watch.assert_clean()
+    page.context.close()
+
+
+def test_the_page_reconnects_after_the_server_restarts(browser: Browser, tmp_path: Path) -> None:
+    env = {**os.environ, "CROWDSLAM_DATA_DIR": str(tmp_path)}
+    env.pop("CROWDSLAM_DATABASE_URL", None)
+    subprocess.run([*CLI, "migrate"], env=env, check=True, capture_output=True)
+    operator = (
+        subprocess.run(
+            [*CLI, "keys", "create", "--scope", "operator"],
+            env=env,
+            check=True,
+            capture_output=True,
+            text=True,
+        )
+        .stdout.strip()
+        .splitlines()[-1]
+    )
+    port = free_port()
+    base = f"http://127.0.0.1:{port}"
+    server = serve_process(env, port, tmp_path / "server.log")
+    try:
+        building = {
+            "id": "hq",
+            "name": "HQ",
+            "floors": [{"level": 0, "name": "Ground", "width_m": 40, "height_m": 30}],
+        }
+        assert httpx.post(f"{base}/v1/buildings", json=building, headers=auth(operator)).status_code == 201
+        key = httpx.post(
+            f"{base}/v1/buildings/hq/keys", json={"scope": "dashboard"}, headers=auth(operator)
+        ).json()["key"]
+        page = open_page(browser, Watch())
+        page.goto(f"{base}/dashboard/#key={key}&building=hq")
+        expect(page.locator("#app")).to_have_attribute("data-connection", "connected", timeout=20_000)
+        server.terminate()
+        server.wait(timeout=60)
+        expect(page.locator("#app")).to_have_attribute("data-connection", "reconnecting", timeout=10_000)
+        expect(page.locator("#connection")).to_contain_text("disconnected")
+        server = serve_process(env, port, tmp_path / "server.log")
+        expect(page.locator("#app")).to_have_attribute("data-connection", "connected", timeout=45_000)
+        assert root_data(page, "building") == "hq"
+        page.context.close()
+    finally:
+        server.terminate()
+        server.wait(timeout=60)
+
+
+@pytest.fixture(autouse=True)
+def _no_proxy(monkeypatch: pytest.MonkeyPatch) -> None:
+    # httpx would route loopback requests through a proxy set in the environment
+    for name in ("HTTP_PROXY", "HTTPS_PROXY", "ALL_PROXY", "http_proxy", "https_proxy", "all_proxy"):
+        monkeypatch.delenv(name, raising=False)
