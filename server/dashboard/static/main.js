@@ -294,19 +294,21 @@ class Dashboard {
   updateUser(est, trail = true) {
     let u = this.scene.users.get(est.user_id);
     if (!u) {
-      u = { id: est.user_id, trail: [], colour: colourOf(est.user_id), est };
+      // the trail is a fixed buffer: a busy floor's page holds the same memory after a minute as after an hour
+      u = { id: est.user_id, trail: new Float64Array(2 * TRAIL_POINTS), trailLength: 0, colour: colourOf(est.user_id), est };
       this.scene.users.set(est.user_id, u);
     }
-    if (est.t_ms < u.est.t_ms && u.trail.length) return; // an older estimate after a newer one
+    if (est.t_ms < u.est.t_ms && u.trailLength) return; // an older estimate after a newer one
     u.est = est;
     u.ellipse = ellipse(est.covariance_m2);
-    u.seenMs = performance.now();
-    if (trail) {
-      u.trail.push([est.position.x_m, est.position.y_m]);
-      if (u.trail.length > TRAIL_POINTS) u.trail.shift();
-    } else {
-      u.trail = [[est.position.x_m, est.position.y_m]];
+    if (!trail) u.trailLength = 0;
+    if (u.trailLength === TRAIL_POINTS) {
+      u.trail.copyWithin(0, 2);
+      u.trailLength -= 1;
     }
+    u.trail[2 * u.trailLength] = est.position.x_m;
+    u.trail[2 * u.trailLength + 1] = est.position.y_m;
+    u.trailLength += 1;
     if (est.source === "fix" || est.source === "fingerprint") this.correction(est.user_id, `${est.source} at ${fmtTime(est.t_ms)}`);
     if (est.t_ms > this.scene.newestMs) this.scene.newestMs = est.t_ms;
   }
@@ -353,7 +355,7 @@ class Dashboard {
     root.dataset.updatedMs = String(newest);
     $("status-line").textContent = `${drawn} people on this floor · newest update ${fmtTime(newest)}`;
     this.view.dirty = true;
-    this.renderDetails();
+    if (this.scene.selectedUser) this.renderDetails(); // the selected person's figures, as they change
   }
 
   onConnection(state, note, reconnected) {

@@ -10,6 +10,9 @@ export const ANCHOR_STYLE = {
 const STALE_MS = 30000;
 const ENCOUNTER_FADE_MS = 6000;
 const HIT_PX = 10;
+const BUSY = 300; // beyond this many people on screen, ellipses are outlines and trails short: overlapping
+// shades and long tangles neither read better nor draw cheaply (they are most of a frame's raster time)
+const BUSY_TRAIL_POINTS = 5;
 
 // Eigen-decomposition of a 2x2 covariance: the 2-sigma ellipse's radii and angle (radians, local frame).
 export function ellipse(cov) {
@@ -238,42 +241,80 @@ export class MapView {
     return fading;
   }
 
+  // People drawn by colour: one path a colour for the trails, one for the ellipses, one for the dots, so
+  // that a floor of thousands costs a few dozen draw calls a frame, not thousands.
   drawUsers(scene) {
     const ctx = this.ctx;
     const newest = scene.newestMs;
+    const w = this.canvas.clientWidth, h = this.canvas.clientHeight;
+    const groups = new Map();
+    let selected = null;
     for (const u of scene.users.values()) {
       if (u.est.floor !== scene.floor) continue;
-      const stale = newest - u.est.t_ms > STALE_MS;
-      const colour = stale ? "#9aa6b2" : u.colour;
-      if (u.trail.length > 1) {
-        ctx.beginPath();
-        u.trail.forEach(([x, y], i) => {
-          const [sx, sy] = this.toScreen(x, y);
-          if (i === 0) ctx.moveTo(sx, sy); else ctx.lineTo(sx, sy);
-        });
-        ctx.strokeStyle = colour;
-        ctx.globalAlpha = 0.45;
-        ctx.lineWidth = 1.5;
-        ctx.stroke();
-      }
       const [sx, sy] = this.toScreen(u.est.position.x_m, u.est.position.y_m);
-      const e = u.ellipse;
+      const reach = Math.max(u.ellipse.rx * this.scale, 6) + 60;
+      if (sx < -reach || sy < -reach || sx > w + reach || sy > h + reach) continue;
+      const colour = newest - u.est.t_ms > STALE_MS ? "#9aa6b2" : u.colour;
+      if (!groups.has(colour)) groups.set(colour, []);
+      groups.get(colour).push([u, sx, sy]);
+      if (u.id === scene.selectedUser) selected = [u, sx, sy, colour];
+    }
+    let onScreen = 0;
+    for (const members of groups.values()) onScreen += members.length;
+    const shaded = onScreen <= BUSY;
+    ctx.lineWidth = 1.5;
+    for (const [colour, members] of groups) {
       ctx.beginPath();
-      ctx.ellipse(sx, sy, Math.max(e.rx * this.scale, 2), Math.max(e.ry * this.scale, 2), -e.angle, 0, 2 * Math.PI);
-      ctx.fillStyle = colour;
-      ctx.globalAlpha = 0.14;
-      ctx.fill();
-      ctx.globalAlpha = 0.6;
-      ctx.lineWidth = 1;
+      for (const [u] of members) {
+        const first = shaded ? 0 : Math.max(0, u.trailLength - BUSY_TRAIL_POINTS);
+        for (let i = first; i < u.trailLength; i++) {
+          const [tx, ty] = this.toScreen(u.trail[2 * i], u.trail[2 * i + 1]);
+          if (i === first) ctx.moveTo(tx, ty); else ctx.lineTo(tx, ty);
+        }
+      }
       ctx.strokeStyle = colour;
+      ctx.globalAlpha = 0.45;
       ctx.stroke();
-      ctx.globalAlpha = 1;
+    }
+    ctx.lineWidth = 1;
+    for (const [colour, members] of groups) {
       ctx.beginPath();
-      ctx.arc(sx, sy, u.id === scene.selectedUser ? 6 : 4.5, 0, 2 * Math.PI);
+      for (const [u, sx, sy] of members) {
+        const e = u.ellipse;
+        const rx = Math.max(e.rx * this.scale, 2), ry = Math.max(e.ry * this.scale, 2);
+        ctx.moveTo(sx + rx * Math.cos(-e.angle), sy + rx * Math.sin(-e.angle));
+        ctx.ellipse(sx, sy, rx, ry, -e.angle, 0, 2 * Math.PI);
+      }
+      ctx.fillStyle = colour;
+      ctx.strokeStyle = colour;
+      if (shaded) {
+        ctx.globalAlpha = 0.14;
+        ctx.fill();
+      }
+      ctx.globalAlpha = 0.6;
+      ctx.stroke();
+    }
+    ctx.globalAlpha = 1;
+    ctx.lineWidth = 1.2;
+    ctx.strokeStyle = "#ffffff";
+    for (const [colour, members] of groups) {
+      ctx.beginPath();
+      for (const [, sx, sy] of members) {
+        ctx.moveTo(sx + 4.5, sy);
+        ctx.arc(sx, sy, 4.5, 0, 2 * Math.PI);
+      }
       ctx.fillStyle = colour;
       ctx.fill();
-      ctx.lineWidth = u.id === scene.selectedUser ? 2.5 : 1.2;
-      ctx.strokeStyle = u.id === scene.selectedUser ? "#000000" : "#ffffff";
+      ctx.stroke();
+    }
+    if (selected) {
+      const [, sx, sy, colour] = selected;
+      ctx.beginPath();
+      ctx.arc(sx, sy, 6.5, 0, 2 * Math.PI);
+      ctx.fillStyle = colour;
+      ctx.fill();
+      ctx.lineWidth = 2.5;
+      ctx.strokeStyle = "#000000";
       ctx.stroke();
     }
   }
