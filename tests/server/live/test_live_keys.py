@@ -1,0 +1,59 @@
+"""A browser's live socket: the key as a subprotocol (no key in a URL that logs keep), and a key revoked
+while its socket is open closes it with 4401."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+from websockets.exceptions import ConnectionClosed
+from websockets.sync.client import connect
+
+from server.api.live import KEY_RECHECK_S, SUBPROTOCOL
+from server.app import create_app
+from server.cli.background_server import free_port, running_server
+from server.settings import Settings
+from tests.server.api.test_api import _batch
+from tests.server.conftest import migrate_with_operator
+
+
+def test_the_key_rides_as_a_subprotocol_and_revocation_closes_the_socket(tmp_path: Path) -> None:
+    url = f"sqlite:///{tmp_path / 'db.sqlite3'}"
+    operator = migrate_with_operator(url)
+    app = create_app(Settings(data_dir=tmp_path, database_url=url))
+    with running_server(app, "127.0.0.1", free_port()) as base:
+        op = {"Authorization": f"Bearer {operator}"}
+        assert (
+            httpx.post(f"{base}/v1/buildings", json={"id": "hq", "name": "HQ"}, headers=op).status_code == 201
+        )
+        minted = httpx.post(f"{base}/v1/buildings/hq/keys", json={"scope": "dashboard"}, headers=op).json()
+        device = httpx.post(
+            f"{base}/v1/buildings/hq/keys", json={"scope": "device", "device_id": "phone-1"}, headers=op
+        ).json()["key"]
+        live = base.replace("http://", "ws://") + "/v1/buildings/hq/live"
+        with connect(live, subprotocols=[SUBPROTOCOL, f"bearer.{minted['key']}"], open_timeout=10) as ws:  # type: ignore[list-item]
+            assert ws.subprotocol == SUBPROTOCOL
+            posted = httpx.post(
+                f"{base}/v1/buildings/hq/batches",
+                json=_batch(0),
+                headers={"Authorization": f"Bearer {device}"},
+            )
+            assert posted.status_code == 200
+            assert '"type":"position"' in str(ws.recv(timeout=10))
+            revoked = httpx.delete(f"{base}/v1/buildings/hq/keys/{minted['prefix']}", headers=op)
+            assert revoked.status_code == 204
+            started = time.monotonic()
+            with pytest.raises(ConnectionClosed) as closed:
+                ws.recv(timeout=10)  # nothing else is sent before the close: no batch, no heartbeat yet
+            assert closed.value.rcvd is not None
+            assert (closed.value.rcvd.code, closed.value.rcvd.reason) == (4401, "key revoked")
+            assert time.monotonic() - started < KEY_RECHECK_S + 2
+        # a refused key is refused with its code, on a handshake a browser accepts (a subprotocol chosen)
+        with connect(live, subprotocols=[SUBPROTOCOL, "bearer.csk_00000000_nope"], open_timeout=10) as ws:  # type: ignore[list-item]
+            assert ws.subprotocol == SUBPROTOCOL
+            with pytest.raises(ConnectionClosed) as closed:
+                ws.recv(timeout=10)
+            assert closed.value.rcvd is not None
+            assert closed.value.rcvd.code == 4401
