@@ -105,7 +105,12 @@ MEASURE = """
   const d = window.crowdslamDashboard;
   const timed = (object, name, into) => {
     const original = object[name].bind(object);
-    object[name] = (...args) => { const t0 = performance.now(); const r = original(...args); into.push(performance.now() - t0); return r; };
+    object[name] = (...args) => {
+      const t0 = performance.now();
+      const r = original(...args);
+      into.push(performance.now() - t0);
+      return r;
+    };
   };
   timed(d.view, 'draw', m.draw);
   timed(d, 'onLive', m.messages);
