@@ -111,6 +111,16 @@ def test_an_operator_pins_an_anchor_and_the_api_has_it(browser: Browser, demo: D
     expect(page.locator("#message")).to_contain_text(f"Deleted {pinned[0]['id']}", timeout=10_000)
     anchors = httpx.get(f"{demo.base}/v1/buildings/demo/anchors", headers=auth(demo.dashboard_key)).json()
     assert all(a["id"] != pinned[0]["id"] for a in anchors)
+    # a position picked on the map (two decimals: the inputs must take them)
+    page.click("#pin-pick")
+    page.locator("#map").click(position={"x": 300, "y": 300})
+    picked = float(page.input_value("#pin-x")), float(page.input_value("#pin-y"))
+    page.fill("#pin-label", "picked")
+    page.click("#pin-submit")
+    expect(page.locator("#message")).to_contain_text("Pinned elevator anchor", timeout=10_000)
+    anchors = httpx.get(f"{demo.base}/v1/buildings/demo/anchors", headers=auth(demo.dashboard_key)).json()
+    placed = [a["position"] for a in anchors if a["label"] == "picked"]
+    assert [(p["x_m"], p["y_m"]) for p in placed] == [picked]
     watch.assert_clean()
     page.context.close()
 

@@ -2,7 +2,7 @@
 // (GET .../positions?at_ms=). While it is on, live updates are not drawn; they go on arriving.
 
 const HOUR_S = 3600;
-const PLAY_STEP_S = 5;
+const PLAY_STEP_S = 2; // eight times real time
 const PLAY_EVERY_MS = 250;
 
 export class History {

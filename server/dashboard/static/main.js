@@ -8,7 +8,7 @@ import { History } from "./history.js";
 import { OperatorTools } from "./tools.js";
 
 const KEY_STORE = "crowdslam.key";
-const TRAIL_POINTS = 20;
+const TRAIL_POINTS = 10; // a short trail: where each person came from, not a tangle
 const PALETTE = ["#1d6fb8", "#e76f51", "#2a9d8f", "#8338ec", "#f4a261", "#3a86ff", "#d62828", "#43aa8b", "#ff006e", "#6a994e"];
 const $ = (id) => document.getElementById(id);
 const root = $("app");
@@ -321,24 +321,29 @@ class Dashboard {
   }
 
   onLive(messages) {
+    let anchorsChanged = false;
     for (const m of messages) {
       if (m.type === "position") {
         if (!this.history.active) this.updateUser(m.estimate);
       } else if (m.type === "encounter") {
         const e = m.encounter;
         if (!this.history.active) this.scene.encounters.push({ ...e, seenMs: performance.now() });
-        const verb = e.applied ? "refined by" : "rejected encounter with";
-        this.correction(e.user_a, `${verb} ${e.user_b} (${e.distance_m.toFixed(1)} m, ${e.model}) at ${fmtTime(e.t_ms)}`);
-        this.correction(e.user_b, `${verb} ${e.user_a} (${e.distance_m.toFixed(1)} m, ${e.model}) at ${fmtTime(e.t_ms)}`);
+        const said = (other) => (e.applied
+          ? `met ${other} about ${e.distance_m.toFixed(0)} m away (${e.model}): position refined, ${fmtTime(e.t_ms)}`
+          : `an encounter with ${other} (${e.model}) did not fit and was ignored, ${fmtTime(e.t_ms)}`);
+        this.correction(e.user_a, said(e.user_b));
+        this.correction(e.user_b, said(e.user_a));
       } else if (m.type === "anchor") {
         if (m.deleted) this.scene.anchors.delete(m.anchor.id);
         else this.scene.anchors.set(m.anchor.id, m.anchor);
+        anchorsChanged = true;
       } else if (m.type === "heartbeat" && m.dropped > 0) {
         this.dropped = (this.dropped || 0) + m.dropped;
         $("drops").hidden = false;
         $("drops").textContent = `${this.dropped} updates dropped (slow connection)`;
       }
     }
+    if (anchorsChanged) this.renderLegend(); // a type learned for the first time gets its legend line
     this.published();
   }
 
@@ -353,7 +358,9 @@ class Dashboard {
     }
     root.dataset.users = String(drawn);
     root.dataset.updatedMs = String(newest);
-    $("status-line").textContent = `${drawn} people on this floor · newest update ${fmtTime(newest)}`;
+    $("status-line").textContent = this.history.active
+      ? `replaying: ${drawn} people on this floor at ${$("history-time").textContent}`
+      : `${drawn} people on this floor · newest update ${fmtTime(newest)}`;
     this.view.dirty = true;
     if (this.scene.selectedUser) this.renderDetails(); // the selected person's figures, as they change
   }
@@ -451,7 +458,7 @@ class Dashboard {
       span.textContent = letter;
       return span;
     };
-    row(swatch("#1d6fb8"), "a person; the shaded area holds them with 95 % probability");
+    row(swatch("#1d6fb8"), "a person (a colour each); the ring holds them with 95 % probability");
     row(swatch("#9aa6b2"), "no update for 30 s");
     const types = new Set([...this.scene.anchors.values()].filter((a) => a.floor === this.scene.floor).map((a) => a.type));
     for (const t of types) {
@@ -467,6 +474,7 @@ class Dashboard {
       row(swatch(`linear-gradient(to right, ${stops})`, { cls: "ramp" }), this.scene.overlay.label);
     }
     if (!this.scene.plan) row(null, this.scene.extent ? "dashed: the floor's extent (no plan uploaded)" : "no floor plan or extent");
+    if (!this.scene.geo) row(null, "north unknown: the building has no geo-reference");
     $("legend").replaceChildren(...rows);
   }
 
