@@ -50,7 +50,8 @@ def start_demo(folder: Path) -> tuple[subprocess.Popen[str], str, str, str]:
         out += line
     link = re.search(r"dashboard:\s+(\S+)", out)
     operator = re.search(r"operator key:\s+(\S+)", out)
-    assert link is not None and operator is not None
+    if link is None or operator is None:
+        raise SystemExit(f"crowdslam demo printed no dashboard link or operator key:\n{out}")
     return process, f"http://127.0.0.1:{port}", link.group(1), operator.group(1)
 
 
@@ -91,7 +92,8 @@ def main() -> int:
             page.click("#pin-pick")
             page.locator("#map").click(position={"x": 520, "y": 300})
             page.click("#pin-submit")
-            page.wait_for_function("() => document.getElementById('message').textContent !== ''", timeout=10_000)
+            said = "() => document.getElementById('message').textContent !== ''"
+            page.wait_for_function(said, timeout=10_000)
             if "Pinned" not in page.locator("#message").inner_text():
                 raise SystemExit(f"the pin was refused: {page.locator('#message').inner_text()}")
             page.locator("#keys-card summary").click()
