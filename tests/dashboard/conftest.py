@@ -91,6 +91,7 @@ class Demo:
     operator_key: str
     building: str
     process: subprocess.Popen[str]
+    data_dir: Path
 
 
 def small_scenario(path: Path, users: int = 10) -> Path:
@@ -130,7 +131,13 @@ def demo(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Demo]:
     assert key is not None
     try:
         yield Demo(
-            f"http://127.0.0.1:{port}", link.group(1), key.group(1), operator.group(1), "demo", process
+            f"http://127.0.0.1:{port}",
+            link.group(1),
+            key.group(1),
+            operator.group(1),
+            "demo",
+            process,
+            folder / "data",
         )
     finally:
         process.send_signal(signal.SIGINT)

@@ -7,13 +7,18 @@ from __future__ import annotations
 import os
 import subprocess
 import time
+from datetime import UTC, datetime
 from pathlib import Path
 
 import httpx
+import numpy as np
 import pytest
 from playwright.sync_api import Browser, Page, expect
 
+from schemas.signal_maps import SignalMapJob, SignalMapStatus
 from server.cli.background_server import CLI, free_port, serve_process
+from server.datasets.signalslam_plots import write_scan_maps
+from server.signal_maps.jobs import RECORD
 from tests.dashboard.conftest import Demo, Watch, open_page
 
 
@@ -220,3 +225,52 @@ def _no_proxy(monkeypatch: pytest.MonkeyPatch) -> None:
     # httpx would route loopback requests through a proxy set in the environment
     for name in ("HTTP_PROXY", "HTTPS_PROXY", "ALL_PROXY", "http_proxy", "https_proxy", "all_proxy"):
         monkeypatch.delenv(name, raising=False)
+
+
+def test_a_finished_signal_map_is_an_overlay_chosen_by_access_point(browser: Browser, demo: Demo) -> None:
+    """A build's outputs, written by the build's own writer, appear as overlays the page draws in colour."""
+    rng = np.random.default_rng(0)
+    xy = rng.uniform([0, 0], [60, 50], size=(300, 2))
+    aps = np.array([[10.0, 10.0], [50.0, 40.0]])
+    distance = np.linalg.norm(xy[:, None, :] - aps[None], axis=2)
+    rss = -35 - 30 * np.log10(np.maximum(distance, 1.0)) + rng.normal(0, 2, (300, 2))
+    folder = demo.data_dir / "signal_maps" / demo.building / "0a1b2c3d4e5f"
+    files = [p.name for p in write_scan_maps(folder, xy, rss, ["aa:bb:cc:00:00:01", "aa:bb:cc:00:00:02"])]
+    now = datetime.now(UTC)
+    job = SignalMapJob(
+        id="0a1b2c3d4e5f", building_id=demo.building, status=SignalMapStatus.DONE, created_at=now,
+        finished_at=now, recordings=1, files=files,
+    )  # fmt: skip
+    (folder / RECORD).write_text(job.model_dump_json())
+    watch = Watch()
+    page = open_page(browser, watch)
+    page.goto(demo.dashboard_link)
+    expect(page.locator("#app")).to_have_attribute("data-building", demo.building, timeout=20_000)
+    expect(page.locator("#overlay option")).to_have_count(3, timeout=10_000)  # none, AP 1, AP 2
+    page.select_option("#overlay", "signal_map_ap1.json")
+    expect(page.locator("#overlay-note")).to_contain_text("aa:bb:cc:00:00:0", timeout=10_000)
+    expect(page.locator("#legend")).to_contain_text("dBm")
+    overlay = page.evaluate(
+        "() => { const o = window.crowdslamDashboard.scene.overlay; return [o.rows, o.cols, o.lo, o.hi]; }"
+    )
+    assert overlay[0] > 5
+    assert overlay[1] > 5
+    assert -95 < overlay[2] < overlay[3] < -30
+
+    def pixel_at_floor_centre() -> list[int]:
+        page.wait_for_timeout(200)  # a frame drawn
+        return list(
+            page.evaluate(
+                "() => { const d = window.crowdslamDashboard; const [x, y] = d.view.toScreen(30, 25);"
+                " const r = window.devicePixelRatio || 1; const c = document.getElementById('map');"
+                " return [...c.getContext('2d').getImageData(x * r, y * r, 1, 1).data]; }"
+            )
+        )
+
+    coloured = pixel_at_floor_centre()
+    assert coloured[:3] != [255, 255, 255], "the overlay is not drawn"
+    page.select_option("#overlay", "")
+    assert pixel_at_floor_centre()[:3] != coloured[:3]
+    assert page.evaluate("() => window.crowdslamDashboard.scene.overlay") is None
+    watch.assert_clean()
+    page.context.close()

@@ -410,7 +410,8 @@ class Dashboard {
     try {
       const grid = await this.api.get(this.path(`/signal-maps/${this.overlayJob.id}/files/${encodeURIComponent(name)}`));
       this.scene.overlay = this.overlayImage(grid);
-      $("overlay-note").textContent = `${grid.bssid || grid.cell_id || grid.field}: ${this.scene.overlay.label}`;
+      this.view.dirty = true;
+      $("overlay-note").textContent = `${this.scene.overlay.label}, mean of the readings placed by SignalSLAM`;
     } catch (err) {
       showProblem(err);
     }
@@ -436,8 +437,12 @@ class Dashboard {
       image.data.set([red, green, blue, 255], i);
     }
     ctx.putImageData(image, 0, 0);
-    const unit = key.split("_")[1];
-    return { image: canvas, x0: grid.origin_m[0] - grid.cell_m / 2, y0: grid.origin_m[1] - grid.cell_m / 2, cell: grid.cell_m, rows, cols, lo, hi, label: `${lo.toFixed(0)} to ${hi.toFixed(0)} ${unit}` };
+    const unit = { mean_dbm: "dBm", mean_ut: "µT" }[key] || key.replace(/^mean_/, "");
+    const name = grid.bssid ? `AP ${grid.bssid}` : grid.cell_id ? `cell ${grid.cell_id}` : grid.field;
+    return {
+      image: canvas, x0: grid.origin_m[0] - grid.cell_m / 2, y0: grid.origin_m[1] - grid.cell_m / 2, cell: grid.cell_m,
+      rows, cols, lo, hi, label: `${name}: ${lo.toFixed(0)} to ${hi.toFixed(0)} ${unit}`,
+    };
   }
 
   // ---------------------------------------------------------------- legend and details
