@@ -4,6 +4,7 @@ out when the key is revoked; the page and the API docs never reach past loopback
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import time
@@ -15,6 +16,7 @@ import numpy as np
 import pytest
 from playwright.sync_api import Browser, Page, expect
 
+from schemas.floor_plans import FLOOR_PLAN_EXAMPLE
 from schemas.signal_maps import SignalMapJob, SignalMapStatus
 from server.cli.background_server import CLI, free_port, serve_process
 from server.datasets.signalslam_plots import write_scan_maps
@@ -273,4 +275,63 @@ def test_a_finished_signal_map_is_an_overlay_chosen_by_access_point(browser: Bro
     assert pixel_at_floor_centre()[:3] != coloured[:3]
     assert page.evaluate("() => window.crowdslamDashboard.scene.overlay") is None
     watch.assert_clean()
+    page.context.close()
+
+
+def test_an_operator_uploads_a_plan_and_moves_an_anchor_by_dragging(
+    browser: Browser, demo: Demo, tmp_path: Path
+) -> None:
+    op = auth(demo.operator_key)
+    floor = {"level": 0, "name": "Ground", "width_m": 60, "height_m": 50}
+    created = httpx.post(
+        f"{demo.base}/v1/buildings", json={"id": "annex", "name": "Annex", "floors": [floor]}, headers=op
+    )
+    assert created.status_code == 201, created.text
+    pinned = {"type": "door", "position": {"x_m": 40.0, "y_m": 20.0}}
+    assert (
+        httpx.put(f"{demo.base}/v1/buildings/annex/anchors/door-1", json=pinned, headers=op).status_code
+        == 200
+    )
+    watch = Watch()
+    page = open_page(browser, watch)
+    page.goto(f"{demo.base}/dashboard/#key={demo.operator_key}&building=annex")
+    expect(page.locator("#app")).to_have_attribute("data-building", "annex", timeout=20_000)
+    # a plan from a file, through the page
+    plan_file = tmp_path / "annex.geojson"
+    plan_file.write_text(json.dumps(FLOOR_PLAN_EXAMPLE))
+    page.set_input_files("#plan-file", str(plan_file))
+    page.click("#plan-form button[type=submit]")
+    expect(page.locator("#message")).to_contain_text("plan uploaded", timeout=10_000)
+    stored = httpx.get(f"{demo.base}/v1/buildings/annex/floors/0/plan", headers=op).json()
+    assert [f["properties"]["kind"] for f in stored["features"]] == ["walkable", "obstacle", "wall"]
+    page.wait_for_function(
+        "() => window.crowdslamDashboard.scene.plan?.features.length === 3", timeout=10_000
+    )
+    # a plan the server refuses shows why, and changes nothing
+    plan_file.write_text(json.dumps({"type": "FeatureCollection", "features": [{"type": "Feature"}]}))
+    page.set_input_files("#plan-file", str(plan_file))
+    page.click("#plan-form button[type=submit]")
+    expect(page.locator("#message")).to_contain_text("features.0", timeout=10_000)
+    assert httpx.get(f"{demo.base}/v1/buildings/annex/floors/0/plan", headers=op).json() == stored
+    # select the anchor, then drag it 10 m east
+    box = page.locator("#map").bounding_box()
+    assert box is not None
+    x, y = page.evaluate("() => window.crowdslamDashboard.view.toScreen(40, 20)")
+    scale = page.evaluate("() => window.crowdslamDashboard.view.scale")
+    page.locator("#map").click(position={"x": x, "y": y})
+    expect(page.locator("#details-body")).to_contain_text("door-1")
+    page.mouse.move(box["x"] + x, box["y"] + y)
+    page.mouse.down()
+    page.mouse.move(box["x"] + x + 5 * scale, box["y"] + y, steps=5)
+    page.mouse.move(box["x"] + x + 10 * scale, box["y"] + y, steps=5)
+    page.mouse.up()
+    expect(page.locator("#message")).to_contain_text("Moved door-1", timeout=10_000)
+    moved = httpx.get(f"{demo.base}/v1/buildings/annex/anchors/door-1", headers=op).json()
+    assert abs(moved["position"]["x_m"] - 50.0) < 0.5
+    assert abs(moved["position"]["y_m"] - 20.0) < 0.5
+    assert moved["known"] is True
+    assert [
+        e for e in watch.console_errors if "422" not in e
+    ] == []  # the refused plan's 422, and nothing else
+    assert watch.off_loopback == []
     page.context.close()
