@@ -31,8 +31,10 @@ def chromium_path() -> str | None:
     return None
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def browser() -> Iterator[Browser]:
+    """Module-scoped: Playwright's sync API keeps an event loop running in the main thread while it is open,
+    and later tests that call ``asyncio.run`` would find it."""
     path = chromium_path()
     if path is None:
         message = "no chromium on PATH (apt-get install chromium, or set CROWDSLAM_CHROMIUM)"
