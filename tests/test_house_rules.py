@@ -53,7 +53,7 @@ LAYERS: dict[str, list[list[str]]] = {
         ["sim"],
     ],
     "server": [
-        ["settings", "errors", "gc_tuning", "rate_limit", "live", "data"],
+        ["settings", "errors", "gc_tuning", "rate_limit", "live", "data", "dashboard"],
         ["store", "engine"],
         ["auth", "ingestion", "recordings"],
         ["buildings"],

@@ -60,6 +60,9 @@ _NEW_BUILDING = "$response.body#/id"
         ),
         ListAnchors=link("GET", f"{BUILDING}/anchors", "Its anchor map.", building_id=_NEW_BUILDING),
         LatestPositions=link("GET", f"{BUILDING}/positions", "Its users.", building_id=_NEW_BUILDING),
+        FloorPlans=link(
+            "GET", f"{BUILDING}/floor-plans", "Its floors with a plan.", building_id=_NEW_BUILDING
+        ),
         StartSignalMap=link(
             "POST", f"{BUILDING}/signal-maps", "Build its signal maps.", building_id=_NEW_BUILDING
         ),

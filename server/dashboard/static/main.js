@@ -113,8 +113,8 @@ class Dashboard {
   logout(reason) {
     if (this.live) this.live.stop();
     this.live = null;
+    this.api = null; // first: nothing below may ask the server with the key any more
     this.history.stop();
-    this.api = null;
     this.identity = null;
     sessionStorage.removeItem(KEY_STORE);
     this.scene = this.emptyScene();
@@ -174,6 +174,8 @@ class Dashboard {
     this.history.stop();
     const previousFloor = this.scene.floor;
     this.scene = this.emptyScene();
+    this.dropped = 0;
+    $("drops").hidden = true;
     this.view.userMoved = false;
     let building;
     try {
