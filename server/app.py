@@ -81,7 +81,7 @@ def create_app(settings: Settings, tune_gc: bool = False) -> FastAPI:
         params = tracker_params(settings)
         calibration = load_calibration(settings.encounter_calibration)
         try:
-            if settings.building_processes:
+            if settings.resolved_building_processes:
                 await asyncio.to_thread(compile_kernels_in_child, settings)
             else:
                 warm_kernels(params, calibration)
@@ -94,7 +94,7 @@ def create_app(settings: Settings, tune_gc: bool = False) -> FastAPI:
             broadcaster,
             tracking_config(settings),
             recordings,
-            settings if settings.building_processes else None,
+            settings if settings.resolved_building_processes else None,
         )
         app.state.crowdslam = AppState(
             settings,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from functools import lru_cache
 from pathlib import Path
 from typing import Literal
@@ -103,10 +104,11 @@ class Settings(BaseSettings):
         "snapshot (its filter's memory freed); it needs a new position fix when it comes back. 0 keeps every "
         "user (memory then grows with every phone that ever posted).",
     )
-    building_processes: bool = Field(
-        default=False,
+    building_processes: bool | None = Field(
+        default=None,
         description="Run each building in a process of its own (server/buildings/process.py): its batch path "
-        "then has a core of its own beside the HTTP front's.",
+        "then has a core of its own beside the HTTP front's. Unset: on where this process may use more than "
+        "one core, off on one core (where a building's process only adds its overhead).",
     )
     key_cache_s: float = Field(
         default=30.0,
@@ -163,10 +165,25 @@ class Settings(BaseSettings):
         return self.data_dir / "recordings"
 
     @property
+    def resolved_building_processes(self) -> bool:
+        if self.building_processes is not None:
+            return self.building_processes
+        return usable_cores() > 1
+
+    @property
     def resolved_database_url(self) -> str:
         if self.database_url:
             return self.database_url
         return f"sqlite:///{(self.data_dir / 'crowdslam.sqlite3').resolve()}"
+
+
+def usable_cores() -> int:
+    """The cores this process may run on (its affinity: a container's CPU set, ``taskset``), not the
+    machine's."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
 
 
 @lru_cache(maxsize=1)

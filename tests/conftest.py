@@ -15,6 +15,10 @@ from server.store.db import make_engine
 from server.store.migrate import upgrade
 
 configure_numba_cache()  # before any test module imports numba: caches keyed by the kernel sources
+# Buildings run in threads unless a test asks for processes (the server's default on more than one core): many
+# tests look into a building's tracker, which a process of its own would hide. The tests of the default itself
+# (the demo, the dashboard) take this variable out of their servers' environment.
+os.environ.setdefault("CROWDSLAM_BUILDING_PROCESSES", "false")
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared"

@@ -32,6 +32,7 @@ def _small_testbed(path: Path) -> Path:
 def test_crowds_one_after_another_walk_the_same_building(tmp_path: Path) -> None:
     env = {**os.environ, "CROWDSLAM_DATA_DIR": str(tmp_path / "data")}
     env.pop("CROWDSLAM_DATABASE_URL", None)
+    env.pop("CROWDSLAM_BUILDING_PROCESSES", None)  # the default: processes on more than one core
     scenario = _small_testbed(tmp_path / "small.json")
     args = ["demo", "--rounds", "2", "--speed", "0", "--port", str(free_port()), "--scenario", str(scenario)]
     done = subprocess.run([*CLI, *args], env=env, capture_output=True, text=True, timeout=600)
@@ -69,6 +70,7 @@ def test_a_demo_run_again_in_the_same_folder_moves_a_new_crowd(tmp_path: Path) -
     nothing moving. Each run's phones are its own."""
     env = {**os.environ, "CROWDSLAM_DATA_DIR": str(tmp_path / "data")}
     env.pop("CROWDSLAM_DATABASE_URL", None)
+    env.pop("CROWDSLAM_BUILDING_PROCESSES", None)  # the default: processes on more than one core
     raw = json.loads((SHARED / "scenarios" / "paper-testbed.json").read_text())
     raw["users"]["count"] = 4
     raw["users"]["walk_length_m"] = 40.0
@@ -104,6 +106,7 @@ def test_the_demo_stops_cleanly_on_sigint_and_sigterm_even_in_the_background(
     (no logged body is left to replay)."""
     env = {**os.environ, "CROWDSLAM_DATA_DIR": str(tmp_path / "data")}
     env.pop("CROWDSLAM_DATABASE_URL", None)
+    env.pop("CROWDSLAM_BUILDING_PROCESSES", None)  # the default: processes on more than one core
     scenario = _small_testbed(tmp_path / "small.json")
     args = ["demo", "--rounds", "0", "--speed", "5", "--port", str(free_port()), "--scenario", str(scenario)]
     process = subprocess.Popen(

@@ -109,6 +109,7 @@ def demo(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Demo]:
     folder = tmp_path_factory.mktemp("demo")
     env = {**os.environ, "CROWDSLAM_DATA_DIR": str(folder / "data")}
     env.pop("CROWDSLAM_DATABASE_URL", None)
+    env.pop("CROWDSLAM_BUILDING_PROCESSES", None)  # the default: processes on more than one core
     port = free_port()
     scenario = small_scenario(folder / "small.json")
     args = [*CLI, "demo", "--port", str(port), "--speed", "1", "--scenario", str(scenario)]

@@ -63,9 +63,9 @@ def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Served]:
 
 
 EXAMPLES = int(os.environ.get("CROWDSLAM_FUZZ_EXAMPLES", "12"))
-"""Generated requests per operation: 12 in the suite; ``CROWDSLAM_FUZZ_EXAMPLES=60`` for a long run. Three times
-as many stateful sequences are run (of up to ``STEPS`` requests each): with fewer, the draw (the same every run)
-follows none of the spec's own links."""
+"""Generated requests per operation: 12 in the suite; ``CROWDSLAM_FUZZ_EXAMPLES=60`` for a long run. Three
+times as many stateful sequences are run (of up to ``STEPS`` requests each): with fewer, the draw (the same
+every run) follows none of the spec's own links."""
 STEPS = 6
 
 
