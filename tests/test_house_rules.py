@@ -53,7 +53,7 @@ LAYERS: dict[str, list[list[str]]] = {
         ["sim"],
     ],
     "server": [
-        ["settings", "errors", "gc_tuning", "rate_limit", "live", "data", "dashboard"],
+        ["settings", "errors", "gc_tuning", "rate_limit", "live", "data", "dashboard", "cluster"],
         ["store", "engine"],
         ["auth", "ingestion", "recordings"],
         ["buildings"],

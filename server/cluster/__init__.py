@@ -1,0 +1,1 @@
+"""Cluster mode: buildings owned by worker processes through leases in NATS JetStream."""

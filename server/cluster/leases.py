@@ -1,0 +1,107 @@
+"""Which worker owns which building: a lease per building in a JetStream key-value bucket whose entries
+expire ``ttl_s`` after their last write. A worker takes a free building with ``create`` (it fails when the
+key holds a live lease), keeps it by rewriting it with compare-and-swap on its revision (``update``: a lease
+someone else took since fails), and a worker that dies stops rewriting, so its leases expire within ``ttl_s``
+and another worker's ``create`` succeeds. The bucket's own expiry (``max_age``) serves as the TTL: per-key
+TTL markers need nats-server 2.11, and every lease has the same TTL anyway."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from nats.js import JetStreamContext
+from nats.js.api import KeyValueConfig
+from nats.js.errors import (
+    BadRequestError,
+    BucketNotFoundError,
+    KeyDeletedError,
+    KeyNotFoundError,
+    KeyWrongLastSequenceError,
+)
+from nats.js.kv import KeyValue
+
+BUCKET = "crowdslam-leases"
+WRONG_LAST_SEQUENCE = 10071
+"""JetStream's error code when a write's expected revision is not the key's (a delete reports it raw)."""
+
+
+class LeaseLostError(RuntimeError):
+    """The lease was taken by another worker or expired: the building is no longer this worker's."""
+
+    def __init__(self, building_id: str, owner: str) -> None:
+        super().__init__(f"{owner} no longer holds the lease on building {building_id!r}")
+        self.building_id = building_id
+
+
+class LeaseBucketMismatchError(RuntimeError):
+    """The bucket exists with another TTL: workers that disagree on the TTL would take buildings too early."""
+
+
+@dataclass(frozen=True)
+class Lease:
+    building_id: str
+    owner: str
+    revision: int
+    """The bucket's sequence of the lease's latest write: the compare-and-swap token of the next refresh."""
+
+
+def lease_key(building_id: str) -> str:
+    """A building id as a key: ids may hold ``:`` (not allowed in a key) and ``.`` (a subject separator)."""
+    return "b" + building_id.encode().hex()
+
+
+class Leases:
+    def __init__(self, kv: KeyValue, owner: str) -> None:
+        self.kv = kv
+        self.owner = owner
+
+    @classmethod
+    async def open(cls, js: JetStreamContext, owner: str, ttl_s: float, bucket: str = BUCKET) -> Leases:
+        """The lease bucket, created with ``ttl_s`` if it does not exist yet."""
+        try:
+            kv = await js.key_value(bucket)
+        except BucketNotFoundError:
+            kv = await js.create_key_value(KeyValueConfig(bucket=bucket, ttl=ttl_s, history=1))
+        status = await kv.status()
+        if status.ttl is not None and abs(status.ttl - ttl_s) > 1e-3:
+            raise LeaseBucketMismatchError(
+                f"lease bucket {bucket!r} has a TTL of {status.ttl:g} s, this worker's is {ttl_s:g} s: "
+                "every worker must use the same CROWDSLAM_LEASE_TTL_S"
+            )
+        return cls(kv, owner)
+
+    async def acquire(self, building_id: str) -> Lease | None:
+        """The building's lease, if no live lease holds it; None otherwise."""
+        try:
+            revision = await self.kv.create(lease_key(building_id), self.owner.encode())
+        except KeyWrongLastSequenceError:
+            return None
+        return Lease(building_id, self.owner, revision)
+
+    async def refresh(self, lease: Lease) -> Lease:
+        """Rewrite the lease, so that it lives another TTL; ``LeaseLostError`` if it expired or was taken."""
+        try:
+            revision = await self.kv.update(
+                lease_key(lease.building_id), self.owner.encode(), last=lease.revision
+            )
+        except (KeyWrongLastSequenceError, KeyNotFoundError, KeyDeletedError) as error:
+            raise LeaseLostError(lease.building_id, self.owner) from error
+        return Lease(lease.building_id, self.owner, revision)
+
+    async def release(self, lease: Lease) -> None:
+        """Give the building up now (a clean handoff), unless the lease is no longer this worker's."""
+        try:
+            await self.kv.delete(lease_key(lease.building_id), last=lease.revision)
+        except (KeyWrongLastSequenceError, KeyNotFoundError, KeyDeletedError):
+            return
+        except BadRequestError as error:
+            if error.err_code != WRONG_LAST_SEQUENCE:
+                raise
+
+    async def owner_of(self, building_id: str) -> str | None:
+        """The worker holding the building's live lease, or None."""
+        try:
+            entry = await self.kv.get(lease_key(building_id))
+        except (KeyNotFoundError, KeyDeletedError):
+            return None
+        return None if entry.value is None else entry.value.decode()

@@ -1,0 +1,112 @@
+"""Building leases on the local NATS JetStream: one owner at a time, kept by refreshing, lost within the TTL
+when not refreshed, handed over at once when released."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import time
+import uuid
+from collections.abc import AsyncIterator, Awaitable, Callable
+from contextlib import asynccontextmanager
+
+import nats
+import pytest
+from nats.js import JetStreamContext
+
+from server.cluster.leases import LeaseBucketMismatchError, LeaseLostError, Leases, lease_key
+
+NATS_URL = os.environ.get("CROWDSLAM_TEST_NATS_URL", "nats://127.0.0.1:4222")
+TTL_S = 2.0
+
+
+@asynccontextmanager
+async def jetstream() -> AsyncIterator[tuple[JetStreamContext, str]]:
+    """The local NATS's JetStream and a bucket name of this test's own (deleted afterwards)."""
+    try:
+        connection = await nats.connect(NATS_URL, connect_timeout=2, max_reconnect_attempts=0)
+    except Exception as error:  # any failure to connect means "unreachable" here
+        if os.environ.get("CI", "").lower() == "true":
+            pytest.fail(f"NATS is required under CI=true but {NATS_URL} is unreachable: {error}")
+        pytest.skip(f"NATS unreachable at {NATS_URL}: {error}")
+    js = connection.jetstream()
+    bucket = f"crowdslam-test-{uuid.uuid4().hex[:12]}"
+    try:
+        yield js, bucket
+    finally:
+        try:
+            await js.delete_key_value(bucket)
+        finally:
+            await connection.close()
+
+
+async def eventually(check: Callable[[], Awaitable[bool]], within_s: float) -> float:
+    started = time.monotonic()
+    while time.monotonic() - started < within_s:
+        if await check():
+            return time.monotonic() - started
+        await asyncio.sleep(0.1)
+    raise AssertionError(f"not within {within_s} s")
+
+
+def test_one_owner_at_a_time_kept_by_refreshing_and_lost_when_not() -> None:
+    async def scenario() -> None:
+        async with jetstream() as (js, bucket):
+            a = await Leases.open(js, "worker-a", TTL_S, bucket)
+            b = await Leases.open(js, "worker-b", TTL_S, bucket)
+            lease = await a.acquire("mall:north")
+            assert lease is not None
+            assert await b.acquire("mall:north") is None
+            assert await a.owner_of("mall:north") == "worker-a"
+            assert await b.acquire("mall:south") is not None  # other buildings are free
+            # refreshed every TTL/3, the lease outlives its TTL
+            for _ in range(8):
+                await asyncio.sleep(TTL_S / 3)
+                lease = await a.refresh(lease)
+                assert await b.acquire("mall:north") is None
+            # not refreshed, it expires within the TTL (and the expiry's own granularity), then b takes it
+            waited = await eventually(lambda: _acquired(b, "mall:north"), within_s=TTL_S + 3)
+            assert waited < TTL_S + 3
+            assert await b.owner_of("mall:north") == "worker-b"
+            with pytest.raises(LeaseLostError):
+                await a.refresh(lease)  # a's stale revision: it must stop applying the building's batches
+
+    asyncio.run(scenario())
+
+
+async def _acquired(leases: Leases, building_id: str) -> bool:
+    return await leases.acquire(building_id) is not None
+
+
+def test_a_released_lease_is_taken_at_once_and_a_stale_release_changes_nothing() -> None:
+    async def scenario() -> None:
+        async with jetstream() as (js, bucket):
+            a = await Leases.open(js, "worker-a", TTL_S, bucket)
+            b = await Leases.open(js, "worker-b", TTL_S, bucket)
+            lease = await a.acquire("hq")
+            assert lease is not None
+            await a.release(lease)
+            taken = await b.acquire("hq")
+            assert taken is not None
+            await a.release(lease)  # a's old lease: b's stays
+            assert await a.owner_of("hq") == "worker-b"
+            assert await a.acquire("hq") is None
+
+    asyncio.run(scenario())
+
+
+def test_workers_must_agree_on_the_ttl() -> None:
+    async def scenario() -> None:
+        async with jetstream() as (js, bucket):
+            await Leases.open(js, "worker-a", TTL_S, bucket)
+            with pytest.raises(LeaseBucketMismatchError, match="same CROWDSLAM_LEASE_TTL_S"):
+                await Leases.open(js, "worker-b", 2 * TTL_S, bucket)
+
+    asyncio.run(scenario())
+
+
+def test_lease_keys_are_valid_and_distinct_for_every_identifier() -> None:
+    ids = ["hq", "mall:north", "a.b", "a..b", "A-1_2", "x" * 64]
+    keys = [lease_key(i) for i in ids]
+    assert len(set(keys)) == len(ids)
+    assert all(k.isalnum() for k in keys)
