@@ -195,6 +195,7 @@ class Dashboard {
     $("floor").replaceChildren(...levels.map((level) => {
       const f = building.floors.find((x) => x.level === level);
       const option = new Option(f ? `${f.name} (${level})` : `${level}`, String(level));
+      option.dataset.name = option.textContent;
       return option;
     }));
     this.scene.floor = levels.includes(previousFloor) ? previousFloor : levels.includes(0) ? 0 : levels[0];
@@ -353,13 +354,19 @@ class Dashboard {
   published() {
     const s = this.scene;
     let drawn = 0, newest = 0;
+    const perFloor = new Map();
     for (const u of s.users.values()) {
+      perFloor.set(u.est.floor, (perFloor.get(u.est.floor) || 0) + 1);
       if (u.est.floor !== s.floor) continue;
       drawn += 1;
       newest = Math.max(newest, u.est.t_ms);
     }
     root.dataset.users = String(drawn);
     root.dataset.updatedMs = String(newest);
+    for (const option of $("floor").options) { // where everyone is, floor by floor, without switching
+      const label = `${option.dataset.name} · ${perFloor.get(Number(option.value)) || 0} people`;
+      if (option.textContent !== label) option.textContent = label;
+    }
     $("status-line").textContent = this.history.active
       ? `replaying: ${drawn} people on this floor at ${$("history-time").textContent}`
       : `${drawn} people on this floor · newest update ${fmtTime(newest)}`;
