@@ -60,9 +60,10 @@ def test_the_link_logs_in_and_the_crowd_moves_as_the_api_says(browser: Browser, 
         return int(root_data(page, "users")) == len(listed) > 0
 
     wait_for(drawn_matches_api, 20, "data-users equals the API's positions")
-    # the floor list says how many people each floor has (read with data-users in one go: they change together)
+    # the floor list says how many people each floor has (read with data-users at once: they change together)
     label, users = page.evaluate(
-        "() => [document.querySelector('#floor option').textContent, document.getElementById('app').dataset.users]"
+        "() => [document.querySelector('#floor option').textContent,"
+        " document.getElementById('app').dataset.users]"
     )
     assert label.endswith(f" {users} people")
     # a person's details: id, sigma, last update
