@@ -20,6 +20,8 @@ from nats.js.errors import (
 )
 from nats.js.kv import KeyValue
 
+from server.cluster.names import building_token
+
 BUCKET = "crowdslam-leases"
 WRONG_LAST_SEQUENCE = 10071
 """JetStream's error code when a write's expected revision is not the key's (a delete reports it raw)."""
@@ -45,11 +47,6 @@ class Lease:
     """The bucket's sequence of the lease's latest write: the compare-and-swap token of the next refresh."""
 
 
-def lease_key(building_id: str) -> str:
-    """A building id as a key: ids may hold ``:`` (not allowed in a key) and ``.`` (a subject separator)."""
-    return "b" + building_id.encode().hex()
-
-
 class Leases:
     def __init__(self, kv: KeyValue, owner: str) -> None:
         self.kv = kv
@@ -73,7 +70,7 @@ class Leases:
     async def acquire(self, building_id: str) -> Lease | None:
         """The building's lease, if no live lease holds it; None otherwise."""
         try:
-            revision = await self.kv.create(lease_key(building_id), self.owner.encode())
+            revision = await self.kv.create(building_token(building_id), self.owner.encode())
         except KeyWrongLastSequenceError:
             return None
         return Lease(building_id, self.owner, revision)
@@ -82,7 +79,7 @@ class Leases:
         """Rewrite the lease, so that it lives another TTL; ``LeaseLostError`` if it expired or was taken."""
         try:
             revision = await self.kv.update(
-                lease_key(lease.building_id), self.owner.encode(), last=lease.revision
+                building_token(lease.building_id), self.owner.encode(), last=lease.revision
             )
         except (KeyWrongLastSequenceError, KeyNotFoundError, KeyDeletedError) as error:
             raise LeaseLostError(lease.building_id, self.owner) from error
@@ -91,7 +88,7 @@ class Leases:
     async def release(self, lease: Lease) -> None:
         """Give the building up now (a clean handoff), unless the lease is no longer this worker's."""
         try:
-            await self.kv.delete(lease_key(lease.building_id), last=lease.revision)
+            await self.kv.delete(building_token(lease.building_id), last=lease.revision)
         except (KeyWrongLastSequenceError, KeyNotFoundError, KeyDeletedError):
             return
         except BadRequestError as error:
@@ -101,7 +98,7 @@ class Leases:
     async def owner_of(self, building_id: str) -> str | None:
         """The worker holding the building's live lease, or None."""
         try:
-            entry = await self.kv.get(lease_key(building_id))
+            entry = await self.kv.get(building_token(building_id))
         except (KeyNotFoundError, KeyDeletedError):
             return None
         return None if entry.value is None else entry.value.decode()

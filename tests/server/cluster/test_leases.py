@@ -4,31 +4,25 @@ when not refreshed, handed over at once when released."""
 from __future__ import annotations
 
 import asyncio
-import os
 import time
 import uuid
 from collections.abc import AsyncIterator, Awaitable, Callable
 from contextlib import asynccontextmanager
 
-import nats
 import pytest
 from nats.js import JetStreamContext
 
-from server.cluster.leases import LeaseBucketMismatchError, LeaseLostError, Leases, lease_key
+from server.cluster.leases import LeaseBucketMismatchError, LeaseLostError, Leases
+from server.cluster.names import building_token
+from tests.server.cluster.local_nats import connect_or_skip
 
-NATS_URL = os.environ.get("CROWDSLAM_TEST_NATS_URL", "nats://127.0.0.1:4222")
 TTL_S = 2.0
 
 
 @asynccontextmanager
 async def jetstream() -> AsyncIterator[tuple[JetStreamContext, str]]:
     """The local NATS's JetStream and a bucket name of this test's own (deleted afterwards)."""
-    try:
-        connection = await nats.connect(NATS_URL, connect_timeout=2, max_reconnect_attempts=0)
-    except Exception as error:  # any failure to connect means "unreachable" here
-        if os.environ.get("CI", "").lower() == "true":
-            pytest.fail(f"NATS is required under CI=true but {NATS_URL} is unreachable: {error}")
-        pytest.skip(f"NATS unreachable at {NATS_URL}: {error}")
+    connection = await connect_or_skip()
     js = connection.jetstream()
     bucket = f"crowdslam-test-{uuid.uuid4().hex[:12]}"
     try:
@@ -105,8 +99,8 @@ def test_workers_must_agree_on_the_ttl() -> None:
     asyncio.run(scenario())
 
 
-def test_lease_keys_are_valid_and_distinct_for_every_identifier() -> None:
+def test_building_tokens_are_valid_keys_and_distinct_for_every_identifier() -> None:
     ids = ["hq", "mall:north", "a.b", "a..b", "A-1_2", "x" * 64]
-    keys = [lease_key(i) for i in ids]
+    keys = [building_token(i) for i in ids]
     assert len(set(keys)) == len(ids)
     assert all(k.isalnum() for k in keys)
