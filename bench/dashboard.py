@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import json
 import math
 import random
 import shutil
@@ -39,6 +38,7 @@ configure_numba_cache()
 import httpx
 from fastapi import FastAPI
 from playwright.sync_api import sync_playwright
+from report import emit
 from tqdm import tqdm
 
 from schemas.api import KeyScope
@@ -211,10 +211,7 @@ def main() -> int:
     args = parser.parse_args()
     result = run(args.users, args.duration, args.chromium)
     result["targets_met"] = result["fps"] >= 30 and result["heap_growth_after_10s"] <= 0.20
-    text = json.dumps(result, indent=2)
-    print(text)
-    if args.json is not None:
-        args.json.write_text(text + "\n")
+    emit(result, args.json)
     return 0
 
 
