@@ -341,3 +341,34 @@ def test_an_operator_uploads_a_plan_and_moves_an_anchor_by_dragging(
     ] == []  # the refused plan's 422, and nothing else
     assert watch.off_loopback == []
     page.context.close()
+
+
+def test_the_slider_replays_the_crowd_as_it_was(browser: Browser, demo: Demo) -> None:
+    watch = Watch()
+    page = open_page(browser, watch)
+    page.goto(demo.dashboard_link)
+    expect(page.locator("#app")).to_have_attribute("data-connection", "connected", timeout=20_000)
+    wait_for(lambda: int(root_data(page, "updated-ms")) > 0, 60, "the crowd's first estimates drawn")
+    time.sleep(3)  # a few seconds of history
+    newest = int(root_data(page, "updated-ms"))
+    page.locator("#live-toggle").uncheck()
+    page.locator("#history").evaluate(
+        "(s) => { s.value = String(Number(s.max) - 2); s.dispatchEvent(new Event('input')); }"
+    )
+    then = newest - 2000
+    wait_for(
+        lambda: 0 < int(root_data(page, "updated-ms")) <= then, 10, "the page shows the crowd 2 s earlier"
+    )
+    expect(page.locator("#status-line")).to_contain_text("replaying")
+    listed = httpx.get(
+        f"{demo.base}/v1/buildings/demo/positions",
+        params={"at_ms": then},
+        headers=auth(demo.dashboard_key),
+    ).json()
+    assert int(root_data(page, "users")) == len(listed) > 0
+    assert int(root_data(page, "updated-ms")) == max(e["t_ms"] for e in listed)
+    # back to live: the newest estimates again
+    page.locator("#live-toggle").check()
+    wait_for(lambda: int(root_data(page, "updated-ms")) >= newest, 10, "live again")
+    watch.assert_clean()
+    page.context.close()
