@@ -75,6 +75,16 @@ def test_the_link_logs_in_and_the_crowd_moves_as_the_api_says(browser: Browser, 
     assert "sigma" in details
     assert "last update" in details
     expect(page.locator("#tools")).to_be_hidden()  # a dashboard key sees no operator tools
+    # the keyboard zooms and pans the map, and 0 fits the floor again
+    fitted = page.evaluate("() => window.crowdslamDashboard.view.scale")
+    page.locator("#map").focus()
+    page.keyboard.press("+")
+    assert page.evaluate("() => window.crowdslamDashboard.view.scale") > fitted
+    before = page.evaluate("() => window.crowdslamDashboard.view.ox")
+    page.keyboard.press("ArrowLeft")
+    assert page.evaluate("() => window.crowdslamDashboard.view.ox") > before
+    page.keyboard.press("0")
+    assert page.evaluate("() => window.crowdslamDashboard.view.scale") == fitted
     watch.assert_clean()
     page.context.close()
 

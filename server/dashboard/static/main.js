@@ -579,6 +579,21 @@ class Dashboard {
       }
       if (!d.moved) this.click(ev.offsetX, ev.offsetY, ev.shiftKey);
     });
+    // the map works from the keyboard too: arrows pan, + and - zoom, 0 fits the floor, Escape cancels picking
+    canvas.addEventListener("keydown", (ev) => {
+      const step = 40;
+      const moves = { ArrowLeft: [step, 0], ArrowRight: [-step, 0], ArrowUp: [0, step], ArrowDown: [0, -step] };
+      if (moves[ev.key]) this.view.pan(...moves[ev.key]);
+      else if (ev.key === "+" || ev.key === "=") this.zoom(1.25);
+      else if (ev.key === "-") this.zoom(1 / 1.25);
+      else if (ev.key === "0") { this.view.userMoved = false; this.fitFloor(); }
+      else if (ev.key === "Escape" && this.picking) {
+        this.picking = false;
+        canvas.classList.remove("picking");
+        this.message("");
+      } else return;
+      ev.preventDefault();
+    });
     canvas.addEventListener("wheel", (ev) => {
       ev.preventDefault();
       this.view.zoomAt(ev.offsetX, ev.offsetY, ev.deltaY < 0 ? 1.2 : 1 / 1.2);
