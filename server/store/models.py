@@ -63,6 +63,18 @@ class FloorRow(Base):
     height_m: Mapped[float | None] = mapped_column(Float)
 
 
+class StreamPositionRow(Base):
+    """The last sequence of the cluster's batch stream a building's worker applied, written in the same
+    transaction as those batches: a worker that takes the building over reads the stream from the next one."""
+
+    __tablename__ = "stream_positions"
+    __table_args__ = (ForeignKeyConstraint(["building_id"], ["buildings.id"], ondelete="CASCADE"),)
+
+    building_id: Mapped[str] = mapped_column(String(64), primary_key=True)
+    sequence: Mapped[int] = mapped_column(BigInteger)
+    updated_at: Mapped[datetime] = mapped_column(DateTime(timezone=True))
+
+
 class FloorPlanRow(Base):
     """A floor's plan (``schemas.floor_plans.FloorPlan``) as GeoJSON text in the building's local frame."""
 

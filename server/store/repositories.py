@@ -6,8 +6,9 @@ from __future__ import annotations
 import hashlib
 from collections.abc import Collection, Mapping, Sequence
 from datetime import UTC, datetime
+from typing import Any, cast
 
-from sqlalchemy import ColumnElement, delete, func, insert, select, update
+from sqlalchemy import ColumnElement, CursorResult, delete, func, insert, select, update
 from sqlalchemy.orm import Session
 
 from server.store.db import execute_many, insert_once, upsert
@@ -21,6 +22,7 @@ from server.store.models import (
     FloorRow,
     LatestPositionRow,
     PositionSnapshotRow,
+    StreamPositionRow,
     TrackerSnapshotRow,
 )
 
@@ -66,6 +68,45 @@ def floor_plan(session: Session, building_id: str, level: int) -> str | None:
     """The floor's plan as local-frame GeoJSON text, or None."""
     row = session.get(FloorPlanRow, (building_id, level))
     return None if row is None else row.geojson
+
+
+class StaleStreamPositionError(RuntimeError):
+    """A batch at or before the building's stored stream position: applying it would apply it twice or out of
+    order (a worker that lost its lease, or a redelivery)."""
+
+    def __init__(self, building_id: str, stored: int, sequence: int) -> None:
+        super().__init__(
+            f"building {building_id!r} has applied the batch stream up to {stored}; {sequence} is not after"
+        )
+        self.stored = stored
+
+
+def stream_position(session: Session, building_id: str) -> int:
+    """The last batch-stream sequence applied to the building (0: none yet)."""
+    row = session.get(StreamPositionRow, building_id)
+    return 0 if row is None else int(row.sequence)
+
+
+def advance_stream_position(session: Session, building_id: str, sequence: int) -> None:
+    """Record ``sequence`` as applied, in the caller's transaction; ``StaleStreamPositionError`` unless it is
+    after the stored one (the transaction is then to be rolled back: its batches were applied before)."""
+    now = datetime.now(UTC)
+    moved = cast(
+        "CursorResult[Any]",
+        session.execute(
+            update(StreamPositionRow)
+            .where(StreamPositionRow.building_id == building_id, StreamPositionRow.sequence < sequence)
+            .values(sequence=sequence, updated_at=now)
+        ),
+    )
+    if moved.rowcount:
+        return
+    stored = session.get(StreamPositionRow, building_id)
+    if stored is not None:
+        raise StaleStreamPositionError(building_id, int(stored.sequence), sequence)
+    # the first batch: a concurrent first insert by another worker fails on the primary key
+    session.add(StreamPositionRow(building_id=building_id, sequence=sequence, updated_at=now))
+    session.flush()
 
 
 def floor_plan_levels(session: Session, building_id: str) -> list[int]:
