@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import uuid
 from collections.abc import Iterator
@@ -24,6 +25,18 @@ ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared"
 MSINDOOR_FLOOR = SHARED / "data" / "msindoor20" / "site1" / "F1"
 """The shared real-walk floor; tests read a few of its small walks in place."""
+
+
+def write_testbed(path: Path, users: int, walk_length_m: float | None = None) -> Path:
+    """The paper testbed with fewer users (and shorter walks), written to ``path`` for a command to read."""
+    raw = json.loads((SHARED / "scenarios" / "paper-testbed.json").read_text())
+    raw["users"]["count"] = users
+    if walk_length_m is not None:
+        raw["users"]["walk_length_m"] = walk_length_m
+    path.write_text(json.dumps(raw))
+    return path
+
+
 POSTGRES_ADMIN_URL = os.environ.get(
     "CROWDSLAM_TEST_POSTGRES_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/test"
 )

@@ -18,15 +18,11 @@ import pytest
 from server.cli.background_server import CLI, free_port
 from server.store.db import make_engine
 from slam_core.sim.simulation import Scenario, simulate
-from tests.conftest import SHARED
+from tests.conftest import SHARED, write_testbed
 
 
 def _small_testbed(path: Path) -> Path:
-    raw = json.loads((SHARED / "scenarios" / "paper-testbed.json").read_text())
-    raw["users"]["count"] = 8
-    raw["users"]["walk_length_m"] = 80.0
-    path.write_text(json.dumps(raw))
-    return path
+    return write_testbed(path, users=8, walk_length_m=80.0)
 
 
 def test_crowds_one_after_another_walk_the_same_building(tmp_path: Path) -> None:
@@ -71,11 +67,7 @@ def test_a_demo_run_again_in_the_same_folder_moves_a_new_crowd(tmp_path: Path) -
     env = {**os.environ, "CROWDSLAM_DATA_DIR": str(tmp_path / "data")}
     env.pop("CROWDSLAM_DATABASE_URL", None)
     env.pop("CROWDSLAM_BUILDING_PROCESSES", None)  # the default: processes on more than one core
-    raw = json.loads((SHARED / "scenarios" / "paper-testbed.json").read_text())
-    raw["users"]["count"] = 4
-    raw["users"]["walk_length_m"] = 40.0
-    scenario = tmp_path / "tiny.json"
-    scenario.write_text(json.dumps(raw))
+    scenario = write_testbed(tmp_path / "tiny.json", users=4, walk_length_m=40.0)
     pattern = r"crowd 0: (\d+) batches, (\d+) errors, (\d+) duplicates, .* error median ([\d.]+) m"
     for _ in range(2):
         args = [

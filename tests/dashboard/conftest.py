@@ -3,7 +3,6 @@ against a real ``crowdslam demo``. Under CI=true a missing browser fails the run
 
 from __future__ import annotations
 
-import json
 import os
 import re
 import shutil
@@ -19,7 +18,7 @@ import pytest
 from playwright.sync_api import Browser, Page, Route, sync_playwright
 
 from server.cli.background_server import CLI, free_port
-from tests.conftest import SHARED
+from tests.conftest import write_testbed
 
 LOOPBACK = {"127.0.0.1", "localhost", "::1", "[::1]"}
 
@@ -96,13 +95,6 @@ class Demo:
     data_dir: Path
 
 
-def small_scenario(path: Path, users: int = 10) -> Path:
-    raw = json.loads((SHARED / "scenarios" / "paper-testbed.json").read_text())
-    raw["users"]["count"] = users
-    path.write_text(json.dumps(raw))
-    return path
-
-
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Demo]:
     """``crowdslam demo`` at real-time pace: its crowd walks for minutes, so positions keep changing."""
@@ -111,7 +103,7 @@ def demo(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Demo]:
     env.pop("CROWDSLAM_DATABASE_URL", None)
     env.pop("CROWDSLAM_BUILDING_PROCESSES", None)  # the default: processes on more than one core
     port = free_port()
-    scenario = small_scenario(folder / "small.json")
+    scenario = write_testbed(folder / "small.json", users=10)
     args = [*CLI, "demo", "--port", str(port), "--speed", "1", "--scenario", str(scenario)]
     process = subprocess.Popen(args, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     lines: list[str] = []

@@ -1,6 +1,8 @@
 // Replaying the last hour: the slider picks a time, the server answers each person's estimate then
 // (GET .../positions?at_ms=). While it is on, live updates are not drawn; they go on arriving.
 
+import { fmtTime } from "./format.js";
+
 const HOUR_S = 3600;
 const PLAY_STEP_S = 2; // eight times real time
 const PLAY_EVERY_MS = 250;
@@ -56,7 +58,7 @@ export class History {
   }
 
   async show(atMs, trail) {
-    this.label.textContent = new Date(atMs).toISOString().replace("T", " ").slice(0, 19) + " UTC";
+    this.label.textContent = fmtTime(atMs);
     const request = (this.pending = this.app.api.get(this.app.path(`/positions?at_ms=${Math.round(atMs)}&window_ms=30000`)));
     let estimates;
     try {
@@ -67,9 +69,12 @@ export class History {
     }
     if (request !== this.pending || !this.active) return; // a later position of the slider won
     const users = this.app.scene.users;
-    const seen = new Set(estimates.map((e) => e.user_id));
-    for (const id of [...users.keys()]) if (!seen.has(id)) users.delete(id);
-    if (!trail) users.clear();
+    if (trail) { // playing: people keep their trails; those not heard from then leave
+      const seen = new Set(estimates.map((e) => e.user_id));
+      for (const id of [...users.keys()]) if (!seen.has(id)) users.delete(id);
+    } else {
+      users.clear();
+    }
     this.app.scene.newestMs = 0;
     for (const e of estimates) this.app.updateUser(e, trail);
     this.app.published();

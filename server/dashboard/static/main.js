@@ -2,6 +2,7 @@
 // edit it. Every action goes through the public REST API; its refusals are shown as the server wrote them.
 
 import { Api, ProblemError } from "./api.js";
+import { fmtTime } from "./format.js";
 import { LiveSocket } from "./live.js";
 import { MapView, ellipse, viridis, ANCHOR_STYLE } from "./map.js";
 import { History } from "./history.js";
@@ -19,7 +20,6 @@ function colourOf(userId) {
   return PALETTE[h % PALETTE.length];
 }
 
-function fmtTime(ms) { return ms ? new Date(ms).toISOString().replace("T", " ").slice(0, 19) + " UTC" : "never"; }
 
 export function showMessage(text, kind = "error", where = "message") {
   const el = $(where);

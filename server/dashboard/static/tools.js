@@ -75,14 +75,14 @@ export class OperatorTools {
     this.app.message("");
   }
 
-  anchorBody(type, x, y, label) {
-    return { floor: this.app.scene.floor, type, position: { x_m: x, y_m: y }, label: label || null };
+  anchorBody(floor, type, x, y, label) {
+    return { floor, type, position: { x_m: x, y_m: y }, label: label || null };
   }
 
   async pin() {
     const label = $("pin-label").value.trim();
     const id = `pin-${Date.now().toString(36)}`;
-    const body = this.anchorBody($("pin-type").value, Number($("pin-x").value), Number($("pin-y").value), label);
+    const body = this.anchorBody(this.app.scene.floor, $("pin-type").value, Number($("pin-x").value), Number($("pin-y").value), label);
     const anchor = await this.act(() => this.app.api.put(this.app.path(`/anchors/${id}`), body), (a) => `Pinned ${a.type} anchor ${a.id}.`);
     if (anchor) {
       this.app.scene.anchors.set(anchor.id, anchor);
@@ -93,8 +93,7 @@ export class OperatorTools {
 
   async moveAnchor(id, x, y) {
     const a = this.app.scene.anchors.get(id);
-    const body = this.anchorBody(a.type, x, y, a.label);
-    body.floor = a.floor;
+    const body = this.anchorBody(a.floor, a.type, x, y, a.label);
     const anchor = await this.act(() => this.app.api.put(this.app.path(`/anchors/${encodeURIComponent(id)}`), body), (m) => `Moved ${m.id}; it is now pinned there.`);
     if (anchor) this.app.scene.anchors.set(anchor.id, anchor);
     else await this.app.loadAnchors(); // refused: back where the server has it
