@@ -82,12 +82,12 @@ async def run(url: str, n: int, in_flight: int, bodies: list[bytes]) -> dict[str
         await stream.ensure(js, retention_s=3600)
         with meter:
             for k in range(n):
-                await stream.publish(js, "mall", f"s{k}", bodies[k % len(bodies)])
+                await stream.publish(js, "mall", bodies[k % len(bodies)])
         result["one_at_a_time"] = meter.row(n)
         with meter:
             for start in range(0, n, in_flight):
                 await asyncio.gather(*(
-                    stream.publish(js, "mall", f"c{k}", bodies[k % len(bodies)])
+                    stream.publish(js, "mall", bodies[k % len(bodies)])
                     for k in range(start, min(n, start + in_flight))
                 ))  # fmt: skip
         result["concurrent"] = meter.row(n)

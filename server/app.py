@@ -6,13 +6,14 @@ import asyncio
 import contextlib
 import logging
 import time
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Awaitable, Callable
 from contextlib import asynccontextmanager
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.openapi.utils import get_openapi
 from fastapi.responses import Response
+from sqlalchemy.orm import Session, sessionmaker
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from schemas.errors import Problem
@@ -21,7 +22,7 @@ from server.api import anchors, batches, buildings, current_key, health, live, p
 from server.api.deps import revalidate_keys
 from server.api.limits import BodyLimit
 from server.auth import KeyCache
-from server.buildings.registry import TrackingService
+from server.buildings.registry import Buildings, TrackingService
 from server.buildings.tracking import tracking_config
 from server.dashboard.pages import install_pages
 from server.engine.config import load_calibration, tracker_params
@@ -29,7 +30,6 @@ from server.engine.warmup import compile_kernels_in_child, warm_kernels
 from server.errors import (
     InvalidInputError,
     ProblemError,
-    TooManyRequestsError,
     field_problem,
     problem_response_parts,
 )
@@ -52,6 +52,10 @@ operators manage buildings, keys and anchor maps. Every error is an RFC 9457 pro
 
 
 class DatabaseNotMigratedError(RuntimeError):
+    pass
+
+
+class ClusterMisconfiguredError(RuntimeError):
     pass
 
 
@@ -78,24 +82,12 @@ def create_app(settings: Settings, tune_gc: bool = False) -> FastAPI:
 
             foxglove_live = FoxgloveLive(settings.foxglove_host, settings.foxglove_port)
             broadcaster.add_sink(foxglove_live.publish)
-        params = tracker_params(settings)
-        calibration = load_calibration(settings.encounter_calibration)
-        try:
-            if settings.resolved_building_processes:
-                await asyncio.to_thread(compile_kernels_in_child, settings)
-            else:
-                warm_kernels(params, calibration)
-        except BaseException:
-            engine.dispose()  # and its checkpoint thread: a server that cannot compile does not start
-            raise
         recordings = settings.recordings_dir if settings.record else None
-        tracking = TrackingService(
-            sessions,
-            broadcaster,
-            tracking_config(settings),
-            recordings,
-            settings if settings.resolved_building_processes else None,
-        )
+        try:
+            tracking, disconnect = await _buildings(settings, sessions, broadcaster)
+        except BaseException:
+            engine.dispose()  # and its checkpoint thread: a server that cannot track does not start
+            raise
         app.state.crowdslam = AppState(
             settings,
             engine,
@@ -131,6 +123,7 @@ def create_app(settings: Settings, tune_gc: bool = False) -> FastAPI:
                 await revalidation
             app.state.crowdslam.signal_maps.close()
             await tracking.close()
+            await disconnect()
             if foxglove_live is not None:
                 foxglove_live.close()
             engine.dispose()
@@ -158,7 +151,63 @@ def create_app(settings: Settings, tune_gc: bool = False) -> FastAPI:
     return app
 
 
-async def _load_radio_map(tracking: TrackingService, building_id: str) -> None:
+async def _buildings(
+    settings: Settings, sessions: sessionmaker[Session], broadcaster: Broadcaster
+) -> tuple[Buildings, Callable[[], Awaitable[None]]]:
+    """The buildings as this process reaches them, and what disconnects it from them once they are closed:
+    tracked here (the embedded role: kernels compiled first), or by the cluster's workers (a front)."""
+    if settings.role == "front":
+        from server.cluster.batch_stream import BatchStream  # only a front needs NATS
+        from server.cluster.connection import connect
+        from server.cluster.front import ClusterBuildings
+
+        problem = settings.cluster_problem()
+        if problem is not None:
+            raise ClusterMisconfiguredError(problem)
+        assert settings.nats_url is not None
+        connection = await connect(settings.nats_url, "crowdslam-front")
+        try:
+            front = await ClusterBuildings.start(
+                connection,
+                BatchStream(),
+                sessions,
+                broadcaster,
+                settings.receipt_timeout_s,
+                settings.stream_retention_s,
+            )
+        except BaseException:
+            await connection.close()
+            raise
+
+        async def drain() -> None:
+            with contextlib.suppress(Exception):
+                await connection.drain()
+
+        return front, drain
+    if settings.role != "all":
+        raise ClusterMisconfiguredError(
+            f"CROWDSLAM_ROLE={settings.role} runs without HTTP: start it with `crowdslam serve --role worker`"
+        )
+    if settings.resolved_building_processes:
+        await asyncio.to_thread(compile_kernels_in_child, settings)
+    else:
+        warm_kernels(tracker_params(settings), load_calibration(settings.encounter_calibration))
+    recordings = settings.recordings_dir if settings.record else None
+    tracking = TrackingService(
+        sessions,
+        broadcaster,
+        tracking_config(settings),
+        recordings,
+        settings if settings.resolved_building_processes else None,
+    )
+
+    async def nothing() -> None:
+        return None
+
+    return tracking, nothing
+
+
+async def _load_radio_map(tracking: Buildings, building_id: str) -> None:
     """A finished build's radio map joins its building's fingerprints, in order with its batches."""
     try:
         worker = await tracking.worker(building_id)
@@ -209,7 +258,7 @@ def _install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(ProblemError)
     async def _problem(_: Request, exc: ProblemError) -> Response:
         response = problem_response(exc.to_problem())
-        if isinstance(exc, TooManyRequestsError):
+        if exc.retry_after_s is not None:
             response.headers["retry-after"] = retry_after_header(exc.retry_after_s)
         return response
 

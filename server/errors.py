@@ -16,6 +16,8 @@ class ProblemError(Exception):
 
     status = 400
     title = "Bad request"
+    retry_after_s: float | None = None
+    """When set, the answer carries ``Retry-After``: the same request may succeed then."""
 
     def __init__(self, detail: str, errors: Sequence[FieldProblem] = ()) -> None:
         super().__init__(detail)
@@ -108,10 +110,14 @@ class TooManyRequestsError(ProblemError):
 
 
 class ServiceUnavailableError(ProblemError):
-    """The request can be sent again (a building's process is restarting)."""
+    """The request can be sent again (a building's process is restarting, its worker is being replaced)."""
 
     status = 503
     title = "Service unavailable"
+
+    def __init__(self, detail: str, retry_after_s: float | None = None) -> None:
+        super().__init__(detail)
+        self.retry_after_s = retry_after_s
 
 
 def field_problem(error: Any) -> FieldProblem:

@@ -11,7 +11,7 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metri
 from prometheus_client.registry import Collector
 
 from server.buildings.counters import Counters
-from server.buildings.registry import TrackingService
+from server.buildings.registry import Buildings
 from server.live.broadcast import Broadcaster
 
 if TYPE_CHECKING:
@@ -21,14 +21,14 @@ if TYPE_CHECKING:
 class Metrics:
     """Renders the current figures on each scrape (no global registry: one per app)."""
 
-    def render(self, tracking: TrackingService, broadcaster: Broadcaster) -> bytes:
+    def render(self, tracking: Buildings, broadcaster: Broadcaster) -> bytes:
         registry = CollectorRegistry()
         registry.register(_Collector(tracking, broadcaster))
         return bytes(generate_latest(registry))
 
 
 class _Collector(Collector):
-    def __init__(self, tracking: TrackingService, broadcaster: Broadcaster) -> None:
+    def __init__(self, tracking: Buildings, broadcaster: Broadcaster) -> None:
         self._tracking = tracking
         self._broadcaster = broadcaster
 

@@ -160,6 +160,41 @@ class Settings(BaseSettings):
         "every request looks its providers up in the environment first (~4-8 us).",
     )
 
+    role: Literal["all", "front", "worker"] = Field(
+        default="all",
+        description="all: one process serves HTTP and tracks its buildings (the embedded default). front: "
+        "a stateless HTTP/WebSocket front that publishes batches to NATS JetStream and answers with the "
+        "receipts of the buildings' workers. worker: owns buildings through leases and tracks them. front "
+        "and worker need nats_url and PostgreSQL.",
+    )
+    nats_url: str | None = Field(
+        default=None,
+        description="NATS server(s) of the cluster, e.g. nats://127.0.0.1:4222 (comma-separated for "
+        "several), with JetStream enabled. Keep it private to the cluster: its messages are trusted.",
+    )
+    lease_ttl_s: float = Field(
+        default=10.0,
+        ge=1.0,
+        le=300.0,
+        description="Cluster: how long a worker's lease on a building lives without a refresh (refreshed "
+        "every third of it). A killed worker's buildings are taken over within this time; every worker "
+        "must use the same value.",
+    )
+    stream_retention_s: float = Field(
+        default=7 * 86_400.0,
+        gt=0.0,
+        description="Cluster: how long the batch stream keeps a batch. A building whose workers were all "
+        "down for longer loses the batches older than this that no worker had applied.",
+    )
+    receipt_timeout_s: float = Field(
+        default=15.0,
+        gt=0.0,
+        le=600.0,
+        description="Cluster: how long a front waits for the worker's receipt of a batch or the answer to an "
+        "operator's call before answering 503 with Retry-After (the retry is safe: a batch applied meanwhile "
+        "answers duplicate).",
+    )
+
     @property
     def recordings_dir(self) -> Path:
         return self.data_dir / "recordings"
@@ -169,6 +204,19 @@ class Settings(BaseSettings):
         if self.building_processes is not None:
             return self.building_processes
         return usable_cores() > 1
+
+    def cluster_problem(self) -> str | None:
+        """What keeps this process from its cluster role, if anything (None in the embedded role)."""
+        if self.role == "all":
+            return None
+        if not self.nats_url:
+            return f"CROWDSLAM_ROLE={self.role} needs CROWDSLAM_NATS_URL (the cluster's NATS with JetStream)"
+        if not self.resolved_database_url.startswith("postgresql"):
+            return (
+                f"CROWDSLAM_ROLE={self.role} needs PostgreSQL, shared by every front and worker: set "
+                "CROWDSLAM_DATABASE_URL=postgresql+psycopg://user@host/db (SQLite is one process's database)"
+            )
+        return None
 
     @property
     def resolved_database_url(self) -> str:

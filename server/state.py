@@ -9,7 +9,7 @@ from sqlalchemy import Engine
 from sqlalchemy.orm import Session, sessionmaker
 
 from server.auth import KeyCache
-from server.buildings.registry import TrackingService
+from server.buildings.registry import Buildings
 from server.live.broadcast import Broadcaster
 from server.metrics import Metrics
 from server.rate_limit import RateLimiter
@@ -26,7 +26,7 @@ class AppState:
     engine: Engine
     sessions: sessionmaker[Session]
     broadcaster: Broadcaster
-    tracking: TrackingService
+    tracking: Buildings
     metrics: Metrics
     started: float
     keys: KeyCache

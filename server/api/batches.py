@@ -106,7 +106,7 @@ async def _answer_batch(
         receipt = await ingest(state, caller, building_id, body)
     except ProblemError as exc:
         status, problem, headers = problem_response_parts(exc.to_problem())
-        if isinstance(exc, TooManyRequestsError):
+        if exc.retry_after_s is not None:
             headers["retry-after"] = retry_after_header(exc.retry_after_s)
         return status, problem, headers
     # serialised by the building (the route's response_model documents it)

@@ -224,7 +224,7 @@ class _BuildingLoop:
             try:
                 result = self.building.process(group)
             except Exception as exc:  # as the in-process worker: every batch of the group fails with it
-                answers.update((request, _transportable(exc)) for request in ids)
+                answers.update((request, transportable(exc)) for request in ids)
             else:
                 for request, receipt in zip(ids, result.receipts, strict=True):
                     answers[request] = (
@@ -240,7 +240,7 @@ class _BuildingLoop:
                 raise ValueError(f"unknown building call {name!r}")
             value = getattr(self.building, name)(*args)
         except Exception as exc:
-            _send(self.sock, ("result", request, False, _transportable(exc)))
+            _send(self.sock, ("result", request, False, transportable(exc)))
             return
         _send(self.sock, ("result", request, True, value))
 
@@ -279,7 +279,7 @@ def received_batch(
     )
 
 
-def _transportable(exc: Exception) -> Exception:
+def transportable(exc: Exception) -> Exception:
     """The error as the front will raise it: a ProblemError as it is, anything else as a RuntimeError
     naming it (the front answers 500 and logs it, as for an error in its own process)."""
     if isinstance(exc, ProblemError):
@@ -415,6 +415,11 @@ class ProcessBuildingWorker:
             future.set_exception(answer)
         else:
             future.set_result(answer)
+
+    async def abandon(self) -> None:
+        """Stop the building process without a snapshot."""
+        self._process.kill()
+        await self.close()
 
     async def close(self) -> None:
         """Snapshot and stop the building process (a clean shutdown leaves nothing to replay)."""

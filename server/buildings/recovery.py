@@ -33,6 +33,7 @@ from server.ingestion.floor_plans import engine_plan
 from server.ingestion.radio_maps import latest_radio_map
 from server.store import repositories as repo
 from server.store.batches import LoggedBatch, clear_covered_bodies, logged_batches
+from server.store.models import BuildingRow
 from slam_core.encounters.models import Calibration
 from slam_core.geo import GeoFrame
 from slam_core.tracking.tracker import BuildingTracker, TrackerParams
@@ -74,11 +75,7 @@ class RecoverableBuilding:
             building = repo.get_building(session, self.building_id)
             if building is None:
                 raise NotFoundError(f"no building {self.building_id!r}")
-            self.geo = (
-                GeoFrame(building.origin_lat_deg, building.origin_lon_deg, building.rotation_rad)
-                if building.origin_lat_deg is not None and building.origin_lon_deg is not None
-                else None
-            )
+            self.geo = building_geo(building)
             self.extent = Extent.of_floors(
                 ((f.width_m, f.height_m) for f in repo.list_floors(session, self.building_id)),
                 self._config.extent_margin_m,
@@ -270,6 +267,11 @@ class RecoverableBuilding:
         self.snapshot(clear_log=True)
         self._background.close()
 
+    def abandon(self) -> None:
+        """Stop without writing anything: the building is another worker's now (its lease was lost)."""
+        self._background.discard()
+        self._background.close()
+
     def snapshot(self, clear_log: bool = False) -> None:
         """Snapshot now (on load, after operator edits, at shutdown); with ``clear_log`` the bodies it
         covers are cleared in the same transaction, else a chunk per group from the next group on."""
@@ -278,3 +280,10 @@ class RecoverableBuilding:
             if clear_log:
                 self._clear_log(session, None)
         self.devices.saved(rows)
+
+
+def building_geo(building: BuildingRow) -> GeoFrame | None:
+    """The building's geo-reference, if it has one."""
+    if building.origin_lat_deg is None or building.origin_lon_deg is None:
+        return None
+    return GeoFrame(building.origin_lat_deg, building.origin_lon_deg, building.rotation_rad)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import asyncio
 from pathlib import Path
+from typing import Protocol
 
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -19,6 +20,16 @@ from server.live.broadcast import Broadcaster
 from server.recordings.recorder import BuildingRecorder
 from server.settings import Settings
 from server.store import repositories as repo
+
+
+class Buildings(Protocol):
+    """What the API reaches buildings through: ``TrackingService`` here, or a cluster front's
+    ``server.cluster.front.ClusterBuildings`` (the buildings' workers elsewhere)."""
+
+    async def worker(self, building_id: str) -> Worker: ...
+    @property
+    def workers(self) -> dict[str, Worker]: ...
+    async def close(self) -> None: ...
 
 
 class TrackingService:
@@ -72,6 +83,14 @@ class TrackingService:
     @property
     def workers(self) -> dict[str, Worker]:
         return dict(self._workers)
+
+    async def unload(self, building_id: str, snapshot: bool = True) -> None:
+        """Stop tracking the building here: with a snapshot (a clean handoff), or without (its lease was
+        lost: another worker owns it and writes its state now)."""
+        async with self._loading:
+            worker = self._workers.pop(building_id, None)
+        if worker is not None:
+            await (worker.close() if snapshot else worker.abandon())
 
     async def close(self) -> None:
         for worker in self._workers.values():

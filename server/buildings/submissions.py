@@ -50,6 +50,9 @@ class Submission:
     received_ns: int
     batch: SensorBatch | None = None
     converted: Converted | None = None
+    stream_sequence: int | None = None
+    """Cluster mode: the batch's sequence in the batch stream, stored as applied in the group's transaction
+    (``server.cluster``)."""
 
     def __post_init__(self) -> None:
         if (self.batch is None) == (self.converted is None):

@@ -199,6 +199,10 @@ class BuildingTracking(RecoverableBuilding):
         counted = dataclasses.replace(self.counters)
         try:
             return self._process(group)
+        except repo.StaleStreamPositionError:
+            # another worker applied these batches: this one lost the building and must not go on with it
+            vars(self.counters).update(vars(counted))
+            raise
         except Exception as exc:
             logger.warning(
                 "building %s: a group of %d failed (%r); reloading", self.building_id, len(group), exc
@@ -215,6 +219,7 @@ class BuildingTracking(RecoverableBuilding):
                 return GroupResult(results, messages)
             self.counters.failed_batches += 1
             self.counters.last_failure_unix_s = time.time()
+            self._pass_over(group[0])
             if isinstance(exc, ProblemError):
                 return GroupResult([exc])
             if isinstance(exc, ValueError):  # the engine refused what the batch implies; nothing was kept
@@ -276,6 +281,9 @@ class BuildingTracking(RecoverableBuilding):
                     device_rows.append(row)
                 by_call.setdefault(call, []).append(i)
             repo.upsert_devices(session, device_rows)
+            streamed = [sub.stream_sequence for sub in group if sub.stream_sequence is not None]
+            if streamed:
+                repo.advance_stream_position(session, self.building_id, max(streamed))
             # a user may have several batches in one group: one per user per engine call
             for call in sorted(by_call):
                 now = by_call[call]
@@ -359,6 +367,14 @@ class BuildingTracking(RecoverableBuilding):
             results[i] = self._receipt(
                 b, "applied", warnings, estimates.get(b.effective_user_id), by_user.get(b.effective_user_id)
             )
+
+    def _pass_over(self, sub: Submission) -> None:
+        """A streamed batch that failed alone is still passed in the stream, so that the next owner of the
+        building does not apply it again (its answer would be the same failure)."""
+        if sub.stream_sequence is None:
+            return
+        with self._sessions.begin() as session:
+            repo.advance_stream_position(session, self.building_id, sub.stream_sequence)
 
     def _prune(self, session: Session) -> None:
         """Delete a chunk of position history and of batch ids past their retention."""

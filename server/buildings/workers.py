@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -19,7 +20,7 @@ from schemas.live import LiveMessage
 from server.buildings.counters import Counters
 from server.buildings.submissions import Submission
 from server.buildings.tracking import BuildingTracking
-from server.errors import ProblemError
+from server.errors import ProblemError, ServiceUnavailableError
 from server.live.broadcast import Broadcaster
 from slam_core.geo import GeoFrame
 
@@ -60,6 +61,7 @@ class Worker(Protocol):
     async def call(self, name: str, *args: Any) -> Any: ...
     def publish(self, messages: list[LiveMessage]) -> None: ...
     async def close(self) -> None: ...
+    async def abandon(self) -> None: ...
 
 
 @dataclass
@@ -108,9 +110,13 @@ class BuildingWorker:
 
     async def submit(self, submission: Submission) -> bytes:
         """The batch's receipt, as JSON."""
+        return await self.enqueue(submission)
+
+    def enqueue(self, submission: Submission) -> asyncio.Future[bytes]:
+        """Queue the batch now (batches are applied in the order they are queued); its receipt's future."""
         future: asyncio.Future[bytes] = asyncio.get_running_loop().create_future()
-        await self._queue.put(_Pending(submission, future))
-        return await future
+        self._queue.put_nowait(_Pending(submission, future))
+        return future
 
     async def call(self, name: str, *args: Any) -> Any:
         """Run one of the building's ``CALLS`` on the building's thread (anchor edits stay ordered with
@@ -134,6 +140,13 @@ class BuildingWorker:
                 receipts, messages = await loop.run_in_executor(
                     self._executor, self._process, [p.submission for p in group]
                 )
+            except asyncio.CancelledError:  # stopped: nobody waits for a group that may never be answered
+                for p in group:
+                    if not p.future.done():
+                        p.future.set_exception(
+                            ServiceUnavailableError(f"building {self.building.building_id!r} stopped", 1.0)
+                        )
+                raise
             except Exception as exc:
                 for p in group:
                     if not p.future.done():
@@ -159,11 +172,27 @@ class BuildingWorker:
         return receipts, result.messages
 
     async def close(self) -> None:
+        # a clean stop leaves nothing to replay: the next start loads this snapshot and an empty log
+        await self._stop(self.building.close)
+
+    async def abandon(self) -> None:
+        """Stop without a snapshot: the building is another worker's now (cluster mode)."""
+        await self._stop(self.building.abandon)
+
+    async def _stop(self, last: Callable[[], None]) -> None:
+        self.alive = False
         self._task.cancel()
         with contextlib.suppress(asyncio.CancelledError):
             await self._task
-        # a clean stop leaves nothing to replay: the next start loads this snapshot and an empty log
-        await asyncio.get_running_loop().run_in_executor(self._executor, self.building.close)
+        while not self._queue.empty():
+            pending = self._queue.get_nowait()
+            if not pending.future.done():
+                pending.future.set_exception(
+                    ServiceUnavailableError(
+                        f"building {self.building.building_id!r} stopped; send again", 1.0
+                    )
+                )
+        await asyncio.get_running_loop().run_in_executor(self._executor, last)
         self._executor.shutdown(wait=True)
         if self.building.recorder is not None:
             self.building.recorder.close()

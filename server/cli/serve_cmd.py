@@ -1,4 +1,4 @@
-"""``crowdslam serve``: the HTTP and WebSocket server (uvicorn)."""
+"""``crowdslam serve``: the HTTP and WebSocket server (uvicorn), or in a cluster a front or a worker."""
 
 from __future__ import annotations
 
@@ -13,16 +13,47 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"]
     )
+    parser.add_argument(
+        "--role",
+        choices=["all", "front", "worker"],
+        default=None,
+        help="all (default: CROWDSLAM_ROLE, else all): serve and track in this process. front: a stateless "
+        "HTTP/WebSocket front of a cluster. worker: tracks the cluster's buildings (no HTTP).",
+    )
+    parser.add_argument(
+        "--nats", default=None, metavar="URL", help="the cluster's NATS (default: CROWDSLAM_NATS_URL)"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
     # deferred: the command's dependencies load when it runs (`crowdslam --help` loads none)
+    from server.settings import get_settings
+
+    update: dict[str, object] = {}
+    if args.role is not None:
+        update["role"] = args.role
+    if args.nats is not None:
+        update["nats_url"] = args.nats
+    settings = get_settings().model_copy(update=update)
+    problem = settings.cluster_problem()
+    if problem is not None:
+        raise SystemExit(f"crowdslam serve: {problem}")
+    if settings.role == "worker":
+        import asyncio
+        import logging
+
+        from server.cluster.worker import serve
+
+        logging.basicConfig(
+            level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+        )
+        asyncio.run(serve(settings))
+        return 0
+
     import uvicorn
 
     from server.app import create_app
-    from server.settings import get_settings
 
-    settings = get_settings()
     app = create_app(settings, tune_gc=True)
     uvicorn.run(
         app,

@@ -1,9 +1,11 @@
 """The batches of every building in one JetStream stream, a subject per building. A front publishes each
-accepted batch with its building and batch id as JetStream's message id, so a front that retries a publish
-(its answer lost) stores it once. A worker that owns a building reads the building's subject in order from the
-sequence after the last one it applied, which it keeps in the same SQL transaction as the batches themselves:
-whatever JetStream redelivers, nothing is applied twice or out of order, and a worker that takes a building
-over goes on from where the last one committed."""
+accepted batch; the worker that owns the building reads the building's subject in order from the sequence
+after the last one it applied, which it keeps in the same SQL transaction as the batches themselves (the
+commit is the acknowledgement). Whatever JetStream delivers again, nothing is applied twice or out of order,
+and a worker that takes a building over goes on from where the last one committed. A batch a phone sends
+again is stored again: the worker's batch log recognises it (``duplicate``), so a retry after a lost answer
+gets its receipt from the worker (JetStream's message-id dedupe would drop the retry, and its answer with
+it)."""
 
 from __future__ import annotations
 
@@ -15,10 +17,6 @@ from nats.js.api import ConsumerConfig, DeliverPolicy, StreamConfig
 from nats.js.errors import NotFoundError
 
 from server.cluster.names import building_token
-
-DUPLICATE_WINDOW_S = 120.0
-"""How long JetStream remembers a message id: a front's retried publish within it is stored once (a phone's
-later retry is a duplicate that the worker's batch log refuses)."""
 
 
 @dataclass(frozen=True)
@@ -45,17 +43,13 @@ class BatchStream:
                 name=self.name,
                 subjects=[f"{self.prefix}.*"],
                 max_age=retention_s,
-                duplicate_window=DUPLICATE_WINDOW_S,
             )
             await js.add_stream(config)
 
-    async def publish(
-        self, js: JetStreamContext, building_id: str, batch_id: str, body: bytes
-    ) -> tuple[int, bool]:
-        """Store one batch; returns its sequence and whether the stream had it already (a retried publish)."""
-        headers = {"Nats-Msg-Id": f"{building_id}/{batch_id}"}
-        ack = await js.publish(self.subject(building_id), body, stream=self.name, headers=headers)
-        return ack.seq, bool(ack.duplicate)
+    async def publish(self, js: JetStreamContext, building_id: str, body: bytes) -> int:
+        """Store one batch; its sequence in the stream."""
+        ack = await js.publish(self.subject(building_id), body, stream=self.name)
+        return int(ack.seq)
 
     async def read(
         self, js: JetStreamContext, building_id: str, after_sequence: int
