@@ -110,6 +110,8 @@ class RecoverableBuilding:
         )
         self.load_radio_map()
         self._replay(logged)
+        self.replayed = len(logged)
+        """Batches the last load replayed from the batch log (none after a clean stop)."""
         if snapshot_always or not restored:
             self.snapshot(clear_log=True)  # it covers the whole log now
 

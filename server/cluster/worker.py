@@ -209,10 +209,12 @@ class ClusterWorker:
                 owned.calls = await self.connection.subscribe(calls_subject(building_id), cb=call)
                 owned.consumer = asyncio.get_running_loop().create_task(self._consume(building_id, owned))
                 logger.info(
-                    "worker %s: took building %s in %.2f s; reading its batches after sequence %d",
+                    "worker %s: took building %s in %.2f s (replayed %d logged batches); reading its "
+                    "batches after sequence %d",
                     self.worker_id,
                     building_id,
                     time.perf_counter() - started,
+                    worker.building.replayed,
                     owned.last_read,
                 )
             except Exception as exc:
