@@ -12,9 +12,12 @@ def building_token(building_id: str) -> str:
 
 def token_building(token: str) -> str:
     """``building_token``'s inverse; ValueError for a token it did not make."""
-    if not token.startswith("b"):
-        raise ValueError(f"{token!r} is not a building token")
-    return bytes.fromhex(token[1:]).decode()
+    try:
+        if token.startswith("b"):
+            return bytes.fromhex(token[1:]).decode()
+    except ValueError:  # not hex, or not UTF-8
+        pass
+    raise ValueError(f"{token!r} is not a building token")
 
 
 def live_subject(building_id: str) -> str:

@@ -101,10 +101,13 @@ class BuildingRecorder:
         self._dir.mkdir(parents=True, exist_ok=True)
         path = self._dir / f"{hour}.mcap"
         n = 0
-        while path.exists():  # a restart within the hour starts a new file beside the old one
-            n += 1
-            path = self._dir / f"{hour}-{n}.mcap"
-        self._file = path.open("wb")
+        while True:  # a restart within the hour starts a new file beside the old one
+            try:  # created exclusively: in a cluster, the worker taking a building over shares the folder
+                self._file = path.open("xb")
+                break
+            except FileExistsError:
+                n += 1
+                path = self._dir / f"{hour}-{n}.mcap"
         writer = Writer(self._file, use_chunking=False)
         writer.start(profile="", library="crowdslam")
         schemas = {

@@ -25,3 +25,19 @@ def test_buildings_get_processes_of_their_own_where_there_is_more_than_one_core(
 
 def test_the_cores_counted_are_those_this_process_may_use() -> None:
     assert settings_module.usable_cores() == len(settings_module.os.sched_getaffinity(0))
+
+
+def test_a_cluster_role_needs_nats_and_postgresql(tmp_path: Path) -> None:
+    assert Settings(data_dir=tmp_path).cluster_problem() is None  # the embedded default needs neither
+    pg = "postgresql+psycopg://crowdslam@db/crowdslam"
+    for role in ("front", "worker"):
+        problem = Settings(data_dir=tmp_path, role=role, database_url=pg).cluster_problem()
+        assert problem is not None
+        assert "CROWDSLAM_NATS_URL" in problem
+        problem = Settings(data_dir=tmp_path, role=role, nats_url="nats://n:4222").cluster_problem()
+        assert problem is not None
+        assert "PostgreSQL" in problem  # SQLite is one process's database
+        assert (
+            Settings(data_dir=tmp_path, role=role, nats_url="nats://n", database_url=pg).cluster_problem()
+            is None
+        )
