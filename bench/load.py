@@ -2,7 +2,7 @@
 dashboards on the WebSocket.
 
     python bench/load.py [--phones 250,500,1000,2000] [--duration 30] [--dashboards 10] [--buildings 1]
-                         [--postgres URL] [--json OUT]
+                         [--postgres URL] [--cluster FRONTS,WORKERS [--nats URL]] [--json OUT]
 
 For each N (ascending) a fresh server (``crowdslam serve``, SQLite, recording on: the defaults a newcomer
 gets; with ``--postgres``, a new database on that PostgreSQL server) is started in its own process. Each
@@ -29,6 +29,13 @@ and the generator's cores, from /proc over the measured window: the steadiest fi
 costs; ``p50_ms_per_second``: the median latency of each measured second, which shows whether a backlog
 drains) and ``sustained``: the largest N with p99 <= 100 ms, the offered rate met within 5 % and no
 errors.
+
+With ``--cluster FRONTS,WORKERS`` (and ``--postgres``), each N runs on a cluster instead: a private
+``nats-server -js`` (or the one at ``--nats``; building ids then carry the run's prefix), that many
+``crowdslam serve --role worker`` and ``--role front`` processes on a new database; the phones' connections
+and the dashboards are dealt round the fronts. The rows then split the CPU per batch and the cores by role:
+fronts, workers, NATS and PostgreSQL (every ``postgres`` process of the machine), and give their sum,
+``cluster_cpu_ms_per_batch``.
 """
 
 from __future__ import annotations
@@ -44,7 +51,7 @@ import re
 import sys
 import tempfile
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -59,12 +66,12 @@ from server.engine.numba_cache import configure_numba_cache
 configure_numba_cache()
 
 from report import emit
-from sqlalchemy.engine import make_url
 from websockets.asyncio.client import connect
 
 from schemas.api import KeyScope
 from server.auth import mint_key
 from server.cli.background_server import free_port, serve_process
+from server.cli.local_cluster import nats_server, postgres_database, worker_process
 from server.store.db import make_engine, make_session_factory
 from server.store.migrate import upgrade
 from server.store.models import BuildingRow
@@ -132,9 +139,10 @@ class Crowd:
 _AROUND = [(dx, dy) for dx in (-1, 0, 1) for dy in (-1, 0, 1)]
 
 
-def _building(phone: int, buildings: int) -> str:
-    """Phones are dealt round the buildings; one building is called ``load``."""
-    return "load" if buildings == 1 else f"load-{phone % buildings}"
+def _building(phone: int, buildings: int, prefix: str = "") -> str:
+    """Phones are dealt round the buildings; one building is called ``load`` (``prefix``: a cluster run's,
+    so that a NATS server kept between runs never hands one run's batches to the next)."""
+    return prefix + ("load" if buildings == 1 else f"load-{phone % buildings}")
 
 
 _AP_JSON = [f'{{"bssid":"02:00:00:00:00:{a:02x}","rssi_dbm":' for a in range(N_APS)]
@@ -190,8 +198,14 @@ def _join_second(n: int, duration_s: float) -> np.ndarray:
 class Connection:
     """One keep-alive HTTP/1.1 connection; requests on it run one at a time."""
 
-    def __init__(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+    def __init__(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, port: int) -> None:
         self.reader, self.writer = reader, writer
+        self.port = port
+
+    @classmethod
+    async def open(cls, port: int) -> Connection:
+        reader, writer = await asyncio.open_connection("127.0.0.1", port)
+        return cls(reader, writer, port)
 
     async def post(self, path: str, key: str, body: bytes) -> int:
         head = (
@@ -222,13 +236,34 @@ class Results:
     errors: int = 0
     sent: int = 0
     dashboard_errors: list[str] = field(default_factory=list)
-    server_cpu_s: float = math.nan
-    """CPU seconds (user + system) the server used while the measured batches were due."""
-    front_cpu_s: float = math.nan
-    """Of which the server's own process (the HTTP front; with building processes, the rest is theirs)."""
+    cpu_s: dict[str, float] = field(default_factory=dict)
+    """CPU seconds (user + system) each measured part of the server used while the measured batches were
+    due (``Meters``)."""
     generator_cpu_s: float = math.nan
     dashboards_cpu_s: float = math.nan
     measured_wall_s: float = math.nan
+
+
+Meters = dict[str, Callable[[], float]]
+"""What the server's CPU is counted by: each part's cumulative CPU seconds."""
+
+
+def _cpu_of(pids: list[int], children: bool = False) -> float:
+    return sum(_cpu_seconds(pid, children) for pid in pids)
+
+
+def _postgres_cpu_seconds() -> float:
+    """Every PostgreSQL process on this machine (its backends serve the cluster's fronts and workers)."""
+    total = 0.0
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            text = stat.read_text()
+        except OSError:
+            continue
+        if text.split("(", 1)[1].startswith("postgres)"):
+            fields = text.rsplit(")", 1)[1].split()
+            total += (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    return total
 
 
 def _cpu_seconds(pid: int, children: bool = False) -> float:
@@ -295,24 +330,26 @@ def _dashboards(urls: list[str], n: int, since_ms: float, stop: Any, out: Any) -
 
 
 async def _drive(
-    port: int,
+    ports: list[int],
     keys: list[str],
     dashboard_keys: list[str],
     duration_s: float,
     n_dashboards: int,
     connections: int,
-    server_pid: int,
+    meters: Meters,
+    prefix: str = "",
 ) -> Results:
+    """The phones' connections are dealt round the ``ports`` (a cluster's fronts), the dashboards too."""
     n = len(keys)
     crowd = Crowd.create(n, seed=0)
     results = Results()
     pool: asyncio.Queue[Connection] = asyncio.Queue()
-    for _ in range(min(connections, n)):
-        reader, writer = await asyncio.open_connection("127.0.0.1", port)
-        pool.put_nowait(Connection(reader, writer))
+    for k in range(min(connections, n)):
+        pool.put_nowait(await Connection.open(ports[k % len(ports)]))
     buildings = len(dashboard_keys)
     lives = [
-        f"ws://127.0.0.1:{port}/v1/buildings/{_building(b, buildings)}/live?token={key}&batch=true"
+        f"ws://127.0.0.1:{ports[b % len(ports)]}/v1/buildings/{_building(b, buildings, prefix)}/live"
+        f"?token={key}&batch=true"
         for b, key in enumerate(dashboard_keys)
     ]
     context = multiprocessing.get_context("spawn")
@@ -328,7 +365,7 @@ async def _drive(
     def bodies(phone: int, seq: int, now_ms: int) -> bytes:
         # a phone hears the phones near it in its own building only
         heard = near[phone][building_of[near[phone]] == building_of[phone]]
-        return _body(crowd, phone, seq, now_ms, heard, _building(phone, buildings))
+        return _body(crowd, phone, seq, now_ms, heard, _building(phone, buildings, prefix))
 
     tasks: set[asyncio.Task[None]] = set()
     warmup_s = _warmup_s(duration_s)
@@ -337,12 +374,11 @@ async def _drive(
         conn = await pool.get()
         try:
             status = await conn.post(
-                f"/v1/buildings/{_building(phone, buildings)}/batches", keys[phone], body
+                f"/v1/buildings/{_building(phone, buildings, prefix)}/batches", keys[phone], body
             )
         except (ConnectionError, asyncio.IncompleteReadError):
             results.errors += 1
-            reader, writer = await asyncio.open_connection("127.0.0.1", port)
-            conn = Connection(reader, writer)
+            conn = await Connection.open(conn.port)
         else:
             if status != 200:
                 results.errors += 1
@@ -362,11 +398,10 @@ async def _drive(
         measure = second >= warmup_s
         if second == math.ceil(warmup_s):
             cpu_at = (
-                _cpu_seconds(server_pid, children=True),
+                {part: meter() for part, meter in meters.items()},
                 _cpu_seconds(os.getpid()),
                 time.perf_counter(),
                 _cpu_seconds(dashboards.pid or 0),
-                _cpu_seconds(server_pid),
             )
         for phone in np.argsort(phase):
             seq = second - int(joins[phone])
@@ -384,11 +419,10 @@ async def _drive(
         second += 1
     if tasks:
         await asyncio.wait(tasks, timeout=30.0)
-    results.server_cpu_s = _cpu_seconds(server_pid, children=True) - cpu_at[0]
+    results.cpu_s = {part: meter() - cpu_at[0][part] for part, meter in meters.items()}
     results.generator_cpu_s = _cpu_seconds(os.getpid()) - cpu_at[1]
     results.measured_wall_s = time.perf_counter() - cpu_at[2]
     results.dashboards_cpu_s = _cpu_seconds(dashboards.pid or 0) - cpu_at[3]
-    results.front_cpu_s = _cpu_seconds(server_pid) - cpu_at[4]
     stop.set()
     results.ws_lag_ms, results.dashboard_errors = receive_lags.recv()
     dashboards.join(timeout=30.0)
@@ -404,31 +438,25 @@ def _database(data_dir: Path, postgres: str | None) -> Iterator[str]:
     if postgres is None:
         yield f"sqlite:///{data_dir / 'crowdslam.sqlite3'}"
         return
-    name = f"crowdslam_load_{os.getpid()}_{time.monotonic_ns()}"
-    admin = make_engine(postgres, isolation_level="AUTOCOMMIT")
-    try:
-        with admin.connect() as conn:
-            conn.exec_driver_sql(f'CREATE DATABASE "{name}"')
-        yield make_url(postgres).set(database=name).render_as_string(hide_password=False)
-    finally:
-        with admin.connect() as conn:
-            conn.exec_driver_sql(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)')
-        admin.dispose()
+    with postgres_database(postgres, prefix="crowdslam_load") as url:
+        yield url
 
 
-def _prepare(database_url: str, n: int, buildings: int) -> tuple[list[str], list[str]]:
+def _prepare(database_url: str, n: int, buildings: int, prefix: str = "") -> tuple[list[str], list[str]]:
     """The buildings, a device key per phone (for its building) and a dashboard key per building."""
     engine = make_engine(database_url)
     upgrade(engine)
     with make_session_factory(engine).begin() as session:
         for b in range(buildings):
-            session.add(BuildingRow(id=_building(b, buildings), name="Load test", rotation_rad=0.0))
+            session.add(BuildingRow(id=_building(b, buildings, prefix), name="Load test", rotation_rad=0.0))
         session.flush()
         keys = [
-            mint_key(session, KeyScope.DEVICE, _building(i, buildings), f"load-{i:05d}")[0] for i in range(n)
+            mint_key(session, KeyScope.DEVICE, _building(i, buildings, prefix), f"load-{i:05d}")[0]
+            for i in range(n)
         ]
         dashboards = [
-            mint_key(session, KeyScope.DASHBOARD, _building(b, buildings))[0] for b in range(buildings)
+            mint_key(session, KeyScope.DASHBOARD, _building(b, buildings, prefix))[0]
+            for b in range(buildings)
         ]
     engine.dispose()
     return keys, dashboards
@@ -448,22 +476,127 @@ def run_one(
         port = free_port()
         env = {**os.environ, "CROWDSLAM_DATA_DIR": str(data_dir), "CROWDSLAM_DATABASE_URL": database_url}
         server = serve_process(env, port, data_dir / "server.log", log_level="warning")
+        pid = server.pid
+        meters: Meters = {
+            "server": lambda: _cpu_seconds(pid, children=True),
+            "front": lambda: _cpu_seconds(pid),
+        }
         try:
             started = time.perf_counter()
             results = asyncio.run(
-                _drive(port, keys, dashboards, duration_s, n_dashboards, connections, server.pid)
+                _drive([port], keys, dashboards, duration_s, n_dashboards, connections, meters)
             )
             elapsed = time.perf_counter() - started
         finally:
             server.terminate()
             server.wait(timeout=60)
+    row = _row(n, buildings, "sqlite" if postgres is None else "postgresql", duration_s, results, elapsed)
+    cpu, wall = results.cpu_s, results.measured_wall_s
+    row |= {
+        "server_cpu_ms_per_batch": round(1e3 * cpu["server"] / max(results.sent, 1), 3),
+        "server_cores": round(cpu["server"] / wall, 2),
+        "front_cores": round(cpu["front"] / wall, 2),
+        "building_cores": round((cpu["server"] - cpu["front"]) / wall, 2),
+    }
+    return row
+
+
+def run_cluster(
+    n: int,
+    duration_s: float,
+    n_dashboards: int,
+    connections: int,
+    buildings: int,
+    postgres: str,
+    fronts: int,
+    workers: int,
+    nats_url: str | None,
+) -> dict[str, Any]:
+    """One run on a cluster of ``fronts`` and ``workers`` processes, on a new database and on the NATS at
+    ``nats_url`` (default: a private ``nats-server -js`` started for the run)."""
+    prefix = f"r{os.getpid()}-{time.monotonic_ns() % 10**8}-"
+    with tempfile.TemporaryDirectory() as tmp, postgres_database(postgres, prefix="crowdslam_load") as url:
+        data_dir = Path(tmp)
+        keys, dashboards = _prepare(url, n, buildings, prefix)
+        with contextlib.ExitStack() as stack:
+            nats_pids: list[int] = []
+            if nats_url is None:
+                nats_port = free_port()
+                nats = nats_server(nats_port, data_dir / "nats", data_dir / "nats.log")
+                stack.callback(nats.wait, 30)
+                stack.callback(nats.terminate)
+                nats_url = f"nats://127.0.0.1:{nats_port}"
+                nats_pids = [nats.pid]
+            else:
+                nats_pids = _pids_named("nats-server")
+            env = {
+                **os.environ,
+                "CROWDSLAM_DATA_DIR": str(data_dir),
+                "CROWDSLAM_DATABASE_URL": url,
+                "CROWDSLAM_NATS_URL": nats_url,
+            }
+            worker_pids, front_pids, ports = [], [], []
+            for k in range(workers):
+                process = worker_process(env, data_dir / f"worker-{k}.log", log_level="warning")
+                stack.callback(_stop, process)
+                worker_pids.append(process.pid)
+            for k in range(fronts):
+                port = free_port()
+                process = serve_process(
+                    {**env, "CROWDSLAM_ROLE": "front"}, port, data_dir / f"front-{k}.log", log_level="warning"
+                )
+                stack.callback(_stop, process)
+                front_pids.append(process.pid)
+                ports.append(port)
+            meters: Meters = {
+                "fronts": lambda: _cpu_of(front_pids),
+                "workers": lambda: _cpu_of(worker_pids),
+                "nats": lambda: _cpu_of(nats_pids),
+                "postgresql": _postgres_cpu_seconds,
+            }
+            started = time.perf_counter()
+            results = asyncio.run(
+                _drive(ports, keys, dashboards, duration_s, n_dashboards, connections, meters, prefix)
+            )
+            elapsed = time.perf_counter() - started
+    row = _row(n, buildings, "postgresql", duration_s, results, elapsed)
+    row["cluster"] = {"fronts": fronts, "workers": workers}
+    total = sum(results.cpu_s.values())
+    row["cluster_cpu_ms_per_batch"] = round(1e3 * total / max(results.sent, 1), 3)
+    row["cluster_cores"] = round(total / results.measured_wall_s, 2)
+    for part, seconds in results.cpu_s.items():
+        row[f"{part}_cpu_ms_per_batch"] = round(1e3 * seconds / max(results.sent, 1), 3)
+        row[f"{part}_cores"] = round(seconds / results.measured_wall_s, 2)
+    return row
+
+
+def _stop(process: Any) -> None:
+    process.terminate()
+    try:
+        process.wait(timeout=60)
+    except Exception:
+        process.kill()
+
+
+def _pids_named(name: str) -> list[int]:
+    found = []
+    for comm in Path("/proc").glob("[0-9]*/comm"):
+        with contextlib.suppress(OSError):
+            if comm.read_text().strip() == name:
+                found.append(int(comm.parent.name))
+    return found
+
+
+def _row(
+    n: int, buildings: int, database: str, duration_s: float, results: Results, elapsed: float
+) -> dict[str, Any]:
     lat = np.array(results.latencies_ms) if results.latencies_ms else np.array([math.inf])
     lag = np.array(results.ws_lag_ms) if results.ws_lag_ms else np.array([math.inf])
     measured_s = duration_s - _warmup_s(duration_s)
     return {
         "phones": n,
         "buildings": buildings,
-        "database": "sqlite" if postgres is None else "postgresql",
+        "database": database,
         "offered_per_s": n,
         "batches_per_s": round(len(results.latencies_ms) / measured_s, 1),
         "p50_ms": round(float(np.percentile(lat, 50)), 1),
@@ -473,10 +606,6 @@ def run_one(
         "p50_ms_per_second": _p50_per_second(results),
         "ws_positions": len(results.ws_lag_ms),
         "errors": results.errors + len(results.dashboard_errors),
-        "server_cpu_ms_per_batch": round(1e3 * results.server_cpu_s / max(results.sent, 1), 3),
-        "server_cores": round(results.server_cpu_s / results.measured_wall_s, 2),
-        "front_cores": round(results.front_cpu_s / results.measured_wall_s, 2),
-        "building_cores": round((results.server_cpu_s - results.front_cpu_s) / results.measured_wall_s, 2),
         "generator_cores": round(results.generator_cpu_s / results.measured_wall_s, 2),
         "dashboards_cores": round(results.dashboards_cpu_s / results.measured_wall_s, 2),
         "dashboard_errors": results.dashboard_errors[:3],
@@ -513,11 +642,43 @@ def main() -> int:
         help="serve from PostgreSQL instead of SQLite: each run in a new database on this server (e.g. "
         "postgresql+psycopg://postgres@127.0.0.1:5432/test), dropped after it",
     )
+    parser.add_argument(
+        "--cluster",
+        metavar="FRONTS,WORKERS",
+        help="serve from a cluster of this many fronts and workers (needs --postgres); the phones' "
+        "connections and the dashboards are dealt round the fronts",
+    )
+    parser.add_argument(
+        "--nats", metavar="URL", help="the cluster's NATS (default: a private nats-server -js per run)"
+    )
     parser.add_argument("--json", type=Path, help="also write the result here")
     args = parser.parse_args()
+    cluster = None
+    if args.cluster is not None:
+        try:
+            fronts, workers = (int(x) for x in args.cluster.split(","))
+        except ValueError:
+            parser.error("--cluster takes FRONTS,WORKERS, e.g. 2,2")
+        if fronts < 1 or workers < 1:
+            parser.error("--cluster needs at least one front and one worker")
+        if args.postgres is None:
+            parser.error("--cluster needs --postgres (a cluster shares one PostgreSQL)")
+        cluster = (fronts, workers)
     rows = []
     for n in sorted(int(p) for p in args.phones.split(",")):
-        row = run_one(n, args.duration, args.dashboards, args.connections, args.buildings, args.postgres)
+        if cluster is None:
+            row = run_one(n, args.duration, args.dashboards, args.connections, args.buildings, args.postgres)
+        else:
+            row = run_cluster(
+                n,
+                args.duration,
+                args.dashboards,
+                args.connections,
+                args.buildings,
+                args.postgres,
+                *cluster,
+                args.nats,
+            )
         print(json.dumps(row), file=sys.stderr)
         rows.append(row)
     ok = [
