@@ -53,11 +53,11 @@ LAYERS: dict[str, list[list[str]]] = {
         ["sim"],
     ],
     "server": [
-        ["settings", "errors", "gc_tuning", "rate_limit", "live", "data", "dashboard", "cluster"],
+        ["settings", "errors", "gc_tuning", "rate_limit", "live", "data", "dashboard"],
         ["store", "engine"],
         ["auth", "ingestion", "recordings"],
         ["buildings"],
-        ["datasets", "simulation"],
+        ["datasets", "simulation", "cluster"],
         ["signal_maps", "replay", "metrics"],
         ["state"],
         ["api"],
