@@ -109,11 +109,12 @@ def test_a_worker_killed_while_phones_post_loses_nothing(tmp_path: Path) -> None
         ]
         assert after
         assert all(a.receipt.tracking and a.receipt.estimate is not None for a in after)  # type: ignore[union-attr]
-        stalled = [a for a in crowd.answers if a.status == 503]
-        assert stalled, "the kill went unnoticed: the test did not test failover"
-        # the takeover: within the lease's TTL, the balancing period and the building's restore
-        last_wait = max(a.at for a in stalled) - killed_at[0]
-        assert last_wait < LEASE_TTL_S + 10.0, last_wait
+        # the takeover: within the lease's TTL, the balancing period and the building's restore (the phones
+        # of those buildings waited for it, with or without a 503 on the way)
+        moved = sorted(a.at for a in crowd.answers if a.building in taken_over and a.at > killed_at[0])
+        assert moved
+        gaps = [later - earlier for earlier, later in zip([killed_at[0], *moved], moved, strict=False)]
+        assert max(gaps) < LEASE_TTL_S + 10.0, max(gaps)
 
 
 def test_a_front_killed_the_phones_go_to_the_other(tmp_path: Path) -> None:
