@@ -35,7 +35,8 @@ With ``--cluster FRONTS,WORKERS`` (and ``--postgres``), each N runs on a cluster
 ``crowdslam serve --role worker`` and ``--role front`` processes on a new database; the phones' connections
 and the dashboards are dealt round the fronts. The rows then split the CPU per batch and the cores by role:
 fronts, workers, NATS and PostgreSQL (every ``postgres`` process of the machine), and give their sum,
-``cluster_cpu_ms_per_batch``.
+``cluster_cpu_ms_per_batch``; the single process serves the same load on the same PostgreSQL first, and
+``cpu_vs_single_process`` is the ratio of the two costs (server and PostgreSQL).
 """
 
 from __future__ import annotations
@@ -481,6 +482,8 @@ def run_one(
             "server": lambda: _cpu_seconds(pid, children=True),
             "front": lambda: _cpu_seconds(pid),
         }
+        if postgres is not None:
+            meters["postgresql"] = _postgres_cpu_seconds
         try:
             started = time.perf_counter()
             results = asyncio.run(
@@ -498,6 +501,9 @@ def run_one(
         "front_cores": round(cpu["front"] / wall, 2),
         "building_cores": round((cpu["server"] - cpu["front"]) / wall, 2),
     }
+    if "postgresql" in cpu:
+        row["postgresql_cpu_ms_per_batch"] = round(1e3 * cpu["postgresql"] / max(results.sent, 1), 3)
+        row["postgresql_cores"] = round(cpu["postgresql"] / wall, 2)
     return row
 
 
@@ -537,7 +543,7 @@ def run_cluster(
             }
             worker_pids, front_pids, ports = [], [], []
             for k in range(workers):
-                process = worker_process(env, data_dir / f"worker-{k}.log", log_level="warning")
+                process = worker_process(env, data_dir / f"worker-{k}.log")
                 stack.callback(_stop, process)
                 worker_pids.append(process.pid)
             for k in range(fronts):
@@ -669,6 +675,11 @@ def main() -> int:
         if cluster is None:
             row = run_one(n, args.duration, args.dashboards, args.connections, args.buildings, args.postgres)
         else:
+            # the single process on the same PostgreSQL first: the cluster's cost is a ratio to it
+            single = run_one(
+                n, args.duration, args.dashboards, args.connections, args.buildings, args.postgres
+            )
+            print(json.dumps(single), file=sys.stderr)
             row = run_cluster(
                 n,
                 args.duration,
@@ -679,6 +690,18 @@ def main() -> int:
                 *cluster,
                 args.nats,
             )
+            one = single["server_cpu_ms_per_batch"] + single["postgresql_cpu_ms_per_batch"]
+            row["single_process"] = {
+                k: single[k]
+                for k in (
+                    "p50_ms",
+                    "p99_ms",
+                    "errors",
+                    "server_cpu_ms_per_batch",
+                    "postgresql_cpu_ms_per_batch",
+                )
+            }
+            row["cpu_vs_single_process"] = round(row["cluster_cpu_ms_per_batch"] / one, 2)
         print(json.dumps(row), file=sys.stderr)
         rows.append(row)
     ok = [

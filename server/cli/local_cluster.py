@@ -50,15 +50,16 @@ READY = b"serving buildings"
 
 
 def worker_process(
-    env: Mapping[str, str], log: Path, log_level: str = "info", start_timeout_s: float = 300.0
+    env: Mapping[str, str], log: Path, start_timeout_s: float = 300.0
 ) -> subprocess.Popen[bytes]:
     """``crowdslam serve --role worker`` (output appended to ``log``); returns once it is ready to take
-    buildings (a first start compiles the kernels). The caller stops it (SIGTERM hands its buildings off;
+    buildings (a first start compiles the kernels), which its log says at level info (a worker logs little
+    more: buildings taken, handed off, lost). The caller stops it (SIGTERM hands its buildings off;
     SIGKILL to test failover)."""
     offset = log.stat().st_size if log.exists() else 0
     with log.open("ab") as sink:
         process = subprocess.Popen(
-            [*CLI, "serve", "--role", "worker", "--log-level", log_level],
+            [*CLI, "serve", "--role", "worker", "--log-level", "info"],
             env={**env, "CROWDSLAM_ROLE": "worker"},
             stdout=sink,
             stderr=subprocess.STDOUT,
