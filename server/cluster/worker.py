@@ -24,6 +24,8 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
+import faulthandler
+import io
 import logging
 import math
 import os
@@ -68,6 +70,7 @@ expire: the takeover starts within this time after)."""
 MAX_IN_FLIGHT = 1024
 """Batches of a building read from the stream and not yet answered; reading waits beyond."""
 RESUME_AFTER_S = 1.0
+HAND_OFF_TIMEOUT_S = 60.0
 
 
 @dataclass
@@ -129,8 +132,12 @@ class ClusterWorker:
                 with contextlib.suppress(TimeoutError):
                     await asyncio.wait_for(stop.wait(), BALANCE_PERIOD_S)
         finally:
+            logger.info("worker %s: stopping; handing %d buildings off", self.worker_id, len(self.owned))
             for building_id in list(self.owned):
-                await self._hand_off(building_id)
+                try:
+                    await asyncio.wait_for(self._hand_off(building_id), HAND_OFF_TIMEOUT_S)
+                except TimeoutError:  # its lease expires: the next owner replays the batch log
+                    logger.error("worker %s: handing %s off timed out", self.worker_id, building_id)
             beating.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await beating
@@ -250,6 +257,7 @@ class ClusterWorker:
                 owned.gone = True
                 with contextlib.suppress(Exception):
                     await self.leases.release(owned.lease)
+            logger.info("worker %s: handed %s off", self.worker_id, building_id)
 
     async def _lose(self, building_id: str, why: str) -> None:
         """Drop a building that may be another worker's now: nothing more is written or answered for it."""
@@ -359,6 +367,15 @@ def live_sink(connection: Client) -> tuple[set[asyncio.Task[None]], Sink]:
     return sending, sink
 
 
+def log_tasks() -> None:
+    """SIGUSR1: log where every task of the worker waits (a worker that does not stop says why)."""
+    for task in asyncio.all_tasks():
+        stream = io.StringIO()
+        task.print_stack(file=stream)
+        logger.warning("task %s:\n%s", task.get_name(), stream.getvalue())
+    faulthandler.dump_traceback(all_threads=True)
+
+
 async def serve(settings: Settings) -> None:
     """The worker role, until SIGTERM or SIGINT (then every building is handed off)."""
     problem = settings.cluster_problem()
@@ -394,6 +411,7 @@ async def serve(settings: Settings) -> None:
             loop = asyncio.get_running_loop()
             for sig in (signal.SIGTERM, signal.SIGINT):
                 loop.add_signal_handler(sig, stop.set)
+            loop.add_signal_handler(signal.SIGUSR1, log_tasks)
             logger.info("worker %s: serving buildings (lease TTL %g s)", worker_id, settings.lease_ttl_s)
             try:
                 await worker.run(stop)

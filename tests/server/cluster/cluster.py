@@ -92,17 +92,25 @@ class Cluster:
         self.nats = nats_server(self.nats_port, self.root / "nats", self.root / "nats.log")
 
     def stop(self) -> None:
+        """SIGTERM to every process (a worker hands its buildings off); a process that does not stop within
+        a minute fails the test, after a worker has logged where its tasks wait."""
         for _, process in self.fronts:
             process.terminate()
         for process in self.workers:
             process.terminate()
+        hung = []
         for process in [p for _, p in self.fronts] + self.workers:
             try:
                 process.wait(timeout=60)
             except subprocess.TimeoutExpired:
+                hung.append(process.pid)
+                process.send_signal(signal.SIGUSR1)
+                time.sleep(1.0)
                 process.kill()
+                process.wait()
         self.nats.terminate()
         self.nats.wait(timeout=30)
+        assert not hung, f"processes {hung} did not stop on SIGTERM within 60 s\n{self.logs()}"
 
     def logs(self) -> str:
         return "\n".join(f"==> {p.name}\n{p.read_text()[-4000:]}" for p in sorted(self.root.glob("*.log")))
