@@ -42,9 +42,12 @@ class TrackingService:
         config: TrackingConfig,
         recordings: Path | None = None,
         processes: Settings | None = None,
+        kernel_threads: int | None = None,
     ) -> None:
-        """``processes``: run each building in a process of its own, configured by these settings."""
+        """``processes``: run each building in a process of its own, configured by these settings;
+        otherwise on a thread whose kernels use ``kernel_threads`` numba threads (None: numba's default)."""
         self._processes = processes
+        self._kernel_threads = kernel_threads
         self._config = config
         self._recordings = recordings
         self._sessions = sessions
@@ -73,7 +76,9 @@ class TrackingService:
                 building = await asyncio.to_thread(
                     BuildingTracking, building_id, self._sessions, self._config, recorder
                 )
-                worker = self._workers[building_id] = BuildingWorker(building, self._broadcaster)
+                worker = self._workers[building_id] = BuildingWorker(
+                    building, self._broadcaster, self._kernel_threads
+                )
         return worker
 
     def _exists(self, building_id: str) -> bool:

@@ -16,6 +16,8 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
+import numba
+
 from schemas.live import LiveMessage
 from server.buildings.counters import Counters
 from server.buildings.submissions import Submission
@@ -84,12 +86,23 @@ class LatencyWindow:
 
 
 class BuildingWorker:
-    def __init__(self, building: BuildingTracking, broadcaster: Broadcaster) -> None:
+    def __init__(
+        self, building: BuildingTracking, broadcaster: Broadcaster, kernel_threads: int | None = None
+    ) -> None:
+        """``kernel_threads``: the numba threads the building's kernels may use (default: numba's, every
+        core); a cluster worker gives each building one, as a building's process does."""
         self.building = building
         self._broadcaster = broadcaster
         self._queue: asyncio.Queue[_Pending] = asyncio.Queue()
+
+        def limit_kernel_threads() -> None:
+            if kernel_threads is not None:
+                numba.set_num_threads(kernel_threads)
+
         self._executor = ThreadPoolExecutor(
-            max_workers=1, thread_name_prefix=f"building-{building.building_id}"
+            max_workers=1,
+            thread_name_prefix=f"building-{building.building_id}",
+            initializer=limit_kernel_threads,
         )
         self._task = asyncio.get_running_loop().create_task(self._run())
         self.latency = LatencyWindow()

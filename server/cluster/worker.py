@@ -403,7 +403,11 @@ async def serve(settings: Settings) -> None:
             broadcaster.add_sink(sink)
             sessions = make_session_factory(engine)
             recordings = settings.recordings_dir if settings.record else None
-            tracking = TrackingService(sessions, broadcaster, tracking_config(settings), recordings)
+            # one numba thread a building: a worker is a process per core, its buildings its threads (numba's
+            # pool had its workers spin between the back-to-back launches of several buildings)
+            tracking = TrackingService(
+                sessions, broadcaster, tracking_config(settings), recordings, kernel_threads=1
+            )
             worker = ClusterWorker(
                 connection, stream, leases, members, tracking, sessions, settings.lease_ttl_s
             )
