@@ -10,7 +10,7 @@ from server.cluster.batch_stream import BatchStream, StreamedBatch
 from tests.server.cluster.local_nats import connect_or_skip
 
 
-def test_batches_are_stored_once_and_read_in_order_from_any_sequence() -> None:
+def test_a_buildings_batches_are_read_in_order_from_any_sequence() -> None:
     async def scenario() -> None:
         connection = await connect_or_skip()
         js = connection.jetstream()
@@ -42,7 +42,7 @@ def test_batches_are_stored_once_and_read_in_order_from_any_sequence() -> None:
             # and then gets what comes next, as it comes
             reader = asyncio.create_task(first(1, north[-1]))
             await asyncio.sleep(0.3)
-            await stream.publish(js, "mall:north", "b6", b"mall:north 6")
+            await stream.publish(js, "mall:north", b"mall:north 6")
             assert [b.body for b in await asyncio.wait_for(reader, timeout=10)] == [b"mall:north 6"]
         finally:
             await js.delete_stream(stream.name)
