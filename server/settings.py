@@ -184,8 +184,8 @@ class Settings(BaseSettings):
         default=3600.0,
         gt=0.0,
         description="Cluster: how long the batch stream keeps a batch. The stream is a transport, not the "
-        "record (the batch log in SQL is): a batch is acknowledged only once its worker committed it, and one "
-        "no worker applied within receipt_timeout_s was answered 503, so the phone sends it again.",
+        "record (the batch log in SQL is): a batch is acknowledged only once its worker committed it, and "
+        "one no worker applied within receipt_timeout_s was answered 503, so the phone sends it again.",
     )
     receipt_timeout_s: float = Field(
         default=15.0,
