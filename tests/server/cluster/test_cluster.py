@@ -36,56 +36,53 @@ def _check_nothing_lost_or_doubled(cluster: Cluster, crowd: Crowd) -> None:
             assert crowd.post_again(building, batch).status == "duplicate"
 
 
-def test_two_fronts_and_two_workers_serve_four_buildings(tmp_path: Path) -> None:
+class Dashboard:
+    """A dashboard on one front, noting the devices whose positions it is sent."""
+
+    def __init__(self, front: str, building: str, operator: str) -> None:
+        with httpx.Client(base_url=front, timeout=30.0) as client:
+            created = client.post(
+                f"/v1/buildings/{building}/keys",
+                json={"scope": "dashboard"},
+                headers={"Authorization": f"Bearer {operator}"},
+            )
+        self.key = created.json()["key"]
+        self.url = front.replace("http://", "ws://") + f"/v1/buildings/{building}/live"
+        self.seen: set[str] = set()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._watch)
+
+    def __enter__(self) -> Dashboard:
+        self._thread.start()
+        time.sleep(0.5)
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        time.sleep(1.0)
+        self._stop.set()
+        self._thread.join()
+
+    def _watch(self) -> None:
+        with websocket(self.url, subprotocols=["crowdslam.live", f"bearer.{self.key}"]) as socket:  # type: ignore[list-item]
+            while not self._stop.is_set():
+                try:
+                    frame = socket.recv(timeout=0.5)
+                except TimeoutError:
+                    continue
+                for line in str(frame).splitlines():
+                    message = json.loads(line)
+                    if message.get("type") == "position":
+                        self.seen.add(message["estimate"]["device_id"])
+
+
+def test_two_fronts_and_two_workers_serve_four_buildings_and_a_worker_killed_loses_nothing(
+    tmp_path: Path,
+) -> None:
     with local_cluster(tmp_path, fronts=2, workers=2) as cluster:
         crowd = Crowd(cluster, small_crowd(), BUILDINGS)
         crowd.prepare()
         owners = cluster.wait_until_shared(workers=2)
         assert Counter(owners.values()) == {cluster.workers[0].pid: 2, cluster.workers[1].pid: 2}
-        # a dashboard on the first front sees the positions of phones posting through the second
-        front = cluster.front_urls()[0]
-        with httpx.Client(base_url=front, timeout=30.0) as client:
-            created = client.post(
-                "/v1/buildings/hq/keys",
-                json={"scope": "dashboard"},
-                headers={"Authorization": f"Bearer {cluster.operator}"},
-            )
-        dashboard_key = created.json()["key"]
-        seen: set[str] = set()
-        stop = threading.Event()
-
-        def watch() -> None:
-            url = front.replace("http://", "ws://") + "/v1/buildings/hq/live"
-            with websocket(url, subprotocols=["crowdslam.live", f"bearer.{dashboard_key}"]) as socket:  # type: ignore[list-item]
-                while not stop.is_set():
-                    try:
-                        frame = socket.recv(timeout=0.5)
-                    except TimeoutError:
-                        continue
-                    for line in str(frame).splitlines():
-                        message = json.loads(line)
-                        if message.get("type") == "position":
-                            seen.add(message["estimate"]["device_id"])
-
-        watcher = threading.Thread(target=watch)
-        watcher.start()
-        time.sleep(0.5)
-        try:
-            crowd.post(every_s=0.01)
-        finally:
-            time.sleep(1.0)
-            stop.set()
-            watcher.join()
-        assert all(a.status == 200 for a in crowd.answers), Counter(a.status for a in crowd.answers)
-        _check_nothing_lost_or_doubled(cluster, crowd)
-        assert seen == set(crowd.keys["hq"])  # phones 0 and 2 post through one front, phone 1 the other
-
-
-def test_a_worker_killed_while_phones_post_loses_nothing(tmp_path: Path) -> None:
-    with local_cluster(tmp_path, fronts=2, workers=2) as cluster:
-        crowd = Crowd(cluster, small_crowd(), BUILDINGS)
-        crowd.prepare()
-        owners = cluster.wait_until_shared(workers=2)
         victim = cluster.workers[0]
         taken_over = sorted(b for b, pid in owners.items() if pid == victim.pid)
         killed_at: list[float] = []
@@ -95,7 +92,10 @@ def test_a_worker_killed_while_phones_post_loses_nothing(tmp_path: Path) -> None
                 killed_at.append(time.time())
                 cluster.kill(victim)
 
-        crowd.post(every_s=0.02, on_progress=kill_midway)
+        # a dashboard on the first front sees the positions of phones posting through the second
+        with Dashboard(cluster.front_urls()[0], "hq", cluster.operator) as dashboard:
+            crowd.post(every_s=0.02, on_progress=kill_midway)
+        assert dashboard.seen == set(crowd.keys["hq"])  # phones 0 and 2 post through one front, 1 the other
         assert killed_at
         assert len(taken_over) == 2
         _check_nothing_lost_or_doubled(cluster, crowd)
