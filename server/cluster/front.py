@@ -106,6 +106,7 @@ class ClusterBuildings:
             if building is None:
                 building = self._buildings[building_id] = RemoteBuilding(self, building_id, geo)
             building.geo = geo
+            building.created = row.created_at.isoformat()
             self._checked[building_id] = time.monotonic()
         return building
 
@@ -160,6 +161,8 @@ class RemoteBuilding:
         self.front = front
         self.building_id = building_id
         self.geo = geo
+        self.created = ""
+        """When the building's row was created: the batches carry it to the worker."""
         self.alive = True
         self.counters = Counters()
         self.latency = LatencyWindow()
@@ -181,7 +184,7 @@ class RemoteBuilding:
         try:
             try:
                 await self.front.stream.publish(
-                    self.front.js, self.building_id, messages.encode_batch(reply_to, fields)
+                    self.front.js, self.building_id, messages.encode_batch(reply_to, self.created, fields)
                 )
             except NatsError as exc:
                 raise ServiceUnavailableError(

@@ -11,14 +11,16 @@ from typing import Any
 from server.buildings.process import BatchFields, transportable
 
 
-def encode_batch(reply_to: str, fields: BatchFields) -> bytes:
-    """A batch in the stream: where its receipt goes, and the batch as the front converted it."""
-    return pickle.dumps((reply_to, fields), protocol=pickle.HIGHEST_PROTOCOL)
+def encode_batch(reply_to: str, building_created: str, fields: BatchFields) -> bytes:
+    """A batch in the stream: where its receipt goes, when its building was created (the stream may outlive a
+    database, and a building its id: a worker applies only batches posted to the building it holds), and
+    the batch as the front converted it."""
+    return pickle.dumps((reply_to, building_created, fields), protocol=pickle.HIGHEST_PROTOCOL)
 
 
-def decode_batch(data: bytes) -> tuple[str, BatchFields]:
-    reply_to, fields = pickle.loads(data)
-    return str(reply_to), fields
+def decode_batch(data: bytes) -> tuple[str, str, BatchFields]:
+    reply_to, building_created, fields = pickle.loads(data)
+    return str(reply_to), str(building_created), fields
 
 
 def encode_answer(value: object) -> bytes:

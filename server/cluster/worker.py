@@ -86,6 +86,10 @@ class Owned:
     window: asyncio.Semaphore = field(default_factory=lambda: asyncio.Semaphore(MAX_IN_FLIGHT))
     last_read: int = 0
     """The last stream sequence queued to the building: reading resumes after it (a NATS outage)."""
+    created: str = ""
+    """When the building's row was created: batches posted to an earlier building of the same id (a
+    database made anew under an old stream) are not its own."""
+    foreign: int = 0
     lease_turn: asyncio.Lock = field(default_factory=asyncio.Lock)
     gone: bool = False
 
@@ -208,7 +212,7 @@ class ClusterWorker:
                 worker = await self.tracking.worker(building_id)  # its snapshot and batch log, from SQL
                 assert isinstance(worker, BuildingWorker)  # a worker tracks on threads of its own process
                 owned.worker = worker
-                owned.last_read = await asyncio.to_thread(self._stream_position, building_id)
+                owned.last_read, owned.created = await asyncio.to_thread(self._stream_position, building_id)
 
                 async def call(msg: Msg) -> None:
                     await self._call(building_id, msg)
@@ -233,9 +237,13 @@ class ClusterWorker:
                 await self.tracking.unload(building_id, snapshot=False)
                 await self.leases.release(owned.lease)
 
-    def _stream_position(self, building_id: str) -> int:
+    def _stream_position(self, building_id: str) -> tuple[int, str]:
+        """The last stream sequence the building committed, and when its row was created."""
         with self.sessions() as session:
-            return repo.stream_position(session, building_id)
+            row = repo.get_building(session, building_id)
+            if row is None:
+                raise NotFoundError(f"no building {building_id!r}")
+            return repo.stream_position(session, building_id), row.created_at.isoformat()
 
     async def _hand_off(self, building_id: str) -> None:
         """Give the building up cleanly: stop reading, finish what was read, snapshot, release the lease."""
@@ -304,11 +312,24 @@ class ClusterWorker:
     def _queue(self, building_id: str, owned: Owned, item: StreamedBatch) -> None:
         assert owned.worker is not None
         try:
-            reply_to, fields = messages.decode_batch(item.body)
+            reply_to, created, fields = messages.decode_batch(item.body)
         except Exception:
             logger.exception(
                 "worker %s: message %d of %s is unreadable", self.worker_id, item.sequence, building_id
             )
+            owned.window.release()
+            return
+        if created != owned.created:
+            owned.foreign += 1
+            if owned.foreign == 1:
+                logger.warning(
+                    "worker %s: skipping batches posted to an earlier building %s (created %s, this one %s): "
+                    "the stream outlived its database",
+                    self.worker_id,
+                    building_id,
+                    created,
+                    owned.created,
+                )
             owned.window.release()
             return
         try:

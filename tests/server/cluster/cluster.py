@@ -137,6 +137,32 @@ class Cluster:
 
         return asyncio.run(read())
 
+    def publish_foreign(self, building: str, batch: SensorBatch) -> None:
+        """Put a batch in the stream as a front of an earlier database would have, for an earlier building of
+        the same id."""
+        import nats
+
+        from server.buildings.process import batch_fields
+        from server.buildings.submissions import Submission
+        from server.cluster import messages
+        from server.cluster.batch_stream import BatchStream
+
+        raw = batch.model_dump_json(exclude_none=True).encode()
+        body = messages.encode_batch(
+            "crowdslam.receipts.gone.0",
+            "1999-01-01T00:00:00+00:00",
+            batch_fields(Submission.of(batch, raw, time.time_ns())),
+        )
+
+        async def publish() -> None:
+            connection = await nats.connect(f"nats://127.0.0.1:{self.nats_port}", max_reconnect_attempts=0)
+            try:
+                await BatchStream().publish(connection.jetstream(), building, body)
+            finally:
+                await connection.close()
+
+        asyncio.run(publish())
+
     def owner_pids(self) -> dict[str, int | None]:
         return {b: None if o is None else int(o.split("-")[-2]) for b, o in self.owners().items()}
 
