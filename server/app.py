@@ -8,6 +8,7 @@ import logging
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from contextlib import asynccontextmanager
+from pathlib import Path
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -84,7 +85,7 @@ def create_app(settings: Settings, tune_gc: bool = False) -> FastAPI:
             broadcaster.add_sink(foxglove_live.publish)
         recordings = settings.recordings_dir if settings.record else None
         try:
-            tracking, disconnect = await _buildings(settings, sessions, broadcaster)
+            tracking, disconnect = await _buildings(settings, sessions, broadcaster, recordings)
         except BaseException:
             engine.dispose()  # and its checkpoint thread: a server that cannot track does not start
             raise
@@ -152,7 +153,7 @@ def create_app(settings: Settings, tune_gc: bool = False) -> FastAPI:
 
 
 async def _buildings(
-    settings: Settings, sessions: sessionmaker[Session], broadcaster: Broadcaster
+    settings: Settings, sessions: sessionmaker[Session], broadcaster: Broadcaster, recordings: Path | None
 ) -> tuple[Buildings, Callable[[], Awaitable[None]]]:
     """The buildings as this process reaches them, and what disconnects it from them once they are closed:
     tracked here (the embedded role: kernels compiled first), or by the cluster's workers (a front)."""
@@ -192,7 +193,6 @@ async def _buildings(
         await asyncio.to_thread(compile_kernels_in_child, settings)
     else:
         warm_kernels(tracker_params(settings), load_calibration(settings.encounter_calibration))
-    recordings = settings.recordings_dir if settings.record else None
     tracking = TrackingService(
         sessions,
         broadcaster,

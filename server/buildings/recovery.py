@@ -271,8 +271,7 @@ class RecoverableBuilding:
 
     def abandon(self) -> None:
         """Stop without writing anything: the building is another worker's now (its lease was lost)."""
-        self._background.discard()
-        self._background.close()
+        self._background.close()  # drops the pending snapshot unwritten
 
     def snapshot(self, clear_log: bool = False) -> None:
         """Snapshot now (on load, after operator edits, at shutdown); with ``clear_log`` the bodies it

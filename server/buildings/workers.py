@@ -154,11 +154,7 @@ class BuildingWorker:
                     self._executor, self._process, [p.submission for p in group]
                 )
             except asyncio.CancelledError:  # stopped: nobody waits for a group that may never be answered
-                for p in group:
-                    if not p.future.done():
-                        p.future.set_exception(
-                            ServiceUnavailableError(f"building {self.building.building_id!r} stopped", 1.0)
-                        )
+                self._fail_stopped(group)
                 raise
             except Exception as exc:
                 for p in group:
@@ -192,19 +188,19 @@ class BuildingWorker:
         """Stop without a snapshot: the building is another worker's now (cluster mode)."""
         await self._stop(self.building.abandon)
 
+    def _fail_stopped(self, pending: list[_Pending]) -> None:
+        """Answer batches the stopped building will not apply: send them again (to its next owner)."""
+        stopped = ServiceUnavailableError(f"building {self.building.building_id!r} stopped; send again", 1.0)
+        for p in pending:
+            if not p.future.done():
+                p.future.set_exception(stopped)
+
     async def _stop(self, last: Callable[[], None]) -> None:
         self.alive = False
         self._task.cancel()
         with contextlib.suppress(asyncio.CancelledError):
             await self._task
-        while not self._queue.empty():
-            pending = self._queue.get_nowait()
-            if not pending.future.done():
-                pending.future.set_exception(
-                    ServiceUnavailableError(
-                        f"building {self.building.building_id!r} stopped; send again", 1.0
-                    )
-                )
+        self._fail_stopped([self._queue.get_nowait() for _ in range(self._queue.qsize())])
         await asyncio.get_running_loop().run_in_executor(self._executor, last)
         self._executor.shutdown(wait=True)
         if self.building.recorder is not None:

@@ -31,15 +31,15 @@ from server.buildings.submissions import Submission
 from server.buildings.workers import CALLS, LatencyWindow, Worker
 from server.cluster import messages
 from server.cluster.batch_stream import BatchStream
+from server.cluster.live_relay import LiveRelay
 from server.cluster.names import (
     LIVE_SUBJECTS,
     calls_subject,
-    live_subject,
     receipts_subject,
     token_building,
 )
 from server.errors import NotFoundError, ServiceUnavailableError
-from server.live.broadcast import Broadcaster, live_json
+from server.live.broadcast import Broadcaster
 from server.store import repositories as repo
 from slam_core.geo import GeoFrame
 
@@ -75,6 +75,7 @@ class ClusterBuildings:
         self._requests = itertools.count()
         self.waiting: dict[int, asyncio.Future[bytes]] = {}
         self._subscriptions: list[Subscription] = []
+        self.relay = LiveRelay(connection)
 
     @classmethod
     async def start(
@@ -146,6 +147,7 @@ class ClusterBuildings:
         self._broadcaster.publish_texts(building_id, messages.decode_live(msg.data))
 
     async def close(self) -> None:
+        await self.relay.flush()
         for subscription in self._subscriptions:
             await subscription.unsubscribe()
         for future in self.waiting.values():
@@ -168,7 +170,6 @@ class RemoteBuilding:
         self.latency = LatencyWindow()
         """Here: the time from publishing a batch to its receipt."""
         self.group_sizes = LatencyWindow()
-        self._publishing: set[asyncio.Task[None]] = set()
         self._waiting = 0
 
     @property
@@ -238,14 +239,7 @@ class RemoteBuilding:
 
     def publish(self, messages_: list[LiveMessage]) -> None:
         """Messages an operator's call returned, to every front's dashboards."""
-        if not messages_:
-            return
-        data = messages.encode_live([live_json(m) for m in messages_])
-        task = asyncio.get_running_loop().create_task(
-            self.front.connection.publish(live_subject(self.building_id), data)
-        )
-        self._publishing.add(task)
-        task.add_done_callback(self._publishing.discard)
+        self.front.relay(self.building_id, messages_)
 
     async def close(self) -> None:
         return None

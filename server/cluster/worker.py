@@ -42,7 +42,6 @@ from nats.aio.msg import Msg
 from nats.aio.subscription import Subscription
 from sqlalchemy.orm import Session, sessionmaker
 
-from schemas.live import LiveMessage
 from server.buildings.process import received_batch
 from server.buildings.registry import TrackingService
 from server.buildings.tracking import tracking_config
@@ -51,12 +50,13 @@ from server.cluster import messages
 from server.cluster.batch_stream import BatchStream, StreamedBatch
 from server.cluster.connection import connect
 from server.cluster.leases import Lease, LeaseLostError, Leases
+from server.cluster.live_relay import LiveRelay
 from server.cluster.members import Members
-from server.cluster.names import calls_subject, live_subject
+from server.cluster.names import calls_subject
 from server.engine.config import load_calibration, tracker_params
 from server.engine.warmup import warm_kernels
 from server.errors import NotFoundError, ProblemError
-from server.live.broadcast import Broadcaster, Sink, live_json
+from server.live.broadcast import Broadcaster
 from server.settings import Settings
 from server.store import repositories as repo
 from server.store.db import make_engine, make_session_factory
@@ -375,19 +375,6 @@ class ClusterWorker:
         await msg.respond(messages.encode_answer(value))
 
 
-def live_sink(connection: Client) -> tuple[set[asyncio.Task[None]], Sink]:
-    """A broadcaster sink publishing each building's live messages to every front."""
-    sending: set[asyncio.Task[None]] = set()
-
-    def sink(building_id: str, live: list[LiveMessage]) -> None:
-        data = messages.encode_live([live_json(m) for m in live])
-        task = asyncio.get_running_loop().create_task(connection.publish(live_subject(building_id), data))
-        sending.add(task)
-        task.add_done_callback(sending.discard)
-
-    return sending, sink
-
-
 def log_tasks() -> None:
     """SIGUSR1: log where every task of the worker waits (a worker that does not stop says why)."""
     for task in asyncio.all_tasks():
@@ -420,8 +407,8 @@ async def serve(settings: Settings) -> None:
             leases = await Leases.open(js, worker_id, settings.lease_ttl_s)
             members = await Members.open(js, worker_id, settings.lease_ttl_s)
             broadcaster = Broadcaster()
-            sending, sink = live_sink(connection)
-            broadcaster.add_sink(sink)
+            relay = LiveRelay(connection)
+            broadcaster.add_sink(relay)
             sessions = make_session_factory(engine)
             recordings = settings.recordings_dir if settings.record else None
             # one numba thread a building: a worker is a process per core, its buildings its threads (numba's
@@ -442,8 +429,7 @@ async def serve(settings: Settings) -> None:
                 await worker.run(stop)
             finally:
                 await tracking.close()
-                if sending:
-                    await asyncio.gather(*sending, return_exceptions=True)
+                await relay.flush()
         finally:
             with contextlib.suppress(Exception):
                 await connection.drain()
