@@ -1,10 +1,11 @@
 """Building benchmark: one building's batch path without HTTP, the part of the server that holds one core.
 
     python bench/building.py [--phones 1000] [--seconds 20] [--group 32] [--path process|thread|both]
-                             [--json OUT] [--profile OUT.prof]
+                             [--postgres URL] [--json OUT] [--profile OUT.prof]
 
 A building's tracking as its own process builds it (``server.buildings.tracking.open_building``: SQLite,
-its write-ahead log checkpointed by a thread beside the batch path, recording on: the server's defaults) is
+its write-ahead log checkpointed by a thread beside the batch path, recording on: the server's defaults; with
+``--postgres``, a new database on that PostgreSQL server, as a cluster's worker holds it) is
 fed the load benchmark's phones (``bench/load.py``: a batch per phone per second, two steps, a WiFi scan every
 2 s, Bluetooth sightings) in groups of ``--group`` batches, the way the building's worker drains its queue
 under load. Every phone posts its fix first; the figures count the seconds after that. Prints one JSON object:
@@ -29,6 +30,7 @@ full pass of the cyclic collector, tuned as in the server: start-up objects froz
 from __future__ import annotations
 
 import argparse
+import contextlib
 import cProfile
 import gc
 import pickle
@@ -58,6 +60,7 @@ from server.buildings import snapshot as tracker_snapshot
 from server.buildings.process import batch_fields, received_batch
 from server.buildings.submissions import Submission
 from server.buildings.tracking import open_building
+from server.cli.local_cluster import postgres_database
 from server.errors import ProblemError
 from server.gc_tuning import tune_gc_for_serving
 from server.ingestion.decoding import decode_batch
@@ -71,9 +74,17 @@ THREADS = numba.get_num_threads()
 (``server.buildings.process.serve_building``), and so does this benchmark on the ``process`` path."""
 
 
-def run(phones: int, seconds: int, group: int, path: str, profile: Path | None) -> dict[str, object]:
-    with tempfile.TemporaryDirectory() as tmp:
-        settings = Settings(data_dir=Path(tmp), database_url=f"sqlite:///{Path(tmp) / 'crowdslam.sqlite3'}")
+def run(
+    phones: int, seconds: int, group: int, path: str, profile: Path | None, postgres: str | None
+) -> dict[str, object]:
+    with contextlib.ExitStack() as stack:
+        tmp = stack.enter_context(tempfile.TemporaryDirectory())
+        url = (
+            stack.enter_context(postgres_database(postgres, "bench_building"))
+            if postgres
+            else f"sqlite:///{Path(tmp) / 'crowdslam.sqlite3'}"
+        )
+        settings = Settings(data_dir=Path(tmp), database_url=url)
         engine = make_engine(settings.resolved_database_url)
         upgrade(engine)
         with make_session_factory(engine).begin() as s:
@@ -165,6 +176,7 @@ def run(phones: int, seconds: int, group: int, path: str, profile: Path | None) 
         "full_gc_ms": round(gc_s * 1e3, 1),
         "fingerprint_fixes": building.counters.fingerprint_fixes,
         "encounters": building.counters.encounters,
+        "database": "postgresql" if postgres else "sqlite",
     }
 
 
@@ -200,12 +212,15 @@ def main() -> int:
         default="process",
         help="batches converted by the front of a building process, or by the building itself",
     )
+    parser.add_argument(
+        "--postgres", metavar="URL", help="a PostgreSQL server whose databases may be created and dropped"
+    )
     parser.add_argument("--json", type=Path, help="also write the result here")
     parser.add_argument("--profile", type=Path, help="write a cProfile of the measured seconds here")
     args = parser.parse_args()
     if args.phones < 1 or args.seconds < 1 or args.group < 1:
         parser.error("--phones, --seconds and --group must be at least 1")
-    result = run(args.phones, args.seconds, args.group, args.path, args.profile)
+    result = run(args.phones, args.seconds, args.group, args.path, args.profile, args.postgres)
     emit(result, args.json)
     return 0
 

@@ -42,7 +42,7 @@ from schemas.live import LiveMessage
 from server.buildings.counters import Counters
 from server.buildings.submissions import BatchHeader, Submission
 from server.buildings.tracking import BuildingTracking, open_building
-from server.buildings.workers import CALLS, MAX_GROUP, LatencyWindow
+from server.buildings.workers import CALLS, MAX_GROUP, GroupPacing, LatencyWindow
 from server.engine.warmup import warm_kernels_for
 from server.errors import InvalidInputError, ProblemError, ServiceUnavailableError
 from server.gc_tuning import tune_gc_for_serving
@@ -82,18 +82,26 @@ class FrameReader:
             frame = self._buffered()
             if frame is not _NONE:
                 return frame
-            if not self._read(wait=True):
+            if self._read(None) is None:
                 return None
 
-    def ready(self) -> Any | None:
-        """The next frame if one has arrived (buffered, or waiting in the socket), else ``_NONE``; None when
-        the other end has gone."""
-        frame = self._buffered()
-        if frame is not _NONE:
-            return frame
-        if not self._read(wait=False):
-            return None
-        return self._buffered()
+    def ready(self, timeout_s: float = 0.0) -> Any | None:
+        """The next frame if one has arrived (buffered, or waiting in the socket) or arrives within
+        ``timeout_s``, else ``_NONE``; None when the other end has gone."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            frame = self._buffered()
+            if frame is not _NONE:
+                return frame
+            got = self._read(max(0.0, deadline - time.monotonic()))
+            if got is None:
+                return None
+            if not got:
+                return _NONE
+
+    def pending(self) -> bool:
+        """Whether a frame, or part of one, has arrived and not been taken."""
+        return len(self._buffer) > self._offset or bool(select.select([self.sock], [], [], 0)[0])
 
     def _buffered(self) -> Any:
         start = self._offset + _HEADER.size
@@ -105,16 +113,17 @@ class FrameReader:
         self._offset = end
         return pickle.loads(self._buffer[start:end])
 
-    def _read(self, wait: bool) -> bool:
-        """Append what the socket holds (``wait``: once something does); False when the other end has gone."""
+    def _read(self, timeout_s: float | None) -> bool | None:
+        """Append what the socket holds once it holds something (``timeout_s``: waiting that long at most,
+        None: for as long as it takes): whether anything came; None when the other end has gone."""
         if self._closed:
+            return None
+        if timeout_s is not None and not select.select([self.sock], [], [], timeout_s)[0]:
             return False
-        if not wait and not select.select([self.sock], [], [], 0)[0]:
-            return True
         chunk = self.sock.recv(self.CHUNK)
         if not chunk:
             self._closed = True
-            return False
+            return None
         del self._buffer[: self._offset]
         self._offset = 0
         self._buffer += chunk
@@ -174,21 +183,27 @@ class _BuildingLoop:
         self.building = building
         self.sock = sock
         self.batches: list[tuple[int, BatchFields]] = []
+        self.reader = FrameReader(sock)
+        self.pacing = GroupPacing(building.group_linger_s)
 
     def run(self) -> None:
-        reader = FrameReader(self.sock)
+        reader = self.reader
         while True:
             frame = reader.next()
             if frame is None:  # the front is gone without closing us: a crash, nothing more to write
                 return
             frames = [frame]
+            now = time.monotonic()
+            deadline = now + self.pacing.wait_s(now) if frame[0] == "batch" else now
             while len(self.batches) + len(frames) < MAX_GROUP:
-                more = reader.ready()
+                more = reader.ready(max(0.0, deadline - time.monotonic()))
                 if more is None:
                     return
                 if more is _NONE:
                     break
                 frames.append(more)
+                if more[0] != "batch":  # a call waits: no more lingering
+                    deadline = 0.0
             for f in frames:
                 if f[0] == "batch":
                     self.batches.append((f[1], f[2:]))
@@ -221,6 +236,7 @@ class _BuildingLoop:
         self.batches = []
         messages: list[str] = []
         if group:
+            self.pacing.start(time.monotonic())
             try:
                 result = self.building.process(group)
             except Exception as exc:  # as the in-process worker: every batch of the group fails with it
@@ -231,6 +247,7 @@ class _BuildingLoop:
                         receipt if isinstance(receipt, ProblemError) else receipt.model_dump_json().encode()
                     )
                 messages = [live_json(m) for m in result.messages]
+            self.pacing.end(len(group), self.reader.pending())
         seconds = time.perf_counter() - started
         _send(self.sock, ("group", list(answers.items()), messages, self.building.counters, seconds))
 

@@ -53,6 +53,7 @@ class RecoverableBuilding:
         self.retention = config.retention
         self._last_heard: dict[str, float] = {}  # user -> wall time of its last applied batch
         self.snapshot_period_s = config.snapshot_period_s
+        self.group_linger_s = config.group_linger_s
         self._sessions = sessions
         self.counters = Counters()
         self.restore_problem: str | None = None

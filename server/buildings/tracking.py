@@ -453,6 +453,7 @@ def tracking_config(settings: Settings) -> TrackingConfig:
         retention,
         settings.data_dir / "signal_maps",
         settings.extent_margin_m,
+        settings.group_linger_ms / 1000.0,
     )
 
 

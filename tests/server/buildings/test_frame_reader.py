@@ -1,11 +1,13 @@
 """The building process reads the front's frames in large chunks (``FrameReader``): every frame comes back
 whole and in order however the bytes arrive (split anywhere, many in one read, larger than a read), ``ready``
-never waits, and the other end going away ends the stream (mid-frame too)."""
+waits no longer than it is told (a group's linger), ``pending`` sees a frame begun, and the other end going
+away ends the stream (mid-frame too)."""
 
 from __future__ import annotations
 
 import socket
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -66,4 +68,35 @@ def test_a_frame_cut_off_by_the_other_end_going_away_ends_the_stream() -> None:
     reader = FrameReader(building)
     assert reader.next() == message
     assert reader.next() is None
+    building.close()
+
+
+def test_ready_waits_its_timeout_for_a_frame_and_no_longer() -> None:
+    front, building = socket.socketpair()
+    reader = FrameReader(building)
+    first, second = _frames(2)
+    started = time.monotonic()
+    assert reader.ready(0.15) is _NONE
+    assert time.monotonic() - started >= 0.15
+    wire = _frame(first)
+    # a frame that arrives in two pieces within the wait is taken whole, as soon as it is complete
+    sender = threading.Timer(0.05, lambda: front.sendall(wire[:3]))
+    rest = threading.Timer(0.1, lambda: front.sendall(wire[3:]))
+    sender.start()
+    rest.start()
+    started = time.monotonic()
+    assert reader.ready(5.0) == first
+    assert time.monotonic() - started < 2.0
+    sender.join()
+    rest.join()
+    assert not reader.pending()
+    front.sendall(_frame(second)[:4])
+    assert reader.ready() is _NONE
+    assert reader.pending()  # begun, not whole
+    front.sendall(_frame(second)[4:])
+    assert reader.pending()
+    assert reader.ready(1.0) == second
+    assert not reader.pending()
+    front.close()
+    assert reader.ready(1.0) is None
     building.close()
