@@ -8,7 +8,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -28,6 +28,28 @@ def free_port(host: str = "127.0.0.1") -> int:
 
 class ServerDidNotStartError(RuntimeError):
     pass
+
+
+def wait_until_ready(
+    process: subprocess.Popen[bytes],
+    name: str,
+    log: Path,
+    ready: Callable[[], bool],
+    timeout_s: float,
+    poll_s: float = 0.1,
+) -> subprocess.Popen[bytes]:
+    """``process`` once ``ready()`` says so. ``ServerDidNotStartError`` with its log if it exits first;
+    killed, and the same error, if it is not ready within ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if process.poll() is not None:
+            raise ServerDidNotStartError(f"{name} exited with {process.returncode}:\n{log.read_text()}")
+        if ready():
+            return process
+        time.sleep(poll_s)
+    process.kill()
+    process.wait()
+    raise ServerDidNotStartError(f"{name} was not ready within {timeout_s:.0f} s")
 
 
 @contextmanager
@@ -78,17 +100,11 @@ def serve_process(
             stdout=sink,
             stderr=subprocess.STDOUT,
         )
-    deadline = time.monotonic() + start_timeout_s
-    while time.monotonic() < deadline:
-        if process.poll() is not None:
-            raise ServerDidNotStartError(
-                f"crowdslam serve exited with {process.returncode}:\n{log.read_text()}"
-            )
+
+    def answers() -> bool:
         try:
-            if httpx.get(f"http://{host}:{port}/healthz", timeout=1.0).status_code == 200:
-                return process
+            return httpx.get(f"http://{host}:{port}/healthz", timeout=1.0).status_code == 200
         except httpx.TransportError:
-            time.sleep(0.2)
-    process.kill()
-    process.wait()
-    raise ServerDidNotStartError(f"crowdslam serve did not answer within {start_timeout_s:.0f} s")
+            return False
+
+    return wait_until_ready(process, "crowdslam serve", log, answers, start_timeout_s, poll_s=0.2)

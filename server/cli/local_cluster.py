@@ -15,7 +15,7 @@ from pathlib import Path
 
 from sqlalchemy import make_url
 
-from server.cli.background_server import CLI, ServerDidNotStartError
+from server.cli.background_server import CLI, ServerDidNotStartError, wait_until_ready
 from server.store.db import make_engine
 
 
@@ -33,16 +33,13 @@ def nats_server(port: int, store: Path, log: Path, start_timeout_s: float = 20.0
             stdout=sink,
             stderr=subprocess.STDOUT,
         )
-    deadline = time.monotonic() + start_timeout_s
-    while time.monotonic() < deadline:
-        if process.poll() is not None:
-            raise ServerDidNotStartError(f"nats-server exited with {process.returncode}:\n{log.read_text()}")
+
+    def accepts() -> bool:
         with contextlib.suppress(OSError), socket.create_connection(("127.0.0.1", port), timeout=0.5):
-            return process
-        time.sleep(0.1)
-    process.kill()
-    process.wait()
-    raise ServerDidNotStartError(f"nats-server did not accept connections within {start_timeout_s:.0f} s")
+            return True
+        return False
+
+    return wait_until_ready(process, "nats-server", log, accepts, start_timeout_s)
 
 
 READY = b"serving buildings"
@@ -64,16 +61,11 @@ def worker_process(
             stdout=sink,
             stderr=subprocess.STDOUT,
         )
-    deadline = time.monotonic() + start_timeout_s
-    while time.monotonic() < deadline:
-        if process.poll() is not None:
-            raise ServerDidNotStartError(f"the worker exited with {process.returncode}:\n{log.read_text()}")
-        if READY in log.read_bytes()[offset:]:
-            return process
-        time.sleep(0.1)
-    process.kill()
-    process.wait()
-    raise ServerDidNotStartError(f"the worker was not ready within {start_timeout_s:.0f} s")
+
+    def logged_ready() -> bool:
+        return READY in log.read_bytes()[offset:]
+
+    return wait_until_ready(process, "the worker", log, logged_ready, start_timeout_s)
 
 
 @contextlib.contextmanager

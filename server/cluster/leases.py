@@ -2,18 +2,15 @@
 expire ``ttl_s`` after their last write. A worker takes a free building with ``create`` (it fails when the
 key holds a live lease), keeps it by rewriting it with compare-and-swap on its revision (``update``: a lease
 someone else took since fails), and a worker that dies stops rewriting, so its leases expire within ``ttl_s``
-and another worker's ``create`` succeeds. The bucket's own expiry (``max_age``) serves as the TTL: per-key
-TTL markers need nats-server 2.11, and every lease has the same TTL anyway."""
+and another worker's ``create`` succeeds (``server.cluster.ttl_buckets``)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 from nats.js import JetStreamContext
-from nats.js.api import KeyValueConfig
 from nats.js.errors import (
     BadRequestError,
-    BucketNotFoundError,
     KeyDeletedError,
     KeyNotFoundError,
     KeyWrongLastSequenceError,
@@ -21,6 +18,7 @@ from nats.js.errors import (
 from nats.js.kv import KeyValue
 
 from server.cluster.names import building_token
+from server.cluster.ttl_buckets import ttl_bucket
 
 BUCKET = "crowdslam-leases"
 WRONG_LAST_SEQUENCE = 10071
@@ -33,10 +31,6 @@ class LeaseLostError(RuntimeError):
     def __init__(self, building_id: str, owner: str) -> None:
         super().__init__(f"{owner} no longer holds the lease on building {building_id!r}")
         self.building_id = building_id
-
-
-class LeaseBucketMismatchError(RuntimeError):
-    """The bucket exists with another TTL: workers that disagree on the TTL would take buildings too early."""
 
 
 @dataclass(frozen=True)
@@ -55,16 +49,7 @@ class Leases:
     @classmethod
     async def open(cls, js: JetStreamContext, owner: str, ttl_s: float, bucket: str = BUCKET) -> Leases:
         """The lease bucket, created with ``ttl_s`` if it does not exist yet."""
-        try:
-            kv = await js.key_value(bucket)
-        except BucketNotFoundError:
-            kv = await js.create_key_value(KeyValueConfig(bucket=bucket, ttl=ttl_s, history=1))
-        status = await kv.status()
-        if status.ttl is not None and abs(status.ttl - ttl_s) > 1e-3:
-            raise LeaseBucketMismatchError(
-                f"lease bucket {bucket!r} has a TTL of {status.ttl:g} s, this worker's is {ttl_s:g} s: "
-                "every worker must use the same CROWDSLAM_LEASE_TTL_S"
-            )
+        kv = await ttl_bucket(js, bucket, ttl_s)
         return cls(kv, owner)
 
     async def acquire(self, building_id: str) -> Lease | None:

@@ -4,9 +4,10 @@ after its last heartbeat. Workers share the buildings out by their number (``ser
 from __future__ import annotations
 
 from nats.js import JetStreamContext
-from nats.js.api import KeyValueConfig
-from nats.js.errors import BucketNotFoundError, NoKeysError
+from nats.js.errors import NoKeysError
 from nats.js.kv import KeyValue
+
+from server.cluster.ttl_buckets import ttl_bucket
 
 BUCKET = "crowdslam-workers"
 
@@ -18,11 +19,7 @@ class Members:
 
     @classmethod
     async def open(cls, js: JetStreamContext, worker_id: str, ttl_s: float, bucket: str = BUCKET) -> Members:
-        try:
-            kv = await js.key_value(bucket)
-        except BucketNotFoundError:
-            kv = await js.create_key_value(KeyValueConfig(bucket=bucket, ttl=ttl_s, history=1))
-        return cls(kv, worker_id)
+        return cls(await ttl_bucket(js, bucket, ttl_s), worker_id)
 
     async def heartbeat(self) -> None:
         await self.kv.put(self.worker_id, b"")

@@ -12,8 +12,10 @@ from contextlib import asynccontextmanager
 import pytest
 from nats.js import JetStreamContext
 
-from server.cluster.leases import LeaseBucketMismatchError, LeaseLostError, Leases
+from server.cluster.leases import LeaseLostError, Leases
+from server.cluster.members import Members
 from server.cluster.names import building_token
+from server.cluster.ttl_buckets import BucketTTLMismatchError
 from tests.server.cluster.local_nats import connect_or_skip
 
 TTL_S = 2.0
@@ -93,8 +95,16 @@ def test_workers_must_agree_on_the_ttl() -> None:
     async def scenario() -> None:
         async with jetstream() as (js, bucket):
             await Leases.open(js, "worker-a", TTL_S, bucket)
-            with pytest.raises(LeaseBucketMismatchError, match="same CROWDSLAM_LEASE_TTL_S"):
+            with pytest.raises(BucketTTLMismatchError, match="same CROWDSLAM_LEASE_TTL_S"):
                 await Leases.open(js, "worker-b", 2 * TTL_S, bucket)
+            # the heartbeats' bucket too: a worker with a longer TTL would count a gone one as live
+            members = f"{bucket}-members"
+            try:
+                await Members.open(js, "worker-a", TTL_S, members)
+                with pytest.raises(BucketTTLMismatchError, match="same CROWDSLAM_LEASE_TTL_S"):
+                    await Members.open(js, "worker-b", 2 * TTL_S, members)
+            finally:
+                await js.delete_key_value(members)
 
     asyncio.run(scenario())
 
