@@ -8,7 +8,7 @@ from collections.abc import Collection, Mapping, Sequence
 from datetime import UTC, datetime
 from typing import Any, cast
 
-from sqlalchemy import ColumnElement, CursorResult, delete, func, insert, select, update
+from sqlalchemy import ColumnElement, CursorResult, Table, delete, func, insert, select, update
 from sqlalchemy.orm import Session
 
 from server.store.db import execute_many, insert_once, upsert
@@ -91,11 +91,14 @@ def advance_stream_position(session: Session, building_id: str, sequence: int) -
     """Record ``sequence`` as applied, in the caller's transaction; ``StaleStreamPositionError`` unless it is
     after the stored one (the transaction is then to be rolled back: its batches were applied before)."""
     now = datetime.now(UTC)
+    table = cast("Table", StreamPositionRow.__table__)
+    # a Core statement on the session's connection: through the ORM (its session synchronisation) the same
+    # update cost ~0.3 ms more CPU, once a group
     moved = cast(
         "CursorResult[Any]",
-        session.execute(
-            update(StreamPositionRow)
-            .where(StreamPositionRow.building_id == building_id, StreamPositionRow.sequence < sequence)
+        session.connection().execute(
+            update(table)
+            .where(table.c.building_id == building_id, table.c.sequence < sequence)
             .values(sequence=sequence, updated_at=now)
         ),
     )
