@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import time
 
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
@@ -9,7 +11,7 @@ from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from schemas.live import HeartbeatMessage
 from server.api.deps import token_principal
 from server.errors import ProblemError
-from server.live.broadcast import Chunk, live_json
+from server.live.broadcast import Chunk, Subscription, live_json
 from server.state import AppState
 from server.store import repositories as repo
 
@@ -86,11 +88,14 @@ async def _serve(
 ) -> None:
     await websocket.accept(subprotocol=chosen_subprotocol(websocket))
     sub = state.broadcaster.subscribe(building_id)
+    watcher = asyncio.create_task(_close_when_gone(websocket, sub))
     reported = 0
     sent_at = checked_at = time.monotonic()
     try:
         while True:
             chunks = await sub.next(KEY_RECHECK_S)
+            if sub.closed:
+                return
             now = time.monotonic()
             if now - checked_at >= KEY_RECHECK_S:
                 checked_at = now
@@ -119,4 +124,21 @@ async def _serve(
     except (WebSocketDisconnect, RuntimeError):
         return
     finally:
+        watcher.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await watcher
         state.broadcaster.unsubscribe(sub)
+
+
+async def _close_when_gone(websocket: WebSocket, sub: Subscription) -> None:
+    """Read the socket until the dashboard leaves, then close its subscription. Dashboards send nothing, so
+    without a reader a quiet building's closed socket would hold its subscriber and its slot in the key's
+    socket limit until the next heartbeat failed to send (up to 10 s), and hold a server's shutdown as
+    long. What a client sends is read and dropped (uvicorn bounds a frame's size)."""
+    try:
+        while (await websocket.receive())["type"] != "websocket.disconnect":
+            pass
+    except (WebSocketDisconnect, RuntimeError):
+        pass
+    finally:
+        sub.close()

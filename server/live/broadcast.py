@@ -56,6 +56,8 @@ class Subscription:
     """Messages dropped because this subscriber was slow (never reset; the endpoint reports the change)."""
     queued: int = 0
     """Messages waiting."""
+    closed: bool = False
+    """Its socket closed: ``next`` returns at once, and the endpoint stops."""
     _chunks: deque[Chunk] = field(default_factory=deque)
     _ready: asyncio.Event = field(default_factory=asyncio.Event)
 
@@ -82,8 +84,16 @@ class Subscription:
             self._ready.clear()
         return taken
 
+    def close(self) -> None:
+        """The subscriber's socket closed: wake whoever waits in ``next``."""
+        self.closed = True
+        self._ready.set()
+
     async def next(self, timeout_s: float) -> list[Chunk]:
-        """``take`` once something waits; an empty list when nothing came within ``timeout_s``."""
+        """``take`` once something waits; an empty list when nothing came within ``timeout_s`` or once
+        the subscription is closed."""
+        if self.closed:
+            return []
         if not self._chunks:
             try:
                 async with asyncio.timeout(timeout_s):

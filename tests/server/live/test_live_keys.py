@@ -57,3 +57,31 @@ def test_the_key_rides_as_a_subprotocol_and_revocation_closes_the_socket(tmp_pat
                 ws.recv(timeout=10)
             assert closed.value.rcvd is not None
             assert closed.value.rcvd.code == 4401
+
+
+def test_a_closed_socket_gives_its_slot_back_at_once(tmp_path: Path) -> None:
+    """Dashboards send nothing: the server reads its sockets all the same, so a dashboard that leaves a quiet
+    building frees its subscription and its place under the key's socket limit at once, not at the next
+    heartbeat, and a dashboard reloaded at once is let in."""
+    url = f"sqlite:///{tmp_path / 'db.sqlite3'}"
+    operator = migrate_with_operator(url)
+    app = create_app(Settings(data_dir=tmp_path, database_url=url, max_live_sockets_per_key=1))
+    with running_server(app, "127.0.0.1", free_port()) as base:
+        op = {"Authorization": f"Bearer {operator}"}
+        assert (
+            httpx.post(f"{base}/v1/buildings", json={"id": "hq", "name": "HQ"}, headers=op).status_code == 201
+        )
+        key = httpx.post(f"{base}/v1/buildings/hq/keys", json={"scope": "dashboard"}, headers=op).json()[
+            "key"
+        ]
+        live = base.replace("http://", "ws://") + f"/v1/buildings/hq/live?token={key}"
+        broadcaster = app.state.crowdslam.broadcaster
+        for _ in range(3):
+            with connect(live, open_timeout=10) as ws:
+                with pytest.raises(TimeoutError):
+                    ws.recv(timeout=0.3)  # let in: nothing to say in a quiet building, not a 4429 close
+                assert broadcaster.subscribers("hq") == 1
+            deadline = time.monotonic() + 2.0
+            while broadcaster.subscribers("hq") and time.monotonic() < deadline:
+                time.sleep(0.02)
+            assert broadcaster.subscribers("hq") == 0
