@@ -74,6 +74,7 @@ def _user_batches(
     scan_ms = np.array([_ms(t) for t in tr.scan_t], dtype=np.int64)
     receive = np.flatnonzero(sim.bt_pair[:, 0] == user) if sim.bt_t.size else np.zeros(0, dtype=np.int64)
     bt_ms = np.array([_ms(sim.bt_t[i]) for i in receive], dtype=np.int64)
+    bt_heard = (sim.bt_rss[receive] >= -120.0) & (sim.bt_rss[receive] <= 0.0)
     detections = dict(zip(tr.anchor_step.tolist(), tr.anchor_detected_type.tolist(), strict=True))
     start_ms = _ms(tr.t[0])
     last_ms = max(int(step_ms[-1]) if step_ms.size else start_ms, int(scan_ms.max(initial=start_ms)))
@@ -114,14 +115,14 @@ def _user_batches(
                     for a in heard
                 ]
                 scans.append(WifiScan(t_ms=int(scan_ms[c]), aps=aps))
+        in_bt = np.flatnonzero(bt_heard & (bt_ms >= window_start) & (bt_ms < window_end))
         sightings = [
             PeerSighting(
-                t_ms=int(bt_ms[j]),
+                t_ms=int(t_ms),
                 peer_advertised_id=advertised_id(int(sim.bt_pair[i, 1])),
                 rssi_dbm=round(float(sim.bt_rss[i]), 1),
             )
-            for j, i in enumerate(receive)
-            if window_start <= bt_ms[j] < window_end and -120.0 <= sim.bt_rss[i] <= 0.0
+            for t_ms, i in zip(bt_ms[in_bt], receive[in_bt], strict=True)
         ]
         yield (
             window_end,
