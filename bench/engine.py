@@ -4,7 +4,9 @@ plain-NumPy textbook FastSLAM on identical inputs.
     python bench/engine.py [--users 10000] [--json OUT]
 
 Prints one JSON object: motion_ms; motion_on_floor_ms and motion_plan_ms (the same users on a mall floor,
-without and with its plan of walls and walkable area, ``--plan-floor``) and plan_overhead; step_ms,
+without and with its plan of walls and walkable area, ``--plan-floor``) and plan_overhead; the same for
+users walking the floor's surveyed walks (motion_walks_ms, motion_walks_plan_ms, walks_plan_overhead,
+walks_resampled_share); step_ms,
 human_anchor_us, reference_ratio (the engine's kernels in parallel, as over a whole building) and
 reference_ratio_serial (as the engine runs a call of 100 users by default: serially,
 ``slam_core.filter.kernels.serial``), and what they were measured on.
@@ -92,6 +94,60 @@ def bench_motion_plan(n_users: int, params: FilterParams, floor: Path) -> tuple[
         engine.step(users, offsets, lengths, headings)
         (planned if k % 2 else plain).append((time.perf_counter() - t0) * 1e3)
     return statistics.median(plain[1:]), statistics.median(planned[1:])
+
+
+STEP_M = 0.7
+"""A stride along the surveyed walks."""
+
+
+def _walked_steps(waypoints: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A surveyed walk (its waypoints' x, y) as strides out and back: the start of each, its length, its
+    heading (rad, counter-clockwise from east), a closed loop that a user can walk round and round."""
+    xy = waypoints[:, 1:3]
+    along = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))])
+    at = np.arange(0.0, along[-1], STEP_M)
+    points = np.column_stack([np.interp(at, along, xy[:, 0]), np.interp(at, along, xy[:, 1])])
+    points = np.concatenate([points, points[-2:0:-1]])  # back the way it came
+    moves = np.diff(np.concatenate([points, points[:1]]), axis=0)
+    return points, np.hypot(moves[:, 0], moves[:, 1]), np.arctan2(moves[:, 1], moves[:, 0])
+
+
+def bench_motion_plan_walks(n_users: int, params: FilterParams, floor: Path) -> tuple[float, float, float]:
+    """The motion update of users walking the floor's surveyed walks (each user one walk, from a random point
+    of it, out and back), with each phone's dead-reckoning error as measured on these walks (a heading bias
+    of sigma 12 deg and a stride scale of sigma 0.14 a phone), without and with the floor's plan: medians of
+    alternating runs, and the share of users a step with the plan resampled (walls spread their weights)."""
+    from server.datasets.msindoor import floor_plan, read_floor, read_trace
+    from server.ingestion.floor_plans import engine_plan
+
+    info = read_floor(floor)
+    wire = floor_plan(info)
+    if wire is None:
+        raise SystemExit(f"{floor} has no geojson_map.json")
+    plan = engine_plan(wire)
+    walks = [_walked_steps(w) for w in (read_trace(p).waypoints for p in info.traces) if len(w) >= 2]
+    walks = [w for w in walks if len(w[1]) >= 2]
+    rng = np.random.default_rng(1)
+    engine = DynamicSlam(params, seed=1, initial_capacity=n_users)
+    walk_of = np.arange(n_users) % len(walks)
+    at = np.array([rng.integers(0, len(walks[w][1])) for w in walk_of])
+    users = np.array([engine.add_user(*walks[w][0][k]) for w, k in zip(walk_of, at, strict=True)])
+    bias = rng.normal(0.0, np.radians(12.0), n_users)
+    scale = np.clip(rng.normal(1.0, 0.14, n_users), 0.5, 1.5)
+    offsets = np.arange(users.size + 1)
+    plain, planned, touched = [], [], []
+    for k in range(24):
+        index = [(a + k) % len(walks[w][1]) for w, a in zip(walk_of, at, strict=True)]
+        lengths = scale * np.array([walks[w][1][i] for w, i in zip(walk_of, index, strict=True)])
+        headings = bias + np.array([walks[w][2][i] for w, i in zip(walk_of, index, strict=True)])
+        engine.floor_plan = plan if k % 2 else None
+        before = engine.state.n_resamples[users].copy() if k % 2 else None
+        t0 = time.perf_counter()
+        engine.step(users, offsets, lengths, headings)
+        (planned if k % 2 else plain).append((time.perf_counter() - t0) * 1e3)
+        if before is not None:
+            touched.append(float(np.mean(engine.state.n_resamples[users] != before)))
+    return statistics.median(plain[1:]), statistics.median(planned[1:]), float(np.mean(touched))
 
 
 def bench_tick(engine: DynamicSlam, users: np.ndarray, rng: np.random.Generator) -> float:
@@ -187,6 +243,9 @@ def main() -> int:
     engine, users = _engine(args.users, params)
     motion_ms = bench_motion(engine, users, rng)
     plain_ms, plan_ms = bench_motion_plan(args.users, params, args.plan_floor)
+    walks_plain_ms, walks_plan_ms, walks_resampled = bench_motion_plan_walks(
+        args.users, params, args.plan_floor
+    )
     step_ms = bench_tick(engine, users, rng)
     human_us = bench_human_anchor(params)
     # warm the small-input path of every kernel before timing it against the reference
@@ -205,6 +264,10 @@ def main() -> int:
         "motion_on_floor_ms": round(plain_ms, 3),
         "motion_plan_ms": round(plan_ms, 3),
         "plan_overhead": round(plan_ms / plain_ms, 2),
+        "motion_walks_ms": round(walks_plain_ms, 3),
+        "motion_walks_plan_ms": round(walks_plan_ms, 3),
+        "walks_plan_overhead": round(walks_plan_ms / walks_plain_ms, 2),
+        "walks_resampled_share": round(walks_resampled, 3),
         "plan_floor": "/".join(args.plan_floor.parts[-2:]),
         "step_ms": round(step_ms, 3),
         "human_anchor_us": round(human_us, 2),
