@@ -142,6 +142,7 @@ def create_app(settings: Settings, tune_gc: bool = False) -> FastAPI:
         docs_url=None,  # served by install_pages from local assets
         redoc_url=None,
     )
+    app.state.settings = settings  # what serves the app reads (the WebSocket frame bound)
     _install_error_handlers(app)
     for module in (health, current_key, buildings, batches, positions, anchors, live, signal_maps):
         app.include_router(module.router)

@@ -206,6 +206,13 @@ class Settings(BaseSettings):
     )
 
     @property
+    def max_ws_frame_bytes(self) -> int:
+        """The largest WebSocket frame the server reads (uvicorn's ``ws_max_size``; its own default is
+        16 MiB): a batch streamed on ``/stream``, with room for one just past ``max_batch_bytes`` to get its
+        413. A larger frame closes the socket with 1009 before it is read whole."""
+        return self.max_batch_bytes + 64 * 1024
+
+    @property
     def recordings_dir(self) -> Path:
         return self.data_dir / "recordings"
 

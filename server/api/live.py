@@ -131,13 +131,15 @@ async def _serve(
 
 
 async def _close_when_gone(websocket: WebSocket, sub: Subscription) -> None:
-    """Read the socket until the dashboard leaves, then close its subscription. Dashboards send nothing, so
-    without a reader a quiet building's closed socket would hold its subscriber and its slot in the key's
-    socket limit until the next heartbeat failed to send (up to 10 s), and hold a server's shutdown as
-    long. What a client sends is read and dropped (uvicorn bounds a frame's size)."""
+    """Read the socket until the dashboard leaves, then close its subscription. Without a reader, a quiet
+    building's closed socket would hold its subscriber and its slot in the key's socket limit until the next
+    heartbeat failed to send (up to 10 s), and hold a server's shutdown as long. A live socket takes no
+    messages: a client that sends one is closed with 1008 (``Settings.max_ws_frame_bytes`` bounds what the
+    server reads of it)."""
     try:
-        while (await websocket.receive())["type"] != "websocket.disconnect":
-            pass
+        message = await websocket.receive()
+        if message["type"] == "websocket.receive":
+            await websocket.close(code=1008, reason="a live socket takes no messages")
     except (WebSocketDisconnect, RuntimeError):
         pass
     finally:

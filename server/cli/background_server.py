@@ -64,6 +64,7 @@ def running_server(
         log_level="warning",
         ws="websockets-sansio",
         ws_per_message_deflate=ws_compression,
+        ws_max_size=app.state.settings.max_ws_frame_bytes,
     )
     server = uvicorn.Server(config)
     thread = threading.Thread(target=server.run, daemon=True)

@@ -62,5 +62,6 @@ def run(args: argparse.Namespace) -> int:
         log_level=args.log_level,
         ws="websockets-sansio",
         ws_per_message_deflate=settings.ws_compression,
+        ws_max_size=settings.max_ws_frame_bytes,
     )
     return 0

@@ -85,3 +85,33 @@ def test_a_closed_socket_gives_its_slot_back_at_once(tmp_path: Path) -> None:
             while broadcaster.subscribers("hq") and time.monotonic() < deadline:
                 time.sleep(0.02)
             assert broadcaster.subscribers("hq") == 0
+
+
+def test_a_live_socket_takes_no_messages(tmp_path: Path) -> None:
+    """A client that sends on its live socket is closed with 1008 and lets its subscription go; a frame past
+    ``max_ws_frame_bytes`` is refused before it is read whole (1009), here as on the batch stream."""
+    url = f"sqlite:///{tmp_path / 'db.sqlite3'}"
+    operator = migrate_with_operator(url)
+    settings = Settings(data_dir=tmp_path, database_url=url, max_batch_bytes=4096)
+    app = create_app(settings)
+    with running_server(app, "127.0.0.1", free_port()) as base:
+        op = {"Authorization": f"Bearer {operator}"}
+        assert (
+            httpx.post(f"{base}/v1/buildings", json={"id": "hq", "name": "HQ"}, headers=op).status_code == 201
+        )
+        key = httpx.post(f"{base}/v1/buildings/hq/keys", json={"scope": "dashboard"}, headers=op).json()[
+            "key"
+        ]
+        live = base.replace("http://", "ws://") + f"/v1/buildings/hq/live?token={key}"
+        broadcaster = app.state.crowdslam.broadcaster
+        for frame, code in (("hello", 1008), ("x" * (settings.max_ws_frame_bytes + 1), 1009)):
+            with connect(live, open_timeout=10) as ws:
+                ws.send(frame)
+                with pytest.raises(ConnectionClosed) as closed:
+                    ws.recv(timeout=5)
+                assert closed.value.rcvd is not None
+                assert closed.value.rcvd.code == code
+            deadline = time.monotonic() + 2.0
+            while broadcaster.subscribers("hq") and time.monotonic() < deadline:
+                time.sleep(0.02)
+            assert broadcaster.subscribers("hq") == 0
