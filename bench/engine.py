@@ -29,8 +29,10 @@ from server.engine.numba_cache import configure_numba_cache
 configure_numba_cache()
 from report import emit
 
+from server.datasets.msindoor import FloorInfo
 from slam_core.filter import reference
 from slam_core.filter.dynamic_slam import DynamicSlam
+from slam_core.filter.floor_plan import FloorPlan
 from slam_core.filter.kernels.serial import PARALLEL_MIN_USERS
 from slam_core.filter.params import FilterParams
 
@@ -69,16 +71,21 @@ def bench_motion(engine: DynamicSlam, users: np.ndarray, rng: np.random.Generato
     return _median_ms(tick, 7)
 
 
-def bench_motion_plan(n_users: int, params: FilterParams, floor: Path) -> tuple[float, float]:
-    """The motion update of users spread over a mall floor's walkable area, without and with its plan (the
-    plan's update also resamples the users whose weights the walls spread): medians of alternating runs."""
+def _mall_floor(floor: Path) -> tuple[FloorInfo, FloorPlan]:
+    """A floor of the Indoor Location 2.0 data set and the engine's index of its plan."""
     from server.datasets.msindoor import floor_plan, read_floor
     from server.ingestion.floor_plans import engine_plan
 
-    wire = floor_plan(read_floor(floor))
+    info = read_floor(floor)
+    wire = floor_plan(info)
     if wire is None:
         raise SystemExit(f"{floor} has no geojson_map.json")
-    plan = engine_plan(wire)
+    return info, engine_plan(wire)
+
+
+def bench_motion_plan(n_users: int, params: FilterParams, plan: FloorPlan) -> tuple[float, float]:
+    """The motion update of users spread over a mall floor's walkable area, without and with its plan (the
+    plan's update also resamples the users whose weights the walls spread): medians of alternating runs."""
     rng = np.random.default_rng(1)
     cells = np.argwhere(plan.raster == 1)
     engine = DynamicSlam(params, seed=1, initial_capacity=n_users)
@@ -112,19 +119,15 @@ def _walked_steps(waypoints: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nda
     return points, np.hypot(moves[:, 0], moves[:, 1]), np.arctan2(moves[:, 1], moves[:, 0])
 
 
-def bench_motion_plan_walks(n_users: int, params: FilterParams, floor: Path) -> tuple[float, float, float]:
+def bench_motion_plan_walks(
+    n_users: int, params: FilterParams, info: FloorInfo, plan: FloorPlan
+) -> tuple[float, float, float]:
     """The motion update of users walking the floor's surveyed walks (each user one walk, from a random point
     of it, out and back), with each phone's dead-reckoning error as measured on these walks (a heading bias
     of sigma 12 deg and a stride scale of sigma 0.14 a phone), without and with the floor's plan: medians of
     alternating runs, and the share of users a step with the plan resampled (walls spread their weights)."""
-    from server.datasets.msindoor import floor_plan, read_floor, read_trace
-    from server.ingestion.floor_plans import engine_plan
+    from server.datasets.msindoor import read_trace
 
-    info = read_floor(floor)
-    wire = floor_plan(info)
-    if wire is None:
-        raise SystemExit(f"{floor} has no geojson_map.json")
-    plan = engine_plan(wire)
     walks = [_walked_steps(w) for w in (read_trace(p).waypoints for p in info.traces) if len(w) >= 2]
     walks = [w for w in walks if len(w[1]) >= 2]
     rng = np.random.default_rng(1)
@@ -242,9 +245,10 @@ def main() -> int:
     rng = np.random.default_rng(0)
     engine, users = _engine(args.users, params)
     motion_ms = bench_motion(engine, users, rng)
-    plain_ms, plan_ms = bench_motion_plan(args.users, params, args.plan_floor)
+    floor_info, floor_plan = _mall_floor(args.plan_floor)
+    plain_ms, plan_ms = bench_motion_plan(args.users, params, floor_plan)
     walks_plain_ms, walks_plan_ms, walks_resampled = bench_motion_plan_walks(
-        args.users, params, args.plan_floor
+        args.users, params, floor_info, floor_plan
     )
     step_ms = bench_tick(engine, users, rng)
     human_us = bench_human_anchor(params)
