@@ -81,6 +81,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="with --msindoor: do not weigh steps by the floor's plan (geojson_map.json)",
     )
     parser.add_argument(
+        "--heading-axes",
+        action="store_true",
+        help="with a floor plan: also weigh each straight stretch of a walk by how well it follows the "
+        "plan's grid (heuristic drift elimination; off by default)",
+    )
+    parser.add_argument(
         "--no-start-fix",
         dest="start_fix",
         action="store_false",
@@ -352,4 +358,5 @@ def _replay_options(args: argparse.Namespace) -> ReplayOptions:
         floor_plan=args.floor_plan,
         radio_map=args.radio_map,
         start_fix=args.start_fix,
+        heading_axes=args.heading_axes,
     )

@@ -177,6 +177,7 @@ def replay_floor(
         "crowd_solver": options.crowd_solver,
         "warm_split": options.warm_split,
         "floor_plan": plan is not None,
+        "heading_axes": plan is not None and options.heading_axes,
         "start_fix": options.start_fix,
         "unplaced_waypoints": sum(1 for w in scored for _, e in w.scored if not math.isfinite(e)),
         "seconds_to_5m": _median_or_none([w.seconds_to(5.0) for w in scored]),

@@ -70,6 +70,9 @@ class ReplayOptions:
     radio_map: bool = False
     """With a warm split: build the warm walks into a radio map (SignalSLAM, tagged at each walk's first and
     last waypoints) that the tracker loads before the scored walks."""
+    heading_axes: bool = False
+    """Weigh each straight stretch of a walk by the plan's grid (``FloorPlanParams.heading_axes``; off by
+    default: it did not help on both shipped floors)."""
 
     @property
     def tracker_seed(self) -> int:
@@ -96,6 +99,7 @@ def replay_params(base: TrackerParams, options: ReplayOptions) -> TrackerParams:
             motion=MotionParams(model=options.motion_model),
             human=HumanAnchorParams(sampling=options.sampling),
             use_human_anchors=options.mode == "dynamicslam",
+            floor_plan=replace(base.filter.floor_plan, heading_axes=options.heading_axes),
         ),
         crowd_solver=options.crowd_solver,
         # a scored walk without its start fix is placed by the crowd's map, whatever the server's default

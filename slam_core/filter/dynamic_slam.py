@@ -430,6 +430,41 @@ class DynamicSlam:
             s.logw[u] = logw - np.logaddexp.reduce(logw)
         self._resample(users)
 
+    def observe_heading_axis(self, users: np.ndarray, stretch_heading: np.ndarray) -> None:
+        """Beyond both papers: each user just walked a straight stretch whose steps pointed, as the phone
+        measured them, along ``stretch_heading[i]`` (rad, counter-clockwise from east). Each particle turns
+        that direction by its own heading error (its heading less the last measured step heading: its bias
+        and walk in the bias-scale model) and is weighted by how close the result lies to the floor plan's
+        grid (``FloorPlan.axis_rad``, modulo 90 degrees):
+        s N(delta; 0, sigma^2) + (1 - s) / (pi / 2), with delta the offset from the nearest grid direction,
+        so a stretch across open space changes the weights almost uniformly. Heuristic drift elimination
+        (Borenstein et al., 2009) as a likelihood: particles whose bias walks the user along the corridors
+        gain. Nothing happens without a plan that follows a grid (``FloorPlanParams.axis_min_strength``).
+        Resampled by effective sample size."""
+        users = np.ascontiguousarray(users, dtype=np.int64)
+        stretch_heading = np.ascontiguousarray(stretch_heading, dtype=np.float64)
+        self._check_users(users)
+        if stretch_heading.shape != users.shape or not np.all(np.isfinite(stretch_heading)):
+            raise ValueError("one finite stretch heading per user")
+        plan, fp = self.floor_plan, self.params.floor_plan
+        if plan is None or plan.axis_strength < fp.axis_min_strength or users.size == 0:
+            return
+        s = self.state
+        measured = s.last_obs_heading[users]
+        users, stretch_heading = users[np.isfinite(measured)], stretch_heading[np.isfinite(measured)]
+        if users.size == 0:
+            return
+        self._moved(users)
+        quarter = 0.5 * math.pi
+        error = s.heading[users] - s.last_obs_heading[users, None]  # each particle's heading error
+        delta = (stretch_heading[:, None] + error - plan.axis_rad + 0.5 * quarter) % quarter - 0.5 * quarter
+        var = fp.axis_sigma_rad**2
+        log_on = math.log(fp.axis_share) - 0.5 * math.log(2 * math.pi * var)
+        log_off = math.log((1.0 - fp.axis_share) / quarter)
+        logw = s.logw[users] + np.logaddexp(log_on - 0.5 * delta**2 / var, log_off)
+        s.logw[users] = logw - np.logaddexp.reduce(logw, axis=1, keepdims=True)
+        self._resample(users)
+
     def _within_cloud(self, u: int, fix: np.ndarray) -> bool:
         """The fix lies within 3 sigma of the cloud's own spread (then weighting, not shifting, is right)."""
         row = self.summaries(np.array([u]))[0]

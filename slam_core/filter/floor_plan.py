@@ -60,6 +60,12 @@ class FloorPlan:
     free: np.ndarray
     """(rows * columns,) uint8 over the wall grid: 1 where a cell holds no wall and lies wholly in the
     walkable area. A user whose particles' steps all stay in free cells needs no test."""
+    axis_rad: float = 0.0
+    """The walls' dominant direction modulo 90 degrees (counter-clockwise from east, in [0, pi/2)): most
+    buildings are drawn on a grid, and their corridors follow it (``dominant_axis``)."""
+    axis_strength: float = 0.0
+    """How strongly the walls follow that grid: the length-weighted mean resultant of their directions taken
+    four times (1: every wall on the grid; ~0: no grid, or no walls)."""
 
     @classmethod
     def build(
@@ -95,6 +101,7 @@ class FloorPlan:
         else:
             raster_origin, raster = (0.0, 0.0), np.zeros((0, 0), dtype=np.uint8)
         free = _free_cells(cell_start, origin, cell_m, rows, columns, raster, raster_origin, raster_m)
+        axis_rad, axis_strength = dominant_axis(walls)
         return cls(
             walls,
             rings,
@@ -107,6 +114,8 @@ class FloorPlan:
             raster_origin,
             raster,
             free,
+            axis_rad,
+            axis_strength,
         )
 
     @classmethod
@@ -148,6 +157,20 @@ class FloorPlan:
         out = np.zeros(xy.shape[0], dtype=bool)
         out[inside] = self.raster[row[inside], col[inside]] == 1
         return out
+
+
+def dominant_axis(walls: np.ndarray) -> tuple[float, float]:
+    """The walls' (S, 4) dominant direction modulo 90 degrees and its strength: the circular mean of four
+    times each wall's direction, weighted by its length (a wall and its perpendicular count alike). Returns
+    (axis in [0, pi/2), mean resultant length in [0, 1]); (0, 0) without walls."""
+    d = walls[:, 2:4] - walls[:, 0:2]
+    length = np.hypot(d[:, 0], d[:, 1])
+    total = float(length.sum())
+    if total <= 0.0:
+        return 0.0, 0.0
+    angle = 4.0 * np.arctan2(d[:, 1], d[:, 0])
+    c, s = float(length @ np.cos(angle)) / total, float(length @ np.sin(angle)) / total
+    return float((math.atan2(s, c) / 4.0) % (math.pi / 2)), float(min(1.0, math.hypot(c, s)))
 
 
 def _coarse_enough(cell_m: float, span: np.ndarray) -> float:

@@ -182,11 +182,34 @@ class FloorPlanParams:
 
     wall_crossing_likelihood: float = 0.1
     outside_likelihood: float = 0.01
+    heading_axes: bool = False
+    """Weigh each straight stretch of a user's walk by how well it follows the plan's grid
+    (``DynamicSlam.observe_heading_axis``): heuristic drift elimination (Borenstein et al., 2009) as a
+    particle likelihood. A phone's heading is off by a bias that stays for the walk (sigma ~12 deg on the
+    real walks), and the corridors of a building drawn on a grid run along it."""
+    axis_sigma_rad: float = math.radians(8.0)
+    """Spread of a stretch's direction about the grid when the stretch follows it."""
+    axis_share: float = 0.3
+    """The share of straight stretches that follow the grid; the rest cross open space at any angle (an
+    outlier term, uniform over the 90 degrees)."""
+    axis_min_strength: float = 0.5
+    """Plans whose walls follow a grid less than this (``slam_core.filter.floor_plan.dominant_axis``) give no
+    heading observation."""
+    stretch_m: float = 15.0
+    """A straight stretch is observed once it is this long; the next one starts after it."""
+    stretch_turn_rad: float = math.radians(20.0)
+    """A step further than this from its stretch's direction ends the stretch (a turn)."""
 
     def __post_init__(self) -> None:
         for name in ("wall_crossing_likelihood", "outside_likelihood"):
             if not 0.0 < getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be in (0, 1]")
+        if not 0.0 < self.axis_share < 1.0:
+            raise ValueError("axis_share must be in (0, 1)")
+        if not (self.axis_sigma_rad > 0 and self.stretch_m > 0 and self.stretch_turn_rad > 0):
+            raise ValueError("axis_sigma_rad, stretch_m and stretch_turn_rad must be > 0")
+        if not 0.0 <= self.axis_min_strength <= 1.0:
+            raise ValueError("axis_min_strength must be in [0, 1]")
 
     @property
     def log_weights(self) -> tuple[float, float]:

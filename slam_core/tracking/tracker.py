@@ -59,6 +59,7 @@ from slam_core.tracking.batches import (
 from slam_core.tracking.params import CROWD_SOLVERS, TrackerParams
 from slam_core.tracking.placement import SlotColumns
 from slam_core.tracking.rounds import Round, lay_steps, round_at
+from slam_core.tracking.stretches import StraightStretches
 from slam_core.tracking.trails import UserTrack
 
 CLOCK_JUMP_BACK_MS = 60_000
@@ -140,6 +141,14 @@ class BuildingTracker:
             self._detector_slots = radio.DetectorSlots()
         return self._detector_slots
 
+    _stretches: StraightStretches | None = None  # built on first use (snapshots from before it lack it)
+
+    def _stretch_table(self) -> StraightStretches:
+        if self._stretches is None:
+            plan = self.params.filter.floor_plan
+            self._stretches = StraightStretches(plan.stretch_m, plan.stretch_turn_rad)
+        return self._stretches
+
     # ------------------------------------------------------------------ users and anchors
     @property
     def users(self) -> list[str]:
@@ -172,6 +181,7 @@ class BuildingTracker:
         for name in users:
             u = self._users.pop(name)
             self.front_end.forget(name)
+            self._stretch_table().forget(name)
             if u.slot >= 0:
                 self.engine.remove_user(u.slot)
                 self._slot_table().set(self.detector, name, -1)
@@ -322,6 +332,7 @@ class BuildingTracker:
         u.last_t_ms = -1
         u.trail = array("d")
         self.front_end.forget(user)
+        self._stretch_table().forget(user)
         if u.slot >= 0:
             self._columns.reset(u.slot)
 
@@ -557,6 +568,8 @@ class BuildingTracker:
             lay_steps(users, rnd, lengths, headings)
             if self.params.revise_headings:
                 self._revise_headings(users)
+            if self.params.filter.floor_plan.heading_axes and self.engine.floor_plan is not None:
+                self._observe_stretches(rnd)
         plain = [k for k, s in enumerate(rnd.det_signature) if not s]
         signed = [k for k, s in enumerate(rnd.det_signature) if s]
         if plain:
@@ -585,6 +598,20 @@ class BuildingTracker:
             for name, flag in zip(rnd.fix_users, recentred, strict=True):
                 reports[name].recentred += int(flag)
                 self._users[name].pin()
+
+    def _observe_stretches(self, rnd: Round) -> None:
+        """The straight stretches this round's steps completed, each weighed against the floor plan's grid
+        (``DynamicSlam.observe_heading_axis``): a user's k-th stretch of the round in the k-th engine call,
+        since a call takes each user once."""
+        table = self._stretch_table()
+        done = [
+            table.add(name, np.asarray(ls), np.asarray(hs))
+            for name, ls, hs in zip(rnd.users, rnd.step_len, rnd.step_head, strict=True)
+        ]
+        for k in range(max((len(d) for d in done), default=0)):
+            who = [i for i, d in enumerate(done) if len(d) > k]
+            slots = np.array([self._users[rnd.users[i]].slot for i in who], dtype=np.int64)
+            self.engine.observe_heading_axis(slots, np.array([done[i][k] for i in who]))
 
     def _revise_headings(self, users: list[UserTrack]) -> None:
         """Beyond both papers: the PDR front-end sends each step with its current estimate of the north
