@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
-from functools import cached_property
+from functools import cached_property, lru_cache
 from typing import Any
 
 import numpy as np
@@ -179,6 +179,38 @@ class RangeModel:
             variance = np.maximum(variance, np.asarray(self.bin_mse)[k])
         floored: np.ndarray = np.maximum(variance, 0.25)
         return floored
+
+    def sigma_reach(self, max_sigma_m: float, up_to_m: float) -> float:
+        """The farthest distance, up to ``up_to_m``, at which the range's standard deviation is at most
+        ``max_sigma_m`` (rounded up, never down: beyond it no distance up to ``up_to_m`` passes); 0 when none
+        does. An encounter whose predicted distance exceeds it cannot be chosen
+        (``slam_core.encounters.selection``)."""
+        return _sigma_reach(self, max_sigma_m, up_to_m)
+
+
+@lru_cache(maxsize=64)
+def _sigma_reach(model: RangeModel, max_sigma_m: float, up_to_m: float) -> float:
+    """``RangeModel.sigma_reach``. The variance is monotone between the slope table's points and constant
+    within each empirical bin, so on every piece between those points it passes on an interval that holds an
+    end of the piece: evaluating the ends (and a 1 cm grid) finds the last passing point, and the next point
+    evaluated bounds the distances that pass."""
+    _, _, grid, _ = model._inverse_table
+    points = np.unique(
+        np.concatenate(
+            [
+                np.arange(0.0, up_to_m, 0.01),
+                grid[grid < up_to_m],
+                [e for e in model.bin_edges if e < up_to_m],
+                [model.min_distance, up_to_m],
+            ]
+        )
+    )
+    points = points[points <= up_to_m]
+    passing = np.flatnonzero(np.sqrt(model.variance_at_distance(points)) <= max_sigma_m)
+    if passing.size == 0:
+        return 0.0
+    last = int(passing[-1])
+    return float(points[last + 1]) if last + 1 < points.size else float(up_to_m)
 
 
 @dataclass(frozen=True)

@@ -74,3 +74,25 @@ def test_fit_needs_data_and_a_known_kind() -> None:
         fit_range_model(np.ones(30), np.ones(30), "cubic")
     with pytest.raises(ValueError, match="valid: wifi-eq3, wifi-fingerprint, bluetooth"):
         encounter_model("sonar")
+
+
+@pytest.mark.parametrize(
+    "model",
+    [
+        RangeModel("wifi-log", (0.0, 2.0), 3.0),
+        RangeModel("bt-quadratic", (-60.0, -10.0, 0.0), 4.0),
+        RangeModel("bt-quadratic", (-60.0, -22.0, 2.5), 4.0),  # a slope that flattens and turns
+        RangeModel("wifi-log", (0.0, 2.0), 3.0, bin_edges=(0.0, 1.5, 3.0), bin_mse=(0.5, 30.0, 4.0)),
+    ],
+)
+@pytest.mark.parametrize("max_sigma", [0.6, 2.0, 5.0, 50.0])
+def test_no_distance_beyond_the_sigma_reach_passes(model: RangeModel, max_sigma: float) -> None:
+    reach = model.sigma_reach(max_sigma, 8.0)
+    d = np.linspace(0.0, 8.0, 800_001)  # a 10 um grid: 1,000 points between the reach's own
+    passing = d[np.sqrt(model.variance_at_distance(d)) <= max_sigma]
+    assert 0.0 <= reach <= 8.0
+    if passing.size == 0:
+        assert reach == 0.0
+    else:
+        assert passing.max() <= reach  # a bound: nothing passes beyond it
+        assert reach - passing.max() <= 0.0101  # and a tight one
