@@ -181,7 +181,8 @@ class BuildingTracker:
         for name in users:
             u = self._users.pop(name)
             self.front_end.forget(name)
-            self._stretch_table().forget(name)
+            if self._stretches is not None:
+                self._stretches.forget(name)
             if u.slot >= 0:
                 self.engine.remove_user(u.slot)
                 self._slot_table().set(self.detector, name, -1)
@@ -332,7 +333,8 @@ class BuildingTracker:
         u.last_t_ms = -1
         u.trail = array("d")
         self.front_end.forget(user)
-        self._stretch_table().forget(user)
+        if self._stretches is not None:
+            self._stretches.forget(user)
         if u.slot >= 0:
             self._columns.reset(u.slot)
 

@@ -195,5 +195,7 @@ def test_the_tracker_observes_its_users_stretches_only_when_asked() -> None:
         for k in range(10):
             tracker.apply([_batch(t0 + 10_000 * k, 20, azimuth, fix=k == 0)])
         ends[on] = _heading_error(tracker.engine, tracker._users["u"].slot)
+        tracker.remove_user("u")
+        assert not tracker._stretches  # a removed user's open stretch goes with it (none kept when off)
     assert abs(ends[False]) < 5.0
     assert ends[True] == pytest.approx(-10.0, abs=3.0)
