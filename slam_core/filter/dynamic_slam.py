@@ -451,12 +451,13 @@ class DynamicSlam:
             return
         s = self.state
         measured = s.last_obs_heading[users]
-        users, stretch_heading = users[np.isfinite(measured)], stretch_heading[np.isfinite(measured)]
+        stepped = np.isfinite(measured)  # a user without a step yet has no heading error to weigh
+        users, stretch_heading, measured = users[stepped], stretch_heading[stepped], measured[stepped]
         if users.size == 0:
             return
         self._moved(users)
         quarter = 0.5 * math.pi
-        error = s.heading[users] - s.last_obs_heading[users, None]  # each particle's heading error
+        error = s.heading[users] - measured[:, None]  # each particle's heading error
         delta = (stretch_heading[:, None] + error - plan.axis_rad + 0.5 * quarter) % quarter - 0.5 * quarter
         var = fp.axis_sigma_rad**2
         log_on = math.log(fp.axis_share) - 0.5 * math.log(2 * math.pi * var)
