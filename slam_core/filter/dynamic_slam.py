@@ -292,7 +292,7 @@ class DynamicSlam:
         model = MODEL_PAPER if motion.model == "paper" else MODEL_BIAS_SCALE
         plan = self.floor_plan
         use_plan = plan is not None and not plan.is_empty
-        penalised = np.zeros(users.shape[0], dtype=np.bool_)
+        resample = np.zeros(users.shape[0], dtype=np.bool_)
         pick(motion_update, motion_update_serial, users.shape[0], self.parallel_min_users)(
             s.arrays(),
             users,
@@ -307,11 +307,11 @@ class DynamicSlam:
                 self.params.human.control_covariance_cap_m2,
             ),
             (plan or _NO_PLAN).arrays(),
-            (use_plan, *self.params.floor_plan.log_weights),
-            penalised,
+            (use_plan, *self.params.floor_plan.log_weights, self.params.resampling.ess_threshold),
+            resample,
         )
-        if penalised.any():
-            self._resample(users[penalised])  # particles stopped by walls give way to those in the corridors
+        if resample.any():
+            self._resample(users[resample])  # particles stopped by walls give way to those in the corridors
 
     def observe_building_anchors(
         self, users: np.ndarray, detected_types: np.ndarray, crowd_ids: np.ndarray | None = None

@@ -33,11 +33,12 @@ PlanArrays = tuple[
     float,
     np.ndarray,
     np.ndarray,
+    np.ndarray,
 ]
 """What the kernels take (``FloorPlan.arrays``), flat (a parallel kernel takes no nested tuple): the wall
 grid's origin x, y, cells per metre, columns and rows, its CSR starts and wall indices, the walls (S, 4), the
 raster's origin x, y and cells per metre, the raster (rows, columns) of uint8, and the wall grid's free cells
-(uint8 per cell: no wall and wholly walkable)."""
+(uint8 per cell: no wall and wholly walkable), and the raster's summed-area table of unwalkable cells."""
 
 
 @dataclass(frozen=True)
@@ -60,6 +61,9 @@ class FloorPlan:
     free: np.ndarray
     """(rows * columns,) uint8 over the wall grid: 1 where a cell holds no wall and lies wholly in the
     walkable area. A user whose particles' steps all stay in free cells needs no test."""
+    blocked_sum: np.ndarray
+    """(rows + 1, columns + 1) int32 over the raster: blocked_sum[r, c] counts the unwalkable raster cells
+    below row r and left of column c, so that whether a box is wholly walkable costs four reads."""
     axis_rad: float = 0.0
     """The walls' dominant direction modulo 90 degrees (counter-clockwise from east, in [0, pi/2)): most
     buildings are drawn on a grid, and their corridors follow it (``dominant_axis``)."""
@@ -100,7 +104,8 @@ class FloorPlan:
             raster = _rasterise(rings, raster_origin, raster_m, r_high)
         else:
             raster_origin, raster = (0.0, 0.0), np.zeros((0, 0), dtype=np.uint8)
-        free = _free_cells(cell_start, origin, cell_m, rows, columns, raster, raster_origin, raster_m)
+        blocked_sum = _blocked_sum(raster)
+        free = _free_cells(cell_start, origin, cell_m, rows, columns, blocked_sum, raster_origin, raster_m)
         axis_rad, axis_strength = dominant_axis(walls)
         return cls(
             walls,
@@ -114,6 +119,7 @@ class FloorPlan:
             raster_origin,
             raster,
             free,
+            blocked_sum,
             axis_rad,
             axis_strength,
         )
@@ -143,6 +149,7 @@ class FloorPlan:
             1.0 / self.raster_m,
             self.raster,
             self.free,
+            self.blocked_sum,
         )
 
     def walkable(self, xy: np.ndarray) -> np.ndarray:
@@ -256,17 +263,16 @@ def _free_cells(
     cell_m: float,
     rows: int,
     columns: int,
-    raster: np.ndarray,
+    blocked: np.ndarray,
     raster_origin: tuple[float, float],
     raster_m: float,
 ) -> np.ndarray:
     """1 for each wall-grid cell with no wall whose whole square is walkable (every raster cell it touches),
-    by a summed-area table of the raster's unwalkable cells."""
+    by the summed-area table of the raster's unwalkable cells (``_blocked_sum``)."""
     free: np.ndarray = (np.diff(cell_start) == 0).astype(np.uint8)
-    if raster.size == 0:
+    if blocked.size <= 1:  # no raster: no area, walkable everywhere
         return free
-    blocked = np.zeros((raster.shape[0] + 1, raster.shape[1] + 1), dtype=np.int64)
-    blocked[1:, 1:] = np.cumsum(np.cumsum(raster == 0, axis=0), axis=1)
+    raster = blocked[1:, 1:]  # only its shape is read
     r, c = np.divmod(np.arange(rows * columns), columns)
     x0 = np.floor((origin[0] + c * cell_m - raster_origin[0]) / raster_m).astype(np.int64)
     x1 = np.floor((origin[0] + (c + 1) * cell_m - raster_origin[0]) / raster_m).astype(np.int64)
@@ -278,6 +284,14 @@ def _free_cells(
     count = blocked[y1 + 1, x1 + 1] - blocked[y0, x1 + 1] - blocked[y1 + 1, x0] + blocked[y0, x0]
     free &= (inside & (count == 0)).astype(np.uint8)
     return free
+
+
+def _blocked_sum(raster: np.ndarray) -> np.ndarray:
+    """The raster's summed-area table of unwalkable cells, (rows + 1, columns + 1) int32 with a zero first row
+    and column; (1, 1) for a plan without an area."""
+    blocked = np.zeros((raster.shape[0] + 1, raster.shape[1] + 1), dtype=np.int32)
+    blocked[1:, 1:] = np.cumsum(np.cumsum(raster == 0, axis=0, dtype=np.int32), axis=1, dtype=np.int32)
+    return blocked
 
 
 def _rasterise(

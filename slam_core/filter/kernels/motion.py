@@ -26,8 +26,16 @@ from slam_core.filter.kernels.arrays import (
 from slam_core.filter.kernels.linalg2 import wrap_angle
 from slam_core.filter.kernels.rng import normal, normal_at
 from slam_core.filter.kernels.serial import serial_twin
-from slam_core.filter.kernels.walls import all_free, crosses_wall, walkable
-from slam_core.filter.kernels.weights import normalise_log_weights
+from slam_core.filter.kernels.walls import (
+    MAX_NEAR_WALLS,
+    all_free,
+    crosses_wall,
+    mark_crossings,
+    near_walls,
+    walkable,
+    wholly_walkable,
+)
+from slam_core.filter.kernels.weights import effective_sample_size, normalise_log_weights
 
 MODEL_PAPER = 0
 MODEL_BIAS_SCALE = 1
@@ -43,17 +51,25 @@ def _advance_user(
     step_heading: np.ndarray,
     motion: tuple[int, float, float, float, float],
     plan: PlanArrays,
-    plan_weights: tuple[bool, float, float],
+    plan_weights: tuple[bool, float, float, float],
 ) -> bool:
     x, y, heading = arrays[X], arrays[Y], arrays[HEADING]
     logw = arrays[LOGW]
-    use_plan, log_crossing, log_outside = plan_weights
+    use_plan, log_crossing, log_outside, ess_threshold = plan_weights
     grid = (plan[0], plan[1], plan[2], plan[3], plan[4])
     cell_start, cell_walls, walls = plan[5], plan[6], plan[7]
-    raster_frame, raster, free = (plan[8], plan[9], plan[10]), plan[11], plan[12]
+    raster_frame, raster, free, blocked_sum = (plan[8], plan[9], plan[10]), plan[11], plan[12], plan[13]
     penalised = False
+    # the plan's scratch in one allocation (one per array cost as much as the tests of a user in the open):
+    # the steps' starts, whether each crossed a wall, and the walls near the user
     n_scratch = x.shape[1] if use_plan else 0
-    x_before, y_before = np.empty(n_scratch), np.empty(n_scratch)
+    scratch = np.empty(3 * n_scratch + 4 * MAX_NEAR_WALLS)
+    x_before, y_before, hit = (
+        scratch[:n_scratch],
+        scratch[n_scratch : 2 * n_scratch],
+        scratch[2 * n_scratch : 3 * n_scratch],
+    )
+    near = scratch[3 * n_scratch :].reshape((MAX_NEAR_WALLS, 4))
     bias, scale, walk = arrays[BIAS], arrays[SCALE], arrays[WALK]
     ctrl_cov, last_obs_heading = arrays[CTRL_COV], arrays[LAST_OBS_HEADING]
     rng_key, rng_ctr = arrays[RNG_KEY], arrays[RNG_CTR]
@@ -96,16 +112,27 @@ def _advance_user(
                 low_x, high_x = min(low_x, x0, x1), max(high_x, x0, x1)
                 low_y, high_y = min(low_y, y0, y1), max(high_y, y0, y1)
         # beyond the paper: the floor plan's likelihood of each particle's step, unless every step stayed
-        # in cells without walls, wholly walkable
+        # in cells without walls, wholly walkable. Otherwise the steps are tested against the few walls near
+        # the user, and their ends against the raster only where the user's box is not wholly walkable.
         if use_plan and not all_free(grid, free, low_x, low_y, high_x, high_y):
-            for m in range(n_particles):
-                x0, y0, x1, y1 = x_before[m], y_before[m], x[u, m], y[u, m]
-                if crosses_wall(grid, cell_start, cell_walls, walls, x0, y0, x1, y1):
-                    logw[u, m] += log_crossing
-                    penalised = True
-                if not walkable(raster_frame, raster, x1, y1):
-                    logw[u, m] += log_outside
-                    penalised = True
+            n_near = near_walls(grid, cell_start, cell_walls, walls, low_x, low_y, high_x, high_y, near)
+            if n_near > 0:
+                mark_crossings(near, n_near, x_before, y_before, x[u], y[u], hit)
+            elif n_near < 0:  # more walls than the list holds: each step through the grid
+                for m in range(n_particles):
+                    crossed = crosses_wall(
+                        grid, cell_start, cell_walls, walls, x_before[m], y_before[m], x[u, m], y[u, m]
+                    )
+                    hit[m] = 1.0 if crossed else 0.0
+            test_area = not wholly_walkable(raster_frame, raster, blocked_sum, low_x, low_y, high_x, high_y)
+            if n_near != 0 or test_area:
+                for m in range(n_particles):
+                    if n_near != 0 and hit[m] != 0.0:
+                        logw[u, m] += log_crossing
+                        penalised = True
+                    if test_area and not walkable(raster_frame, raster, x[u, m], y[u, m]):
+                        logw[u, m] += log_outside
+                        penalised = True
         last_obs_heading[u] = obs
         # P_t: covariance of the control data since the last correction (along/across the step).
         c = math.cos(obs)
@@ -119,9 +146,12 @@ def _advance_user(
         lim = 0.999 * math.sqrt(ctrl_cov[u, 0] * ctrl_cov[u, 2])
         ctrl_cov[u, 1] = max(-lim, min(lim, ctrl_cov[u, 1]))
     rng_ctr[u] = counter
-    if penalised:
-        normalise_log_weights(logw, u)  # the penalties are finite: the row always normalises
-    return penalised
+    if not penalised:
+        return False
+    normalise_log_weights(logw, u)  # the penalties are finite: the row always normalises
+    # whether the resampling will act, judged here: most penalised users keep enough effective particles,
+    # and a kernel call each only to find that out cost more than the plan's tests
+    return ess_threshold >= 1.0 or effective_sample_size(logw, u) < ess_threshold * n_particles
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -133,15 +163,17 @@ def motion_update(
     step_heading: np.ndarray,
     motion: tuple[int, float, float, float, float],
     plan: PlanArrays,
-    plan_weights: tuple[bool, float, float],
-    penalised: np.ndarray,
+    plan_weights: tuple[bool, float, float, float],
+    resample: np.ndarray,
 ) -> None:
     """Advance ``users[i]`` by its steps ``offsets[i]:offsets[i+1]`` (lengths in metres, observed headings in
     rad counter-clockwise from east). Users must be distinct within one call. ``motion`` is the model's
     code and parameters: (model, sigma_l, sigma_phi, sigma_walk, control covariance cap). With
-    ``plan_weights`` = (True, log-likelihood of crossing a wall, of ending outside the walkable area), each
-    particle's step is weighted by the floor plan (``slam_core.filter.kernels.walls``) and, where a step was
-    penalised, the user's weights normalised and ``penalised[i]`` set; with False the plan is not read.
+    ``plan_weights`` = (True, log-likelihood of crossing a wall, of ending outside the walkable area, the
+    resampling's ESS threshold), each particle's step is weighted by the floor plan
+    (``slam_core.filter.kernels.walls``) and, where a step was penalised, the user's weights normalised and
+    ``resample[i]`` set if the resampling will act on them (``resample_users``' test); with False the plan is
+    not read.
 
     Per particle and step, two normals are drawn in this order: length noise, then heading noise (paper
     model) or the heading walk's increment (bias-scale model); ``slam_core.filter.reference`` draws them
@@ -149,7 +181,7 @@ def motion_update(
     inlined loops 2.5x.
     """
     for i in prange(users.shape[0]):
-        penalised[i] = _advance_user(
+        resample[i] = _advance_user(
             arrays,
             users[i],
             offsets[i],

@@ -25,7 +25,7 @@ from slam_core.filter.kernels.arrays import (
     Y,
     particle_maps,
 )
-from slam_core.filter.kernels.rng import normal, uniform
+from slam_core.filter.kernels.rng import normal_at, uniform
 from slam_core.filter.kernels.serial import serial_twin
 from slam_core.filter.kernels.weights import effective_sample_size
 
@@ -56,12 +56,28 @@ def _inverse_cdf(sorted_uniforms: np.ndarray, w: np.ndarray, out: np.ndarray, st
 
 @njit(cache=True, nogil=True)
 def draw_ancestors(w: np.ndarray, scheme: int, key: np.uint64, counters: np.ndarray, user: int) -> np.ndarray:
+    out = np.empty(w.shape[0], dtype=np.int64)
+    draw_ancestors_into(w, scheme, key, counters, user, out)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def draw_ancestors_into(
+    w: np.ndarray, scheme: int, key: np.uint64, counters: np.ndarray, user: int, out: np.ndarray
+) -> None:
+    """``draw_ancestors`` into ``out``; the systematic scheme, the default, allocates nothing."""
     n = w.shape[0]
-    out = np.empty(n, dtype=np.int64)
     if scheme == SYSTEMATIC:
         u0 = uniform(key, counters, user)
-        us = (np.arange(n) + u0) / n
-        _inverse_cdf(us, w, out, 0)
+        j = 0
+        cumulative = w[0]
+        last = n - 1
+        for k in range(n):
+            u = (k + u0) / n
+            while u >= cumulative and j < last:
+                j += 1
+                cumulative += w[j]
+            out[k] = j
     elif scheme == STRATIFIED:
         us = np.empty(n)
         for k in range(n):
@@ -91,7 +107,6 @@ def draw_ancestors(w: np.ndarray, scheme: int, key: np.uint64, counters: np.ndar
                 us[k] = uniform(key, counters, user)
             us.sort()
             _inverse_cdf(us, residual, out, filled)
-    return out
 
 
 @njit(cache=True, nogil=True)
@@ -103,6 +118,9 @@ def _gather_maps(u: int, idx: np.ndarray, arrays: FilterArrays) -> None:
     k = 0
     for m in range(idx.shape[0]):
         k = max(k, map_n[u, idx[m]])
+    if k == 0:  # no ancestor holds an anchor: nothing to copy
+        map_n[u] = 0
+        return
     map_mu[u, :, :k] = map_mu[u][idx, :k]
     map_cov[u, :, :k] = map_cov[u][idx, :k]
     map_type[u, :, :k] = map_type[u][idx, :k]
@@ -123,22 +141,35 @@ def _resample_user(
     n_particles = logw.shape[1]
     if threshold < 1.0 and effective_sample_size(logw, u) >= threshold * n_particles:
         return
-    w = np.exp(logw[u])
-    w /= w.sum()
-    idx = draw_ancestors(w, scheme, rng_key[u], rng_ctr, u)
-    x[u] = x[u][idx]
-    y[u] = y[u][idx]
-    heading[u] = heading[u][idx]
-    bias[u] = bias[u][idx]
-    scale[u] = scale[u][idx]
-    walk[u] = walk[u][idx]
+    # one scratch row for the weights, then each gathered field; the ancestors in another (allocating per
+    # field cost more than the copies)
+    scratch = np.empty(n_particles)
+    total = 0.0
+    for m in range(n_particles):
+        scratch[m] = math.exp(logw[u, m])
+        total += scratch[m]
+    for m in range(n_particles):
+        scratch[m] /= total
+    idx = np.empty(n_particles, dtype=np.int64)
+    draw_ancestors_into(scratch, scheme, rng_key[u], rng_ctr, u, idx)
+    for field in (x, y, heading, bias, scale, walk):
+        for m in range(n_particles):
+            scratch[m] = field[u, idx[m]]
+        for m in range(n_particles):
+            field[u, m] = scratch[m]
     _gather_maps(u, idx, arrays)
     key = rng_key[u]
+    uniform_logw = -math.log(n_particles)
     for m in range(n_particles):
-        logw[u, m] = -math.log(n_particles)
-        if roughening_bias > 0.0 or roughening_scale > 0.0:
-            bias[u, m] += roughening_bias * normal(key, rng_ctr, u)
-            scale[u, m] = max(0.2, scale[u, m] + roughening_scale * normal(key, rng_ctr, u))
+        logw[u, m] = uniform_logw
+    if roughening_bias > 0.0 or roughening_scale > 0.0:
+        counter = rng_ctr[u]  # kept local: a counter written back at every draw serialised the loop
+        one = np.uint64(1)
+        for m in range(n_particles):
+            bias[u, m] += roughening_bias * normal_at(key, counter)
+            scale[u, m] = max(0.2, scale[u, m] + roughening_scale * normal_at(key, counter + one))
+            counter += np.uint64(2)
+        rng_ctr[u] = counter
     n_resamples[u] += 1
 
 

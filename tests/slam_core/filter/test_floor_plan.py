@@ -13,7 +13,14 @@ from matplotlib.path import Path as PolygonPath
 from slam_core.filter import reference
 from slam_core.filter.dynamic_slam import DynamicSlam
 from slam_core.filter.floor_plan import FloorPlan
-from slam_core.filter.kernels.walls import crosses_wall, walkable
+from slam_core.filter.kernels.walls import (
+    MAX_NEAR_WALLS,
+    crosses_wall,
+    mark_crossings,
+    near_walls,
+    walkable,
+    wholly_walkable,
+)
 from slam_core.filter.params import FilterParams, FloorPlanParams, ResamplingParams
 from tests.slam_core.filter.helpers import assert_matches, to_reference
 
@@ -41,6 +48,99 @@ def test_the_grid_finds_every_crossing_brute_force_finds() -> None:
         assert crosses_wall(arrays[:5], *arrays[5:8], *p0, *p1) == expected, (p0, p1)
         crossings += expected
     assert 300 < crossings < 2700  # both answers were exercised
+
+
+def _segment_meets_box(wall: np.ndarray, low: np.ndarray, high: np.ndarray) -> bool:
+    """Brute force: whether the segment has a point in the box (Liang-Barsky clipping)."""
+    start, delta = wall[:2], wall[2:] - wall[:2]
+    t0, t1 = 0.0, 1.0
+    for k in range(2):
+        if delta[k] == 0.0:
+            if not low[k] <= start[k] <= high[k]:
+                return False
+            continue
+        a, b = (low[k] - start[k]) / delta[k], (high[k] - start[k]) / delta[k]
+        t0, t1 = max(t0, min(a, b)), min(t1, max(a, b))
+    return t0 <= t1
+
+
+def test_the_walls_near_a_box_are_each_wall_that_meets_it_once() -> None:
+    """The short list a user's steps are tested against holds every wall with a point in the user's box,
+    once, and no wall whose own box misses it; a list too short for them says so (-1)."""
+    rng = np.random.default_rng(11)
+    walls = _random_walls(rng, 300)
+    plan = FloorPlan.build(walls, cell_m=2.0)
+    arrays = plan.arrays()
+    near = np.empty((MAX_NEAR_WALLS, 4))
+    listed_total = 0
+    for _ in range(500):
+        low = rng.uniform(-2, 40, 2)
+        high = low + rng.uniform(0, 6, 2)
+        n = near_walls(arrays[:5], *arrays[5:8], *low, *high, near)
+        assert n >= 0
+        got = {tuple(w) for w in near[:n]}
+        assert len(got) == n  # each wall once
+        meets = {tuple(w) for w in walls if _segment_meets_box(w, low, high)}
+        assert meets <= got
+        boxes_meet = {
+            tuple(w)
+            for w in walls
+            if min(w[0], w[2]) <= high[0] and max(w[0], w[2]) >= low[0]
+            if min(w[1], w[3]) <= high[1] and max(w[1], w[3]) >= low[1]
+        }
+        assert got <= boxes_meet
+        listed_total += n
+    assert listed_total > 500  # boxes met walls
+    short = np.empty((2, 4))
+    assert near_walls(arrays[:5], *arrays[5:8], 0.0, 0.0, 40.0, 40.0, short) == -1
+
+
+def test_a_users_steps_cross_the_walls_near_it_as_the_grid_says() -> None:
+    """``mark_crossings`` over ``near_walls`` gives, step by step, the grid's answer (the kernel's fast path
+    against its general one)."""
+    rng = np.random.default_rng(12)
+    walls = _random_walls(rng, 300)
+    plan = FloorPlan.build(walls, cell_m=2.0)
+    arrays = plan.arrays()
+    near = np.empty((MAX_NEAR_WALLS, 4))
+    crossings = 0
+    for _ in range(300):
+        centre = rng.uniform(0, 40, 2)
+        x0, y0 = (centre + rng.normal(0, 1.0, (75, 2))).T
+        heading = rng.uniform(-math.pi, math.pi)
+        step = rng.uniform(0.3, 1.0, 75)
+        x1, y1 = x0 + step * math.cos(heading), y0 + step * math.sin(heading)
+        low = (min(x0.min(), x1.min()), min(y0.min(), y1.min()))
+        high = (max(x0.max(), x1.max()), max(y0.max(), y1.max()))
+        n = near_walls(arrays[:5], *arrays[5:8], *low, *high, near)
+        if n < 0:
+            continue
+        hit = np.full(75, 7.0)  # whatever the scratch held before
+        mark_crossings(near, n, x0, y0, x1, y1, hit)
+        expected = [crosses_wall(arrays[:5], *arrays[5:8], *a) for a in zip(x0, y0, x1, y1, strict=True)]
+        np.testing.assert_array_equal(hit, np.array(expected, dtype=float))
+        crossings += int(hit.sum())
+    assert crossings > 100
+
+
+def test_a_wholly_walkable_box_holds_only_walkable_cells() -> None:
+    plan = FloorPlan.build(np.zeros((0, 4)), [SQUARE, HOLE], raster_m=0.5)
+    arrays = plan.arrays()
+    rng = np.random.default_rng(13)
+    answers = set()
+    for _ in range(2000):
+        low = rng.uniform(-3, 42, 2)
+        high = low + rng.uniform(0, 5, 2)
+        got = wholly_walkable(arrays[8:11], arrays[11], arrays[13], *low, *high)
+        c0, r0 = np.floor((low - plan.raster_origin) / plan.raster_m).astype(int)
+        c1, r1 = np.floor((high - plan.raster_origin) / plan.raster_m).astype(int)
+        rows, columns = plan.raster.shape
+        inside = c0 >= 0 and r0 >= 0 and c1 < columns and r1 < rows
+        assert got == (inside and bool(np.all(plan.raster[r0 : r1 + 1, c0 : c1 + 1] == 1)))
+        answers.add(got)
+    assert answers == {True, False}
+    empty = FloorPlan.empty().arrays()
+    assert wholly_walkable(empty[8:11], empty[11], empty[13], -1e6, -1e6, 1e6, 1e6)
 
 
 def test_the_raster_is_the_even_odd_inside_of_the_rings() -> None:
@@ -125,6 +225,26 @@ def test_the_kernel_weighs_steps_as_the_reference_does() -> None:
     w = np.exp(engine.state.logw[u])
     assert np.isclose(w.sum(), 1.0)
     assert w.max() > 5 * w.min()  # the walls told particles apart
+
+
+def test_users_the_walls_thin_out_are_resampled_as_the_reference_does() -> None:
+    """With the default resampling, a user is resampled after a step exactly when the walls left it too few
+    effective particles (the kernel judges it; the reference resamples by its own test)."""
+    params = FilterParams(n_particles=32)
+    engine = DynamicSlam(params, seed=6)
+    plan = _corridor()
+    engine.floor_plan = plan
+    u = engine.add_user(2.0, 1.5, heading=0.0, position_sigma=0.8)
+    ref = to_reference(engine, u)
+    resampled = 0
+    for k in range(40):
+        heading = 0.15 if k % 10 < 5 else -0.15  # zig-zag into both walls
+        engine.step(np.array([u]), np.array([0, 1]), np.array([0.7]), np.array([heading]))
+        reference.motion(ref, 0.7, heading, params, plan)
+        resampled += reference.resample(ref, params)
+    assert_matches(engine, u, ref)
+    assert 0 < resampled < 40
+    assert engine.state.n_resamples[u] == resampled
 
 
 def _drift(plan: FloorPlan | None, seed: int) -> np.ndarray:
