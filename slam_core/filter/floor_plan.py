@@ -44,7 +44,8 @@ raster's origin x, y and cells per metre, the raster (rows, columns) of uint8, a
 @dataclass(frozen=True)
 class FloorPlan:
     walls: np.ndarray
-    """(S, 4) float64: x0, y0, x1, y1 in the local frame (metres)."""
+    """(S, 4) float64: x0, y0, x1, y1 in the local frame (metres), each segment once: adjacent obstacles
+    draw their shared edge twice (on a mall floor, half of the segments), and a step crosses it once."""
     walkable_rings: tuple[np.ndarray, ...]
     """Rings (k, 2) bounding the walkable area by the even-odd rule (outline and holes); none: anywhere."""
     cell_m: float
@@ -88,6 +89,7 @@ class FloorPlan:
             raise ValueError("floor plan: a walkable ring needs at least three points")
         if not (cell_m > 0 and raster_m > 0):
             raise ValueError("floor plan: cell sizes must be positive")
+        drawn, walls = walls, _distinct(walls)
         points = [walls[:, :2], walls[:, 2:], *rings]
         everything = np.concatenate(points) if sum(p.shape[0] for p in points) else np.zeros((1, 2))
         low, high = everything.min(axis=0), everything.max(axis=0)
@@ -106,7 +108,7 @@ class FloorPlan:
             raster_origin, raster = (0.0, 0.0), np.zeros((0, 0), dtype=np.uint8)
         blocked_sum = _blocked_sum(raster)
         free = _free_cells(cell_start, origin, cell_m, rows, columns, blocked_sum, raster_origin, raster_m)
-        axis_rad, axis_strength = dominant_axis(walls)
+        axis_rad, axis_strength = dominant_axis(drawn)
         return cls(
             walls,
             rings,
@@ -284,6 +286,17 @@ def _free_cells(
     count = blocked[y1 + 1, x1 + 1] - blocked[y0, x1 + 1] - blocked[y1 + 1, x0] + blocked[y0, x0]
     free &= (inside & (count == 0)).astype(np.uint8)
     return free
+
+
+def _distinct(walls: np.ndarray) -> np.ndarray:
+    """The walls without repeats, in their first drawing's order; a segment drawn the other way round is a
+    repeat. Which copy stays changes no crossing test (its answer does not depend on the direction)."""
+    if walls.shape[0] == 0:
+        return walls
+    forward = (walls[:, 0] < walls[:, 2]) | ((walls[:, 0] == walls[:, 2]) & (walls[:, 1] <= walls[:, 3]))
+    canonical = np.where(forward[:, None], walls, walls[:, [2, 3, 0, 1]])
+    _, first = np.unique(canonical, axis=0, return_index=True)
+    return np.ascontiguousarray(walls[np.sort(first)])
 
 
 def _blocked_sum(raster: np.ndarray) -> np.ndarray:

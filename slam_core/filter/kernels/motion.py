@@ -35,7 +35,7 @@ from slam_core.filter.kernels.walls import (
     walkable,
     wholly_walkable,
 )
-from slam_core.filter.kernels.weights import effective_sample_size, normalise_log_weights
+from slam_core.filter.kernels.weights import normalise_log_weights_ess
 
 MODEL_PAPER = 0
 MODEL_BIAS_SCALE = 1
@@ -148,10 +148,11 @@ def _advance_user(
     rng_ctr[u] = counter
     if not penalised:
         return False
-    normalise_log_weights(logw, u)  # the penalties are finite: the row always normalises
-    # whether the resampling will act, judged here: most penalised users keep enough effective particles,
-    # and a kernel call each only to find that out cost more than the plan's tests
-    return ess_threshold >= 1.0 or effective_sample_size(logw, u) < ess_threshold * n_particles
+    ess = normalise_log_weights_ess(logw, u)  # the penalties are finite: the row always normalises
+    # whether the resampling may act, judged here: most penalised users keep enough effective particles, and
+    # a kernel call each only to find that out cost more than the plan's tests. The margin covers rounding:
+    # the resampling decides with its own sum.
+    return ess_threshold >= 1.0 or ess < ess_threshold * n_particles * (1.0 + 1e-9)
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -172,7 +173,7 @@ def motion_update(
     ``plan_weights`` = (True, log-likelihood of crossing a wall, of ending outside the walkable area, the
     resampling's ESS threshold), each particle's step is weighted by the floor plan
     (``slam_core.filter.kernels.walls``) and, where a step was penalised, the user's weights normalised and
-    ``resample[i]`` set if the resampling will act on them (``resample_users``' test); with False the plan is
+    ``resample[i]`` set if the resampling may act on them (``resample_users`` decides); with False the plan is
     not read.
 
     Per particle and step, two normals are drawn in this order: length noise, then heading noise (paper

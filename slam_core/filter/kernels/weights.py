@@ -12,20 +12,31 @@ from numba import njit
 def normalise_log_weights(logw: np.ndarray, u: int) -> bool:
     """Normalise row ``u`` so that sum(exp(logw)) = 1. Returns False, leaving the row untouched, when every
     weight is zero or not finite (the caller recovers explicitly and counts it)."""
+    return normalise_log_weights_ess(logw, u) > 0.0
+
+
+@njit(cache=True, nogil=True)
+def normalise_log_weights_ess(logw: np.ndarray, u: int) -> float:
+    """``normalise_log_weights``, returning the row's effective sample size from the same exponentials
+    (equal to ``effective_sample_size`` afterwards up to rounding), or 0.0 when the row could not be
+    normalised."""
     n = logw.shape[1]
     top = -np.inf
     for m in range(n):
         if logw[u, m] > top:
             top = logw[u, m]
     if not math.isfinite(top):
-        return False
+        return 0.0
     total = 0.0
+    squares = 0.0
     for m in range(n):
-        total += math.exp(logw[u, m] - top)
+        e = math.exp(logw[u, m] - top)
+        total += e
+        squares += e * e
     log_total = top + math.log(total)
     for m in range(n):
         logw[u, m] -= log_total
-    return True
+    return total * total / squares
 
 
 @njit(cache=True, nogil=True)

@@ -12,7 +12,7 @@ from matplotlib.path import Path as PolygonPath
 
 from slam_core.filter import reference
 from slam_core.filter.dynamic_slam import DynamicSlam
-from slam_core.filter.floor_plan import FloorPlan
+from slam_core.filter.floor_plan import FloorPlan, dominant_axis
 from slam_core.filter.kernels.walls import (
     MAX_NEAR_WALLS,
     crosses_wall,
@@ -62,6 +62,22 @@ def _segment_meets_box(wall: np.ndarray, low: np.ndarray, high: np.ndarray) -> b
         a, b = (low[k] - start[k]) / delta[k], (high[k] - start[k]) / delta[k]
         t0, t1 = max(t0, min(a, b)), min(t1, max(a, b))
     return t0 <= t1
+
+
+def test_a_shared_edge_drawn_twice_is_one_wall() -> None:
+    """Two shops side by side draw their shared edge twice, once each way round: the plan keeps it once, and
+    every step crosses the plan as it crossed the walls as drawn."""
+    rng = np.random.default_rng(14)
+    walls = _random_walls(rng, 100)
+    drawn = np.vstack([walls, walls[:40, [2, 3, 0, 1]], walls[40:60]])
+    plan = FloorPlan.build(drawn, cell_m=2.0)
+    np.testing.assert_array_equal(plan.walls, walls)
+    assert (plan.axis_rad, plan.axis_strength) == dominant_axis(drawn)  # the grid is read from the drawing
+    arrays = plan.arrays()
+    for _ in range(500):
+        p0 = rng.uniform(-2, 42, 2)
+        p1 = p0 + rng.normal(0, 2.0, 2)
+        assert crosses_wall(arrays[:5], *arrays[5:8], *p0, *p1) == reference.crosses_any_wall(drawn, *p0, *p1)
 
 
 def test_the_walls_near_a_box_are_each_wall_that_meets_it_once() -> None:
@@ -196,6 +212,7 @@ def test_invalid_plans_are_refused() -> None:
     with pytest.raises(ValueError, match="three points"):
         FloorPlan.build(np.zeros((0, 4)), [np.array([[0.0, 0.0], [1.0, 1.0]])])
     diagonals = np.tile([0.0, 0.0, 1000.0, 1000.0], (100, 1))  # each wall's box: 250,000 cells
+    diagonals[:, 0] += np.arange(100) * 0.01  # distinct walls (a repeated one is indexed once)
     with pytest.raises(ValueError, match="boxes span"):
         FloorPlan.build(diagonals)
     with pytest.raises(ValueError, match="in \\(0, 1\\]"):

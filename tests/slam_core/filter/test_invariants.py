@@ -15,6 +15,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from slam_core.filter.dynamic_slam import CrowdMap, DynamicSlam
+from slam_core.filter.kernels.weights import effective_sample_size, normalise_log_weights_ess
 from slam_core.filter.params import FilterParams, HumanAnchorParams, MotionParams, ResamplingParams
 
 PARAMS = FilterParams(n_particles=20, anchors=replace(FilterParams().anchors, capacity=6))
@@ -91,6 +92,25 @@ def test_resampled_indices_keep_particles_from_the_cloud() -> None:
     after = engine.state.x[u].tolist()
     assert set(after) <= before
     assert after.count(max(after, key=after.count)) >= 15  # the heavy particle dominates
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.lists(st.floats(-800.0, 50.0) | st.just(-np.inf), min_size=1, max_size=80),
+)
+def test_the_normalising_pass_gives_the_effective_sample_size(logs: list[float]) -> None:
+    """The motion update judges a penalised user's resampling from the normalising pass's own sums: the same
+    ESS as computed afresh, within rounding; an all-zero row is left alone and has none."""
+    row = np.array([logs])
+    before = row.copy()
+    ess = normalise_log_weights_ess(row, 0)
+    if not np.isfinite(before.max()):
+        assert ess == 0.0
+        np.testing.assert_array_equal(row, before)
+        return
+    assert np.isclose(np.exp(row[0]).sum(), 1.0)
+    assert ess == pytest.approx(effective_sample_size(row, 0), rel=1e-12)
+    assert 1.0 - 1e-9 <= ess <= len(logs) * (1.0 + 1e-9)
 
 
 def test_map_overflow_is_counted_not_silent() -> None:
