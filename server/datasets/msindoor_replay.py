@@ -167,6 +167,7 @@ def replay_floor(
                 )
         base = end + PHASE_GAP_MS
     errors = np.array([e for w in scored for e in w.errors])
+    reach = _start_reach(phases[0], phases[-1]) if len(phases) == 2 else None
     result: dict[str, Any] = {
         "mode": options.mode,
         "floor": str(floor_dir),
@@ -182,6 +183,8 @@ def replay_floor(
         "unplaced_waypoints": sum(1 for w in scored for _, e in w.scored if not math.isfinite(e)),
         "seconds_to_5m": _median_or_none([w.seconds_to(5.0) for w in scored]),
         "walks_within_5m": sum(math.isfinite(w.seconds_to(5.0)) for w in scored) / max(1, len(scored)),
+        "start_to_warm_track_m": None if reach is None else error_summary(reach),
+        "starts_within_5m_of_warm_track": None if reach is None else float(np.mean(reach <= 5.0)),
         **error_summary(errors),
         "n_waypoints": int(errors.size),
         "n_walks": len(traces),
@@ -202,6 +205,21 @@ def replay_floor(
         "seconds": time.perf_counter() - started,
     }
     return result, errors
+
+
+def _start_reach(warm: list[Trace], scored: list[Trace]) -> np.ndarray:
+    """How far each scored walk's first waypoint lies from every warm walk's surveyed track (straight between
+    clicks), in metres: what bounds a phone placed without a fix, which the crowd's map can only put where the
+    warm crowd has been."""
+    segments = np.concatenate([np.hstack([t.waypoints[:-1, 1:3], t.waypoints[1:, 1:3]]) for t in warm])
+    a, d = segments[:, :2], segments[:, 2:] - segments[:, :2]
+    length2 = np.maximum((d * d).sum(axis=1), 1e-12)
+    out = np.empty(len(scored))
+    for k, trace in enumerate(scored):
+        p = trace.waypoints[0, 1:3]
+        t = np.clip(((p - a) * d).sum(axis=1) / length2, 0.0, 1.0)
+        out[k] = float(np.min(np.hypot(*(a + t[:, None] * d - p).T)))
+    return out
 
 
 def _windows(trace: Trace, window_ms: int) -> int:

@@ -89,6 +89,22 @@ def test_phones_with_no_start_fix_are_placed_by_the_crowds_map_on_the_second_bui
     assert 0 < result["unplaced_waypoints"] < result["n_waypoints"] + result["unplaced_waypoints"]
     assert 0.0 < result["walks_within_5m"] < 1.0
     assert result["median_m"] <= 8.0
+    # what bounds it: where the warm crowd has not been, the crowd's map cannot place a phone
+    assert result["start_to_warm_track_m"]["median_m"] == pytest.approx(3.77, abs=0.01)
+    assert result["starts_within_5m_of_warm_track"] == pytest.approx(12 / 22)
+
+
+def test_the_scored_starts_reach_the_warm_tracks_straight_between_clicks() -> None:
+    from server.datasets.msindoor import Trace
+    from server.datasets.msindoor_replay import _start_reach
+
+    def walk(*points: tuple[float, float]) -> Trace:
+        waypoints = np.array([[1000.0 * k, x, y] for k, (x, y) in enumerate(points)])
+        return Trace(path=Path("w.txt"), header={}, waypoints=waypoints)
+
+    warm = [walk((0.0, 0.0), (10.0, 0.0)), walk((20.0, 0.0), (20.0, 10.0), (30.0, 10.0))]
+    scored = [walk((5.0, 3.0), (6.0, 3.0)), walk((-4.0, -3.0), (0.0, 0.0)), walk((25.0, 14.0), (0.0, 0.0))]
+    np.testing.assert_allclose(_start_reach(warm, scored), [3.0, 5.0, 4.0])
 
 
 def test_warm_split_scores_only_the_later_walks(small_floor: Path) -> None:
