@@ -18,6 +18,19 @@ def _orientation(ax: float, ay: float, bx: float, by: float, px: float, py: floa
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _cell_span(
+    grid: tuple[float, float, float, int, int], low_x: float, low_y: float, high_x: float, high_y: float
+) -> tuple[int, int, int, int]:
+    """The first and last column and row of the wall grid's cells the box covers, clamped to the grid."""
+    ox, oy, per_m, columns, rows = grid
+    c0 = max(0, math.floor((low_x - ox) * per_m))
+    c1 = min(columns - 1, math.floor((high_x - ox) * per_m))
+    r0 = max(0, math.floor((low_y - oy) * per_m))
+    r1 = min(rows - 1, math.floor((high_y - oy) * per_m))
+    return c0, c1, r0, r1
+
+
+@njit(cache=True, nogil=True, inline="always")
 def crosses_wall(
     grid: tuple[float, float, float, int, int],
     cell_start: np.ndarray,
@@ -31,11 +44,8 @@ def crosses_wall(
     """Whether the step (x0, y0) -> (x1, y1) properly crosses a wall (touching is not crossing). Only the
     walls listed in the grid cells (origin x, y, 1 / cell size, columns, rows) the step's box covers are
     tested; most steps stay in one cell, often without walls, and test none."""
-    ox, oy, per_m, columns, rows = grid
-    c0 = max(0, math.floor((min(x0, x1) - ox) * per_m))
-    c1 = min(columns - 1, math.floor((max(x0, x1) - ox) * per_m))
-    r0 = max(0, math.floor((min(y0, y1) - oy) * per_m))
-    r1 = min(rows - 1, math.floor((max(y0, y1) - oy) * per_m))
+    columns = grid[3]
+    c0, c1, r0, r1 = _cell_span(grid, min(x0, x1), min(y0, y1), max(x0, x1), max(y0, y1))
     if c0 == c1 and r0 == r1:  # the common case, without the loops
         first = r0 * columns + c0
         if cell_start[first] == cell_start[first + 1]:
@@ -78,11 +88,8 @@ def near_walls(
     covers and whose own box meets it; returns how many, or -1 when there are more than ``near`` holds. A step
     inside the box can only cross these: testing a user's particles against this short list, instead of
     looking each step up in the grid, gives the same answers at a fraction of the cost."""
-    ox, oy, per_m, columns, rows = grid
-    c0 = max(0, math.floor((low_x - ox) * per_m))
-    c1 = min(columns - 1, math.floor((high_x - ox) * per_m))
-    r0 = max(0, math.floor((low_y - oy) * per_m))
-    r1 = min(rows - 1, math.floor((high_y - oy) * per_m))
+    columns = grid[3]
+    c0, c1, r0, r1 = _cell_span(grid, low_x, low_y, high_x, high_y)
     n = 0
     for r in range(r0, r1 + 1):
         for c in range(c0, c1 + 1):
@@ -125,10 +132,10 @@ def mark_crossings(
         ax, ay, bx, by = near[k, 0], near[k, 1], near[k, 2], near[k, 3]
         for m in range(hit.shape[0]):
             px, py, qx, qy = x0[m], y0[m], x1[m], y1[m]
-            d1 = (bx - ax) * (py - ay) - (by - ay) * (px - ax)
-            d2 = (bx - ax) * (qy - ay) - (by - ay) * (qx - ax)
-            d3 = (qx - px) * (ay - py) - (qy - py) * (ax - px)
-            d4 = (qx - px) * (by - py) - (qy - py) * (bx - px)
+            d1 = _orientation(ax, ay, bx, by, px, py)
+            d2 = _orientation(ax, ay, bx, by, qx, qy)
+            d3 = _orientation(px, py, qx, qy, ax, ay)
+            d4 = _orientation(px, py, qx, qy, bx, by)
             if (d1 * d2 < 0.0) & (d3 * d4 < 0.0):
                 hit[m] = 1.0
 
