@@ -1,7 +1,7 @@
 """Resampling schemes (index draws) and the batched resample-and-gather kernel.
 
 Schemes by name, as in ``particles``: systematic (default), stratified, residual, multinomial. Each takes
-normalised weights and the user's RNG stream and returns ancestor indices.
+normalised weights and the user's RNG stream and writes ancestor indices.
 """
 
 from __future__ import annotations
@@ -55,19 +55,14 @@ def _inverse_cdf(sorted_uniforms: np.ndarray, w: np.ndarray, out: np.ndarray, st
 
 
 @njit(cache=True, nogil=True)
-def draw_ancestors(w: np.ndarray, scheme: int, key: np.uint64, counters: np.ndarray, user: int) -> np.ndarray:
-    out = np.empty(w.shape[0], dtype=np.int64)
-    draw_ancestors_into(w, scheme, key, counters, user, out)
-    return out
-
-
-@njit(cache=True, nogil=True)
-def draw_ancestors_into(
+def draw_ancestors(
     w: np.ndarray, scheme: int, key: np.uint64, counters: np.ndarray, user: int, out: np.ndarray
 ) -> None:
-    """``draw_ancestors`` into ``out``; the systematic scheme, the default, allocates nothing."""
+    """Write the ancestors of the particles weighted ``w`` into ``out``. The systematic scheme, the default,
+    allocates nothing."""
     n = w.shape[0]
     if scheme == SYSTEMATIC:
+        # ``_inverse_cdf`` over the uniforms (k + u0) / n, each computed as it is needed
         u0 = uniform(key, counters, user)
         j = 0
         cumulative = w[0]
@@ -151,7 +146,7 @@ def _resample_user(
     for m in range(n_particles):
         scratch[m] /= total
     idx = np.empty(n_particles, dtype=np.int64)
-    draw_ancestors_into(scratch, scheme, rng_key[u], rng_ctr, u, idx)
+    draw_ancestors(scratch, scheme, rng_key[u], rng_ctr, u, idx)
     for field in (x, y, heading, bias, scale, walk):
         for m in range(n_particles):
             scratch[m] = field[u, idx[m]]
