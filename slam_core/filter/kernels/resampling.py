@@ -58,21 +58,12 @@ def _inverse_cdf(sorted_uniforms: np.ndarray, w: np.ndarray, out: np.ndarray, st
 def draw_ancestors(
     w: np.ndarray, scheme: int, key: np.uint64, counters: np.ndarray, user: int, out: np.ndarray
 ) -> None:
-    """Write the ancestors of the particles weighted ``w`` into ``out``. The systematic scheme, the default,
-    allocates nothing."""
+    """Write the ancestors of the particles weighted ``w`` into ``out``."""
     n = w.shape[0]
     if scheme == SYSTEMATIC:
-        # ``_inverse_cdf`` over the uniforms (k + u0) / n, each computed as it is needed
         u0 = uniform(key, counters, user)
-        j = 0
-        cumulative = w[0]
-        last = n - 1
-        for k in range(n):
-            u = (k + u0) / n
-            while u >= cumulative and j < last:
-                j += 1
-                cumulative += w[j]
-            out[k] = j
+        us = (np.arange(n) + u0) / n
+        _inverse_cdf(us, w, out, 0)
     elif scheme == STRATIFIED:
         us = np.empty(n)
         for k in range(n):
