@@ -274,15 +274,15 @@ def _free_cells(
     free: np.ndarray = (np.diff(cell_start) == 0).astype(np.uint8)
     if blocked.size <= 1:  # no raster: no area, walkable everywhere
         return free
-    raster = blocked[1:, 1:]  # only its shape is read
+    raster_rows, raster_columns = blocked.shape[0] - 1, blocked.shape[1] - 1
     r, c = np.divmod(np.arange(rows * columns), columns)
     x0 = np.floor((origin[0] + c * cell_m - raster_origin[0]) / raster_m).astype(np.int64)
     x1 = np.floor((origin[0] + (c + 1) * cell_m - raster_origin[0]) / raster_m).astype(np.int64)
     y0 = np.floor((origin[1] + r * cell_m - raster_origin[1]) / raster_m).astype(np.int64)
     y1 = np.floor((origin[1] + (r + 1) * cell_m - raster_origin[1]) / raster_m).astype(np.int64)
-    inside = (x0 >= 0) & (y0 >= 0) & (x1 < raster.shape[1]) & (y1 < raster.shape[0])
-    x0, x1 = np.clip(x0, 0, raster.shape[1] - 1), np.clip(x1, 0, raster.shape[1] - 1)
-    y0, y1 = np.clip(y0, 0, raster.shape[0] - 1), np.clip(y1, 0, raster.shape[0] - 1)
+    inside = (x0 >= 0) & (y0 >= 0) & (x1 < raster_columns) & (y1 < raster_rows)
+    x0, x1 = np.clip(x0, 0, raster_columns - 1), np.clip(x1, 0, raster_columns - 1)
+    y0, y1 = np.clip(y0, 0, raster_rows - 1), np.clip(y1, 0, raster_rows - 1)
     count = blocked[y1 + 1, x1 + 1] - blocked[y0, x1 + 1] - blocked[y1 + 1, x0] + blocked[y0, x0]
     free &= (inside & (count == 0)).astype(np.uint8)
     return free
