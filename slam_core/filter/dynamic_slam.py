@@ -132,6 +132,12 @@ class DynamicSlam:
         s.rng_ctr[slot] = 0
         self._admitted += 1
         motion = self.params.motion
+        plan = self.floor_plan
+        scale_sigma = (
+            self.params.floor_plan.step_scale_sigma
+            if plan is not None and not plan.is_empty
+            else motion.step_scale_sigma
+        )
         initialise_user(
             s.arrays(),
             slot,
@@ -141,7 +147,7 @@ class DynamicSlam:
             float(heading),
             motion.start_heading_sigma_rad,
             motion.heading_bias_sigma_rad if motion.model == "bias-scale" else 0.0,
-            motion.step_scale_sigma if motion.model == "bias-scale" else 0.0,
+            scale_sigma if motion.model == "bias-scale" else 0.0,
         )
         s.ctrl_cov[slot] = 0.0
         s.last_obs_heading[slot] = np.nan

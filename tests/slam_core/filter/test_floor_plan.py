@@ -289,6 +289,27 @@ def test_a_plan_keeps_a_drifting_walker_in_its_corridor() -> None:
         assert held[-1, 0] > 35.0  # it still walked east
 
 
+def test_a_user_admitted_under_a_plan_draws_its_step_scale_from_the_plans_prior() -> None:
+    """The walls bias a walk's scale, so a plan brings its own, narrower scale prior; without one the motion
+    model's stays (the anchors learn the scale there)."""
+    params = FilterParams(floor_plan=FloorPlanParams(step_scale_sigma=0.0))
+    with_plan, without = DynamicSlam(params, seed=3), DynamicSlam(params, seed=3)
+    with_plan.floor_plan = _corridor()
+    empty = DynamicSlam(params, seed=3)
+    empty.floor_plan = FloorPlan.empty()
+    held = with_plan.add_user(2.0, 1.5)
+    assert np.all(with_plan.state.scale[held] == 1.0)
+    for engine in (without, empty):
+        spread = float(np.std(engine.state.scale[engine.add_user(2.0, 1.5)]))
+        assert 0.08 < spread < 0.16  # MotionParams.step_scale_sigma, 0.12
+    default = DynamicSlam(FilterParams(), seed=3)
+    default.floor_plan = _corridor()
+    spread = float(np.std(default.state.scale[default.add_user(2.0, 1.5)]))
+    assert 0.03 < spread < 0.07  # FloorPlanParams.step_scale_sigma, 0.05
+    with pytest.raises(ValueError, match="step_scale_sigma"):
+        FloorPlanParams(step_scale_sigma=-0.01)
+
+
 def test_without_a_plan_the_update_is_the_plain_motion_update() -> None:
     a, b = DynamicSlam(FilterParams(), seed=2), DynamicSlam(FilterParams(), seed=2)
     b.floor_plan = FloorPlan.empty()
