@@ -132,11 +132,10 @@ class DynamicSlam:
         s.rng_ctr[slot] = 0
         self._admitted += 1
         motion = self.params.motion
-        plan = self.floor_plan
         scale_sigma = (
-            self.params.floor_plan.step_scale_sigma
-            if plan is not None and not plan.is_empty
-            else motion.step_scale_sigma
+            motion.step_scale_sigma
+            if self._weighing_plan is None
+            else self.params.floor_plan.step_scale_sigma
         )
         initialise_user(
             s.arrays(),
@@ -189,8 +188,8 @@ class DynamicSlam:
         xy = candidates[rng.choice(candidates.shape[0], size=n, p=p)] + sigma * rng.standard_normal((n, 2))
         s = self.state
         s.x[slot], s.y[slot] = xy[:, 0], xy[:, 1]
-        plan = self.floor_plan
-        if plan is not None and not plan.is_empty:
+        plan = self._weighing_plan
+        if plan is not None:
             _, log_outside = self.params.floor_plan.log_weights
             logw = np.where(plan.walkable(xy), 0.0, log_outside)
             s.logw[slot] = logw - logsumexp(logw)
@@ -253,6 +252,12 @@ class DynamicSlam:
     # for bit.
     MAP_START = 4
 
+    @property
+    def _weighing_plan(self) -> FloorPlan | None:
+        """The floor plan, when it has walls or a walkable area to weigh steps by; else None."""
+        plan = self.floor_plan
+        return plan if plan is not None and not plan.is_empty else None
+
     def _map_room(self, users: np.ndarray, new_anchors: int) -> None:
         """Room in the particle maps of ``users`` for ``new_anchors`` more anchors (up to the capacity)."""
         s = self.state
@@ -296,8 +301,8 @@ class DynamicSlam:
         self._moved(users)
         motion = self.params.motion
         model = MODEL_PAPER if motion.model == "paper" else MODEL_BIAS_SCALE
-        plan = self.floor_plan
-        use_plan = plan is not None and not plan.is_empty
+        plan = self._weighing_plan
+        use_plan = plan is not None
         resample = np.zeros(users.shape[0], dtype=np.bool_)
         pick(motion_update, motion_update_serial, users.shape[0], self.parallel_min_users)(
             s.arrays(),
