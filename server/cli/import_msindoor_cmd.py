@@ -22,7 +22,7 @@ def run(args: argparse.Namespace) -> int:
     # deferred: the command's dependencies load when it runs (`crowdslam --help` loads none)
     from tqdm import tqdm
 
-    from server.datasets.msindoor import floor_plan, read_floor, read_trace
+    from server.datasets.msindoor import read_floor, read_floor_plan, read_trace
     from server.datasets.msindoor_batches import trace_batches
     from server.recordings.recorder import BuildingRecorder
 
@@ -48,7 +48,14 @@ def run(args: argparse.Namespace) -> int:
     staging.rmdir()
     print(f"{len(walks)} walks, {n} batches -> {args.out}")
     if (args.dir / "floor_info.json").is_file():
-        plan = floor_plan(read_floor(args.dir))
+        reading = read_floor_plan(read_floor(args.dir))
+        plan = reading.plan
+        if reading.skipped_features or reading.repaired_rings or reading.dropped_rings:
+            print(
+                f"floor plan: {reading.skipped_features} features without a usable polygon left out, "
+                f"{reading.repaired_rings} open rings closed, "
+                f"{reading.dropped_rings} degenerate rings dropped"
+            )
         if plan is not None:
             plan_file = args.out.with_suffix(".plan.json")
             plan_file.write_text(plan.model_dump_json(exclude_none=True))

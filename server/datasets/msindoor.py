@@ -11,6 +11,7 @@ A malformed or truncated line raises ``TraceFormatError`` naming the file and th
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,7 +20,6 @@ from typing import Any
 import numpy as np
 
 from schemas.floor_plans import FloorPlan
-from server.ingestion.floor_plans import map_positions
 
 VECTOR_TYPES = {
     "TYPE_ACCELEROMETER": "accelerometer",
@@ -229,46 +229,101 @@ def read_floor(floor_dir: Path) -> FloorInfo:
     return FloorInfo(width, height, geojson, image if image.exists() else None, traces)
 
 
-def floor_plan(info: FloorInfo) -> FloorPlan | None:
+@dataclass(frozen=True)
+class PlanReading:
+    """A floor's map read as a plan, with what of the map could not be used (each counted, never fatal: the
+    data set's maps are drawn by many hands, and a plan missing a shop is still a plan)."""
+
+    plan: FloorPlan | None
+    skipped_features: int = 0
+    """Features with no polygonal geometry (points, lines, a null geometry) or none left after repair."""
+    repaired_rings: int = 0
+    """Rings that did not end at their first position, closed."""
+    dropped_rings: int = 0
+    """Rings with fewer than three distinct finite positions, and holes of a dropped outer ring."""
+
+
+def read_floor_plan(info: FloorInfo) -> PlanReading:
     """The floor's ``geojson_map.json`` as a plan in the local frame: the largest feature (the floor's
     outline) is the walkable area, every other polygon (shops, facilities) an obstacle. The map's WGS-84
     positions are placed by the outline's bounds, which span the floor's width and height (on both shipped
-    floors every surveyed waypoint lies inside the outline and none inside a shop). None without a map."""
+    floors every surveyed waypoint lies inside the outline and none inside a shop). Rings left open are
+    closed, positions beyond [x, y] (an altitude) ignored, and degenerate rings and non-polygonal features
+    left out and counted. The plan is None without a usable outline."""
     raw: Any = info.geojson
-    features = [f for f in raw.get("features", []) if isinstance(f, dict)]
-    polygons = [f for f in features if f.get("geometry", {}).get("type") in ("Polygon", "MultiPolygon")]
-    if not polygons:
-        return None
+    features = [f for f in raw.get("features", []) if isinstance(f, dict)] if isinstance(raw, dict) else []
+    repaired = dropped = 0
+    usable: list[tuple[dict[str, Any], list[list[np.ndarray]]]] = []
+    for feature in features:
+        geometry = feature.get("geometry")
+        kind = geometry.get("type") if isinstance(geometry, dict) else None
+        coordinates = geometry.get("coordinates") if isinstance(geometry, dict) else None
+        if kind not in ("Polygon", "MultiPolygon") or not isinstance(coordinates, list):
+            continue
+        polygons = []
+        for polygon in [coordinates] if kind == "Polygon" else coordinates:
+            rings: list[np.ndarray] = []
+            for i, raw_ring in enumerate(polygon if isinstance(polygon, list) else []):
+                ring, closed = _ring_positions(raw_ring)
+                if ring is None or (i > 0 and not rings):
+                    dropped += 1  # a hole without its outer ring means nothing
+                    continue
+                repaired += closed
+                rings.append(ring)
+            if rings:
+                polygons.append(rings)
+        if polygons:
+            usable.append((feature, polygons))
+    skipped = len(features) - len(usable)
+    if not usable:
+        return PlanReading(None, skipped, repaired, dropped)
 
-    def positions(feature: dict[str, Any]) -> np.ndarray:
-        coordinates = feature["geometry"]["coordinates"]
-        polygons = [coordinates] if feature["geometry"]["type"] == "Polygon" else coordinates
-        return np.array([p for polygon in polygons for ring in polygon for p in ring], dtype=np.float64)
+    def bounds(polygons: list[list[np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+        every = np.concatenate([ring for rings in polygons for ring in rings])
+        return every.min(axis=0), np.ptp(every, axis=0)
 
-    def area(feature: dict[str, Any]) -> float:
-        span = np.ptp(positions(feature), axis=0)
-        return float(span[0] * span[1])
-
-    outline = max(polygons, key=area)
-    low = positions(outline).min(axis=0)
-    span = np.ptp(positions(outline), axis=0)
+    outline = max(usable, key=lambda u: float(np.prod(bounds(u[1])[1])))
+    low, span = bounds(outline[1])
+    if not (span > 0).all():
+        return PlanReading(None, skipped, repaired, dropped)
     scale = np.array([info.width_m, info.height_m]) / span
-
-    def local(position: Any) -> list[float]:
-        x, y = (np.asarray(position[:2], dtype=np.float64) - low) * scale
-        return [round(float(x), 3), round(float(y), 3)]
-
     out = []
-    for feature in polygons:
-        kind = "walkable" if feature is outline else "obstacle"
-        name = feature.get("properties", {}).get("name")
+    for feature, polygons in usable:
+        kind = "walkable" if feature is outline[0] else "obstacle"
+        properties = feature.get("properties")
+        name = properties.get("name") if isinstance(properties, dict) else None
         name = name[:128] if isinstance(name, str) and name else None
         geometry = {
-            "type": feature["geometry"]["type"],
-            "coordinates": map_positions(feature["geometry"]["coordinates"], local),
+            "type": "MultiPolygon",
+            "coordinates": [
+                [np.round((ring - low) * scale, 3).tolist() for ring in rings] for rings in polygons
+            ],
         }
         out.append({"type": "Feature", "geometry": geometry, "properties": {"kind": kind, "name": name}})
-    return FloorPlan.model_validate({"type": "FeatureCollection", "frame": "local", "features": out})
+    plan = FloorPlan.model_validate({"type": "FeatureCollection", "frame": "local", "features": out})
+    return PlanReading(plan, skipped, repaired, dropped)
+
+
+def _ring_positions(raw: Any) -> tuple[np.ndarray | None, bool]:
+    """A GeoJSON ring's finite [x, y] positions, closed (and whether it had to be); None when fewer than
+    three distinct positions remain."""
+    if not isinstance(raw, list):
+        return None, False
+    points = []
+    for position in raw:
+        if isinstance(position, list | tuple) and len(position) >= 2:
+            try:
+                x, y = float(position[0]), float(position[1])
+            except (TypeError, ValueError):
+                continue
+            if math.isfinite(x) and math.isfinite(y):
+                points.append((x, y))
+    if len(set(points)) < 3:
+        return None, False
+    closed = points[0] != points[-1]
+    if closed:
+        points.append(points[0])
+    return np.array(points, dtype=np.float64), closed
 
 
 def iter_windows(trace: Trace, window_ms: int = 1000, cuts: Sequence[int] = ()) -> Iterator[tuple[int, int]]:

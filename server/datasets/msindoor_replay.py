@@ -25,13 +25,22 @@ import numpy as np
 
 from schemas.common import Position
 from schemas.sensors import PositionFix
-from server.datasets.msindoor import Trace, floor_plan, iter_windows, read_floor, read_trace, shifted
+from server.datasets.msindoor import (
+    PlanReading,
+    Trace,
+    iter_windows,
+    read_floor,
+    read_floor_plan,
+    read_trace,
+    shifted,
+)
 from server.datasets.msindoor_batches import trace_windows
 from server.engine.config import ReplayOptions, replay_params
 from server.ingestion.convert import BuildingContext, to_user_batch
 from server.ingestion.floor_plans import engine_plan
 from server.ingestion.radio_maps import RadioMap
 from slam_core.encounters.models import Calibration
+from slam_core.filter.floor_plan import FloorPlan as EnginePlan
 from slam_core.sim.statistics import error_summary
 from slam_core.tracking.tracker import BuildingTracker, TrackerParams, UserBatch
 
@@ -127,8 +136,10 @@ def replay_floor(
     n_warm = 0 if options.warm_split is None else int(len(traces) * options.warm_split)
     phases = [traces[:n_warm], traces[n_warm:]] if n_warm else [traces]
     tracker = BuildingTracker(replay_params(base_params, options), calibration, seed=options.tracker_seed)
-    plan = floor_plan(floor) if options.floor_plan else None
-    tracker.set_floor_plan(None if plan is None else engine_plan(plan))
+    reading = read_floor_plan(floor) if options.floor_plan else None
+    plan = None if reading is None else reading.plan
+    index = None if plan is None else engine_plan(plan)
+    tracker.set_floor_plan(index)
     ctx = BuildingContext(building_id=floor_dir.name, geo=None, known_anchors={})
     base = REPLAY_BASE_MS
     scored: list[_Walk] = []
@@ -178,6 +189,7 @@ def replay_floor(
         "crowd_solver": options.crowd_solver,
         "warm_split": options.warm_split,
         "floor_plan": plan is not None,
+        "floor_plan_reading": None if reading is None else _plan_reading(reading, index, traces),
         "heading_axes": plan is not None and options.heading_axes,
         "start_fix": options.start_fix,
         "unplaced_waypoints": sum(1 for w in scored for _, e in w.scored if not math.isfinite(e)),
@@ -205,6 +217,18 @@ def replay_floor(
         "seconds": time.perf_counter() - started,
     }
     return result, errors
+
+
+def _plan_reading(reading: PlanReading, index: EnginePlan | None, traces: list[Trace]) -> dict[str, Any]:
+    """What of the floor's map the plan left out, and the share of every walk's surveyed waypoints inside
+    its walkable area: a plan that does not line up with the floor shows here before it misleads a filter."""
+    waypoints = np.concatenate([t.waypoints[:, 1:3] for t in traces])
+    return {
+        "skipped_features": reading.skipped_features,
+        "repaired_rings": reading.repaired_rings,
+        "dropped_rings": reading.dropped_rings,
+        "waypoints_walkable": None if index is None else float(np.mean(index.walkable(waypoints))),
+    }
 
 
 def _start_reach(warm: list[Trace], scored: list[Trace]) -> np.ndarray:

@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+import json
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from server.datasets.msindoor import TraceFormatError, read_floor, read_trace
+from schemas.floor_plans import PlanKind
+from server.datasets.msindoor import TraceFormatError, read_floor, read_floor_plan, read_trace
 from server.datasets.msindoor_batches import trace_batches
+from server.ingestion.floor_plans import engine_plan
 from tests.conftest import MSINDOOR_FLOOR
 
 FLOOR = MSINDOOR_FLOOR
@@ -104,3 +108,77 @@ def test_malformed_lines_name_the_file_and_line(tmp_path: Path, line: str, messa
 def test_missing_floor_info_is_a_clear_error(tmp_path: Path) -> None:
     with pytest.raises(TraceFormatError, match=r"floor_info\.json"):
         read_floor(tmp_path)
+
+
+@pytest.mark.parametrize(
+    "floor_dir", [FLOOR, FLOOR.parent.parent / "site2" / "F2"], ids=["site1-F1", "site2-F2"]
+)
+def test_a_shipped_floors_map_becomes_a_plan_holding_its_surveyed_waypoints(floor_dir: Path) -> None:
+    floor = read_floor(floor_dir)
+    reading = read_floor_plan(floor)
+    assert (reading.skipped_features, reading.repaired_rings, reading.dropped_rings) == (0, 0, 0)
+    assert reading.plan is not None
+    kinds = [f.properties.kind for f in reading.plan.features]
+    assert kinds.count(PlanKind.WALKABLE) == 1
+    assert len(kinds) == len(json.loads((floor_dir / "geojson_map.json").read_text())["features"])
+    index = engine_plan(reading.plan)
+    waypoints = np.concatenate([read_trace(p).waypoints[:, 1:3] for p in floor.traces[::8]])
+    assert waypoints.shape[0] > 20
+    assert index.walkable(waypoints).all()
+    assert not index.walkable(np.array([[-5.0, -5.0], [floor.width_m + 5, floor.height_m + 5]])).any()
+
+
+def _write_map(tmp_path: Path, features: Sequence[object]) -> Path:
+    (tmp_path / "floor_info.json").write_text(json.dumps({"map_info": {"width": 100.0, "height": 50.0}}))
+    (tmp_path / "geojson_map.json").write_text(
+        json.dumps({"type": "FeatureCollection", "features": features})
+    )
+    return tmp_path
+
+
+def _polygon(*rings: list[list[float]]) -> dict[str, object]:
+    return {"type": "Feature", "properties": {}, "geometry": {"type": "Polygon", "coordinates": list(rings)}}
+
+
+def test_a_hand_drawn_maps_flaws_are_repaired_or_left_out_and_counted(tmp_path: Path) -> None:
+    outline = [[10.0, 20.0], [30.0, 20.0], [30.0, 30.0], [10.0, 30.0]]  # open: closed by the reader
+    shop = [[12.0, 22.0, 3.0], [14.0, 22.0, 3.0], [14.0, 24.0, 3.0], [12.0, 22.0, 3.0]]  # with altitudes
+    features: list[object] = [
+        _polygon(outline),
+        _polygon(shop),
+        _polygon(
+            [[20.0, 25.0], [20.0, 25.0], [21.0, 25.0], [20.0, 25.0]], [[20.0, 25.0], [21, 26], [21, 25]]
+        ),
+        {"type": "Feature", "properties": {"name": "kiosk"}, "geometry": None},
+        {"type": "Feature", "properties": {}, "geometry": {"type": "Point", "coordinates": [15.0, 25.0]}},
+        {"type": "Feature", "geometry": {"type": "Polygon", "coordinates": [[["a", 1], [1, 2], [2, 2]]]}},
+        "not a feature",
+    ]
+    reading = read_floor_plan(read_floor(_write_map(tmp_path, features)))
+    assert reading.skipped_features == 4  # null, point, non-numeric ring, degenerate polygon with its hole
+    assert reading.repaired_rings == 1
+    assert reading.dropped_rings == 3  # the degenerate outer ring, its hole, the non-numeric ring
+    assert reading.plan is not None
+    walkable, obstacle = reading.plan.features
+    assert walkable.properties.kind == "walkable"
+    assert obstacle.properties.kind == "obstacle"
+    # the outline's bounds span the floor: (10, 20) -> (0, 0) and (30, 30) -> (100, 50)
+    assert next(iter(walkable.rings())) == [(0.0, 0.0), (100.0, 0.0), (100.0, 50.0), (0.0, 50.0), (0.0, 0.0)]
+    assert next(iter(obstacle.rings()))[:2] == [(10.0, 10.0), (20.0, 10.0)]
+    index = engine_plan(reading.plan)
+    assert index.walkable(np.array([[50.0, 25.0]])).all()
+
+
+@pytest.mark.parametrize(
+    "features",
+    [
+        [],
+        [{"type": "Feature", "geometry": {"type": "LineString", "coordinates": [[0, 0], [1, 1]]}}],
+        [_polygon([[5.0, 5.0], [5.0, 6.0], [5.0, 7.0], [5.0, 5.0]])],  # an outline with no area
+    ],
+    ids=["no features", "no polygon", "flat outline"],
+)
+def test_a_map_without_a_usable_outline_gives_no_plan(
+    tmp_path: Path, features: list[dict[str, object]]
+) -> None:
+    assert read_floor_plan(read_floor(_write_map(tmp_path, features))).plan is None
