@@ -12,6 +12,11 @@ if TYPE_CHECKING:
     from server.engine.config import ReplayOptions
 
 
+PLAN_ALIGNED_SHARE = 0.95
+"""Below this share of surveyed waypoints on the plan's walkable area, the replay warns that the plan may be
+misplaced (every waypoint of both shipped floors lies on theirs)."""
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     world = parser.add_mutually_exclusive_group(required=True)
     world.add_argument(
@@ -195,6 +200,13 @@ def _msindoor(args: argparse.Namespace) -> int:
                 print(f"crowdslam evaluate: {error}")
                 return 2
         results[name] = result
+        on_plan = (result["floor_plan_reading"] or {}).get("waypoints_walkable")
+        if name == runs[0][0] and on_plan is not None and on_plan < PLAN_ALIGNED_SHARE:
+            print(
+                f"crowdslam evaluate: warning: only {on_plan:.0%} of the floor's surveyed waypoints lie in "
+                "its plan's walkable area; the plan may not line up with the floor (compare with "
+                "--no-floor-plan)"
+            )
         x, p = empirical_cdf(errors)
         lines.append((x, p, f"{name} (median {result['median_m']:.2f} m, p90 {result['p90_m']:.2f} m)"))
     plot = args.plot or args.json.with_suffix(".png")

@@ -4,6 +4,7 @@ floor made of a few of the shared walks; and the tracker's PDR front-end path it
 from __future__ import annotations
 
 import json
+import shutil
 from dataclasses import replace
 from pathlib import Path
 
@@ -246,7 +247,33 @@ def test_evaluate_cli_on_a_floor(small_floor: Path, tmp_path: Path) -> None:
     assert main(["evaluate", "--msindoor", str(small_floor), "--mode", "pdr", "--json", str(out)]) == 0
     result = json.loads(out.read_text())
     assert {"mode", "median_m", "p75_m", "p90_m", "mean_m", "max_m", "n_waypoints", "seconds"} <= set(result)
+    assert result["floor_plan"] is False
+    assert result["floor_plan_reading"]["waypoints_walkable"] is None  # the floor has no map
     assert out.with_suffix(".png").stat().st_size > 1000
+
+
+def test_evaluate_cli_warns_of_a_plan_that_misses_the_floors_waypoints(
+    small_floor: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A map whose outline has a hole over nearly all of the floor: the surveyed waypoints fall off the
+    walkable area, and the replay says so."""
+    floor = tmp_path / "F1"
+    shutil.copytree(small_floor, floor, symlinks=True)
+    square = [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0], [0.0, 0.0]]
+    hole_everywhere = [[0.01, 0.01], [0.99, 0.01], [0.99, 0.99], [0.01, 0.99], [0.01, 0.01]]
+    features = [
+        {
+            "type": "Feature",
+            "properties": {},
+            "geometry": {"type": "Polygon", "coordinates": [square, hole_everywhere]},
+        },
+    ]
+    (floor / "geojson_map.json").write_text(json.dumps({"type": "FeatureCollection", "features": features}))
+    out = tmp_path / "pdr.json"
+    assert main(["evaluate", "--msindoor", str(floor), "--mode", "pdr", "--json", str(out)]) == 0
+    reading = json.loads(out.read_text())["floor_plan_reading"]
+    assert reading["waypoints_walkable"] < 0.1
+    assert "may not line up with the floor" in capsys.readouterr().out
 
 
 def test_evaluate_cli_compares_the_modes_on_one_figure(small_floor: Path, tmp_path: Path) -> None:
