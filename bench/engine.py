@@ -73,11 +73,11 @@ def bench_motion(engine: DynamicSlam, users: np.ndarray, rng: np.random.Generato
 
 def _mall_floor(floor: Path) -> tuple[FloorInfo, FloorPlan]:
     """A floor of the Indoor Location 2.0 data set and the engine's index of its plan."""
-    from server.datasets.msindoor import floor_plan, read_floor
+    from server.datasets.msindoor import read_floor, read_floor_plan
     from server.ingestion.floor_plans import engine_plan
 
     info = read_floor(floor)
-    wire = floor_plan(info)
+    wire = read_floor_plan(info).plan
     if wire is None:
         raise SystemExit(f"{floor} has no geojson_map.json")
     return info, engine_plan(wire)
