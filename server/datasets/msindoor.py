@@ -264,11 +264,11 @@ def read_floor_plan(info: FloorInfo) -> PlanReading:
         for polygon in [coordinates] if kind == "Polygon" else coordinates:
             rings: list[np.ndarray] = []
             for i, raw_ring in enumerate(polygon if isinstance(polygon, list) else []):
-                ring, closed = _ring_positions(raw_ring)
+                ring, was_open = _ring_positions(raw_ring)
                 if ring is None or (i > 0 and not rings):
                     dropped += 1  # a hole without its outer ring means nothing
                     continue
-                repaired += closed
+                repaired += was_open
                 rings.append(ring)
             if rings:
                 polygons.append(rings)
@@ -305,8 +305,8 @@ def read_floor_plan(info: FloorInfo) -> PlanReading:
 
 
 def _ring_positions(raw: Any) -> tuple[np.ndarray | None, bool]:
-    """A GeoJSON ring's finite [x, y] positions, closed (and whether it had to be); None when fewer than
-    three distinct positions remain."""
+    """A GeoJSON ring's finite [x, y] positions, closed, and whether it was open; None when fewer than three
+    distinct positions remain."""
     if not isinstance(raw, list):
         return None, False
     points = []
@@ -320,10 +320,10 @@ def _ring_positions(raw: Any) -> tuple[np.ndarray | None, bool]:
                 points.append((x, y))
     if len(set(points)) < 3:
         return None, False
-    closed = points[0] != points[-1]
-    if closed:
+    was_open = points[0] != points[-1]
+    if was_open:
         points.append(points[0])
-    return np.array(points, dtype=np.float64), closed
+    return np.array(points, dtype=np.float64), was_open
 
 
 def iter_windows(trace: Trace, window_ms: int = 1000, cuts: Sequence[int] = ()) -> Iterator[tuple[int, int]]:
