@@ -256,8 +256,9 @@ def read_floor_plan(info: FloorInfo) -> PlanReading:
     usable: list[tuple[dict[str, Any], list[list[np.ndarray]]]] = []
     for feature in features:
         geometry = feature.get("geometry")
-        kind = geometry.get("type") if isinstance(geometry, dict) else None
-        coordinates = geometry.get("coordinates") if isinstance(geometry, dict) else None
+        if not isinstance(geometry, dict):
+            continue
+        kind, coordinates = geometry.get("type"), geometry.get("coordinates")
         if kind not in ("Polygon", "MultiPolygon") or not isinstance(coordinates, list):
             continue
         polygons = []
