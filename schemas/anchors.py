@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 from enum import StrEnum
-from typing import Any
+from typing import Any, Self
 
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from schemas.common import Covariance2, Identifier, Position, TimeMs, WireModel, wire_config
 
@@ -75,4 +75,15 @@ class KnownAnchorIn(WireModel):
 class AnchorMergeIn(WireModel):
     """Merge anchors that the crowd learned twice into the first one."""
 
-    anchor_ids: list[Identifier] = Field(min_length=2, max_length=50)
+    anchor_ids: list[Identifier] = Field(
+        min_length=2,
+        max_length=50,
+        json_schema_extra={"uniqueItems": True},
+        description="Distinct anchor ids; the first one is kept.",
+    )
+
+    @model_validator(mode="after")
+    def _distinct(self) -> Self:
+        if len(set(self.anchor_ids)) != len(self.anchor_ids):
+            raise ValueError("anchor_ids must be distinct")
+        return self

@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-from datetime import datetime
 from enum import StrEnum
-from typing import Literal, Self
+from typing import Annotated, Literal
 
-from pydantic import Field, model_validator
+from pydantic import Field, TypeAdapter
 
-from schemas.common import Identifier, WireModel
+from schemas.common import Identifier, UtcDatetime, WireModel
 from schemas.estimates import EncounterEvent, Estimate
 
 
@@ -18,17 +17,24 @@ class KeyScope(StrEnum):
     DASHBOARD = "dashboard"
 
 
-class KeyCreateIn(WireModel):
-    """An operator mints a key for its building: a device key posts as one device, a dashboard key reads."""
+class DeviceKeyIn(WireModel):
+    """A device key: it posts batches as this one device of the building."""
 
-    scope: KeyScope
-    device_id: Identifier | None = None
+    scope: Literal[KeyScope.DEVICE]
+    device_id: Identifier
 
-    @model_validator(mode="after")
-    def _device(self) -> Self:
-        if (self.scope == KeyScope.DEVICE) != (self.device_id is not None):
-            raise ValueError("device_id is required for a device key and only allowed for one")
-        return self
+
+class ReaderKeyIn(WireModel):
+    """A dashboard key (reads the building) or a building operator key (manages it): no device."""
+
+    scope: Literal[KeyScope.DASHBOARD, KeyScope.OPERATOR]
+    device_id: None = None
+
+
+KeyCreateIn = Annotated[DeviceKeyIn | ReaderKeyIn, Field(discriminator="scope")]
+"""An operator mints a key for its building, chosen by ``scope``: a device key names its device, the
+others none."""
+KEY_CREATE_ADAPTER: TypeAdapter[DeviceKeyIn | ReaderKeyIn] = TypeAdapter(KeyCreateIn)
 
 
 class KeyCreated(WireModel):
@@ -48,11 +54,11 @@ class KeyInfo(WireModel):
     scope: KeyScope
     building_id: Identifier | None = None
     device_id: Identifier | None = None
-    created_at: datetime
-    last_used_at: datetime | None = Field(
+    created_at: UtcDatetime
+    last_used_at: UtcDatetime | None = Field(
         default=None, description="To the minute; written every few seconds, not on every request."
     )
-    revoked_at: datetime | None = None
+    revoked_at: UtcDatetime | None = None
 
 
 class KeyIdentity(WireModel):

@@ -7,7 +7,7 @@ from typing import Any
 from pydantic import BaseModel, TypeAdapter
 
 from schemas.anchors import ANCHOR_EXAMPLE, AnchorMergeIn, BuildingAnchor, KnownAnchorIn
-from schemas.api import BatchReceipt, KeyCreated, KeyCreateIn
+from schemas.api import KEY_CREATE_ADAPTER, BatchReceipt, KeyCreated
 from schemas.buildings import BUILDING_EXAMPLE, Building
 from schemas.errors import PROBLEM_EXAMPLE, Problem
 from schemas.estimates import ESTIMATE_EXAMPLE, EncounterEvent, Estimate
@@ -28,7 +28,7 @@ PUBLIC_MODELS: dict[str, type[BaseModel] | TypeAdapter[Any]] = {
     "LiveBatch": LiveBatch,
     "Problem": Problem,
     "BatchReceipt": BatchReceipt,
-    "KeyCreateIn": KeyCreateIn,
+    "KeyCreateIn": KEY_CREATE_ADAPTER,
     "KeyCreated": KeyCreated,
     "SignalMapJob": SignalMapJob,
     "FloorPlan": FloorPlan,

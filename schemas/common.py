@@ -11,9 +11,11 @@ Conventions for everything that crosses the wire (REST, WebSocket, MCAP channels
 from __future__ import annotations
 
 import math
+from datetime import UTC, datetime
 from typing import Annotated, Any
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, StringConstraints
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, GetCoreSchemaHandler, StringConstraints
+from pydantic_core import CoreSchema
 
 # Earliest and latest accepted timestamp: 2000-01-01 and 2100-01-01. A clock in seconds instead of
 # milliseconds, or in nanoseconds since boot, falls outside and is rejected with a clear message.
@@ -36,14 +38,55 @@ TimeMs = Annotated[
     ),
 ]
 
+
+def _utc(value: datetime) -> datetime:
+    """A time without an offset is UTC (the store keeps UTC; SQLite drops the offset)."""
+    return value.replace(tzinfo=UTC) if value.tzinfo is None else value.astimezone(UTC)
+
+
+UtcDatetime = Annotated[
+    datetime,
+    AfterValidator(_utc),
+    Field(
+        description="RFC 3339 date-time in UTC, e.g. 2026-12-06T12:24:40Z.", examples=["2026-12-06T12:24:40Z"]
+    ),
+]
+"""A wall-clock instant on the wire: always RFC 3339 with its offset, in UTC (``Z``)."""
+
 RssiDbm = Annotated[float, Field(ge=-120.0, le=0.0, description="Received signal strength in dBm.")]
 TxPowerDbm = Annotated[float, Field(ge=-120.0, le=20.0, description="Transmit power in dBm.")]
 
 
+_EXACT_JSON_TYPES = ("int", "float", "bool")
+
+
+def _exact_json_types(schema: Any) -> None:
+    """Numbers and booleans as the published JSON Schema reads them, everywhere in a core schema: strict, so
+    that ``false`` or ``"1"`` is not taken for a number, nor ``"yes"`` or ``1`` for a boolean, as pydantic's
+    lax mode would. Checked in pydantic's core: a second of IMU samples is thousands of numbers."""
+    if isinstance(schema, list):
+        for item in schema:
+            _exact_json_types(item)
+    elif isinstance(schema, dict):
+        if schema.get("type") in _EXACT_JSON_TYPES:
+            schema["strict"] = True
+        for value in schema.values():
+            _exact_json_types(value)
+
+
 class WireModel(BaseModel):
-    """Base of every wire model: unknown fields are errors, numbers must be finite."""
+    """Base of every wire model: unknown fields are errors, numbers must be finite, and a value of the wrong
+    JSON type is refused rather than converted."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
+
+    @classmethod
+    def __get_pydantic_core_schema__(
+        cls, source: type[BaseModel], handler: GetCoreSchemaHandler
+    ) -> CoreSchema:
+        schema = handler(source)
+        _exact_json_types(schema)
+        return schema
 
 
 def _strictly_increasing(values: list[int]) -> list[int]:

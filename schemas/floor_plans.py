@@ -29,16 +29,20 @@ class PlanKind(StrEnum):
     """Lines (or polygon outlines) that people cross only through doors the plan does not show."""
 
 
+Ring = Annotated[
+    list[Point],
+    Field(min_length=4, description="A closed ring: at least four positions, the first repeated last."),
+]
+
+
 def _ring(ring: list[Point], where: str) -> None:
-    if len(ring) < 4:
-        raise ValueError(f"{where}: a ring needs at least four positions (the first repeated last)")
     if ring[0] != ring[-1]:
         raise ValueError(f"{where}: a ring must end at its first position")
 
 
 class PolygonGeometry(WireModel):
     type: Literal["Polygon"]
-    coordinates: list[list[Point]] = Field(min_length=1)
+    coordinates: list[Ring] = Field(min_length=1)
 
     @model_validator(mode="after")
     def _closed(self) -> Self:
@@ -49,7 +53,7 @@ class PolygonGeometry(WireModel):
 
 class MultiPolygonGeometry(WireModel):
     type: Literal["MultiPolygon"]
-    coordinates: list[list[list[Point]]] = Field(min_length=1)
+    coordinates: list[list[Ring]] = Field(min_length=1)
 
     @model_validator(mode="after")
     def _closed(self) -> Self:

@@ -8,7 +8,7 @@ from typing import Annotated, Literal
 from pydantic import Field, TypeAdapter
 
 from schemas.anchors import BuildingAnchor
-from schemas.common import TimeMs, WireModel
+from schemas.common import Identifier, TimeMs, WireModel
 from schemas.estimates import EncounterEvent, Estimate
 
 
@@ -28,6 +28,13 @@ class AnchorMessage(WireModel):
     deleted: bool = False
 
 
+class UserForgottenMessage(WireModel):
+    """An operator made the server forget a user (``DELETE .../users/{user_id}``): drop it from the view."""
+
+    type: Literal["user_forgotten"] = "user_forgotten"
+    user_id: Identifier
+
+
 class HeartbeatMessage(WireModel):
     type: Literal["heartbeat"] = "heartbeat"
     t_ms: TimeMs
@@ -37,7 +44,8 @@ class HeartbeatMessage(WireModel):
 
 
 LiveMessage = Annotated[
-    PositionMessage | EncounterMessage | AnchorMessage | HeartbeatMessage, Field(discriminator="type")
+    PositionMessage | EncounterMessage | AnchorMessage | UserForgottenMessage | HeartbeatMessage,
+    Field(discriminator="type"),
 ]
 LIVE_MESSAGE_ADAPTER: TypeAdapter[LiveMessage] = TypeAdapter(LiveMessage)
 

@@ -338,7 +338,14 @@ BATCH_EXAMPLE: dict[str, Any] = {
             "t_ms": 1700000000700,
             "tag_id": "6e1ebc",
             "payload": "#6e1ebc 40.684492,-74.401406 z0",
-        }
+        },
+        {
+            "kind": "fix",
+            "t_ms": 1700000000800,
+            "position": {"x_m": 12.5, "y_m": 4.0},
+            "sigma_m": 1.0,
+            "azimuth_rad": 1.57,
+        },
     ],
     "lte": [{"t_ms": 1700000000600, "cell_id": "310-410-12345", "rsrp_dbm": -95.5, "rsrq_db": -11.0}],
 }

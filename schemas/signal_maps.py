@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-from datetime import datetime
 from enum import StrEnum
 from typing import Any
 
 from pydantic import Field
 
-from schemas.common import Identifier, WireModel, wire_config
+from schemas.common import Identifier, UtcDatetime, WireModel, wire_config
 
 SIGNAL_MAP_JOB_EXAMPLE: dict[str, Any] = {
     "id": "3f9c2a71b0de",
@@ -41,8 +40,8 @@ class SignalMapJob(WireModel):
     id: Identifier
     building_id: Identifier
     status: SignalMapStatus
-    created_at: datetime
-    finished_at: datetime | None = None
+    created_at: UtcDatetime
+    finished_at: UtcDatetime | None = None
     recordings: int = Field(ge=0, description="MCAP files the build reads.")
     segments: int | None = Field(
         default=None, ge=0, description="Walks between two landmarks that were solved."

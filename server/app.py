@@ -12,14 +12,14 @@ from pathlib import Path
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.openapi.utils import get_openapi
 from fastapi.responses import Response
 from sqlalchemy.orm import Session, sessionmaker
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from schemas.errors import Problem
-from schemas.sensors import SensorBatch
-from server.api import anchors, batches, buildings, current_key, health, live, positions, signal_maps
+from server import __version__
+from server.api import anchors, batches, buildings, current_key, health, live, positions, signal_maps, users
+from server.api.contract import allowed_methods, install_openapi, operation_id
 from server.api.deps import revalidate_keys
 from server.api.limits import BodyLimit
 from server.auth import KeyCache
@@ -131,25 +131,23 @@ def create_app(settings: Settings, tune_gc: bool = False) -> FastAPI:
 
     app = FastAPI(
         title="crowdslam",
-        version="1.0.0",
+        version=__version__,
         description=API_DESCRIPTION,
         lifespan=lifespan,
-        responses={
-            401: {"model": Problem, "description": "Missing or unknown key"},
-            403: {"model": Problem, "description": "The key's scope does not allow this"},
-        },
+        generate_unique_id_function=operation_id,
         telemetry=None if settings.fastapi_telemetry else {"tracing": False, "metrics": False, "logs": False},
         docs_url=None,  # served by install_pages from local assets
         redoc_url=None,
     )
     app.state.settings = settings  # what serves the app reads (the WebSocket frame bound)
     _install_error_handlers(app)
-    for module in (health, current_key, buildings, batches, positions, anchors, live, signal_maps):
+    for module in (health, current_key, buildings, batches, positions, users, anchors, live, signal_maps):
         app.include_router(module.router)
+    app.include_router(health.metrics_router(settings.metrics_need_key))
     install_pages(app)
     app.add_middleware(batches.BatchFastPath)
     app.add_middleware(BodyLimit, limit=settings.max_request_bytes, plan_limit=settings.max_plan_bytes)
-    _document_raw_bodies(app)
+    install_openapi(app)
     return app
 
 
@@ -233,24 +231,6 @@ async def _revalidate_keys_forever(state: AppState) -> None:
             logger.exception("revalidating the key cache failed; cached keys will expire")
 
 
-def _document_raw_bodies(app: FastAPI) -> None:
-    """The batch endpoint reads its body itself (size before parsing); publish the SensorBatch schema."""
-
-    def openapi() -> dict[str, object]:
-        if app.openapi_schema is None:
-            spec = get_openapi(
-                title=app.title, version=app.version, description=app.description, routes=app.routes
-            )
-            schema = SensorBatch.model_json_schema(ref_template="#/components/schemas/{model}")
-            components = spec.setdefault("components", {}).setdefault("schemas", {})
-            components.update(schema.pop("$defs", {}))
-            components["SensorBatch"] = schema
-            app.openapi_schema = spec
-        return app.openapi_schema
-
-    app.openapi = openapi  # type: ignore[method-assign]
-
-
 def _install_error_handlers(app: FastAPI) -> None:
     def problem_response(problem: Problem) -> Response:
         status, body, headers = problem_response_parts(problem)
@@ -274,9 +254,15 @@ def _install_error_handlers(app: FastAPI) -> None:
         return problem_response(error.to_problem())
 
     @app.exception_handler(StarletteHTTPException)
-    async def _http(_: Request, exc: StarletteHTTPException) -> Response:
-        title = {404: "Not found", 405: "Method not allowed"}.get(exc.status_code, "HTTP error")
-        return problem_response(Problem(title=title, status=exc.status_code, detail=str(exc.detail)))
+    async def _http(request: Request, exc: StarletteHTTPException) -> Response:
+        title = {400: "Malformed request body", 404: "Not found", 405: "Method not allowed"}.get(
+            exc.status_code, "HTTP error"
+        )
+        response = problem_response(Problem(title=title, status=exc.status_code, detail=str(exc.detail)))
+        response.headers.update(exc.headers or {})
+        if exc.status_code == 405 and (methods := allowed_methods(app, request.url.path)):
+            response.headers["allow"] = ", ".join(sorted(methods))
+        return response
 
     @app.exception_handler(Exception)
     async def _unexpected(_: Request, exc: Exception) -> Response:

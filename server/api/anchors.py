@@ -8,10 +8,11 @@ from fastapi import APIRouter, Query, Response, status
 
 from schemas.anchors import AnchorMergeIn, BuildingAnchor, KnownAnchorIn
 from schemas.common import MAX_TIME_MS, MIN_TIME_MS, Identifier
+from server.api.contract import PROBLEMS, problems
 from server.api.deps import Caller, DbSession, State
 from server.api.links import BUILDING, SAME_BUILDING, link, links
 from server.buildings.workers import Worker
-from server.errors import InvalidInputError
+from server.errors import ConflictError
 from server.store import repositories as repo
 
 router = APIRouter(prefix="/v1/buildings/{building_id}", tags=["anchors"])
@@ -21,7 +22,7 @@ async def _worker(state: State, building_id: str) -> Worker:
     return await state.tracking.worker(building_id)
 
 
-@router.get("/anchors", response_model=list[BuildingAnchor])
+@router.get("/anchors", response_model=list[BuildingAnchor], responses=problems(403, 404, 503))
 async def list_anchors(building_id: str, caller: Caller, state: State) -> list[BuildingAnchor]:
     """The building's shared anchor map: learned by the crowd, or pinned by operators."""
     caller.require_reader(building_id)
@@ -30,7 +31,10 @@ async def list_anchors(building_id: str, caller: Caller, state: State) -> list[B
     return anchors
 
 
-@router.get("/anchors/{anchor_id}", response_model=BuildingAnchor)
+_NO_ANCHOR = (404, "No such building, or no live anchor of this id in it.")
+
+
+@router.get("/anchors/{anchor_id}", response_model=BuildingAnchor, responses=problems(403, _NO_ANCHOR, 503))
 async def get_anchor(building_id: str, anchor_id: Identifier, caller: Caller, state: State) -> BuildingAnchor:
     caller.require_reader(building_id)
     worker = await _worker(state, building_id)
@@ -47,7 +51,22 @@ _ANCHOR_LINKS = links(
 )
 
 
-@router.put("/anchors/{anchor_id}", response_model=BuildingAnchor, responses=_ANCHOR_LINKS)
+@router.put(
+    "/anchors/{anchor_id}",
+    response_model=BuildingAnchor,
+    responses={
+        **problems(
+            400,
+            403,
+            404,
+            (409, "The anchor id was deleted or merged: pick a new one."),
+            413,
+            (422, PROBLEMS[422] + " A position outside the building's floors is refused."),
+            503,
+        ),
+        **_ANCHOR_LINKS,
+    },
+)
 async def put_known_anchor(
     building_id: str, anchor_id: Identifier, body: KnownAnchorIn, caller: Caller, state: State
 ) -> BuildingAnchor:
@@ -60,7 +79,12 @@ async def put_known_anchor(
     return anchor
 
 
-@router.delete("/anchors/{anchor_id}", status_code=status.HTTP_204_NO_CONTENT, response_class=Response)
+@router.delete(
+    "/anchors/{anchor_id}",
+    status_code=status.HTTP_204_NO_CONTENT,
+    response_class=Response,
+    responses=problems(403, _NO_ANCHOR, 503),
+)
 async def delete_anchor(building_id: str, anchor_id: Identifier, caller: Caller, state: State) -> Response:
     caller.require_operator(building_id)
     worker = await _worker(state, building_id)
@@ -69,7 +93,16 @@ async def delete_anchor(building_id: str, anchor_id: Identifier, caller: Caller,
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 
-@router.post("/anchors/merge", response_model=BuildingAnchor, responses=_ANCHOR_LINKS)
+@router.post(
+    "/anchors:merge",
+    response_model=BuildingAnchor,
+    responses={
+        **problems(
+            400, 403, 404, (409, "One of the anchors named is not live: nothing was merged."), 413, 422, 503
+        ),
+        **_ANCHOR_LINKS,
+    },
+)
 async def merge_anchors(
     building_id: str, body: AnchorMergeIn, caller: Caller, state: State
 ) -> BuildingAnchor:
@@ -82,7 +115,10 @@ async def merge_anchors(
     return anchor
 
 
-@router.get("/export.geojson")
+@router.get(
+    "/export.geojson",
+    responses=problems(403, 404, (409, "The building has no geo-reference to export in WGS-84."), 503),
+)
 async def export_geojson(
     building_id: str,
     caller: Caller,
@@ -96,7 +132,7 @@ async def export_geojson(
     worker = await _worker(state, building_id)
     geo = worker.geo
     if geo is None:
-        raise InvalidInputError(f"building {building_id!r} has no geo-reference; set one to export GeoJSON")
+        raise ConflictError(f"building {building_id!r} has no geo-reference; set one to export GeoJSON")
     anchors: list[BuildingAnchor] = await worker.call("anchors")
     features: list[dict[str, Any]] = []
     for a in anchors:

@@ -9,9 +9,9 @@ from fastapi import APIRouter, Request, Response, WebSocket, WebSocketDisconnect
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 from schemas.api import BatchReceipt
-from schemas.errors import Problem
 from schemas.sensors import SensorBatch
-from server.api.deps import AUTHORIZATION_PARAMETER, principal, token_principal
+from server.api.contract import PROBLEMS, SECURITY_SCHEME, problems
+from server.api.deps import principal, token_principal
 from server.api.limits import BATCHES_PATH, send_response
 from server.api.links import BUILDING, SAME_BUILDING, link
 from server.api.live import refuse
@@ -31,7 +31,7 @@ from server.state import AppState
 router = APIRouter(prefix="/v1/buildings/{building_id}", tags=["batches"])
 
 _BATCH_BODY: dict[str, Any] = {
-    "parameters": [AUTHORIZATION_PARAMETER],
+    "security": [{SECURITY_SCHEME: []}],
     "requestBody": {
         "required": True,
         "content": {"application/json": {"schema": {"$ref": "#/components/schemas/SensorBatch"}}},
@@ -159,10 +159,24 @@ class BatchFastPath:
                 )
             }
         },
-        400: {"model": Problem},
-        404: {"model": Problem},
-        413: {"model": Problem},
-        422: {"model": Problem},
+        **problems(
+            400,
+            (403, "A device key of another building or device, or a key that is not a device key."),
+            404,
+            413,
+            (
+                422,
+                PROBLEMS[422] + " Beyond the schema: the batch names the building it is posted to, and its "
+                "latest time is at most five minutes ahead of the server's clock.",
+            ),
+            (
+                429,
+                "This device key posts faster than `CROWDSLAM_DEVICE_RATE_PER_S`: send again after "
+                "`Retry-After` seconds.",
+            ),
+            500,
+            503,
+        ),
     },
 )
 async def post_batch(building_id: str, request: Request) -> Response:

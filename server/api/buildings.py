@@ -7,11 +7,11 @@ from typing import Annotated
 
 from fastapi import APIRouter, Path, Response, status
 
-from schemas.api import KeyCreated, KeyCreateIn, KeyInfo, KeyScope
+from schemas.api import DeviceKeyIn, KeyCreated, KeyCreateIn, KeyInfo, KeyScope
 from schemas.buildings import Building, DeviceAssignment, DeviceAssignmentIn, Floor, GeoReference
 from schemas.common import Identifier
-from schemas.errors import Problem
 from schemas.floor_plans import FloorPlan
+from server.api.contract import problems
 from server.api.deps import Caller, DbSession, State
 from server.api.links import BUILDING, SAME_BUILDING, link, links
 from server.auth import mint_key
@@ -50,23 +50,26 @@ _NEW_BUILDING = "$response.body#/id"
     "",
     status_code=status.HTTP_201_CREATED,
     response_model=Building,
-    responses=links(
-        201,
-        GetBuilding=link("GET", BUILDING, "The building created.", building_id=_NEW_BUILDING),
-        CreateKey=link("POST", f"{BUILDING}/keys", "Mint its keys.", building_id=_NEW_BUILDING),
-        ListKeys=link("GET", f"{BUILDING}/keys", "Its keys.", building_id=_NEW_BUILDING),
-        PinAnchor=link(
-            "PUT", f"{BUILDING}/anchors/{{anchor_id}}", "Pin a known anchor.", building_id=_NEW_BUILDING
+    responses={
+        **problems(400, 403, (409, "A building with this id exists."), 413, 422),
+        **links(
+            201,
+            GetBuilding=link("GET", BUILDING, "The building created.", building_id=_NEW_BUILDING),
+            CreateKey=link("POST", f"{BUILDING}/keys", "Mint its keys.", building_id=_NEW_BUILDING),
+            ListKeys=link("GET", f"{BUILDING}/keys", "Its keys.", building_id=_NEW_BUILDING),
+            PinAnchor=link(
+                "PUT", f"{BUILDING}/anchors/{{anchor_id}}", "Pin a known anchor.", building_id=_NEW_BUILDING
+            ),
+            ListAnchors=link("GET", f"{BUILDING}/anchors", "Its anchor map.", building_id=_NEW_BUILDING),
+            LatestPositions=link("GET", f"{BUILDING}/positions", "Its users.", building_id=_NEW_BUILDING),
+            FloorPlans=link(
+                "GET", f"{BUILDING}/floor-plans", "Its floors with a plan.", building_id=_NEW_BUILDING
+            ),
+            StartSignalMap=link(
+                "POST", f"{BUILDING}/signal-maps", "Build its signal maps.", building_id=_NEW_BUILDING
+            ),
         ),
-        ListAnchors=link("GET", f"{BUILDING}/anchors", "Its anchor map.", building_id=_NEW_BUILDING),
-        LatestPositions=link("GET", f"{BUILDING}/positions", "Its users.", building_id=_NEW_BUILDING),
-        FloorPlans=link(
-            "GET", f"{BUILDING}/floor-plans", "Its floors with a plan.", building_id=_NEW_BUILDING
-        ),
-        StartSignalMap=link(
-            "POST", f"{BUILDING}/signal-maps", "Build its signal maps.", building_id=_NEW_BUILDING
-        ),
-    ),
+    },
 )
 def create_building(body: Building, caller: Caller, session: DbSession) -> Building:
     """Create a building (operator key). Its id is permanent; a taken id is 409."""
@@ -100,7 +103,7 @@ def list_buildings(caller: Caller, session: DbSession) -> list[Building]:
     return [_building(b, repo.list_floors(session, b.id)) for b in repo.list_buildings(session, ids)]
 
 
-@router.get("/{building_id}", response_model=Building)
+@router.get("/{building_id}", response_model=Building, responses=problems(403, 404))
 def get_building(building_id: str, caller: Caller, session: DbSession) -> Building:
     caller.require_reader(building_id)
     row = repo.get_building(session, building_id)
@@ -113,23 +116,26 @@ def get_building(building_id: str, caller: Caller, session: DbSession) -> Buildi
     "/{building_id}/keys",
     status_code=status.HTTP_201_CREATED,
     response_model=KeyCreated,
-    responses=links(
-        201,
-        RevokeKey=link(
-            "DELETE",
-            f"{BUILDING}/keys/{{prefix}}",
-            "Revoke the key minted.",
-            building_id=SAME_BUILDING,
-            prefix="$response.body#/prefix",
+    responses={
+        **problems(400, 403, 404, 413, 422),
+        **links(
+            201,
+            RevokeKey=link(
+                "DELETE",
+                f"{BUILDING}/keys/{{prefix}}",
+                "Revoke the key minted.",
+                building_id=SAME_BUILDING,
+                prefix="$response.body#/prefix",
+            ),
+            AssignDevice=link(
+                "PUT",
+                f"{BUILDING}/devices/{{device_id}}",
+                "Assign the key's device to a user.",
+                building_id=SAME_BUILDING,
+                device_id="$response.body#/device_id",
+            ),
         ),
-        AssignDevice=link(
-            "PUT",
-            f"{BUILDING}/devices/{{device_id}}",
-            "Assign the key's device to a user.",
-            building_id=SAME_BUILDING,
-            device_id="$response.body#/device_id",
-        ),
-    ),
+    },
 )
 def create_key(building_id: str, body: KeyCreateIn, caller: Caller, session: DbSession) -> KeyCreated:
     """Mint a device, dashboard or building operator key (operator key). The secret is shown only here."""
@@ -143,7 +149,7 @@ def create_key(building_id: str, body: KeyCreateIn, caller: Caller, session: DbS
         prefix=prefix,
         scope=body.scope,
         building_id=building_id,
-        device_id=body.device_id if body.scope == KeyScope.DEVICE else None,
+        device_id=body.device_id if isinstance(body, DeviceKeyIn) else None,
     )
 
 
@@ -159,7 +165,7 @@ def key_info(row: ApiKeyRow) -> KeyInfo:
     )
 
 
-@router.get("/{building_id}/keys", response_model=list[KeyInfo])
+@router.get("/{building_id}/keys", response_model=list[KeyInfo], responses=problems(403, 404))
 async def list_keys(building_id: str, caller: Caller, state: State) -> list[KeyInfo]:
     """The building's keys, revoked ones included, with when each was last used (operator key). Never a
     secret."""
@@ -177,7 +183,10 @@ async def list_keys(building_id: str, caller: Caller, state: State) -> list[KeyI
 
 
 @router.delete(
-    "/{building_id}/keys/{prefix}", status_code=status.HTTP_204_NO_CONTENT, response_class=Response
+    "/{building_id}/keys/{prefix}",
+    status_code=status.HTTP_204_NO_CONTENT,
+    response_class=Response,
+    responses=problems(403, (404, "No such building, or no live key with this prefix in it.")),
 )
 async def revoke_key(building_id: str, prefix: str, caller: Caller, state: State) -> Response:
     """Revoke a key of the building by its prefix (operator key): refused at once by this server, and by
@@ -195,7 +204,11 @@ async def revoke_key(building_id: str, prefix: str, caller: Caller, state: State
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 
-@router.put("/{building_id}/devices/{device_id}", response_model=DeviceAssignment)
+@router.put(
+    "/{building_id}/devices/{device_id}",
+    response_model=DeviceAssignment,
+    responses=problems(400, 403, 404, 413, 422, 503),
+)
 async def assign_device(
     building_id: str, device_id: Identifier, body: DeviceAssignmentIn, caller: Caller, state: State
 ) -> DeviceAssignment:
@@ -213,7 +226,7 @@ Level = Annotated[int, Path(ge=-20, le=200, description="The floor's level (0 is
 @router.put(
     "/{building_id}/floors/{level}/plan",
     response_model=FloorPlan,
-    responses={404: {"model": Problem}, 413: {"model": Problem}, 422: {"model": Problem}},
+    responses=problems(400, 403, 404, 413, 422, 503),
 )
 async def put_floor_plan(
     building_id: str, level: Level, body: FloorPlan, caller: Caller, state: State
@@ -229,8 +242,8 @@ async def put_floor_plan(
     return plan
 
 
-@router.get("/{building_id}/floor-plans", response_model=list[int], responses={404: {"model": Problem}})
-def floor_plan_levels(building_id: str, caller: Caller, session: DbSession) -> list[int]:
+@router.get("/{building_id}/floor-plans", response_model=list[int], responses=problems(403, 404))
+def list_floor_plans(building_id: str, caller: Caller, session: DbSession) -> list[int]:
     """The levels whose floor has a plan (dashboard or operator key)."""
     caller.require_reader(building_id)
     if repo.get_building(session, building_id) is None:
@@ -239,7 +252,9 @@ def floor_plan_levels(building_id: str, caller: Caller, session: DbSession) -> l
 
 
 @router.get(
-    "/{building_id}/floors/{level}/plan", response_model=FloorPlan, responses={404: {"model": Problem}}
+    "/{building_id}/floors/{level}/plan",
+    response_model=FloorPlan,
+    responses=problems(403, (404, "No such building, or its floor has no plan.")),
 )
 async def get_floor_plan(building_id: str, level: Level, caller: Caller, state: State) -> Response:
     """The floor's plan in the local frame (dashboard or operator key)."""

@@ -11,6 +11,6 @@ router = APIRouter(prefix="/v1", tags=["keys"])
 
 
 @router.get("/key", response_model=KeyIdentity)
-async def current_key(caller: Caller) -> KeyIdentity:
+async def get_current_key(caller: Caller) -> KeyIdentity:
     """The presented key's scope and building (any valid key; 401 otherwise)."""
     return KeyIdentity(scope=caller.scope, building_id=caller.building_id, device_id=caller.device_id)

@@ -7,22 +7,13 @@ import time
 from collections.abc import Iterator
 from typing import Annotated
 
-from fastapi import Depends, Header, Request
+from fastapi import Depends, Request, Security
 from sqlalchemy.orm import Session
 
+from server.api.contract import BearerKey
 from server.auth import Principal, authenticate, bearer_secret
 from server.state import AppState
 from server.store import repositories as repo
-
-AUTHORIZATION_HELP = "Bearer <API key>"
-AUTHORIZATION_PARAMETER: dict[str, object] = {
-    "name": "authorization",
-    "in": "header",
-    "required": False,
-    "schema": {"anyOf": [{"type": "string"}, {"type": "null"}], "title": "Authorization"},
-    "description": AUTHORIZATION_HELP,
-}
-"""The header as ``get_principal`` documents it, for routes that read it themselves."""
 
 
 def get_state(request: Request) -> AppState:
@@ -81,7 +72,7 @@ async def token_principal(state: AppState, token: str | None) -> Principal:
 
 
 async def get_principal(
-    state: State, authorization: Annotated[str | None, Header(description=AUTHORIZATION_HELP)] = None
+    state: State, authorization: Annotated[str | None, Security(BearerKey())] = None
 ) -> Principal:
     return await principal(state, authorization)
 

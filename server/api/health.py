@@ -3,14 +3,16 @@
 from __future__ import annotations
 
 import time
-from typing import Annotated
+from typing import Any
 
-from fastapi import APIRouter, Header, Response
+from fastapi import APIRouter, Response
 from sqlalchemy import text
 
 from schemas.api import FailingBuilding, Health
-from server.api.deps import State, principal
+from server.api.contract import problems
+from server.api.deps import Caller, State
 from server.errors import ForbiddenError
+from server.state import AppState
 
 router = APIRouter(tags=["health"])
 
@@ -20,7 +22,7 @@ DEGRADED_S = 300.0
 
 
 @router.get("/healthz", response_model=Health)
-def healthz(state: State) -> Health:
+def get_health(state: State) -> Health:
     with state.engine.connect() as connection:
         connection.execute(text("SELECT 1"))
     workers = state.tracking.workers
@@ -42,14 +44,42 @@ def healthz(state: State) -> Health:
     )
 
 
-@router.get("/metrics", response_class=Response)
-async def metrics(state: State, authorization: Annotated[str | None, Header()] = None) -> Response:
-    """Prometheus metrics; with ``CROWDSLAM_METRICS_NEED_KEY`` only for a site-wide operator key (the
-    figures name every building)."""
-    if state.settings.metrics_need_key:
-        caller = await principal(state, authorization)
+_METRICS_MEDIA_TYPE = "text/plain; version=0.0.4"
+_METRICS_OK: dict[int | str, dict[str, Any]] = {
+    200: {
+        "description": "Prometheus metrics.",
+        "content": {_METRICS_MEDIA_TYPE: {"schema": {"type": "string"}}},
+    }
+}
+
+
+def _render(state: AppState) -> Response:
+    return Response(state.metrics.render(state.tracking, state.broadcaster), media_type=_METRICS_MEDIA_TYPE)
+
+
+def metrics_router(need_key: bool) -> APIRouter:
+    """``GET /metrics``: open, or with ``CROWDSLAM_METRICS_NEED_KEY`` only for a site-wide operator key (the
+    figures name every building). Its spec says which: the route is the one this server runs."""
+    metrics_router = APIRouter(tags=["health"])
+    if not need_key:
+
+        @metrics_router.get("/metrics", response_class=Response, responses=_METRICS_OK)
+        async def get_metrics(state: State) -> Response:
+            """Prometheus metrics."""
+            return _render(state)
+
+        return metrics_router
+
+    @metrics_router.get(
+        "/metrics",
+        response_class=Response,
+        responses={**_METRICS_OK, **problems((403, "Only a site-wide operator key reads the metrics."))},
+    )
+    async def get_metrics_with_key(state: State, caller: Caller) -> Response:
+        """Prometheus metrics, for a site-wide operator key (the figures name every building)."""
         caller.require_operator()
         if caller.building_id is not None:
             raise ForbiddenError("/metrics names every building: it needs a site-wide operator key")
-    body = state.metrics.render(state.tracking, state.broadcaster)
-    return Response(body, media_type="text/plain; version=0.0.4")
+        return _render(state)
+
+    return metrics_router

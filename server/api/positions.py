@@ -8,6 +8,7 @@ from fastapi import APIRouter, Query
 
 from schemas.common import MAX_TIME_MS, MIN_TIME_MS, Position
 from schemas.estimates import Estimate, EstimateSource
+from server.api.contract import PROBLEMS, problems
 from server.api.deps import Caller, DbSession
 from server.errors import InvalidInputError, NotFoundError
 from server.store import repositories as repo
@@ -30,8 +31,8 @@ def estimate_from_row(row: PositionSnapshotRow | LatestPositionRow) -> Estimate:
     )
 
 
-@router.get("/positions", response_model=list[Estimate])
-def latest_positions(
+@router.get("/positions", response_model=list[Estimate], responses=problems(403, 404))
+def list_positions(
     building_id: str,
     caller: Caller,
     session: DbSession,
@@ -56,8 +57,12 @@ def latest_positions(
     return [estimate_from_row(r) for r in repo.latest_positions(session, building_id)]
 
 
-@router.get("/users/{user_id}/positions", response_model=list[Estimate])
-def user_history(
+@router.get(
+    "/users/{user_id}/positions",
+    response_model=list[Estimate],
+    responses=problems(403, 404, (422, PROBLEMS[422] + " `since_ms` after `until_ms` is refused.")),
+)
+def get_user_history(
     building_id: str,
     user_id: str,
     caller: Caller,

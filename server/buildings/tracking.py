@@ -23,7 +23,7 @@ from schemas.anchors import BuildingAnchor, KnownAnchorIn
 from schemas.api import BatchReceipt
 from schemas.estimates import EncounterEvent, Estimate, EstimateSource
 from schemas.floor_plans import FloorPlan
-from schemas.live import AnchorMessage, EncounterMessage, LiveMessage, PositionMessage
+from schemas.live import AnchorMessage, EncounterMessage, LiveMessage, PositionMessage, UserForgottenMessage
 from server.buildings.config import Retention, TrackingConfig
 from server.buildings.recovery import TRACKED_LEVEL, RecoverableBuilding
 from server.buildings.rows import anchor_row, position_row
@@ -88,6 +88,10 @@ class BuildingTracking(RecoverableBuilding):
     def anchors(self) -> list[BuildingAnchor]:
         return [self.anchor(i) for i in sorted(self.ids.public) if self.tracker.crowd.is_live(i)]
 
+    def _is_live(self, public_id: str) -> bool:
+        index = self.ids.index.get(public_id)
+        return index is not None and self.tracker.crowd.is_live(index)
+
     def get_anchor(self, public_id: str) -> BuildingAnchor:
         index = self.ids.index.get(public_id)
         if index is None or not self.tracker.crowd.is_live(index):
@@ -127,6 +131,12 @@ class BuildingTracking(RecoverableBuilding):
     def merge_anchors(self, public_ids: list[str]) -> tuple[BuildingAnchor, list[LiveMessage]]:
         if len(set(public_ids)) != len(public_ids):
             raise InvalidInputError("anchor_ids must be distinct")
+        missing = [p for p in public_ids if not self._is_live(p)]
+        if missing:  # the merge's target exists; the anchors it names do not (any more)
+            raise ConflictError(
+                f"no live anchor {', '.join(map(repr, missing))} in building {self.building_id!r}; "
+                "nothing was merged"
+            )
         olds = [self.get_anchor(p) for p in public_ids]
         keep = self.ids.index[public_ids[0]]
         for p in public_ids[1:]:
@@ -163,6 +173,32 @@ class BuildingTracking(RecoverableBuilding):
         if level == TRACKED_LEVEL:
             self.tracker.set_floor_plan(index)
         return local
+
+    # ------------------------------------------------------------------ users
+    def forget_user(self, user_id: str) -> list[LiveMessage]:
+        """Forget a user, as a person may ask: its filter, its latest position and its history. A snapshot
+        is written in the same transaction, so a restart does not bring the user back from the batch log;
+        a later batch of its device starts a new filter. The recordings keep its batches (see the
+        operations document). State changes only if the transaction commits."""
+        tracked = user_id in self.tracker.users
+        if tracked:
+            self.tracker.remove_user(user_id)
+            self._device_of_user.pop(user_id, None)
+            self._last_heard.pop(user_id, None)
+        try:
+            with self._writer_turns, self._sessions.begin() as session:
+                deleted = repo.delete_user_positions(session, self.building_id, user_id)
+                if not tracked and not deleted:
+                    raise NotFoundError(f"no user {user_id!r} in building {self.building_id!r}")
+                rows = self._save_snapshot(session) if tracked else []
+        except NotFoundError:
+            raise
+        except Exception:
+            if tracked:
+                self.reload()  # the user's filter back, as the database still has it
+            raise
+        self.devices.saved(rows)
+        return [UserForgottenMessage(user_id=user_id)]
 
     # ------------------------------------------------------------------ batches
     def assign_device(self, device_id: str, user_id: str) -> None:

@@ -33,6 +33,7 @@ MAX_GROUP = 256
 CALLS = frozenset(
     {
         "assign_device",
+        "forget_user",
         "anchors",
         "get_anchor",
         "put_known_anchor",

@@ -283,6 +283,17 @@ def add_positions(session: Session, rows: Sequence[dict[str, object]]) -> None:
     upsert(session, LatestPositionRow, list(latest.values()), ["building_id", "user_id"])
 
 
+def delete_user_positions(session: Session, building_id: str, user_id: str) -> int:
+    """Delete a user's latest position and its whole history; the number of rows deleted."""
+    deleted = 0
+    for table in (LatestPositionRow, PositionSnapshotRow):
+        result = session.execute(
+            delete(table).where(table.building_id == building_id, table.user_id == user_id)
+        )
+        deleted += cast(CursorResult[Any], result).rowcount
+    return deleted
+
+
 def latest_positions(session: Session, building_id: str) -> list[LatestPositionRow]:
     """Every user's latest snapshot in the building."""
     stmt = (

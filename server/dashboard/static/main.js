@@ -340,6 +340,10 @@ class Dashboard {
         if (m.deleted) this.scene.anchors.delete(m.anchor.id);
         else this.scene.anchors.set(m.anchor.id, m.anchor);
         anchorsChanged = true;
+      } else if (m.type === "user_forgotten") {
+        this.scene.users.delete(m.user_id);
+        this.scene.corrections.delete(m.user_id);
+        if (this.scene.selectedUser === m.user_id) this.scene.selectedUser = null;
       } else if (m.type === "heartbeat" && m.dropped > 0) {
         this.dropped = (this.dropped || 0) + m.dropped;
         $("drops").hidden = false;

@@ -111,7 +111,7 @@ export class OperatorTools {
 
   async merge() {
     const ids = [...this.app.scene.selectedAnchors];
-    const merged = await this.act(() => this.app.api.post(this.app.path("/anchors/merge"), { anchor_ids: ids }), (a) => `Merged ${ids.length} anchors into ${a.id}.`);
+    const merged = await this.act(() => this.app.api.post(this.app.path("/anchors:merge"), { anchor_ids: ids }), (a) => `Merged ${ids.length} anchors into ${a.id}.`);
     if (merged) {
       for (const id of ids) this.app.scene.anchors.delete(id);
       this.app.scene.anchors.set(merged.id, merged);

@@ -192,7 +192,7 @@ def test_operator_pins_lists_merges_and_deletes_anchors(sqlite_api: Api) -> None
     lons = [f["geometry"]["coordinates"][0] for f in geo["features"]]
     assert all(-122.31 < lon < -122.29 for lon in lons)
     merged = api.client.post(
-        "/v1/buildings/hq/anchors/merge", json={"anchor_ids": ["lift-a", "stairs-b"]}, headers=op
+        "/v1/buildings/hq/anchors:merge", json={"anchor_ids": ["lift-a", "stairs-b"]}, headers=op
     )
     assert merged.status_code == 200
     assert merged.json()["id"] == "lift-a"

@@ -1,0 +1,127 @@
+"""A client nobody here wrote: ``openapi-python-client`` generates one from the live server's spec, and the
+newcomer's path runs through it unmodified: create a building, mint a device key, post the example batch,
+read the positions, revoke the key, and see the next post refused."""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import importlib
+import json
+import os
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+import httpx
+import pytest
+
+from schemas.catalog import EXAMPLES
+from tests.server.api.conftest import Served
+
+GENERATOR = Path(sys.executable).parent / "openapi-python-client"
+
+
+@pytest.fixture(scope="module")
+def client_package(served: Served, tmp_path_factory: pytest.TempPathFactory) -> Iterator[ModuleType]:
+    root = tmp_path_factory.mktemp("generated")
+    spec = root / "openapi.json"
+    spec.write_text(httpx.get(f"{served.base}/openapi.json").text)
+    env = {**os.environ, "PATH": f"{GENERATOR.parent}{os.pathsep}{os.environ.get('PATH', '')}"}
+    done = subprocess.run(
+        [
+            str(GENERATOR),
+            "generate",
+            "--path",
+            str(spec),
+            "--meta",
+            "none",
+            "--output-path",
+            "crowdslam_client",
+        ],
+        cwd=root,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=env,
+    )
+    output = done.stdout + done.stderr
+    assert done.returncode == 0, output
+    assert "Warning" not in output, output  # every operation and model was generated
+    sys.path.insert(0, str(root))
+    try:
+        yield importlib.import_module("crowdslam_client")
+    finally:
+        sys.path.remove(str(root))
+        for name in [m for m in sys.modules if m == "crowdslam_client" or m.startswith("crowdslam_client.")]:
+            del sys.modules[name]
+
+
+def _module(package: ModuleType, name: str) -> Any:
+    return importlib.import_module(f"{package.__name__}.{name}")
+
+
+def test_the_newcomers_path_through_a_generated_client(served: Served, client_package: ModuleType) -> None:
+    api = lambda name: _module(client_package, f"api.{name}")  # noqa: E731
+    models = _module(client_package, "models")
+    client = _module(client_package, "client")
+    clients = contextlib.ExitStack()  # each client's connections closed at the end
+    with clients:
+        _newcomers_path(served, api, models, client, clients)
+
+
+def _newcomers_path(
+    served: Served, api: Any, models: Any, client: Any, clients: contextlib.ExitStack
+) -> None:
+    operator = clients.enter_context(
+        client.AuthenticatedClient(base_url=served.base, token=served.keys["operator"])
+    )
+
+    created = api("buildings.create_building").sync_detailed(
+        client=operator, body=models.Building(id="generated", name="Generated")
+    )
+    assert created.status_code == 201, created.content
+    assert created.parsed.id == "generated"
+
+    minted = api("buildings.create_key").sync(
+        "generated",
+        client=operator,
+        body=models.DeviceKeyIn(scope=models.KeyScope.DEVICE, device_id="phone-1"),
+    )
+    assert isinstance(minted, models.KeyCreated), minted
+    assert minted.scope == models.KeyScope.DEVICE
+    assert minted.device_id == "phone-1"
+
+    raw = copy.deepcopy(EXAMPLES["batch"])
+    raw["building_id"] = "generated"
+    device = clients.enter_context(client.AuthenticatedClient(base_url=served.base, token=minted.key))
+    receipt = api("batches.post_batch").sync(
+        "generated", client=device, body=models.SensorBatch.from_dict(raw)
+    )
+    assert isinstance(receipt, models.BatchReceipt), receipt
+    assert receipt.status == models.BatchReceiptStatus.APPLIED
+    assert receipt.tracking  # the example batch carries a position fix
+
+    positions = api("positions.list_positions").sync("generated", client=operator)
+    assert isinstance(positions, list), positions
+    assert [p.user_id for p in positions] == [raw["user_id"]]
+    assert positions[0].t_ms == receipt.estimate.t_ms
+
+    keys = api("buildings.list_keys").sync("generated", client=operator)
+    assert [k.prefix for k in keys] == [minted.prefix]
+    assert keys[0].created_at.tzinfo is not None  # RFC 3339 with its offset, parsed as such
+
+    revoked = api("buildings.revoke_key").sync_detailed("generated", minted.prefix, client=operator)
+    assert revoked.status_code == 204
+
+    raw["batch_id"], raw["seq"] = "phone-1-000043", raw["seq"] + 1
+    refused = api("batches.post_batch").sync_detailed(
+        "generated", client=device, body=models.SensorBatch.from_dict(raw)
+    )
+    assert refused.status_code == 401
+    assert isinstance(refused.parsed, models.Problem), refused.content
+    assert refused.parsed.status == 401
+    assert json.loads(refused.content)["title"] == "Unauthorized"
