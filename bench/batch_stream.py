@@ -32,7 +32,7 @@ from server.cluster.batch_stream import BatchStream
 from server.simulation.phones import simulated_batches
 from slam_core.sim.simulation import Scenario, simulate
 
-SCENARIO = ROOT.parent / "shared" / "scenarios" / "paper-testbed.json"
+SCENARIO = ROOT / "server" / "data" / "paper-testbed.json"
 CLOCK_TICKS = 100  # /proc's CPU times are in clock ticks (USER_HZ)
 
 

@@ -237,8 +237,9 @@ def main() -> int:
     parser.add_argument(
         "--plan-floor",
         type=Path,
-        default=Path(__file__).resolve().parents[2] / "shared" / "data" / "msindoor20" / "site1" / "F1",
-        help="a floor of the Indoor Location 2.0 data set whose plan the motion update is timed with",
+        default=Path(__file__).resolve().parents[1] / "crowdslam-data/datasets/msindoor20/site1/F1",
+        help="a floor of the Indoor Location 2.0 data set whose plan the motion update is timed with "
+        "(crowdslam datasets fetch msindoor20 puts it there)",
     )
     args = parser.parse_args()
     params = FilterParams()

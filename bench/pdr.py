@@ -1,6 +1,6 @@
 """PDR front-end benchmark: how many times faster than real time one core dead-reckons real phone IMU.
 
-    python bench/pdr.py [--floor ../shared/data/msindoor20/site1/F1] [--json OUT]
+    python bench/pdr.py [--floor crowdslam-data/datasets/msindoor20/site1/F1] [--json OUT]
 
 Every walk of the floor goes through ``slam_core.sensing.pdr.online.pdr_steps`` in the one-second batches a
 phone posts (state carried between batches), with the phone's rotation vector alone, with the rotation vector
@@ -52,7 +52,10 @@ def _batches(trace_streams: dict[str, np.ndarray], sources: tuple[str, ...]) -> 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
-        "--floor", type=Path, default=ROOT.parent / "shared" / "data" / "msindoor20" / "site1" / "F1"
+        "--floor",
+        type=Path,
+        default=ROOT / "crowdslam-data/datasets/msindoor20/site1/F1",
+        help="a floor of walks (crowdslam datasets fetch msindoor20 puts them there)",
     )
     parser.add_argument("--json", type=Path, metavar="OUT")
     args = parser.parse_args()

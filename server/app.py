@@ -27,7 +27,7 @@ from server.buildings.registry import Buildings, TrackingService
 from server.buildings.tracking import tracking_config
 from server.dashboard.pages import install_pages
 from server.engine.config import load_calibration, tracker_params
-from server.engine.warmup import compile_kernels_in_child, warm_kernels
+from server.engine.warmup import Progress, compile_kernels_in_child, warm_kernels
 from server.errors import (
     InvalidInputError,
     ProblemError,
@@ -60,9 +60,10 @@ class ClusterMisconfiguredError(RuntimeError):
     pass
 
 
-def create_app(settings: Settings, tune_gc: bool = False) -> FastAPI:
+def create_app(settings: Settings, tune_gc: bool = False, warming: Progress | None = None) -> FastAPI:
     """The app; ``tune_gc`` when it is the process's only job (``crowdslam serve``, ``demo``): the garbage
-    collector is then tuned for its latency at the end of start-up (``tune_gc_for_serving``), process-wide."""
+    collector is then tuned for its latency at the end of start-up (``tune_gc_for_serving``), process-wide.
+    ``warming`` hears how the start-up's compile of the filter's kernels goes (a minute on a cold cache)."""
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -85,7 +86,7 @@ def create_app(settings: Settings, tune_gc: bool = False) -> FastAPI:
             broadcaster.add_sink(foxglove_live.publish)
         recordings = settings.recordings_dir if settings.record else None
         try:
-            tracking, disconnect = await _buildings(settings, sessions, broadcaster, recordings)
+            tracking, disconnect = await _buildings(settings, sessions, broadcaster, recordings, warming)
         except BaseException:
             engine.dispose()  # and its checkpoint thread: a server that cannot track does not start
             raise
@@ -152,7 +153,11 @@ def create_app(settings: Settings, tune_gc: bool = False) -> FastAPI:
 
 
 async def _buildings(
-    settings: Settings, sessions: sessionmaker[Session], broadcaster: Broadcaster, recordings: Path | None
+    settings: Settings,
+    sessions: sessionmaker[Session],
+    broadcaster: Broadcaster,
+    recordings: Path | None,
+    warming: Progress | None,
 ) -> tuple[Buildings, Callable[[], Awaitable[None]]]:
     """The buildings as this process reaches them, and what disconnects it from them once they are closed:
     tracked here (the embedded role: kernels compiled first), or by the cluster's workers (a front)."""
@@ -189,9 +194,9 @@ async def _buildings(
             f"CROWDSLAM_ROLE={settings.role} runs without HTTP: start it with `crowdslam serve --role worker`"
         )
     if settings.resolved_building_processes:
-        await asyncio.to_thread(compile_kernels_in_child, settings)
+        await asyncio.to_thread(compile_kernels_in_child, settings, warming)
     else:
-        warm_kernels(tracker_params(settings), load_calibration(settings.encounter_calibration))
+        warm_kernels(tracker_params(settings), load_calibration(settings.encounter_calibration), warming)
     tracking = TrackingService(
         sessions,
         broadcaster,

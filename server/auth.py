@@ -52,6 +52,12 @@ class Principal:
             raise ForbiddenError(f"this device key posts as device {self.device_id!r}, not {device_id!r}")
 
 
+def key_prefix(secret: str) -> str | None:
+    """The prefix a key is listed and revoked by (``csk_<prefix>_<secret>``); None for what is not a key."""
+    parts = secret.split("_", 2)
+    return parts[1] if len(parts) == 3 and parts[0] == "csk" and parts[1] else None
+
+
 def mint_key(
     session: Session, scope: KeyScope, building_id: str | None = None, device_id: str | None = None
 ) -> tuple[str, str]:

@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 from sqlalchemy import Engine, text
 
+from server.datasets.fetch import dataset_dir
 from server.engine.numba_cache import configure_numba_cache
 from server.store.db import make_engine
 from server.store.migrate import upgrade
@@ -22,14 +23,42 @@ configure_numba_cache()  # before any test module imports numba: caches keyed by
 os.environ.setdefault("CROWDSLAM_BUILDING_PROCESSES", "false")
 
 ROOT = Path(__file__).resolve().parents[1]
-SHARED = ROOT.parent / "shared"
-MSINDOOR_FLOOR = SHARED / "data" / "msindoor20" / "site1" / "F1"
-"""The shared real-walk floor; tests read a few of its small walks in place."""
+TESTBED = ROOT / "server" / "data" / "paper-testbed.json"
+"""The paper's testbed as the package ships it (``crowdslam demo`` and ``evaluate --scenario`` read it)."""
+SAMPLE_WALKS = ROOT / "tests" / "data" / "msindoor20"
+SAMPLE_FLOOR = SAMPLE_WALKS / "site1" / "F1"
+"""Eight real walks of one floor with its plan, shipped with the tests (the data set's MIT licence)."""
+
+WITHOUT_SHARED = "CROWDSLAM_TESTS_WITHOUT_SHARED"
+"""Set, the tests ignore ``../shared`` as a clone without it would: CI runs the walks' tests so once more."""
+
+
+def public_walks() -> Path | None:
+    """The whole public data set: ``../shared``'s copy (unless ``CROWDSLAM_TESTS_WITHOUT_SHARED``), else the
+    one ``crowdslam datasets fetch msindoor20`` put in the data directory (``CROWDSLAM_DATA_DIR``, by default
+    ``crowdslam-data`` in the repository); None where neither is."""
+    shared = ROOT.parent / "shared" / "data" / "msindoor20"
+    if not os.environ.get(WITHOUT_SHARED) and shared.is_dir():
+        return shared
+    fetched = dataset_dir(ROOT / os.environ.get("CROWDSLAM_DATA_DIR", "crowdslam-data"))
+    return fetched if fetched.is_dir() else None
+
+
+def whole_floor(name: str) -> Path:
+    """A whole floor of the public walks (``site1/F1``), or the test is skipped saying how to get it."""
+    root = public_walks()
+    floor = None if root is None else root / name
+    if floor is None or not (floor / "path_data_files").is_dir():
+        pytest.skip(
+            f"needs the whole floor {name} of the public walks: run `crowdslam datasets fetch msindoor20 "
+            f"--floors {name}` (or have ../shared beside the repository)"
+        )
+    return floor
 
 
 def write_testbed(path: Path, users: int, walk_length_m: float | None = None) -> Path:
     """The paper testbed with fewer users (and shorter walks), written to ``path`` for a command to read."""
-    raw = json.loads((SHARED / "scenarios" / "paper-testbed.json").read_text())
+    raw = json.loads(TESTBED.read_text())
     raw["users"]["count"] = users
     if walk_length_m is not None:
         raw["users"]["walk_length_m"] = walk_length_m

@@ -10,6 +10,7 @@ under ``TYPE_CHECKING``):
 from __future__ import annotations
 
 import ast
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -235,3 +236,37 @@ def test_the_checkers_see_a_planted_cycle_and_layer_violation(tmp_path: Path) ->
         "house.low.a imports house.high.b (house.high is not below house.low)"
     ]
     assert layer_violations(graph, {"house": [["high"]]}) == ["house.low: not in LAYERS"]
+
+
+SHARED_PATH = re.compile(r"""["'](\.\./)?shared["'/]|/ ?["']shared["']""")
+"""A path into ``../shared`` (the developers' copy of the data), which a clone of the repository lacks."""
+
+
+def test_nothing_but_the_tests_locator_reaches_for_the_developers_shared_folder() -> None:
+    """The product and its tests work on a clone alone: the package ships its scenario, the tests their
+    sample of walks; only ``tests/conftest.py`` may prefer ``../shared`` for whole floors."""
+    offenders = [
+        str(path.relative_to(ROOT))
+        for folder in ("server", "slam_core", "schemas", "migrations", "tests", "bench")
+        for path in sorted((ROOT / folder).rglob("*.py"))
+        if path not in (ROOT / "tests" / "conftest.py", Path(__file__))
+        and SHARED_PATH.search(path.read_text())
+    ]
+    assert not offenders, offenders
+
+
+WALK_LOCATORS = re.compile(r"\b(SAMPLE_FLOOR|SAMPLE_WALKS|whole_floor|public_walks|small_floor)\b")
+
+
+def test_every_test_module_reading_walks_is_marked_so() -> None:
+    """CI runs the ``walks`` tests once more as a clone without ``../shared`` would
+    (``CROWDSLAM_TESTS_WITHOUT_SHARED``): a module that reads walks unmarked would escape that run."""
+    unmarked = [
+        str(path.relative_to(ROOT))
+        for path in sorted((ROOT / "tests").rglob("test_*.py"))
+        if WALK_LOCATORS.search(text := path.read_text()) and "pytestmark = pytest.mark.walks" not in text
+    ]
+    assert not unmarked, unmarked
+    assert SHARED_PATH.search('SHARED = ROOT.parent / "shared" / "data"')
+    assert SHARED_PATH.search("x = '../shared/data'")
+    assert not SHARED_PATH.search("the crowd's shared anchor map")

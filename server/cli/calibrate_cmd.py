@@ -11,12 +11,14 @@ import argparse
 import json
 from pathlib import Path
 
+from server.cli.user_errors import floor_folder
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument(
         "--msindoor",
-        type=Path,
+        type=floor_folder,
         metavar="FLOOR_DIR",
         help="a floor of Indoor Location 2.0 walks",
     )

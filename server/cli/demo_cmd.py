@@ -4,33 +4,31 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import secrets
 import signal
-from importlib import resources
-from pathlib import Path
+import time
+from typing import Any
 
 from server.cli.user_errors import port_number
-
-DEFAULT_SCENARIO = Path(__file__).resolve().parents[2].parent / "shared" / "scenarios" / "paper-testbed.json"
+from server.data import scenario_argument, shipped_scenario
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--host", default="127.0.0.1")
     parser.add_argument("--port", type=port_number, default=8000)
-    parser.add_argument("--scenario", type=Path, default=None, help="default: the paper testbed")
+    parser.add_argument(
+        "--scenario",
+        type=scenario_argument,
+        default=shipped_scenario("paper-testbed"),
+        metavar="NAME_OR_FILE",
+        help="a shipped scenario or a scenario JSON file (default: paper-testbed, the paper's testbed)",
+    )
     parser.add_argument("--speed", type=float, default=5.0, help="crowd pace, x real time (0: flat out)")
     parser.add_argument(
         "--rounds", type=int, default=0, help="crowds to walk, one after another (0: forever)"
     )
     parser.add_argument("--building", default="demo")
-
-
-def _scenario_text(path: Path | None) -> str:
-    if path is not None:
-        return path.read_text()
-    if DEFAULT_SCENARIO.exists():
-        return DEFAULT_SCENARIO.read_text()
-    return resources.files("server.data").joinpath("paper-testbed.json").read_text()
 
 
 def run(args: argparse.Namespace) -> int:
@@ -39,11 +37,17 @@ def run(args: argparse.Namespace) -> int:
 
     from schemas.api import KeyScope
     from server.app import create_app
-    from server.auth import mint_key
+    from server.auth import key_prefix, mint_key
     from server.cli.background_server import ServerDidNotStartError, running_server
+    from server.cli.kernel_progress import KernelProgress
     from server.settings import get_settings
-    from server.simulation.crowd_client import device_keys, post_crowd, prepare_building
-    from server.simulation.phones import EPOCH_MS
+    from server.simulation.crowd_client import (
+        crowd_epoch_ms,
+        device_keys,
+        post_crowd,
+        prepare_building,
+        retire_crowd,
+    )
     from server.store.db import make_engine, make_session_factory
     from server.store.migrate import upgrade
     from slam_core.sim.simulation import Scenario, simulate
@@ -58,8 +62,8 @@ def run(args: argparse.Namespace) -> int:
     with make_session_factory(engine).begin() as session:
         operator_key, _ = mint_key(session, KeyScope.OPERATOR)
     engine.dispose()
-    scenario = Scenario.from_dict(json.loads(_scenario_text(args.scenario)))
-    app = create_app(settings, tune_gc=True)
+    scenario = Scenario.from_dict(json.loads(args.scenario.read_text()))
+    app = create_app(settings, tune_gc=True, warming=KernelProgress("crowdslam demo"))
     try:
         with (
             running_server(app, args.host, args.port, ws_compression=settings.ws_compression) as base,
@@ -91,25 +95,30 @@ def run(args: argparse.Namespace) -> int:
                 print("  Foxglove/Lichtblick: set CROWDSLAM_FOXGLOVE_PORT=8765 to watch the crowd there")
             print("  Ctrl-C stops.", flush=True)
             round_number = 0
-            epoch_ms = EPOCH_MS
             # this run's devices and batch ids are its own: a demo run again in the same folder walks new
             # phones, whose batches are not duplicates of the last run's
             run = secrets.token_hex(3)
+            left = retire_leftovers(client, args.building, operator_key)
+            if left:
+                print(f"  {left} people of an earlier demo run left the building", flush=True)
             while args.rounds == 0 or round_number < args.rounds:
-                # new people walking the same building (its anchors and access points), after the last crowd
+                # new people walking the same building (its anchors and access points), after the last crowd;
+                # their phones' clocks near the wall clock, so the dashboard's times read as today's
                 sim = simulate(scenario, round_number, world_seed=0)
+                duration_s = max(float(tr.t[-1]) for tr in sim.users)
+                epoch_ms = crowd_epoch_ms(int(time.time() * 1000), duration_s, args.speed)
                 prefix = f"{run}-r{round_number}-"
                 keys = device_keys(client, args.building, operator_key, len(sim.users), prefix)
                 report = post_crowd(client, sim, args.building, keys, args.speed, prefix, epoch_ms=epoch_ms)
-                epoch_ms += round(max(float(tr.t[-1]) for tr in sim.users) * 1000.0) + 60_000
                 s = report.summary()
                 print(
                     f"  crowd {round_number}: {s['batches']} batches, {s['errors']} errors, "
                     f"{s['duplicates']} duplicates, "
                     f"{s['encounters']} encounters, error median {s['median_m']:.2f} m, "
-                    f"p90 {s['p90_m']:.2f} m, {s['seconds']:.0f} s",
+                    f"p90 {s['p90_m']:.2f} m, {s['seconds']:.0f} s; it leaves the building",
                     flush=True,
                 )
+                retire_crowd(client, args.building, operator_key, {d: key_prefix(k) for d, k in keys.items()})
                 round_number += 1
     except ServerDidNotStartError as exc:
         print(f"error: {exc}")
@@ -117,6 +126,24 @@ def run(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         pass
     return 0
+
+
+DEMO_DEVICE = re.compile(r"[0-9a-f]{6}-r\d+-")
+"""The demo's device ids: ``<run>-r<round>-<device>``."""
+
+
+def retire_leftovers(client: Any, building_id: str, operator_key: str) -> int:
+    """The people an earlier demo run left in its building (stopped in the middle of a crowd) are forgotten,
+    and their device keys revoked; the number of people."""
+    from server.simulation.crowd_client import retire_crowd
+
+    auth = {"Authorization": f"Bearer {operator_key}"}
+    users = client.get(f"/v1/buildings/{building_id}/positions", headers=auth).json()
+    keys = client.get(f"/v1/buildings/{building_id}/keys", headers=auth).json()
+    live = {k["device_id"]: k["prefix"] for k in keys if k["device_id"] and not k["revoked_at"]}
+    leftover = {u["user_id"] for u in users if DEMO_DEVICE.match(u["user_id"])}
+    leftover |= {d for d in live if DEMO_DEVICE.match(d)}
+    return retire_crowd(client, building_id, operator_key, {d: live.get(d) for d in sorted(leftover)})
 
 
 def _interrupt(signum: int, frame: object) -> None:

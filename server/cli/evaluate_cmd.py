@@ -8,6 +8,9 @@ import json
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from server.cli.user_errors import floor_folder
+from server.data import scenario_argument
+
 if TYPE_CHECKING:
     from server.engine.config import ReplayOptions
 
@@ -21,15 +24,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     world = parser.add_mutually_exclusive_group(required=True)
     world.add_argument(
         "--scenario",
-        type=Path,
-        help="scenario JSON, e.g. ../shared/scenarios/paper-testbed.json",
+        type=scenario_argument,
+        metavar="NAME_OR_FILE",
+        help="a shipped scenario (paper-testbed: the DynamicSLAM testbed) or a scenario JSON file",
     )
     world.add_argument(
         "--msindoor",
-        type=Path,
+        type=floor_folder,
         metavar="FLOOR_DIR",
-        help="a floor of Indoor Location 2.0 walks (e.g. ../shared/data/msindoor20/site1/F1), replayed as "
-        "a crowd",
+        help="a floor of Indoor Location 2.0 walks (crowdslam datasets fetch msindoor20 puts them in "
+        "crowdslam-data/datasets/msindoor20/SITE/FLOOR), replayed as a crowd",
     )
     parser.add_argument(
         "--warm-split",

@@ -5,14 +5,15 @@ floor's plan (its ``geojson_map.json``) beside it as ``FILE.plan.json``, ready f
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
+
+from server.cli.user_errors import walks_folder
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
-        "dir", type=Path, help="a floor folder (with path_data_files/) or a folder of .txt walks"
+        "dir", type=walks_folder, help="a floor folder (with path_data_files/) or a folder of .txt walks"
     )
     parser.add_argument("--out", type=Path, required=True, help="the MCAP file to write")
     parser.add_argument("--building", default="msindoor", help="building id written into the batches")
@@ -28,9 +29,6 @@ def run(args: argparse.Namespace) -> int:
 
     folder = args.dir / "path_data_files" if (args.dir / "path_data_files").is_dir() else args.dir
     walks = sorted(folder.glob("*.txt"))
-    if not walks:
-        print(f"error: no .txt walks in {folder}", file=sys.stderr)
-        return 2
     staging = args.out.parent / f".{args.out.stem}-staging"
     recorder = BuildingRecorder(staging, args.building)
     t0 = time.time_ns()

@@ -37,6 +37,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "server.cli.signalslam_cmd",
         "SignalSLAM on a floor of real walks: PDR, recalibrated PDR, GraphSLAM, SignalSLAM, fingerprints",
     ),
+    "datasets": (
+        "server.cli.datasets_cmd",
+        "fetch the public walks the project measures on (Indoor Location Competition 2.0, MIT)",
+    ),
     "calibrate": (
         "server.cli.calibrate_cmd",
         "fit the encounter models on a floor of real walks; precision and recall of each WiFi feature",
@@ -67,6 +71,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if argv is not None:
         sys.argv = [sys.argv[0], *argv]
     parser = build_parser()
+    if len(sys.argv) == 1:  # no command: what there is to run
+        parser.print_help()
+        return 0
     args = parser.parse_args()
     # deferred: the command's dependencies load when it runs (`crowdslam --help` loads none)
     from server.engine.numba_cache import configure_numba_cache

@@ -53,8 +53,9 @@ def run(args: argparse.Namespace) -> int:
     import uvicorn
 
     from server.app import create_app
+    from server.cli.kernel_progress import KernelProgress
 
-    app = create_app(settings, tune_gc=True)
+    app = create_app(settings, tune_gc=True, warming=KernelProgress("crowdslam serve"))
     uvicorn.run(
         app,
         host=args.host,

@@ -8,11 +8,13 @@ import argparse
 import json
 from pathlib import Path
 
+from server.cli.user_errors import floor_folder
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--msindoor",
-        type=Path,
+        type=floor_folder,
         required=True,
         metavar="FLOOR_DIR",
         help="a floor of Indoor Location 2.0 walks",

@@ -7,11 +7,16 @@ import json
 from pathlib import Path
 
 from server.cli.user_errors import UserError
+from server.data import scenario_argument
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
-        "--scenario", type=Path, required=True, help="scenario JSON (e.g. paper-testbed.json)"
+        "--scenario",
+        type=scenario_argument,
+        required=True,
+        metavar="NAME_OR_FILE",
+        help="a shipped scenario (paper-testbed) or a scenario JSON file",
     )
     parser.add_argument("--post", required=True, metavar="URL", help="the server, e.g. http://127.0.0.1:8000")
     parser.add_argument("--building", required=True, help="building id (created if missing)")

@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 
 EXIT_USER_ERROR = 2
 
@@ -26,6 +27,42 @@ def port_number(text: str) -> int:
     return port
 
 
+FETCH_HINT = (
+    "`crowdslam datasets fetch msindoor20` puts the public floors in crowdslam-data/datasets/msindoor20"
+)
+
+
+def floor_folder(text: str) -> Path:
+    """``--msindoor``: a floor of Indoor Location 2.0 walks (``floor_info.json`` and ``path_data_files/``)."""
+    path = Path(text)
+    if not path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text}: no such folder ({FETCH_HINT})")
+    if not (path / "floor_info.json").is_file() or not (path / "path_data_files").is_dir():
+        raise argparse.ArgumentTypeError(
+            f"{text} is not a floor of Indoor Location 2.0 walks: a floor holds floor_info.json and "
+            f"path_data_files/ ({FETCH_HINT})"
+        )
+    return path
+
+
+def walks_folder(text: str) -> Path:
+    """A floor, or a folder of Indoor Location 2.0 walks (``.txt``, each opening with its start time)."""
+    path = Path(text)
+    if not path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text}: no such folder ({FETCH_HINT})")
+    folder = path / "path_data_files" if (path / "path_data_files").is_dir() else path
+    walks = sorted(folder.glob("*.txt"))
+    if not walks:
+        raise argparse.ArgumentTypeError(f"{text}: no .txt walks in {folder}")
+    for walk in walks:
+        with walk.open("rb") as source:
+            if not source.read(64).startswith(b"#\tstartTime"):
+                raise argparse.ArgumentTypeError(
+                    f"{walk} is not an Indoor Location 2.0 walk (no startTime header)"
+                )
+    return path
+
+
 def message(exc: BaseException) -> str | None:
     """The line to print for an exception that is the user's mistake, or None for a bug."""
     if isinstance(exc, UserError):
@@ -36,7 +73,10 @@ def message(exc: BaseException) -> str | None:
         return f"not valid JSON: {exc}"
     if isinstance(exc, UnicodeDecodeError):
         return f"not a text file: {exc}"
-    # the libraries below are checked only when loaded: a command that never loaded them cannot raise them
+    # the modules below are checked only when loaded: a command that never loaded them cannot raise them
+    msindoor = sys.modules.get("server.datasets.msindoor")
+    if msindoor is not None and isinstance(exc, msindoor.TraceFormatError):
+        return f"not readable as Indoor Location 2.0 walks: {exc}"
     httpx = sys.modules.get("httpx")
     if httpx is not None:
         if isinstance(exc, (httpx.UnsupportedProtocol, httpx.InvalidURL)):

@@ -14,8 +14,11 @@ from __future__ import annotations
 
 import logging
 import multiprocessing
+import queue
 import time
+from collections.abc import Callable
 from dataclasses import replace
+from multiprocessing.queues import Queue
 
 import numpy as np
 
@@ -36,14 +39,25 @@ SCAN_APS = 8
 logger = logging.getLogger(__name__)
 
 
-def warm_kernels(params: TrackerParams, calibration: Calibration) -> None:
-    for parallel_min_users in (1, PARALLEL_MIN_USERS):
+WARM_STEPS = 2 + CROWD_SECONDS + 1
+"""What ``warm_kernels`` reports its progress in: the two pairs, each second of the crowd, the PDR."""
+
+Progress = Callable[[int, int], None]
+"""Called with (steps done, steps in all) as the warm-up goes."""
+
+
+def warm_kernels(params: TrackerParams, calibration: Calibration, progress: Progress | None = None) -> None:
+    report = progress or (lambda done, total: None)
+    report(0, WARM_STEPS)
+    for k, parallel_min_users in enumerate((1, PARALLEL_MIN_USERS)):
         _warm_pair(params, calibration, parallel_min_users)
-    _warm_crowd(params, calibration)
+        report(k + 1, WARM_STEPS)
+    _warm_crowd(params, calibration, lambda second: report(3 + second, WARM_STEPS))
 
     t = np.arange(3_000.0, 4_000.0, 20.0)
     gravity = np.column_stack([t, np.zeros(t.size), np.zeros(t.size), np.full(t.size, 9.81)])
     pdr_steps(PdrState(), ImuSamples(acc=gravity, gyr=gravity * [1, 0, 0, 0], mag=gravity), params.pdr)
+    report(WARM_STEPS, WARM_STEPS)
 
 
 def _warm_pair(params: TrackerParams, calibration: Calibration, parallel_min_users: int) -> None:
@@ -73,7 +87,7 @@ def _warm_pair(params: TrackerParams, calibration: Calibration, parallel_min_use
     tracker.engine.observe_position(np.array([0]), np.array([[1.0, 0.0]]), np.array([0.5]))
 
 
-def _warm_crowd(params: TrackerParams, calibration: Calibration) -> None:
+def _warm_crowd(params: TrackerParams, calibration: Calibration, seconds_done: Callable[[int], None]) -> None:
     """``CROWD_USERS`` phones walking round a 24 m square, one batch a second each (two steps, a WiFi scan,
     the Bluetooth sightings of the phones within 8 m), all of a second's batches in one call; calls
     alternate between the serial twins and the parallel kernels. The fingerprint map takes every scan
@@ -123,6 +137,7 @@ def _warm_crowd(params: TrackerParams, calibration: Calibration) -> None:
             )
         tracker.engine.parallel_min_users = 1 if second % 2 else PARALLEL_MIN_USERS
         tracker.apply(batches)
+        seconds_done(second)
 
 
 def _on_square(s: float) -> tuple[float, float]:
@@ -136,12 +151,16 @@ def _heading_on_square(s: float) -> float:
     return [np.pi / 2, 0.0, -np.pi / 2, np.pi][int((s % 96.0) // 24.0)]
 
 
-def warm_kernels_for(settings: Settings) -> None:
-    """``warm_kernels`` with the tracker the settings configure."""
-    warm_kernels(tracker_params(settings), load_calibration(settings.encounter_calibration))
+def warm_kernels_for(settings: Settings, steps: Queue[int] | None = None) -> None:
+    """``warm_kernels`` with the tracker the settings configure; each step done is put on ``steps``."""
+    warm_kernels(
+        tracker_params(settings),
+        load_calibration(settings.encounter_calibration),
+        None if steps is None else lambda done, total: steps.put(done),
+    )
 
 
-def compile_kernels_in_child(settings: Settings) -> None:
+def compile_kernels_in_child(settings: Settings, progress: Progress | None = None) -> None:
     """For buildings in processes of their own: compile every kernel once into numba's on-disk cache, in a
     short-lived child, before the server takes requests. Each building's process warms its kernels when
     it starts, at its building's first request; on a cold cache that is a compile of ~30 s (2-core machine,
@@ -149,11 +168,21 @@ def compile_kernels_in_child(settings: Settings) -> None:
     together would each repeat. A child rather than the front itself, so that the front does not keep
     compiled code it never runs."""
     started = time.perf_counter()
-    process = multiprocessing.get_context("spawn").Process(
-        target=warm_kernels_for, args=(settings,), name="crowdslam-compile-kernels"
+    context = multiprocessing.get_context("spawn")
+    steps: Queue[int] = context.Queue()
+    process = context.Process(
+        target=warm_kernels_for, args=(settings, steps), name="crowdslam-compile-kernels"
     )
     process.start()
+    while process.is_alive() or not steps.empty():
+        try:
+            done = steps.get(timeout=0.2)
+        except queue.Empty:
+            continue
+        if progress is not None:
+            progress(done, WARM_STEPS)
     process.join()
+    steps.close()
     if process.exitcode != 0:
         raise RuntimeError(f"compiling the kernels failed in their process (exit code {process.exitcode})")
     logger.info("kernels compiled into the cache in %.1f s", time.perf_counter() - started)

@@ -87,6 +87,36 @@ def device_keys(
     return keys
 
 
+def retire_crowd(
+    client: httpx.Client, building_id: str, operator_key: str, devices: dict[str, str | None]
+) -> int:
+    """A crowd that has finished walking leaves: each device's user is forgotten (``DELETE .../users/{id}``)
+    and its key revoked (``devices`` maps each to its key's prefix, or None), so the building shows and
+    keeps only the people still there. Returns the users forgotten (a device that never placed its user has
+    none)."""
+    auth = {"Authorization": f"Bearer {operator_key}"}
+    forgotten = 0
+    for device, prefix in devices.items():
+        gone = client.delete(f"/v1/buildings/{building_id}/users/{device}", headers=auth)
+        if gone.status_code != 404:
+            _check(gone)
+            forgotten += 1
+        if prefix is not None:
+            revoked = client.delete(f"/v1/buildings/{building_id}/keys/{prefix}", headers=auth)
+            if revoked.status_code != 404:  # revoked already
+                _check(revoked)
+    return forgotten
+
+
+def crowd_epoch_ms(now_ms: int, duration_s: float, speed: float, lead_s: float = 60.0) -> int:
+    """Phone time of a crowd's simulation time 0, so that its batches carry times near the wall clock:
+    posted at ``speed`` times real time (0: as fast as the server answers), a crowd's simulated clock gains
+    on the wall clock; it starts early enough that no batch is more than ``lead_s`` ahead (the server refuses
+    batches five minutes ahead)."""
+    gain_s = duration_s * (1.0 - (1.0 / speed if speed > 0 else 0.0))
+    return now_ms - round(max(0.0, gain_s - lead_s) * 1000.0)
+
+
 def post_crowd(
     client: httpx.Client,
     sim: Simulation,

@@ -18,7 +18,7 @@ import pytest
 from server.cli.background_server import CLI, free_port
 from server.store.db import make_engine
 from slam_core.sim.simulation import Scenario, simulate
-from tests.conftest import SHARED, write_testbed
+from tests.conftest import TESTBED, write_testbed
 
 
 def _small_testbed(path: Path) -> Path:
@@ -51,7 +51,7 @@ def test_crowds_one_after_another_walk_the_same_building(tmp_path: Path) -> None
 
 
 def test_a_world_seed_keeps_the_building_and_changes_the_walks() -> None:
-    scenario = Scenario.from_dict(json.loads((SHARED / "scenarios" / "paper-testbed.json").read_text()))
+    scenario = Scenario.from_dict(json.loads(TESTBED.read_text()))
     first, second = simulate(scenario, 0, world_seed=0), simulate(scenario, 1, world_seed=0)
     np.testing.assert_array_equal(first.world.anchor_xy, second.world.anchor_xy)
     np.testing.assert_array_equal(first.world.ap_xy, second.world.ap_xy)

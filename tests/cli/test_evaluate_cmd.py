@@ -8,8 +8,7 @@ from pathlib import Path
 import pytest
 
 from server.cli.main import main
-
-TESTBED = Path(__file__).resolve().parents[3] / "shared" / "scenarios" / "paper-testbed.json"
+from tests.conftest import TESTBED
 
 
 @pytest.fixture

@@ -18,7 +18,7 @@ from server.cli.background_server import CLI, free_port, serve_process
 from server.simulation.crowd_client import device_keys, prepare_building
 from server.simulation.phones import simulated_batches
 from slam_core.sim.simulation import Scenario, simulate
-from tests.conftest import SHARED
+from tests.conftest import TESTBED
 from tests.server.signal_maps.test_jobs import _walk
 
 
@@ -50,7 +50,7 @@ def test_kill_9_loses_no_acknowledged_batch_and_tracking_resumes(tmp_path: Path,
         [*CLI, "keys", "create", "--scope", "operator"], env=env, check=True, capture_output=True, text=True
     )
     operator = created.stdout.strip().splitlines()[-1]
-    raw = json.loads((SHARED / "scenarios" / "paper-testbed.json").read_text())
+    raw = json.loads(TESTBED.read_text())
     raw["users"]["count"] = 3
     raw["users"]["walk_length_m"] = 40.0
     sim = simulate(Scenario.from_dict(raw), 4)

@@ -10,9 +10,11 @@ import pytest
 
 from server.cli.main import main
 from server.recordings.recorder import read_batches
-from tests.conftest import MSINDOOR_FLOOR, ROOT
+from tests.conftest import ROOT, SAMPLE_FLOOR
 
-WALKS = MSINDOOR_FLOOR / "path_data_files"
+pytestmark = pytest.mark.walks
+
+WALKS = SAMPLE_FLOOR / "path_data_files"
 
 
 def test_import_msindoor_records_every_batch_of_every_walk(tmp_path: Path) -> None:
@@ -41,7 +43,7 @@ def test_import_msindoor_writes_the_floor_plan_beside_the_recording(tmp_path: Pa
     floor = tmp_path / "F1"
     (floor / "path_data_files").mkdir(parents=True)
     for name in ("floor_info.json", "geojson_map.json"):
-        shutil.copy(MSINDOOR_FLOOR / name, floor / name)
+        shutil.copy(SAMPLE_FLOOR / name, floor / name)
     smallest = sorted(WALKS.glob("*.txt"), key=lambda p: p.stat().st_size)[0]
     shutil.copy(smallest, floor / "path_data_files" / smallest.name)
     out = tmp_path / "f1.mcap"

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 
-from tests.conftest import SHARED
+from tests.conftest import TESTBED
 
 CLI = [sys.executable, "-c", "import sys; from server.cli.main import main; sys.exit(main(sys.argv[1:]))"]
 
@@ -29,7 +30,7 @@ def _one_line(code: int, stderr: str) -> str:
 
 @pytest.fixture
 def scenario(tmp_path: Path) -> Path:
-    raw = json.loads((SHARED / "scenarios" / "paper-testbed.json").read_text())
+    raw = json.loads(TESTBED.read_text())
     raw["users"]["count"] = 2
     path = tmp_path / "small.json"
     path.write_text(json.dumps(raw))
@@ -81,3 +82,50 @@ def test_ports_out_of_range_and_unknown_options(tmp_path: Path) -> None:
     assert "out of range" in _one_line(code, err)
     code, _, err = _run("serve", "--no-such-option", cwd=tmp_path)
     assert "unrecognized arguments" in _one_line(code, err)
+
+
+def test_no_command_lists_the_commands(tmp_path: Path) -> None:
+    code, out, err = _run(cwd=tmp_path)
+    assert code == 0, err
+    for command in ("demo", "serve", "evaluate", "datasets", "replay"):
+        assert f"    {command}" in out
+
+
+def test_a_folder_that_is_not_a_floor_answers_before_any_work(tmp_path: Path) -> None:
+    """No progress bar starts before the error: the folder is checked as the arguments are read."""
+    out = str(tmp_path / "x.json")
+    for argv in (
+        ("evaluate", "--msindoor", str(tmp_path / "nowhere"), "--json", out),
+        ("signalslam", "--msindoor", str(tmp_path / "nowhere"), "--json", out),
+        ("calibrate", "--msindoor", str(tmp_path / "nowhere"), "--out", out),
+        ("import-msindoor", str(tmp_path / "nowhere"), "--out", str(tmp_path / "x.mcap")),
+    ):
+        code, _, err = _run(*argv, cwd=tmp_path)
+        line = _one_line(code, err)
+        assert "nowhere: no such folder" in line
+        assert "crowdslam datasets fetch msindoor20" in line
+    code, _, err = _run("evaluate", "--msindoor", str(tmp_path), "--json", out, cwd=tmp_path)
+    assert "is not a floor of Indoor Location 2.0 walks" in _one_line(code, err)
+    (tmp_path / "notes.txt").write_text("a shopping list\n")
+    code, _, err = _run("import-msindoor", str(tmp_path), "--out", str(tmp_path / "x.mcap"), cwd=tmp_path)
+    assert "notes.txt is not an Indoor Location 2.0 walk" in _one_line(code, err)
+    assert not (tmp_path / "x.mcap").exists()
+    assert not (tmp_path / "x.json").exists()
+
+
+def test_an_unknown_key_prefix_and_scenario(tmp_path: Path) -> None:
+    env_dir = ["--database-url", f"sqlite:///{tmp_path / 'db.sqlite3'}"]
+    assert _run("migrate", *env_dir, cwd=tmp_path)[0] == 0
+    done = subprocess.run(
+        [*CLI, "keys", "revoke", "0a1b2c3d"],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        timeout=120,
+        env={**os.environ, "CROWDSLAM_DATABASE_URL": f"sqlite:///{tmp_path / 'db.sqlite3'}"},
+    )
+    assert "no live key '0a1b2c3d'" in _one_line(done.returncode, done.stderr)
+    code, _, err = _run("evaluate", "--scenario", "paper-testbd", "--json", "x.json", cwd=tmp_path)
+    assert "nor a shipped scenario (paper-testbed)" in _one_line(code, err)
+    code, _, err = _run("datasets", "fetch", "msindoor20", "--floors", "site9/F1", cwd=tmp_path)
+    assert "has no floor site9/F1; its floors: site1/F1" in _one_line(code, err)

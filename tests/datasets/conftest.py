@@ -1,4 +1,4 @@
-"""A small floor made of a few of the shared walks (symlinked in place), for the replay and CLI tests."""
+"""A small floor made of six of the sample's walks (symlinked in place), for the replay and CLI tests."""
 
 from __future__ import annotations
 
@@ -7,9 +7,9 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import MSINDOOR_FLOOR
+from tests.conftest import SAMPLE_FLOOR
 
-FLOOR = MSINDOOR_FLOOR
+FLOOR = SAMPLE_FLOOR
 WALKS = (
     "5dd9fd499191710006b570de",
     "5dd9efa5c5b77e0006b17365",

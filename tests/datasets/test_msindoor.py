@@ -1,4 +1,5 @@
-"""The Indoor Location 2.0 reader on real walks (read in place) and on broken files."""
+"""The Indoor Location 2.0 reader on real walks (the sample's, and whole floors where they are) and on broken
+files."""
 
 from __future__ import annotations
 
@@ -13,9 +14,11 @@ from schemas.floor_plans import PlanKind
 from server.datasets.msindoor import TraceFormatError, read_floor, read_floor_plan, read_trace
 from server.datasets.msindoor_batches import trace_batches
 from server.ingestion.floor_plans import engine_plan
-from tests.conftest import MSINDOOR_FLOOR
+from tests.conftest import SAMPLE_FLOOR, whole_floor
 
-FLOOR = MSINDOOR_FLOOR
+pytestmark = pytest.mark.walks
+
+FLOOR = SAMPLE_FLOOR
 SMALL_WALK = FLOOR / "path_data_files" / "5dd9e7c59191710006b57065.txt"
 
 
@@ -26,7 +29,7 @@ def _count(path: Path, kind: str) -> int:
 
 
 def test_floor_metadata() -> None:
-    floor = read_floor(FLOOR)
+    floor = read_floor(whole_floor("site1/F1"))
     assert floor.width_m == pytest.approx(239.8175, abs=1e-3)
     assert floor.height_m == pytest.approx(176.4412, abs=1e-3)
     assert floor.image is not None
@@ -110,10 +113,9 @@ def test_missing_floor_info_is_a_clear_error(tmp_path: Path) -> None:
         read_floor(tmp_path)
 
 
-@pytest.mark.parametrize(
-    "floor_dir", [FLOOR, FLOOR.parent.parent / "site2" / "F2"], ids=["site1-F1", "site2-F2"]
-)
-def test_a_shipped_floors_map_becomes_a_plan_holding_its_surveyed_waypoints(floor_dir: Path) -> None:
+@pytest.mark.parametrize("name", ["site1/F1", "site2/F2"])
+def test_a_shipped_floors_map_becomes_a_plan_holding_its_surveyed_waypoints(name: str) -> None:
+    floor_dir = whole_floor(name)
     floor = read_floor(floor_dir)
     reading = read_floor_plan(floor)
     assert (reading.skipped_features, reading.repaired_rings, reading.dropped_rings) == (0, 0, 0)

@@ -1,5 +1,5 @@
 """Crowd replay of real walks through the server's batch path (``crowdslam evaluate --msindoor``), on a small
-floor made of a few of the shared walks; and the tracker's PDR front-end path it relies on."""
+floor made of a few of the sample's walks; and the tracker's PDR front-end path it relies on."""
 
 from __future__ import annotations
 
@@ -21,7 +21,10 @@ from server.settings import Settings
 from server.signal_maps.tagged_walks import radio_map_of_walks
 from slam_core.crowd.fingerprints import FingerprintParams
 from slam_core.tracking.tracker import BuildingTracker
+from tests.conftest import TESTBED, whole_floor
 from tests.datasets.conftest import FLOOR, WALKS
+
+pytestmark = pytest.mark.walks
 
 
 def _waypoints_after_the_first(names: tuple[str, ...]) -> int:
@@ -41,12 +44,12 @@ def test_pdr_replay_scores_every_waypoint_after_the_start(small_floor: Path) -> 
     assert result["steps_detected"] > 100
 
 
-def test_online_pdr_on_the_whole_shared_floor_meets_its_targets() -> None:
+def test_online_pdr_on_a_whole_floor_meets_its_targets() -> None:
     """The causal, online PDR (raw IMU through the server's front-end, every walk of site1 F1 from its first
     waypoint) holds p50 <= 2.8 m and p90 <= 6.5 m (measured 2.56 / 6.04 m; counting the peak that starts a
     walk as a step gives 2.99 / 6.88 m, docs/experiments.md)."""
     result, errors = replay_floor(
-        FLOOR, ReplayOptions(mode="pdr"), tracker_params(Settings()), load_calibration(None)
+        whole_floor("site1/F1"), ReplayOptions(mode="pdr"), tracker_params(Settings()), load_calibration(None)
     )
     assert result["n_walks"] > 100
     assert errors.size > 600
@@ -58,7 +61,7 @@ def test_the_floor_plan_puts_dynamicslam_ahead_of_dead_reckoning_on_the_second_b
     """On site2/F2 (a building the plan's weights were not chosen on alone) with its plan, dynamicslam holds
     p50 <= 2.0 m and p90 <= 0.85 x PDR's p90 (measured 1.76 / 3.19 against PDR's 4.57 m); without the plan it
     was no better than PDR (2.26 / 4.75)."""
-    floor = FLOOR.parents[1] / "site2" / "F2"
+    floor = whole_floor("site2/F2")
     params, calibration = tracker_params(Settings()), load_calibration(None)
     runs = {
         name: replay_floor(floor, options, params, calibration)[0]
@@ -80,7 +83,7 @@ def test_phones_with_no_start_fix_are_placed_by_the_crowds_map_on_the_second_bui
     confident) and every waypoint from the first is scored. Measured: p50 7.6 m over the placed
     waypoints, 63 of 128 waypoints before a confident placement, 14 % of the walks within 5 m for good."""
     result, errors = replay_floor(
-        FLOOR.parents[1] / "site2" / "F2",
+        whole_floor("site2/F2"),
         ReplayOptions(mode="dynamicslam", warm_split=0.5, start_fix=False),
         tracker_params(Settings()),
         load_calibration(None),
@@ -130,7 +133,7 @@ def test_every_correction_is_audited_against_the_steps_alone() -> None:
     fingerprint fixes earn their moves: fewer than 45 % move a user away, and on average they bring it
     closer (measured 35 %, -0.06 m)."""
     result, _ = replay_floor(
-        FLOOR.parents[1] / "site2" / "F2",
+        whole_floor("site2/F2"),
         ReplayOptions(mode="dynamicslam", warm_split=0.5),
         tracker_params(Settings()),
         load_calibration(None),
@@ -290,8 +293,7 @@ def test_evaluate_cli_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str])
     out = tmp_path / "x.json"
     assert main(["evaluate", "--msindoor", str(tmp_path), "--json", str(out)]) == 2
     assert "floor_info.json" in capsys.readouterr().out
-    scenario = FLOOR.parents[2].parent / "scenarios" / "paper-testbed.json"
-    assert main(["evaluate", "--scenario", str(scenario), "--warm-split", "0.5", "--json", str(out)]) == 2
+    assert main(["evaluate", "--scenario", str(TESTBED), "--warm-split", "0.5", "--json", str(out)]) == 2
     assert "--msindoor only" in capsys.readouterr().out
     assert not out.exists()
 

@@ -22,12 +22,12 @@ from server.simulation.crowd_client import device_keys, post_crowd, prepare_buil
 from server.simulation.phones import known_anchors, simulated_batches
 from slam_core.sim.simulation import Scenario, simulate
 from slam_core.tracking.tracker import BuildingTracker
-from tests.conftest import SHARED
+from tests.conftest import TESTBED
 from tests.server.conftest import migrate_with_operator
 
 
 def _small_testbed() -> Scenario:
-    raw = json.loads((SHARED / "scenarios" / "paper-testbed.json").read_text())
+    raw = json.loads(TESTBED.read_text())
     raw["users"]["count"] = 6
     raw["users"]["walk_length_m"] = 60.0
     return Scenario.from_dict(raw)

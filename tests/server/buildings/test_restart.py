@@ -23,13 +23,13 @@ from server.store.db import make_engine, make_session_factory
 from server.store.migrate import upgrade
 from server.store.models import BatchRow, BuildingRow, TrackerSnapshotRow
 from slam_core.sim.simulation import Scenario, simulate
-from tests.conftest import SHARED
+from tests.conftest import TESTBED
 
 SETTINGS = Settings(seed=5)
 
 
 def _crowd() -> tuple[list[Submission], list[KnownAnchor]]:
-    raw = json.loads((SHARED / "scenarios" / "paper-testbed.json").read_text())
+    raw = json.loads(TESTBED.read_text())
     raw["users"]["count"] = 5
     raw["users"]["walk_length_m"] = 50.0
     sim = simulate(Scenario.from_dict(raw), 2)

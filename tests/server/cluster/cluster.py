@@ -34,7 +34,7 @@ from server.simulation.crowd_client import device_keys, prepare_building
 from server.simulation.phones import simulated_batches
 from server.store.db import make_engine
 from slam_core.sim.simulation import Scenario, Simulation, simulate
-from tests.conftest import POSTGRES_ADMIN_URL, SHARED
+from tests.conftest import POSTGRES_ADMIN_URL, TESTBED
 
 LEASE_TTL_S = 3.0
 RECEIPT_TIMEOUT_S = 4.0
@@ -47,7 +47,7 @@ def _required(what: str) -> None:
 
 
 def small_crowd(users: int = 3, walk_length_m: float = 40.0, seed: int = 4) -> Simulation:
-    raw = json.loads((SHARED / "scenarios" / "paper-testbed.json").read_text())
+    raw = json.loads(TESTBED.read_text())
     raw["users"]["count"] = users
     raw["users"]["walk_length_m"] = walk_length_m
     return simulate(Scenario.from_dict(raw), seed)

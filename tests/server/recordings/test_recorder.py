@@ -16,14 +16,14 @@ from server.replay import replay_offline
 from server.settings import Settings
 from server.simulation.phones import simulated_batches
 from slam_core.sim.simulation import Scenario, simulate
-from tests.conftest import ROOT, SHARED
+from tests.conftest import ROOT, TESTBED
 from tests.server.conftest import Api, make_api
 
 GOLDEN = ROOT / "tests" / "golden"
 
 
 def small_crowd(users: int = 3, walk_m: float = 40.0) -> Scenario:
-    raw = json.loads((SHARED / "scenarios" / "paper-testbed.json").read_text())
+    raw = json.loads(TESTBED.read_text())
     raw["users"]["count"] = users
     raw["users"]["walk_length_m"] = walk_m
     return Scenario.from_dict(raw)

@@ -5,7 +5,6 @@ every seed are in ``docs/experiments.md``."""
 from __future__ import annotations
 
 import json
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -17,8 +16,8 @@ from server.simulation.evaluation import evaluate_scenario
 from slam_core.sim.encounters import calibrate
 from slam_core.sim.simulation import Scenario
 from slam_core.sim.sweeps import swept_scenario
+from tests.conftest import TESTBED
 
-TESTBED = Path(__file__).resolve().parents[4] / "shared" / "scenarios" / "paper-testbed.json"
 SEEDS = (0, 1, 2)
 # Seven full testbed runs through the tracker (~1 min on an idle 2-core machine; longer under load or with a
 # cold numba cache).

@@ -14,11 +14,11 @@ from server.simulation.evaluation import evaluate_scenario
 from server.simulation.liars import OFFSET_M, liar_devices, lying
 from server.simulation.phones import advertised_id, device_id, simulated_batches
 from slam_core.sim.simulation import Scenario, simulate
-from tests.conftest import SHARED
+from tests.conftest import TESTBED
 
 
 def _small() -> Scenario:
-    raw = json.loads((SHARED / "scenarios" / "paper-testbed.json").read_text())
+    raw = json.loads(TESTBED.read_text())
     raw["users"]["count"] = 6
     raw["users"]["walk_length_m"] = 60.0
     return Scenario.from_dict(raw)

@@ -8,9 +8,7 @@ import numpy as np
 import pytest
 
 from slam_core.sim.simulation import Scenario, count_walls, simulate
-from tests.conftest import SHARED
-
-TESTBED = SHARED / "scenarios" / "paper-testbed.json"
+from tests.conftest import TESTBED
 
 
 @pytest.fixture(scope="module")

@@ -9,9 +9,11 @@ import numpy as np
 import pytest
 
 from slam_core.sensing.pdr.online import ImuSamples, PdrParams, PdrState, PdrSteps, drop_stale, pdr_steps
-from tests.conftest import MSINDOOR_FLOOR
+from tests.conftest import SAMPLE_FLOOR
 
-WALKS = MSINDOOR_FLOOR / "path_data_files"
+pytestmark = pytest.mark.walks
+
+WALKS = SAMPLE_FLOOR / "path_data_files"
 PARAMS = PdrParams()
 TURNING = "5ddb9632c5b77e0006b179b1"  # 27 steps, turns through ~120 deg
 

@@ -16,7 +16,9 @@ from slam_core.sensing.pdr.heading import (
     vertical_rate,
 )
 from slam_core.sensing.pdr.online import ImuSamples, PdrParams, PdrState, pdr_steps
-from tests.conftest import MSINDOOR_FLOOR
+from tests.conftest import whole_floor
+
+pytestmark = pytest.mark.walks
 
 PARAMS = HeadingParams()
 
@@ -140,7 +142,7 @@ def test_referenced_gyroscope_beats_the_per_sample_rotation_vector_on_real_walks
     from server.datasets.msindoor import read_trace  # the reader lives at the I/O edge
 
     errors: dict[bool, list[float]] = {True: [], False: []}
-    names = sorted((MSINDOOR_FLOOR / "path_data_files").glob("*.txt"))[::3]
+    names = sorted((whole_floor("site1/F1") / "path_data_files").glob("*.txt"))[::3]
     for path in names:
         trace = read_trace(path)
         rv = trace.streams["rotation_vector"]

@@ -11,10 +11,12 @@ import pytest
 
 from slam_core.sensing.pdr.orientation import quaternion_from_rotation_vector
 from slam_core.sensing.pdr.steps import StepParams, detect_steps, new_state, vertical_acceleration
-from tests.conftest import MSINDOOR_FLOOR
+from tests.conftest import SAMPLE_FLOOR
+
+pytestmark = pytest.mark.walks
 
 PARAMS = StepParams()
-WALKS = MSINDOOR_FLOOR / "path_data_files"
+WALKS = SAMPLE_FLOOR / "path_data_files"
 
 
 def _gait(
