@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from server.cli.background_server import CLI, free_port
+from server.simulation.crowd_client import crowd_epoch_ms
 from server.store.db import make_engine
 from slam_core.sim.simulation import Scenario, simulate
 from tests.conftest import TESTBED, write_testbed
@@ -48,6 +49,20 @@ def test_crowds_one_after_another_walk_the_same_building(tmp_path: Path) -> None
         assert float(p90) < 7.0
     # measured 1.93 then 1.49 m (a second crowd in another world against the first world's maps: 2.37 m)
     assert float(rounds[1][3]) <= float(rounds[0][3]) + 0.25
+    # each crowd left when it had walked: nobody stays on the floor, no device key stays live, and the
+    # phones' clocks were the wall clock's, within the demo's lead of a minute
+    engine = make_engine(f"sqlite:///{tmp_path / 'data' / 'crowdslam.sqlite3'}")
+    try:
+        with engine.connect() as connection:
+            count = lambda sql: connection.exec_driver_sql(sql).scalar()  # noqa: E731
+            assert count("SELECT COUNT(*) FROM latest_positions") == 0
+            assert count("SELECT COUNT(*) FROM position_snapshots") == 0
+            assert count("SELECT COUNT(*) FROM api_keys WHERE scope = 'device'") == 2 * 8
+            assert count("SELECT COUNT(*) FROM api_keys WHERE scope = 'device' AND revoked_at IS NULL") == 0
+            newest_ms = count("SELECT MAX(t_last_ms) FROM batches")
+    finally:
+        engine.dispose()
+    assert abs(newest_ms - time.time() * 1000) < 15 * 60_000
 
 
 def test_a_world_seed_keeps_the_building_and_changes_the_walks() -> None:
@@ -137,3 +152,11 @@ def test_the_demo_stops_cleanly_on_sigint_and_sigterm_even_in_the_background(
     assert accepted > 0
     assert snapshots == 1
     assert logged == 0
+
+
+def test_a_crowds_clock_runs_at_most_a_minute_ahead_of_the_wall_clock() -> None:
+    now = 1_800_000_000_000
+    assert crowd_epoch_ms(now, 200.0, 1.0) == now  # in real time a crowd starts now and stays level
+    assert crowd_epoch_ms(now, 200.0, 5.0) == now - 100_000  # it gains 160 s, 60 s of which it may
+    assert crowd_epoch_ms(now, 200.0, 0.0) == now - 140_000  # flat out it gains all 200 s
+    assert crowd_epoch_ms(now, 50.0, 5.0) == now

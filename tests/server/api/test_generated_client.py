@@ -1,6 +1,6 @@
-"""A client nobody here wrote: ``openapi-python-client`` generates one from the live server's spec, and the
-newcomer's path runs through it unmodified: create a building, mint a device key, post the example batch,
-read the positions, revoke the key, and see the next post refused."""
+"""A client nobody here wrote: ``openapi-python-client`` (or ``openapi-typescript``) generates one from the
+live server's spec, and the newcomer's path runs through it unmodified: create a building, mint a device
+key, post the example batch, read the positions, revoke the key, and see the next post refused."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ import copy
 import importlib
 import json
 import os
+import shutil
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -125,3 +126,104 @@ def _newcomers_path(
     assert isinstance(refused.parsed, models.Problem), refused.content
     assert refused.parsed.status == 401
     assert json.loads(refused.content)["title"] == "Unauthorized"
+
+
+TYPESCRIPT_PACKAGES = ("openapi-typescript@7", "openapi-fetch@0.14", "typescript@5", "@types/node@20")
+TYPESCRIPT_CLIENT = """
+import { readFileSync } from "node:fs";
+import createClient from "openapi-fetch";
+import type { components, paths } from "./schema.js";
+
+type SensorBatch = components["schemas"]["SensorBatch"];
+const [base, operatorKey, batchFile] = process.argv.slice(2);
+const example: SensorBatch = JSON.parse(readFileSync(batchFile, "utf8"));
+const building_id = "typescript";
+
+function expect(what: string, ok: boolean, got: unknown): void {
+  if (!ok) throw new Error(`${what}: ${JSON.stringify(got)}`);
+}
+
+const operator = createClient<paths>({ baseUrl: base, headers: { Authorization: `Bearer ${operatorKey}` } });
+const created = await operator.POST("/v1/buildings", { body: { id: building_id, name: "TypeScript" } });
+expect("create_building", created.response.status === 201 && created.data?.id === building_id, created.error);
+
+const minted = await operator.POST("/v1/buildings/{building_id}/keys", {
+  params: { path: { building_id } },
+  body: { scope: "device", device_id: "phone-1" },
+});
+expect("create_key", minted.data?.scope === "device", minted.error);
+const deviceKey: string = minted.data!.key;
+
+const device = createClient<paths>({ baseUrl: base, headers: { Authorization: `Bearer ${deviceKey}` } });
+const batch: SensorBatch = { ...example, building_id };
+const receipt = await device.POST("/v1/buildings/{building_id}/batches", {
+  params: { path: { building_id } },
+  body: batch,
+});
+expect("post_batch", receipt.data?.status === "applied" && receipt.data.tracking, receipt.error);
+
+const positions = await operator.GET("/v1/buildings/{building_id}/positions", {
+  params: { path: { building_id } },
+});
+const users = (positions.data ?? []).map((estimate) => estimate.user_id);
+expect("list_positions", users.length === 1 && users[0] === example.user_id, positions.data);
+
+const revoked = await operator.DELETE("/v1/buildings/{building_id}/keys/{prefix}", {
+  params: { path: { building_id, prefix: minted.data!.prefix } },
+});
+expect("revoke_key", revoked.response.status === 204, revoked.error);
+
+const refused = await device.POST("/v1/buildings/{building_id}/batches", {
+  params: { path: { building_id } },
+  body: { ...batch, batch_id: "phone-1-000043", seq: batch.seq + 1 },
+});
+const problem: components["schemas"]["Problem"] | undefined = refused.error;
+expect("refused", refused.response.status === 401 && problem?.status === 401, refused.error);
+console.log(JSON.stringify({ applied: receipt.data!.status, refused: problem!.title }));
+"""
+
+
+def test_the_newcomers_path_through_a_generated_typescript_client(served: Served, tmp_path: Path) -> None:
+    """The same path from TypeScript, as a dashboard's developer would: types from ``openapi-typescript``,
+    calls through ``openapi-fetch``, type-checked by ``tsc --strict`` and run by node."""
+    npm, node = shutil.which("npm"), shutil.which("node")
+    if npm is None or node is None:
+        if os.environ.get("CI", "").lower() == "true":
+            pytest.fail("node and npm are required under CI=true")
+        pytest.skip("needs node and npm")
+    (tmp_path / "package.json").write_text(
+        '{"name": "crowdslam-ts-client", "private": true, "type": "module"}'
+    )
+    (tmp_path / "tsconfig.json").write_text(
+        json.dumps(
+            {
+                "compilerOptions": {
+                    "strict": True,
+                    "target": "es2022",
+                    "module": "nodenext",
+                    "moduleResolution": "nodenext",
+                    "outDir": "out",
+                    "skipLibCheck": True,
+                },
+                "files": ["client.ts"],
+            }
+        )
+    )
+
+    def run(*argv: str) -> str:
+        done = subprocess.run(argv, cwd=tmp_path, capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, f"{' '.join(argv)}:\n{done.stdout}\n{done.stderr}"
+        return done.stdout
+
+    run(npm, "install", "--no-audit", "--no-fund", "--silent", *TYPESCRIPT_PACKAGES)
+    run(
+        str(tmp_path / "node_modules/.bin/openapi-typescript"),
+        f"{served.base}/openapi.json",
+        "-o",
+        "schema.d.ts",
+    )
+    (tmp_path / "client.ts").write_text(TYPESCRIPT_CLIENT)
+    (tmp_path / "batch.json").write_text(json.dumps(EXAMPLES["batch"]))
+    run(str(tmp_path / "node_modules/.bin/tsc"), "-p", ".")
+    answer = json.loads(run(node, "out/client.js", served.base, served.keys["operator"], "batch.json"))
+    assert answer == {"applied": "applied", "refused": "Unauthorized"}
