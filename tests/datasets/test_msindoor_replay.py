@@ -289,9 +289,21 @@ def test_evaluate_cli_compares_the_modes_on_one_figure(small_floor: Path, tmp_pa
     assert out.with_suffix(".png").stat().st_size > 1000
 
 
+def _broken_floor(tmp_path: Path) -> Path:
+    """A folder laid out as a floor whose floor_info.json says nothing of its size."""
+    floor = tmp_path / "F1"
+    (floor / "path_data_files").mkdir(parents=True)
+    (floor / "floor_info.json").write_text("{}")
+    return floor
+
+
 def test_evaluate_cli_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "x.json"
-    assert main(["evaluate", "--msindoor", str(tmp_path), "--json", str(out)]) == 2
+    with pytest.raises(SystemExit) as refused:
+        main(["evaluate", "--msindoor", str(tmp_path), "--json", str(out)])
+    assert refused.value.code == 2
+    assert "is not a floor of Indoor Location 2.0 walks" in capsys.readouterr().err
+    assert main(["evaluate", "--msindoor", str(_broken_floor(tmp_path)), "--json", str(out)]) == 2
     assert "floor_info.json" in capsys.readouterr().out
     assert main(["evaluate", "--scenario", str(TESTBED), "--warm-split", "0.5", "--json", str(out)]) == 2
     assert "--msindoor only" in capsys.readouterr().out
@@ -321,7 +333,10 @@ def test_calibrate_cli_writes_a_loadable_calibration(small_floor: Path, tmp_path
 
 
 def test_calibrate_cli_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    assert main(["calibrate", "--msindoor", str(tmp_path), "--out", str(tmp_path / "c.json")]) == 2
+    assert (
+        main(["calibrate", "--msindoor", str(_broken_floor(tmp_path)), "--out", str(tmp_path / "c.json")])
+        == 2
+    )
     assert "floor_info.json" in capsys.readouterr().out
     assert not (tmp_path / "c.json").exists()
 
@@ -352,10 +367,11 @@ def test_signalslam_cli_on_a_floor(small_floor: Path, tmp_path: Path) -> None:
 
 def test_signalslam_cli_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "ss.json"
-    assert main(["signalslam", "--msindoor", str(tmp_path), "--json", str(out)]) == 2
+    floor = str(_broken_floor(tmp_path))
+    assert main(["signalslam", "--msindoor", floor, "--json", str(out)]) == 2
     assert "floor_info.json" in capsys.readouterr().out
-    assert main(["signalslam", "--msindoor", str(tmp_path), "--json", str(out), "--folds", "1"]) == 2
-    assert main(["signalslam", "--msindoor", str(tmp_path), "--json", str(out), "--modalities", "gsm"]) == 2
+    assert main(["signalslam", "--msindoor", floor, "--json", str(out), "--folds", "1"]) == 2
+    assert main(["signalslam", "--msindoor", floor, "--json", str(out), "--modalities", "gsm"]) == 2
     assert "unknown modalities" in capsys.readouterr().out
     assert not out.exists()
 
