@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from slam_core.encounters.models import Calibration
 from slam_core.tracking.tracker import BuildingTracker, TrackerParams
 
-FORMAT_VERSION = 12
+FORMAT_VERSION = 13
 """Bump when BuildingTracker's attributes change, or a pickled class moves to another module: old snapshots
 are then refused, not misread."""
 
@@ -125,6 +125,6 @@ def decode(
         raise SnapshotMismatchError("snapshot does not hold a building's tracking state")
     if repr(state.tracker.params) != repr(params):
         raise SnapshotMismatchError("snapshot was taken with other tracker parameters")
-    if state.tracker.detector.calibration.to_dict() != calibration.to_dict():
+    if state.tracker.encounters.detector.calibration.to_dict() != calibration.to_dict():
         raise SnapshotMismatchError("snapshot was taken with another encounter calibration")
     return state

@@ -157,13 +157,6 @@ class CrowdFingerprints:
     def __len__(self) -> int:
         return self._size
 
-    def __setstate__(self, state: dict[str, object]) -> None:
-        self.__dict__.update(state)
-        if "_posted" not in state:  # pickled before the stale bound (tracker snapshots of format 7)
-            self._posted = int(self._length[: len(self._columns)].sum())
-        if "_t" not in state:  # pickled before the cells' refresh (format 8): any full cell may take a scan
-            self._t = np.full(self._xy.shape[0], np.iinfo(np.int64).min // 2, dtype=np.int64)
-
     @property
     def postings(self) -> int:
         """Pool entries in use, live or stale (for tests and memory accounting)."""

@@ -23,11 +23,14 @@ A wrong or far encounter that is chosen anyway is caught by the filter's Mahalan
 
 from __future__ import annotations
 
-from collections.abc import Hashable, Sequence
+from collections.abc import Callable, Hashable, Sequence
 from dataclasses import dataclass
-from typing import TypeVar
+from typing import Protocol, TypeVar
 
 import numpy as np
+
+from slam_core.encounters.detection import DetectionArrays, EncounterDetector
+from slam_core.filter.dense_ids import unique_ints, unique_ints_inverse
 
 
 @dataclass(frozen=True)
@@ -142,3 +145,92 @@ def pair_keys(a: np.ndarray, b: np.ndarray, model: np.ndarray) -> np.ndarray:
     lo, hi = np.minimum(a, b), np.maximum(a, b)
     keys: np.ndarray = (((lo << _ID_BITS) | hi) << 2) | model
     return keys
+
+
+class ReadingCarrier(Protocol):
+    """How a reading is placed in time on its users (the tracker's side of ``choose_readings``): each slot's
+    last event and a bound on its walk since a time, its guessed walk ahead of its last report, and its own
+    steps since a time for the users named by their detector ids."""
+
+    @property
+    def last_t_ms(self) -> np.ndarray: ...
+    def reach(self, slots: np.ndarray, t_ms: np.ndarray) -> np.ndarray: ...
+    def extrapolated(
+        self, slots: np.ndarray, t_ms: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
+    def carried_since(
+        self, user_ids: np.ndarray, which: np.ndarray, t_ms: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
+    def carry_variance(self, walked_m: np.ndarray) -> np.ndarray: ...
+
+
+def choose_readings(
+    means_of: Callable[[np.ndarray], np.ndarray],
+    detector: EncounterDetector,
+    selector: EncounterSelector,
+    found: DetectionArrays,
+    slot_a: np.ndarray,
+    slot_b: np.ndarray,
+    carrier: ReadingCarrier,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The selector's choice among detections of tracked users (indices into ``found``), from the filters'
+    current estimates placed at the detections' times, with each chosen one's offset and carry variance for
+    ``DynamicSlam.observe_encounters``. ``means_of(slots)``: the filters' weighted means of these slots.
+
+    Beyond the paper, which applies an encounter as it happens: a batch may span up to a minute and its
+    encounters are applied after its steps, so each is carried from its time to now through both users'
+    dead reckoning (``carrier.carried_since``); one older than either user's trail is left out. A peer whose
+    phone has not yet reported up to the reading (its batch comes later: one reading in two on the simulated
+    crowd, ~0.5 s behind) is guessed there at its recent velocity, with half the guess as its sigma
+    (``carrier.extrapolated``; not at all after 5 s of silence). A busy call has thousands of readings: they
+    are first narrowed to those the selector would consider (each pair's latest) and could choose (within
+    its range of each other once either user's walk since, or its guessed walk beyond its last report, is
+    allowed for), and only the users of those who walked after them are carried back step by step."""
+    n = len(found)
+    slots, index = unique_ints_inverse(np.concatenate([slot_a, slot_b]))
+    means = means_of(slots)
+    delta_now = means[index[:n]] - means[index[n:]]
+    keys = pair_keys(found.user_a, found.user_b, found.model)
+    latest = latest_per_pair(found.t_ms, keys)
+    t = found.t_ms[latest]
+    sa, sb = slot_a[latest], slot_b[latest]
+    ahead_a, guess_a, heard_a = carrier.extrapolated(sa, t)
+    ahead_b, guess_b, heard_b = carrier.extrapolated(sb, t)
+    bound = np.hypot(delta_now[latest, 0], delta_now[latest, 1])
+    bound -= carrier.reach(sa, t) + np.hypot(ahead_a[:, 0], ahead_a[:, 1])
+    bound -= carrier.reach(sb, t) + np.hypot(ahead_b[:, 0], ahead_b[:, 1])
+    # a reading can be chosen only where its model's range sigma passes the selector's gate: for WiFi that is
+    # ~2.3 m, well inside the selection range
+    limit = np.full(int(found.model.max()) + 1, selector.params.select_range_m)
+    for model in unique_ints(found.model[latest]):
+        limit[model] = detector.range_model(int(model)).sigma_reach(
+            selector.params.max_sigma_m, selector.params.select_range_m
+        )
+    near = np.flatnonzero((bound <= limit[found.model[latest]]) & heard_a & heard_b)
+    c = near.size
+    # only users who reported steps after a reading are carried back
+    t2 = np.concatenate([t[near], t[near]])
+    rows = np.flatnonzero(carrier.last_t_ms[np.concatenate([sa[near], sb[near]])] > t2)
+    ids, who = unique_ints_inverse(
+        np.concatenate([found.user_a[latest[near]], found.user_b[latest[near]]])[rows]
+    )
+    shift, walked, placeable = np.zeros((2 * c, 2)), np.zeros(2 * c), np.ones(2 * c, dtype=bool)
+    if rows.size:
+        shift[rows], walked[rows], placeable[rows] = carrier.carried_since(ids, who, t2[rows])
+    ok = np.flatnonzero(placeable[:c] & placeable[c:])
+    candidates = latest[near[ok]]
+    # a user's position then is where it is now minus its walk since, or plus its guessed walk beyond
+    offset = (shift[:c] - shift[c:])[ok] - (ahead_a - ahead_b)[near[ok]]
+    carry_var = (carrier.carry_variance(walked[:c]) + carrier.carry_variance(walked[c:]))[ok]
+    carry_var += (guess_a + guess_b)[near[ok]]
+    delta = delta_now[candidates] - offset
+    predicted = np.hypot(delta[:, 0], delta[:, 1])
+    sigma = np.empty(candidates.size)
+    models = found.model[candidates]
+    for model in unique_ints(models):
+        at = models == model
+        sigma[at] = np.sqrt(detector.range_model(int(model)).variance_at_distance(predicted[at]))
+    chosen = selector.choose(found.t_ms[candidates], keys[candidates], predicted, sigma)
+    if len(selector) > 100_000:
+        selector.forget_before(int(found.t_ms.max()))
+    return candidates[chosen], offset[chosen], carry_var[chosen]

@@ -102,6 +102,9 @@ class DynamicSlam:
         self._admitted = 0
         self._type_posterior = params.anchors.type_posterior
         self._n_types = self._type_posterior.shape[0]
+        self._mean: np.ndarray | None = None
+        self._mean_known: np.ndarray | None = None
+        """``means``' kept rows (capacity x 2) and which slots hold a current one; None until first asked."""
 
     def __getstate__(self) -> dict[str, object]:
         """Pickled without its floor plan: the plan lives in the building's store and is set again on load."""
@@ -222,6 +225,7 @@ class DynamicSlam:
                 "observe_places needs finite centres, sigma > 0 and outlier_probability in [0, 1)"
             )
         s = self.state
+        self._moved(np.array([slot]))
         p = weights / weights.sum()
         n_new = int(inject * self.params.n_particles)
         if n_new:
@@ -233,15 +237,34 @@ class DynamicSlam:
             )
             s.x[slot, worst], s.y[slot, worst] = drawn[:, 0], drawn[:, 1]
             s.logw[slot, worst] = np.median(s.logw[slot])
-        xy = np.column_stack([s.x[slot], s.y[slot]])
-        d2 = ((xy[:, None, :] - centres[None, :, :]) ** 2).sum(axis=2)
-        density = (np.exp(-0.5 * d2 / sigma**2) / (2 * math.pi * sigma**2)) @ p
-        likelihood = (1 - outlier_probability) * density + outlier_probability / (
-            math.pi * outlier_radius_m**2
-        )
-        logw = s.logw[slot] + np.log(likelihood)
-        s.logw[slot] = logw - logsumexp(logw)
+        self._weigh_by_places(slot, centres, np.log(p), sigma, outlier_probability, outlier_radius_m)
         self._resample(np.array([slot]))
+
+    def _weigh_by_places(
+        self,
+        slot: int,
+        centres: np.ndarray,
+        log_p: np.ndarray,
+        sigma: float,
+        outlier_probability: float,
+        outlier_radius_m: float,
+    ) -> None:
+        """Multiply one user's particle weights by the places' likelihood, (1 - e) sum_j p_j N(centre_j;
+        particle, sigma^2 I) + e / (pi r^2), in the log domain (a particle far from every centre keeps the
+        outlier term, never an underflow), and normalise them. ``observe_places`` and
+        ``observe_position_robust`` (one centre) weigh through it."""
+        s = self.state
+        var = sigma**2
+        log_keep = math.log1p(-outlier_probability) - math.log(2 * math.pi * var)
+        log_out = (
+            math.log(outlier_probability / (math.pi * outlier_radius_m**2))
+            if outlier_probability
+            else -math.inf
+        )
+        d2 = (s.x[slot][:, None] - centres[:, 0]) ** 2 + (s.y[slot][:, None] - centres[:, 1]) ** 2
+        near = np.logaddexp.reduce(log_keep + log_p - 0.5 * d2 / var, axis=1)
+        logw = s.logw[slot] + np.logaddexp(near, log_out)
+        s.logw[slot] = logw - np.logaddexp.reduce(logw)
 
     # Particle maps sized by use. The maps hold up to ``anchors.capacity`` anchors a particle (48), but a
     # state allocated for all of them costs ~0.2 MB a user however few anchors the building has, and every
@@ -415,10 +438,11 @@ class DynamicSlam:
         outlier_probability: float,
         outlier_radius_m: float,
     ) -> None:
-        """A doubtful position fix per user (a WiFi fingerprint's position): each particle is weighted by
-        (1 - e) N(fix; particle, sigma^2 I) + e / (pi r^2), so a wrong fix far from the cloud changes the
-        weights almost uniformly instead of dragging the user (the outlier term of the human-anchor
-        likelihood, in two dimensions). Never re-centres. Resampled by effective sample size."""
+        """A doubtful position fix per user (a WiFi fingerprint's position): ``observe_places`` with one
+        centre, each particle weighted by (1 - e) N(fix; particle, sigma^2 I) + e / (pi r^2), so that a wrong
+        fix far from the cloud changes the weights almost uniformly instead of dragging the user (the
+        outlier term of the human-anchor likelihood, in two dimensions). Never re-centres. Resampled by
+        effective sample size, all users in one call."""
         users = np.ascontiguousarray(users, dtype=np.int64)
         xy = np.ascontiguousarray(xy, dtype=np.float64).reshape(-1, 2)
         self._check_users(users)
@@ -426,19 +450,10 @@ class DynamicSlam:
             raise ValueError("one finite fix (x, y) per user")
         if not (sigma > 0 and outlier_radius_m > 0 and 0.0 <= outlier_probability < 1.0):
             raise ValueError("sigma and outlier_radius_m must be positive, outlier_probability in [0, 1)")
-        s = self.state
         self._moved(users)
-        var = sigma**2
-        log_keep = math.log1p(-outlier_probability) - math.log(2 * math.pi * var)
-        log_out = (
-            math.log(outlier_probability / (math.pi * outlier_radius_m**2))
-            if outlier_probability
-            else -math.inf
-        )
+        one = np.zeros(1)  # log of a single centre's share
         for i, u in enumerate(users):
-            d2 = (s.x[u] - xy[i, 0]) ** 2 + (s.y[u] - xy[i, 1]) ** 2
-            logw = s.logw[u] + np.logaddexp(log_keep - 0.5 * d2 / var, log_out)
-            s.logw[u] = logw - np.logaddexp.reduce(logw)
+            self._weigh_by_places(int(u), xy[i : i + 1], one, sigma, outlier_probability, outlier_radius_m)
         self._resample(users)
 
     def observe_heading_axis(self, users: np.ndarray, stretch_heading: np.ndarray) -> None:
@@ -689,7 +704,7 @@ class DynamicSlam:
         self._check_users(users, allow_repeats=True)
         s = self.state
         kept, known = self._mean, self._mean_known
-        if kept is None or known is None or known.size != s.capacity:  # new, grown, or an old snapshot
+        if kept is None or known is None or known.size != s.capacity:  # new, or the state grew
             kept, known = np.empty((s.capacity, 2)), np.zeros(s.capacity, dtype=bool)
             self._mean, self._mean_known = kept, known
         stale = unique_ints(users[~known[users]])
@@ -702,11 +717,6 @@ class DynamicSlam:
             known[stale] = True
         result: np.ndarray = kept[users]
         return result
-
-    _mean: np.ndarray | None = None
-    _mean_known: np.ndarray | None = None
-    """``means``' kept rows (capacity x 2) and which slots hold a current one; None until first asked (and in
-    engines pickled before they existed)."""
 
     def _moved(self, users: np.ndarray) -> None:
         """These users' particles (positions or weights) are about to change: their kept means are stale.

@@ -24,8 +24,9 @@ by the server) and advances everything they imply, in this order:
    here: its estimate comes with its own next batch (within a sighting period), so that every batch yields
    one estimate, however many encounters it makes.
 
-The signature, fingerprint and encounter stages live in ``slam_core.tracking.radio``; the per-user dead
-reckoning in ``slam_core.tracking.trails``, the rounds of events in ``slam_core.tracking.rounds``.
+The signature, fingerprint and encounter stages are objects the tracker owns
+(``slam_core.tracking.signature_stage``, ``fingerprint_stage``, ``encounter_stage``); the per-user dead
+reckoning lives in ``slam_core.tracking.trails``, the rounds of events in ``slam_core.tracking.rounds``.
 
 Pure numerics: no I/O, no clock. Times are the phones' epoch milliseconds.
 """
@@ -38,13 +39,10 @@ from dataclasses import replace
 
 import numpy as np
 
-import slam_core.tracking.radio as radio
 from slam_core.crowd.anchor_map import CrowdMapBuilder
-from slam_core.crowd.fingerprints import NOBODY, SURVEY_OWNER, CrowdFingerprints
+from slam_core.crowd.fingerprints import NOBODY
 from slam_core.crowd.graph import CrowdGraph, GraphParams
-from slam_core.encounters.detection import EncounterDetector
 from slam_core.encounters.models import Calibration
-from slam_core.encounters.selection import EncounterSelector
 from slam_core.filter.dynamic_slam import DynamicSlam
 from slam_core.filter.floor_plan import FloorPlan
 from slam_core.filter.kernels.linalg2 import largest_eigenvalue2
@@ -56,9 +54,11 @@ from slam_core.tracking.batches import (
     UserBatch,
     UserReport,
 )
+from slam_core.tracking.encounter_stage import EncounterStage
+from slam_core.tracking.fingerprint_stage import FingerprintStage
 from slam_core.tracking.params import CROWD_SOLVERS, TrackerParams
-from slam_core.tracking.placement import SlotColumns
 from slam_core.tracking.rounds import Round, lay_steps, round_at
+from slam_core.tracking.signature_stage import SignatureStage
 from slam_core.tracking.stretches import StraightStretches
 from slam_core.tracking.trails import UserTrack
 
@@ -90,9 +90,9 @@ class BuildingTracker:
             fuse=params.crowd_solver == "fusion",
         )
         self.graph = CrowdGraph(GraphParams(detection_sigma_m=fp.anchors.detection_sigma_m))
-        self.detector = EncounterDetector(params.detection, calibration)
-        self.selector = EncounterSelector(params.selection)
-        self.fingerprints = CrowdFingerprints(params.fingerprints)
+        self.signatures = SignatureStage(params, self.crowd, self.graph)
+        self.fingerprints = FingerprintStage(params.fingerprints, params.detection.stale_ap_ms)
+        self.encounters = EncounterStage(params, calibration)
         self._users: dict[str, UserTrack] = {}
         self.front_end = FrontEnd(params.pdr, params.detectors)
         self._by_ble: dict[str, str] = {}
@@ -100,54 +100,23 @@ class BuildingTracker:
         self._graph_users: list[int] = []
         self._started = 0
         self.n_types = fp.anchors.type_posterior.shape[0]
-        self._columns = SlotColumns()
-
-    _radio_map_id: str | None = None  # snapshots from before radio maps lack it
+        plan = fp.floor_plan
+        self._stretches = StraightStretches(plan.stretch_m, plan.stretch_turn_rad)
 
     @property
     def radio_map_id(self) -> str | None:
         """The signal-map build whose radio map the fingerprints hold (None: none loaded)."""
-        return self._radio_map_id
+        return self.fingerprints.radio_map_id
 
     def load_radio_map(
         self, map_id: str, xy: np.ndarray, bssids: list[list[str]], rss: list[np.ndarray], t_ms: np.ndarray
     ) -> int:
-        """Add the scans of a signal-map build (SignalSLAM's positions) to the crowd's fingerprint map, owned
-        by no user; returns how many joined (the map's per-cell bound applies). A map already loaded (by
-        ``map_id``, which snapshots keep) is not loaded again."""
-        if map_id == self._radio_map_id:
-            return 0
-        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-        if not (len(bssids) == len(rss) == xy.shape[0] == len(t_ms)) or not np.all(np.isfinite(xy)):
-            raise ValueError("radio map: one finite position, BSSID list, RSS array and time per scan")
-        added = sum(
-            self.fingerprints.add(
-                SURVEY_OWNER, xy[i], bssids[i], np.asarray(rss[i], dtype=np.float64), int(t_ms[i])
-            )
-            for i in range(xy.shape[0])
-        )
-        self._radio_map_id = map_id
-        return added
+        """``FingerprintStage.load_radio_map``: a signal-map build's scans join the crowd's fingerprints."""
+        return self.fingerprints.load_radio_map(map_id, xy, bssids, rss, t_ms)
 
     def set_floor_plan(self, plan: FloorPlan | None) -> None:
         """The floor plan that weighs every user's steps from now on (beyond the papers); None: none."""
         self.engine.floor_plan = plan
-
-    # built on first use (snapshots from before it lack it)
-    _detector_slots: radio.DetectorSlots | None = None
-
-    def _slot_table(self) -> radio.DetectorSlots:
-        if self._detector_slots is None:
-            self._detector_slots = radio.DetectorSlots()
-        return self._detector_slots
-
-    _stretches: StraightStretches | None = None  # built on first use (snapshots from before it lack it)
-
-    def _stretch_table(self) -> StraightStretches:
-        if self._stretches is None:
-            plan = self.params.filter.floor_plan
-            self._stretches = StraightStretches(plan.stretch_m, plan.stretch_turn_rad)
-        return self._stretches
 
     # ------------------------------------------------------------------ users and anchors
     @property
@@ -181,11 +150,10 @@ class BuildingTracker:
         for name in users:
             u = self._users.pop(name)
             self.front_end.forget(name)
-            if self._stretches is not None:
-                self._stretches.forget(name)
+            self._stretches.forget(name)
             if u.slot >= 0:
                 self.engine.remove_user(u.slot)
-                self._slot_table().set(self.detector, name, -1)
+                self.encounters.remove(name)
         gone = set(users)
         self._by_ble = {k: v for k, v in self._by_ble.items() if v not in gone}
 
@@ -281,27 +249,18 @@ class BuildingTracker:
             if b.ble_id is not None:
                 self._by_ble[b.ble_id] = b.user
         callers = [self._users[b.user] for b in batches]
-        self._columns.begin(callers)
+        self.encounters.begin(callers)
         rounds = self._plan(batches, reports)
         newest = max([self._users[b.user].last_t_ms for b in batches], default=-1)
         # in a busy call the scans are compared on a thread while the rounds and the fingerprint fixes
         # run: the detector depends on nothing they change
-        scans = radio.start_scan_detection(self.detector, batches)
+        scans = self.encounters.start(batches)
         try:
             changed = self._observe(batches, rounds, reports, newest)
             self._observe_places(batches, reports)
-            self._columns.update(callers, [_heard_until(b) for b in batches])
-            encounters, detections = radio.encounters(
-                self.engine,
-                self.detector,
-                self.selector,
-                self.params,
-                batches,
-                self._users,
-                self._by_ble,
-                scans,
-                self._slot_table(),
-                self._columns,
+            self.encounters.heard(callers, [_heard_until(b) for b in batches])
+            encounters, detections = self.encounters.collect(
+                self.engine, batches, self._users, self._by_ble, scans
             )
         finally:
             scans.join()
@@ -333,10 +292,9 @@ class BuildingTracker:
         u.last_t_ms = -1
         u.trail = array("d")
         self.front_end.forget(user)
-        if self._stretches is not None:
-            self._stretches.forget(user)
+        self._stretches.forget(user)
         if u.slot >= 0:
-            self._columns.reset(u.slot)
+            self.encounters.restart(u.slot)
 
     def _observe(
         self, batches: list[UserBatch], rounds: list[Round], reports: dict[str, UserReport], newest: int
@@ -365,9 +323,7 @@ class BuildingTracker:
             self._offer_crowd_map()
         if self.params.fingerprints.enabled:
             names = [b.user for b in batches if self.is_tracking(b.user) and b.scan_t.size]
-            radio.fingerprint_fixes(
-                self.engine, self.fingerprints, self.params, batches, self._users, self._rows(names), reports
-            )
+            self.fingerprints.fix(self.engine, batches, self._users, self._rows(names), reports)
         return changed
 
     def _dead_reckon(self, b: UserBatch, report: UserReport) -> UserBatch:
@@ -375,11 +331,11 @@ class BuildingTracker:
         and batches without IMU pass through)."""
         if b.imu is None or b.step_t.size:
             return b
-        radio = RadioArrays(
+        heard = RadioArrays(
             b.scan_t, b.scan_offsets, b.scan_bssid, b.scan_rss, b.scan_last_seen,
             b.beacon_t, b.beacon_mac, b.beacon_rss,
         )  # fmt: skip
-        out = self.front_end.process(b.user, b.imu, radio)
+        out = self.front_end.process(b.user, b.imu, heard)
         report.imu_samples_dropped = out.imu_samples_dropped
         report.steps_detected = out.steps.t_ms.size
         report.anchors_detected = out.anchors.t_ms.size
@@ -523,7 +479,7 @@ class BuildingTracker:
         order = np.argsort(b.scan_t, kind="stable")
         for c in order[::-1] if latest else order:
             t, bssids, rss = b.fresh_scan(int(c), stale)
-            found = self.fingerprints.candidates(NOBODY, bssids, rss, spread)
+            found = self.fingerprints.map.candidates(NOBODY, bssids, rss, spread)
             if found is not None:
                 return t, found[0], found[1]
         return None
@@ -549,8 +505,7 @@ class BuildingTracker:
     def _admit(self, user: str, slot: int, xy: np.ndarray) -> None:
         u = self._users[user]
         u.slot = slot
-        self._columns.reset(u.slot)
-        self._slot_table().set(self.detector, user, u.slot)
+        self.encounters.admit(user, u.slot)
         u.number = self._started
         u.origin = np.asarray(xy, dtype=float).copy()
         self._started += 1
@@ -591,9 +546,7 @@ class BuildingTracker:
                 self._users[name].pin()
             self._add_to_graph(names, ids, changed)
         if signed:
-            radio.observe_signatures(
-                self.engine, self.crowd, self.graph, self.params, self._users, rnd, signed, reports, changed
-            )
+            changed.update(self.signatures.observe(self.engine, self._users, rnd, signed, reports))
         if rnd.fix_users:
             slots = np.array([self._users[n].slot for n in rnd.fix_users], dtype=np.int64)
             recentred = self.engine.observe_position(slots, np.array(rnd.fix_xy), np.array(rnd.fix_sigma))
@@ -605,7 +558,7 @@ class BuildingTracker:
         """The straight stretches this round's steps completed, each weighed against the floor plan's grid
         (``DynamicSlam.observe_heading_axis``): a user's k-th stretch of the round in the k-th engine call,
         since a call takes each user once."""
-        table = self._stretch_table()
+        table = self._stretches
         done = [
             table.add(name, np.asarray(ls), np.asarray(hs))
             for name, ls, hs in zip(rnd.users, rnd.step_len, rnd.step_head, strict=True)

@@ -1,5 +1,5 @@
 """Each tracked user's dead-reckoned trail: the path its steps laid since it started, kept ``TRAIL_MS``
-back, for placing readings in time (``slam_core.tracking.placement``)."""
+back, for placing readings in time (``slam_core.tracking.carry``)."""
 
 from __future__ import annotations
 
@@ -53,9 +53,8 @@ class UserTrack:
     every full collection and ~75 ms of pickling in the building's thread)."""
 
     # A user travels in a snapshot as one flat tuple, its fields in declaration order and its 2-vectors as
-    # plain floats: thousands of tiny arrays, or of dicts naming every field, pickle slowly one by one (a
-    # dict per user had been ~9 ms of a 2,000-user snapshot, pickled in the building's thread).
-    _VECTORS = ("displacement", "origin", "gyro_displacement", "since_gyro", "since_laid")
+    # plain floats: thousands of tiny arrays, or of dicts naming every field, pickle slowly one by one, in
+    # the building's thread.
 
     def __getstate__(self) -> tuple[object, ...]:
         d, o, g = self.displacement, self.origin, self.gyro_displacement
@@ -66,14 +65,7 @@ class UserTrack:
             float(sg[0]), float(sg[1]), float(sl[0]), float(sl[1]), self.placed,
         )  # fmt: skip
 
-    def __setstate__(self, state: tuple[object, ...] | dict[str, object]) -> None:
-        if isinstance(state, dict):  # written before the flat tuple: field names, 2-vectors as tuples
-            self.__dict__.update(state)
-            for name in self._VECTORS:
-                self.__dict__[name] = np.array(state[name], dtype=np.float64)
-            return
-        if len(state) == 17:  # written before cold starts: every started user had a fix
-            state = (*state, True)
+    def __setstate__(self, state: tuple[object, ...]) -> None:
         (
             self.number, self.slot, self.last_t_ms, self.heading, self.walked, self.heading_offset,
             self.trail, dx, dy, ox, oy, gx, gy, sgx, sgy, slx, sly, self.placed,

@@ -9,7 +9,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-import slam_core.tracking.radio as radio
+import slam_core.tracking.encounter_stage as encounter_stage
 from slam_core.encounters.models import Calibration, RangeModel
 from slam_core.filter.params import FilterParams
 from slam_core.tracking.tracker import BuildingTracker, TrackerOutcome, TrackerParams, UserBatch
@@ -157,7 +157,7 @@ def _busy_building(
     background_scans: int, monkeypatch: pytest.MonkeyPatch, scan_lag_ms: int = 0, calls_per_second: int = 1
 ) -> list[object]:
     """24 phones posting a second each, in ``calls_per_second`` calls (the later ones' peers lag)."""
-    monkeypatch.setattr(radio, "BACKGROUND_SCANS", background_scans)
+    monkeypatch.setattr(encounter_stage, "BACKGROUND_SCANS", background_scans)
     tracker = BuildingTracker(TrackerParams(), CAL, seed=3)
     tracker.apply([_fix(f"u{k}", (2.0 * (k % 3), 1.5 * (k // 3)), T0) for k in range(24)])
     rng = np.random.default_rng(7)
@@ -187,14 +187,15 @@ def test_scans_compared_on_a_thread_change_nothing(monkeypatch: pytest.MonkeyPat
 
 def _looked_up(tracker: BuildingTracker) -> list[int]:
     """Each detector user id's slot, looked up afresh (what ``DetectorSlots`` keeps)."""
-    tracks = [tracker._users.get(tracker.detector.user_name(i)) for i in range(tracker.detector.n_user_ids)]
+    detector = tracker.encounters.detector
+    tracks = [tracker._users.get(detector.user_name(i)) for i in range(detector.n_user_ids)]
     return [u.slot if u is not None and u.slot >= 0 else -1 for u in tracks]
 
 
 def test_detector_slots_follow_starts_removals_and_returns() -> None:
     """The slots kept for the detector's user ids between calls equal a fresh lookup after every change:
     users heard before their fix, removed (their slot freed and reused), back again, and a tracker restored
-    from a pickle, including one written before the table existed."""
+    from a pickle."""
     import pickle
 
     tracker = _tracker()
@@ -202,10 +203,9 @@ def test_detector_slots_follow_starts_removals_and_returns() -> None:
 
     def check() -> None:
         nonlocal everyone
-        everyone = np.arange(tracker.detector.n_user_ids)
-        assert tracker._slot_table().of(tracker.detector, tracker._users, everyone).tolist() == _looked_up(
-            tracker
-        )
+        stage = tracker.encounters
+        everyone = np.arange(stage.detector.n_user_ids)
+        assert stage.slots.of(stage.detector, tracker._users, everyone).tolist() == _looked_up(tracker)
 
     tracker.apply([_sighting("a", "b", T0 + 1_000, 3.0), _sighting("d", "a", T0 + 1_000, 3.0)])
     check()  # 'd' is heard and named before it has a slot
@@ -215,7 +215,7 @@ def test_detector_slots_follow_starts_removals_and_returns() -> None:
     tracker.apply([_fix("e", (2.0, 0.0), T0 + 2_000)])  # takes a freed slot
     tracker.apply([_sighting("e", "b", T0 + 2_500, 3.0), _sighting("b", "d", T0 + 2_500, 3.0)])
     check()
-    a = tracker.detector.known_user_id("a")
+    a = tracker.encounters.detector.known_user_id("a")
     assert a is not None
     assert _looked_up(tracker)[a] == -1  # removed
     tracker.apply([_fix("a", (1.0, 0.0), T0 + 3_000)])  # back, in another slot
@@ -224,11 +224,9 @@ def test_detector_slots_follow_starts_removals_and_returns() -> None:
     assert -1 not in _looked_up(tracker)  # 'c' never had an id; everyone named is tracked again
 
     restored = pickle.loads(pickle.dumps(tracker))
-    old = pickle.loads(pickle.dumps(tracker))
-    del old.__dict__["_detector_slots"]  # a snapshot from before the table: built again on first use
-    for t in (restored, old):
-        ids = np.arange(t.detector.n_user_ids)
-        assert t._slot_table().of(t.detector, t._users, ids).tolist() == _looked_up(tracker)
+    ids = np.arange(restored.encounters.detector.n_user_ids)
+    stage = restored.encounters
+    assert stage.slots.of(stage.detector, restored._users, ids).tolist() == _looked_up(tracker)
 
 
 def _walk_north_after_sighting(
@@ -288,22 +286,23 @@ def test_an_encounter_older_than_the_trail_is_not_applied() -> None:
 def test_narrowing_the_readings_before_carrying_them_chooses_as_carrying_all(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    """``_choose`` carries only the readings the selector could choose; a reference that carries (or, for
-    a lagging phone, extrapolates) every reading and lets the selector (a copy, with the same cooldowns)
+    """``choose_readings`` carries only the readings the selector could choose; a reference that carries (or,
+    for a lagging phone, extrapolates) every reading and lets the selector (a copy, with the same cooldowns)
     choose among them all picks the same readings with the same offsets, call after call of a busy building
     whose phones post in three calls a second."""
     import copy
 
     from slam_core.encounters.selection import pair_keys
     from slam_core.filter.dense_ids import unique_ints_inverse
-    from slam_core.tracking.placement import TrackTable, carried_since
+    from slam_core.tracking.carry import TrackTable, carried_since
 
     calls: list[int] = []
-    narrowed = radio._choose
+    narrowed = encounter_stage.choose_readings
 
-    def checked(engine, detector, selector, users, columns, found, slot_a, slot_b):  # type: ignore[no-untyped-def]
+    def checked(means_of, detector, selector, found, slot_a, slot_b, carrier):  # type: ignore[no-untyped-def]
         reference = copy.deepcopy(selector)
-        got, offset, carry_var = narrowed(engine, detector, selector, users, columns, found, slot_a, slot_b)
+        got, offset, carry_var = narrowed(means_of, detector, selector, found, slot_a, slot_b, carrier)
+        users, columns = carrier.users, carrier.columns
         n = len(found)
         ids, who = unique_ints_inverse(np.concatenate([found.user_a, found.user_b]))
         tracks = [users[detector.user_name(i)] for i in ids.tolist()]
@@ -318,7 +317,7 @@ def test_narrowing_the_readings_before_carrying_them_chooses_as_carrying_all(
         heard = t2 - heard_until <= 5_000
         ok = np.flatnonzero(placeable[:n] & placeable[n:] & heard[:n] & heard[n:])
         slots, index = unique_ints_inverse(np.concatenate([slot_a, slot_b]))
-        means = engine.means(slots)
+        means = means_of(slots)
         placed = (shift - ahead)[:n] - (shift - ahead)[n:]
         delta = means[index[:n]] - means[index[n:]] - placed
         predicted = np.hypot(delta[ok, 0], delta[ok, 1])
@@ -339,7 +338,7 @@ def test_narrowing_the_readings_before_carrying_them_chooses_as_carrying_all(
     far: list[int] = []
     carried: list[float] = []
     guessed: list[float] = []
-    monkeypatch.setattr(radio, "_choose", checked)
+    monkeypatch.setattr(encounter_stage, "choose_readings", checked)
     # scans before each batch's last step, and phones posting in three calls a second
     _busy_building(10**9, monkeypatch, scan_lag_ms=700, calls_per_second=3)
     assert len(calls) >= 21

@@ -1,6 +1,6 @@
 """A user's dead-reckoned trail: what ``trail_lookup`` answers against a plain list of the steps laid, the
 window it keeps, a pickle round trip (snapshots) that restores it exactly, and readings placed in time
-(``slam_core.tracking.placement``: carried back, guessed ahead)."""
+(``slam_core.tracking.carry``: carried back, guessed ahead)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import pickle
 import numpy as np
 import pytest
 
-from slam_core.tracking.placement import SlotColumns, TrackTable, carried_since, carry_variance, trail_lookup
+from slam_core.tracking.carry import SlotColumns, TrackTable, carried_since, carry_variance, trail_lookup
 from slam_core.tracking.trails import MAX_SPEED_M_PER_MS, TRAIL_MS, UserTrack
 
 
@@ -56,6 +56,10 @@ def test_the_trail_answers_the_last_step_at_or_before_a_time_within_its_window()
     assert np.allclose(track.displacement, steps[-1][1:3], atol=1e-9)
 
 
+VECTORS = ("displacement", "origin", "gyro_displacement", "since_gyro", "since_laid")
+"""The track's 2-vectors, which travel as plain floats in a snapshot."""
+
+
 def test_a_pickled_track_is_restored_exactly() -> None:
     """Every field survives (one forgotten by ``__getstate__``, which lists them by hand, fails here)."""
     track, _ = _walk(20)
@@ -67,7 +71,7 @@ def test_a_pickled_track_is_restored_exactly() -> None:
     restored = pickle.loads(pickle.dumps(track, protocol=pickle.HIGHEST_PROTOCOL))
     for f in dataclasses.fields(UserTrack):
         got, want = getattr(restored, f.name), getattr(track, f.name)
-        if f.name in UserTrack._VECTORS:
+        if f.name in VECTORS:
             assert got.dtype == np.float64
             assert np.array_equal(got, want), f.name
         else:
@@ -75,22 +79,6 @@ def test_a_pickled_track_is_restored_exactly() -> None:
             assert want != getattr(UserTrack(), f.name), f"set {f.name} in this test"
     restored.lay([99_000], [1.0], [0.0], [1.0], (1.0, 0.0), (1.0, 0.0), math.nan)  # still a live track
     assert restored.displacement[0] == track.displacement[0] + 1.0
-
-
-def test_a_track_pickled_before_the_flat_tuple_is_restored() -> None:
-    """Snapshots written before users travelled as flat tuples (a dict of fields, 2-vectors as tuples) still
-    load: the snapshot format did not change."""
-    track, _ = _walk(5)
-    old_state = dict(track.__dict__)
-    for name in UserTrack._VECTORS:
-        old_state[name] = tuple(old_state[name].tolist())
-    restored = UserTrack.__new__(UserTrack)
-    restored.__setstate__(old_state)
-    assert restored.trail == track.trail
-    assert restored.last_t_ms == track.last_t_ms
-    for name in UserTrack._VECTORS:
-        assert getattr(restored, name).dtype == np.float64
-        assert np.array_equal(getattr(restored, name), getattr(track, name), equal_nan=True), name
 
 
 def _at_by_hand(track: UserTrack, t_ms: int) -> tuple[tuple[float, float], float]:

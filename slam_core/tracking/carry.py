@@ -1,6 +1,6 @@
-"""Readings placed in time on the tracker's users: carried back along a user's own steps to now
-(``carried_since``, over many users' trails in one search), or, for a user whose phone has not reported up
-to a reading yet, guessed ahead at its recent velocity (``SlotColumns``). Pure numerics."""
+"""Readings carried in time on the tracker's users: back along a user's own steps to now (``carried_since``,
+over many users' trails in one search), or, for a user whose phone has not reported up to a reading yet,
+guessed ahead at its recent velocity (``SlotColumns``). Pure numerics."""
 
 from __future__ import annotations
 
@@ -26,8 +26,8 @@ def carry_variance(walked_m: np.ndarray | float) -> np.ndarray:
 
 @dataclass(frozen=True)
 class TrackTable:
-    """Some users' tracks with the columns the vectorised lookups below need, read once per call (a list
-    comprehension per column per lookup had made them cost as much as the arithmetic)."""
+    """Some users' tracks with the columns the vectorised lookups below need, read once per call rather
+    than once per lookup."""
 
     tracks: list[UserTrack]
     last_t_ms: np.ndarray  # (n,) int64
@@ -58,7 +58,7 @@ def trail_lookup(table: TrackTable, which: np.ndarray, t_ms: np.ndarray) -> tupl
     """Dead-reckoned displacement and distance walked of user ``which[i]`` of the table at ``t_ms[i]`` (its
     last step then; the oldest kept when older than its trail; where it is now when after its last step),
     for every i: (n, 2) displacements and (n,) distances walked. One search over all the table's trails at
-    once: a pass per user had cost ~30 us, 13 ms a call for the encounters of a 2,000-phone building."""
+    once, not a pass per user: a busy call carries readings of hundreds of users."""
     which = np.asarray(which, dtype=np.int64)
     t = np.asarray(t_ms, dtype=np.int64)
     displacement = table.displacement[which]
@@ -127,8 +127,8 @@ _NEVER = np.iinfo(np.int64).min
 
 class SlotColumns:
     """Per filter slot, the few numbers of each tracked user's track that choosing encounters reads for every
-    reading of a call (~12,000 from ~1,100 users at 2,000 phones): kept as arrays and updated for the users
-    of each call, since reading them off the tracks, one Python object each, had cost more than the choice.
+    reading of a call (thousands in a busy building): kept as arrays and updated for the users of each call,
+    rather than read off the tracks, one Python object each, for every reading.
     ``start_t_ms`` and ``start_walked``: the user's last event and distance walked before its latest batch
     (never and 0 for a user new since), which bound how far it walked after any later time; ``heard_t_ms``:
     the latest time its phone has reported anything at all (a scan, a sighting), up to which a user without
