@@ -3,7 +3,7 @@
     python bench/building.py [--phones 1000] [--seconds 20] [--group 32] [--path process|thread|both]
                              [--postgres URL] [--json OUT] [--profile OUT.prof]
 
-A building's tracking as its own process builds it (``server.buildings.tracking.open_building``: SQLite,
+A building's tracking as its own process builds it (``server.buildings.host.open_building``: SQLite,
 its write-ahead log checkpointed by a thread beside the batch path, recording on: the server's defaults; with
 ``--postgres``, a new database on that PostgreSQL server, as a cluster's worker holds it) is
 fed the load benchmark's phones (``bench/load.py``: a batch per phone per second, two steps, a WiFi scan every
@@ -57,9 +57,8 @@ from report import emit
 
 from schemas.live import LIVE_MESSAGE_ADAPTER
 from server.buildings import snapshot as tracker_snapshot
-from server.buildings.process import batch_fields, received_batch
-from server.buildings.submissions import Submission
-from server.buildings.tracking import open_building
+from server.buildings.host import open_building
+from server.buildings.submissions import Submission, batch_fields, received_batch
 from server.cli.local_cluster import postgres_database
 from server.errors import ProblemError
 from server.gc_tuning import tune_gc_for_serving
@@ -181,7 +180,7 @@ def run(
 
 
 def _front(raw: bytes) -> bytes:
-    """What the front of a building process sends for a batch (``ProcessBuildingWorker.submit``)."""
+    """What the front of a building process sends for a batch (``BuildingProcess.submit``)."""
     submission = Submission.of(decode_batch(raw, len(raw)), raw, time.time_ns())
     return pickle.dumps(batch_fields(submission), protocol=pickle.HIGHEST_PROTOCOL)
 
@@ -205,7 +204,7 @@ def main() -> int:
     parser.add_argument(
         "--seconds", type=int, default=20, help="measured seconds of batches (after the fixes)"
     )
-    parser.add_argument("--group", type=int, default=32, help="batches per call of BuildingTracking.process")
+    parser.add_argument("--group", type=int, default=32, help="batches per call of BuildingHost.process")
     parser.add_argument(
         "--path",
         choices=("process", "thread", "both"),

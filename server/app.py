@@ -23,8 +23,8 @@ from server.api.contract import allowed_methods, install_openapi, operation_id
 from server.api.deps import revalidate_keys
 from server.api.limits import BodyLimit
 from server.auth import KeyCache
+from server.buildings.host import tracking_config
 from server.buildings.registry import Buildings, TrackingService
-from server.buildings.tracking import tracking_config
 from server.dashboard.pages import install_pages
 from server.engine.config import load_calibration, tracker_params
 from server.engine.warmup import Progress, compile_kernels_in_child, warm_kernels
@@ -214,8 +214,8 @@ async def _buildings(
 async def _load_radio_map(tracking: Buildings, building_id: str) -> None:
     """A finished build's radio map joins its building's fingerprints, in order with its batches."""
     try:
-        worker = await tracking.worker(building_id)
-        await worker.call("load_radio_map")
+        building = await tracking.handle(building_id)
+        await building.call("load_radio_map")
     except Exception:
         logger.exception(
             "building %s: loading its new radio map failed; it loads at the next start", building_id

@@ -34,13 +34,13 @@ class _Collector(Collector):
 
     def collect(self) -> Iterator[Metric]:
 
-        workers = self._tracking.workers
+        handles = self._tracking.handles
         for f in fields(Counters):
             family = CounterMetricFamily(
                 f"crowdslam_{f.name}", f"{f.name.replace('_', ' ')} per building", labels=["building"]
             )
-            for building, worker in workers.items():
-                counters: Counters = worker.counters
+            for building, handle in handles.items():
+                counters: Counters = handle.counters
                 family.add_metric([building], float(getattr(counters, f.name)))
             yield family
         depth = GaugeMetricFamily(
@@ -51,9 +51,9 @@ class _Collector(Collector):
             "processing time of a group of batches (recent window)",
             labels=["building", "quantile"],
         )
-        for building, worker in workers.items():
-            depth.add_metric([building], float(worker.queue_depth))
-            values = worker.latency.values
+        for building, handle in handles.items():
+            depth.add_metric([building], float(handle.queue_depth))
+            values = handle.latency.values
             if values:
                 for q in (0.5, 0.99):
                     latency.add_metric([building, str(q)], float(np.quantile(values, q)))

@@ -12,8 +12,8 @@ import httpx
 from schemas.api import BatchReceipt
 from schemas.estimates import Estimate
 from server.buildings.config import TrackingConfig
+from server.buildings.host import BuildingHost
 from server.buildings.submissions import Submission
-from server.buildings.tracking import BuildingTracking
 from server.engine.config import load_calibration, tracker_params
 from server.errors import ProblemError
 from server.ingestion.decoding import decode_batch
@@ -64,7 +64,7 @@ def replay_offline(
         upgrade(engine)
         sessions = make_session_factory(engine)
         params, calibration = tracker_params(settings), load_calibration(settings.encounter_calibration)
-        buildings: dict[str, BuildingTracking] = {}
+        buildings: dict[str, BuildingHost] = {}
         try:
             for recorded in batches:
                 try:
@@ -78,7 +78,7 @@ def replay_offline(
                         session.add(
                             BuildingRow(id=batch.building_id, name=batch.building_id, rotation_rad=0.0)
                         )
-                    building = BuildingTracking(
+                    building = BuildingHost(
                         batch.building_id, sessions, TrackingConfig(params, calibration, settings.seed)
                     )
                     buildings[batch.building_id] = building

@@ -11,23 +11,23 @@ from schemas.common import MAX_TIME_MS, MIN_TIME_MS, Identifier
 from server.api.contract import PROBLEMS, problems
 from server.api.deps import Caller, DbSession, State
 from server.api.links import BUILDING, SAME_BUILDING, link, links
-from server.buildings.workers import Worker
+from server.buildings.handles import BuildingHandle
 from server.errors import ConflictError
 from server.store import repositories as repo
 
 router = APIRouter(prefix="/v1/buildings/{building_id}", tags=["anchors"])
 
 
-async def _worker(state: State, building_id: str) -> Worker:
-    return await state.tracking.worker(building_id)
+async def _handle(state: State, building_id: str) -> BuildingHandle:
+    return await state.tracking.handle(building_id)
 
 
 @router.get("/anchors", response_model=list[BuildingAnchor], responses=problems(403, 404, 503))
 async def list_anchors(building_id: str, caller: Caller, state: State) -> list[BuildingAnchor]:
     """The building's shared anchor map: learned by the crowd, or pinned by operators."""
     caller.require_reader(building_id)
-    worker = await _worker(state, building_id)
-    anchors: list[BuildingAnchor] = await worker.call("anchors")
+    building = await _handle(state, building_id)
+    anchors: list[BuildingAnchor] = await building.call("anchors")
     return anchors
 
 
@@ -37,8 +37,8 @@ _NO_ANCHOR = (404, "No such building, or no live anchor of this id in it.")
 @router.get("/anchors/{anchor_id}", response_model=BuildingAnchor, responses=problems(403, _NO_ANCHOR, 503))
 async def get_anchor(building_id: str, anchor_id: Identifier, caller: Caller, state: State) -> BuildingAnchor:
     caller.require_reader(building_id)
-    worker = await _worker(state, building_id)
-    anchor: BuildingAnchor = await worker.call("get_anchor", anchor_id)
+    building = await _handle(state, building_id)
+    anchor: BuildingAnchor = await building.call("get_anchor", anchor_id)
     return anchor
 
 
@@ -72,10 +72,10 @@ async def put_known_anchor(
 ) -> BuildingAnchor:
     """Pin an anchor at an exact position (operator key): a new known anchor, or a learned one made exact."""
     caller.require_operator(building_id)
-    worker = await _worker(state, building_id)
+    building = await _handle(state, building_id)
     anchor: BuildingAnchor
-    anchor, messages = await worker.call("put_known_anchor", anchor_id, body)
-    worker.publish(messages)
+    anchor, messages = await building.call("put_known_anchor", anchor_id, body)
+    building.publish(messages)
     return anchor
 
 
@@ -87,9 +87,9 @@ async def put_known_anchor(
 )
 async def delete_anchor(building_id: str, anchor_id: Identifier, caller: Caller, state: State) -> Response:
     caller.require_operator(building_id)
-    worker = await _worker(state, building_id)
-    messages = await worker.call("delete_anchor", anchor_id)
-    worker.publish(messages)
+    building = await _handle(state, building_id)
+    messages = await building.call("delete_anchor", anchor_id)
+    building.publish(messages)
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 
@@ -108,10 +108,10 @@ async def merge_anchors(
 ) -> BuildingAnchor:
     """Merge anchors the crowd learned twice into the first one listed (operator key)."""
     caller.require_operator(building_id)
-    worker = await _worker(state, building_id)
+    building = await _handle(state, building_id)
     anchor: BuildingAnchor
-    anchor, messages = await worker.call("merge_anchors", list(body.anchor_ids))
-    worker.publish(messages)
+    anchor, messages = await building.call("merge_anchors", list(body.anchor_ids))
+    building.publish(messages)
     return anchor
 
 
@@ -129,11 +129,11 @@ async def export_geojson(
 ) -> dict[str, Any]:
     """Anchors as points and recent tracks as lines, in WGS-84 (needs the building's geo-reference)."""
     caller.require_reader(building_id)
-    worker = await _worker(state, building_id)
-    geo = worker.geo
+    building = await _handle(state, building_id)
+    geo = building.geo
     if geo is None:
         raise ConflictError(f"building {building_id!r} has no geo-reference; set one to export GeoJSON")
-    anchors: list[BuildingAnchor] = await worker.call("anchors")
+    anchors: list[BuildingAnchor] = await building.call("anchors")
     features: list[dict[str, Any]] = []
     for a in anchors:
         lat, lon = geo.to_wgs84(a.position.x_m, a.position.y_m)

@@ -63,8 +63,8 @@ async def ingest(state: AppState, caller: Principal, building_id: str, body: byt
             f"the batch's latest time is {ahead_s:.0f} s ahead of the server's clock; at most "
             f"{MAX_CLOCK_AHEAD_MS // 1000} s are accepted (is the phone's clock set?)"
         )
-    worker = await state.tracking.worker(building_id)
-    return await worker.submit(Submission.of(batch, body, time.time_ns()))
+    building = await state.tracking.handle(building_id)
+    return await building.submit(Submission.of(batch, body, time.time_ns()))
 
 
 MAX_CLOCK_AHEAD_MS = 300_000

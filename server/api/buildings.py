@@ -215,8 +215,8 @@ async def assign_device(
     """Assign a device to a user (operator key): the device's batches are that user's from now on, and the
     device may no longer post as the user it posted as before (a phone handed to someone else)."""
     caller.require_operator(building_id)
-    worker = await state.tracking.worker(building_id)
-    await worker.call("assign_device", device_id, body.user_id)
+    building = await state.tracking.handle(building_id)
+    await building.call("assign_device", device_id, body.user_id)
     return DeviceAssignment(device_id=device_id, user_id=body.user_id)
 
 
@@ -237,8 +237,8 @@ async def put_floor_plan(
     plan; the plan of floor 0, where users are tracked, weighs their steps from the next batch on. Answers the
     plan as stored, in the local frame."""
     caller.require_operator(building_id)
-    worker = await state.tracking.worker(building_id)
-    plan: FloorPlan = await worker.call("put_floor_plan", level, body)
+    building = await state.tracking.handle(building_id)
+    plan: FloorPlan = await building.call("put_floor_plan", level, body)
     return plan
 
 

@@ -25,7 +25,7 @@ DEGRADED_S = 300.0
 def get_health(state: State) -> Health:
     with state.engine.connect() as connection:
         connection.execute(text("SELECT 1"))
-    workers = state.tracking.workers
+    handles = state.tracking.handles
     now = time.time()
     failing = [
         FailingBuilding(
@@ -33,13 +33,13 @@ def get_health(state: State) -> Health:
             failed_batches=counters.failed_batches,
             last_failure_ms=int(counters.last_failure_unix_s * 1000),
         )
-        for building_id, worker in sorted(workers.items())
-        if (counters := worker.counters).failed_batches and now - counters.last_failure_unix_s < DEGRADED_S
+        for building_id, handle in sorted(handles.items())
+        if (counters := handle.counters).failed_batches and now - counters.last_failure_unix_s < DEGRADED_S
     ]
     return Health(
         status="degraded" if failing else "ok",
         database=state.engine.dialect.name,
-        buildings_loaded=len(workers),
+        buildings_loaded=len(handles),
         failing_buildings=failing,
     )
 

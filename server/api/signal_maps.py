@@ -43,8 +43,8 @@ async def start_signal_map_build(building_id: str, caller: Caller, state: State)
     edges; poll the job, then fetch its files (signal maps as PNG and JSON grids, the 5 m fingerprint
     database, the optimised trajectories)."""
     caller.require_operator(building_id)
-    worker = await state.tracking.worker(building_id)
-    ctx = await worker.call("context")
+    building = await state.tracking.handle(building_id)
+    ctx = await building.call("context")
     return state.signal_maps.start(ctx)
 
 
@@ -52,7 +52,7 @@ async def start_signal_map_build(building_id: str, caller: Caller, state: State)
 async def list_signal_map_builds(building_id: str, caller: Caller, state: State) -> list[SignalMapJob]:
     """The building's builds (dashboard or operator key: dashboards overlay finished maps)."""
     caller.require_reader(building_id)
-    await state.tracking.worker(building_id)  # 404 for an unknown building
+    await state.tracking.handle(building_id)  # 404 for an unknown building
     return state.signal_maps.list(building_id)
 
 
@@ -63,7 +63,7 @@ async def list_signal_map_builds(building_id: str, caller: Caller, state: State)
 )
 async def get_signal_map_build(building_id: str, job_id: str, caller: Caller, state: State) -> SignalMapJob:
     caller.require_reader(building_id)
-    await state.tracking.worker(building_id)  # 404 for an unknown building
+    await state.tracking.handle(building_id)  # 404 for an unknown building
     return state.signal_maps.get(building_id, job_id)
 
 
@@ -87,7 +87,7 @@ async def get_signal_map_file(
 ) -> FileResponse:
     """One output of a finished build (``image/png`` or ``application/json``; dashboard or operator key)."""
     caller.require_reader(building_id)
-    await state.tracking.worker(building_id)
+    await state.tracking.handle(building_id)
     path = state.signal_maps.file(building_id, job_id, name)
     media = {".png": "image/png", ".geojson": "application/geo+json"}.get(path.suffix, "application/json")
     return FileResponse(path, media_type=media)

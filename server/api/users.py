@@ -26,7 +26,7 @@ async def forget_user(building_id: str, user_id: Identifier, caller: Caller, sta
     (``docs/operations.md`` says how to remove them sooner). A later batch of its device starts a new
     filter: revoke the device's key to stop it posting."""
     caller.require_operator(building_id)
-    worker = await state.tracking.worker(building_id)
-    messages = await worker.call("forget_user", user_id)
-    worker.publish(messages)
+    building = await state.tracking.handle(building_id)
+    messages = await building.call("forget_user", user_id)
+    building.publish(messages)
     return Response(status_code=status.HTTP_204_NO_CONTENT)

@@ -43,6 +43,6 @@ class TrackingConfig:
     extent_margin_m: float = 1000.0
     """How far beyond its floors a position posted to a building may lie (``server.ingestion.extent``)."""
     group_linger_s: float = 0.02
-    """How long a busy building lets batches gather into its next group (``server.buildings.workers.
+    """How long a busy building lets batches gather into its next group (``server.buildings.handles.
     GroupPacing``): each group pays a fixed ~2 ms (a transaction, the filters' calls), and a building that
     applied every batch as it came spent a core at 125 batches a second."""

@@ -1,7 +1,7 @@
 """A building in a process of its own (``CROWDSLAM_BUILDING_PROCESSES``): its batch path runs under its own
 GIL, beside the HTTP front's event loop, so a busy building and the front use two cores, and buildings one
-each. The building process holds the same ``BuildingTracking`` as the in-process worker
-(``server.buildings.workers.BuildingWorker``); this module is both ends of the socket between them.
+each. The building process holds the same ``BuildingHost`` as the in-process worker
+(``server.buildings.handles.BuildingThread``); this module is both ends of the socket between them.
 
 Each frame is an 8-byte length and a pickle:
 - front -> building: ``("batch", id, raw body, received_ns, BatchHeader, packed UserBatch or None)`` (the
@@ -23,16 +23,13 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import ctypes
 import itertools
 import multiprocessing
 import os
 import pickle
 import select
-import signal
 import socket
 import struct
-import sys
 import time
 from typing import Any
 
@@ -40,15 +37,14 @@ import numba
 
 from schemas.live import LiveMessage
 from server.buildings.counters import Counters
-from server.buildings.submissions import BatchHeader, Submission
-from server.buildings.tracking import BuildingTracking, open_building
-from server.buildings.workers import CALLS, MAX_GROUP, GroupPacing, LatencyWindow
+from server.buildings.handles import MAX_GROUP, GroupPacing, LatencyWindow, check_call
+from server.buildings.host import BuildingHost, open_building
+from server.buildings.submissions import BatchFields, Submission, batch_fields, received_batch, transportable
 from server.engine.warmup import warm_kernels_for
-from server.errors import InvalidInputError, ProblemError, ServiceUnavailableError
+from server.errors import ProblemError, ServiceUnavailableError
 from server.gc_tuning import tune_gc_for_serving
-from server.ingestion import convert, transport
-from server.ingestion.decoding import decode_batch
 from server.live.broadcast import Broadcaster, live_json
+from server.process_lifetime import die_with
 from server.settings import Settings
 from slam_core.geo import GeoFrame
 
@@ -168,18 +164,8 @@ def serve_building(building_id: str, settings: Settings, sock: socket.socket, fr
     _BuildingLoop(building, sock).run()
 
 
-def die_with(front_pid: int) -> None:
-    """Be killed when the process that started this one dies (Linux); elsewhere the caller notices otherwise
-    (a building's closed socket ends its loop)."""
-    if sys.platform.startswith("linux"):
-        with contextlib.suppress(OSError, AttributeError):
-            ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
-    if os.getppid() != front_pid:  # the front died before the line above
-        os._exit(0)
-
-
 class _BuildingLoop:
-    def __init__(self, building: BuildingTracking, sock: socket.socket) -> None:
+    def __init__(self, building: BuildingHost, sock: socket.socket) -> None:
         self.building = building
         self.sock = sock
         self.batches: list[tuple[int, BatchFields]] = []
@@ -242,10 +228,7 @@ class _BuildingLoop:
             except Exception as exc:  # as the in-process worker: every batch of the group fails with it
                 answers.update((request, transportable(exc)) for request in ids)
             else:
-                for request, receipt in zip(ids, result.receipts, strict=True):
-                    answers[request] = (
-                        receipt if isinstance(receipt, ProblemError) else receipt.model_dump_json().encode()
-                    )
+                answers.update(zip(ids, result.wire_receipts(), strict=True))
                 messages = [live_json(m) for m in result.messages]
             self.pacing.end(len(group), self.reader.pending())
         seconds = time.perf_counter() - started
@@ -253,8 +236,7 @@ class _BuildingLoop:
 
     def _call(self, request: int, name: str, args: tuple[Any, ...]) -> None:
         try:
-            if name not in CALLS:
-                raise ValueError(f"unknown building call {name!r}")
+            check_call(name)
             value = getattr(self.building, name)(*args)
         except Exception as exc:
             _send(self.sock, ("result", request, False, transportable(exc)))
@@ -262,51 +244,9 @@ class _BuildingLoop:
         _send(self.sock, ("result", request, True, value))
 
 
-BatchFields = tuple[bytes, int, tuple[Any, ...], tuple[Any, ...] | None]
-"""A batch on the socket: raw body, received_ns, its ``BatchHeader`` and its packed conversion (None: the
-building decodes the raw body), the last two as plain tuples (a named tuple pickles by its class, which
-had cost ~10 us a batch on both sides)."""
-
-
-def batch_fields(submission: Submission) -> BatchFields:
-    """The front's side: a batch as it crosses to its building, converted when that needs nothing of the
-    building. Raises ``InvalidInputError`` where the building's conversion would have answered it."""
-    packed = None
-    if submission.batch is not None:
-        try:
-            packed = convert.packed_without_context(submission.batch)  # most batches: straight to the bytes
-            if packed is None and (converted := convert.without_context(submission.batch)) is not None:
-                packed = transport.pack(converted.user_batch)  # raw IMU
-        except ValueError as exc:
-            raise InvalidInputError(str(exc)) from None
-    fields = None if packed is None else tuple(packed)
-    return submission.raw, submission.received_ns, tuple(submission.header), fields
-
-
-def received_batch(
-    raw: bytes, received_ns: int, header: tuple[Any, ...], packed: tuple[Any, ...] | None
-) -> Submission:
-    """The building's side of ``batch_fields``."""
-    if packed is None:
-        batch = decode_batch(raw, max(len(raw), 1))  # validated by the front already
-        return Submission(BatchHeader._make(header), raw, received_ns, batch=batch)
-    user_batch = transport.unpack(transport.PackedBatch._make(packed))
-    return Submission(
-        BatchHeader._make(header), raw, received_ns, converted=convert.Converted(user_batch, [])
-    )
-
-
-def transportable(exc: Exception) -> Exception:
-    """The error as the front will raise it: a ProblemError as it is, anything else as a RuntimeError
-    naming it (the front answers 500 and logs it, as for an error in its own process)."""
-    if isinstance(exc, ProblemError):
-        return exc
-    return RuntimeError(f"{type(exc).__name__} in the building's process: {exc}")
-
-
 # -------------------------------------------------------------------------------------- front side
-class ProcessBuildingWorker:
-    """The front's handle on a building process, with ``BuildingWorker``'s interface."""
+class BuildingProcess:
+    """The front's handle on a building process, with ``BuildingThread``'s interface."""
 
     def __init__(
         self,
@@ -332,9 +272,7 @@ class ProcessBuildingWorker:
         self._listening = asyncio.get_running_loop().create_task(self._listen())
 
     @classmethod
-    async def start(
-        cls, building_id: str, settings: Settings, broadcaster: Broadcaster
-    ) -> ProcessBuildingWorker:
+    async def start(cls, building_id: str, settings: Settings, broadcaster: Broadcaster) -> BuildingProcess:
         front, back = socket.socketpair()
         context = multiprocessing.get_context("spawn")
         process = context.Process(
@@ -376,8 +314,7 @@ class ProcessBuildingWorker:
         return answer
 
     async def call(self, name: str, *args: Any) -> Any:
-        if name not in CALLS:
-            raise ValueError(f"unknown building call {name!r}; valid: {', '.join(sorted(CALLS))}")
+        check_call(name)
         return await self._ask(("call", name, args))
 
     def publish(self, messages: list[LiveMessage]) -> None:

@@ -2,8 +2,8 @@
 
 ``RecoverableBuilding`` loads a building (its last snapshot plus the batches logged since, replayed in their
 original engine calls; or, when there is no usable snapshot, the SQL anchor map), snapshots its tracker
-periodically and when asked, and clears the logged batch bodies a snapshot covers. ``BuildingTracking``
-(``server.buildings.tracking``) builds the batch path and the operator's anchor edits on it.
+periodically and when asked, and clears the logged batch bodies a snapshot covers. ``BuildingHost``
+(``server.buildings.host``) builds the batch path and the operator's anchor edits on it.
 """
 
 from __future__ import annotations
@@ -46,7 +46,7 @@ are kept and served, and constrain no one until users are tracked across floors.
 
 
 class RecoverableBuilding:
-    """Used from the building's single worker thread only, like ``BuildingTracking``."""
+    """Used from the building's single worker thread only, like ``BuildingHost``."""
 
     def __init__(self, building_id: str, sessions: sessionmaker[Session], config: TrackingConfig) -> None:
         self.building_id = building_id

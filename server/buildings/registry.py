@@ -1,5 +1,5 @@
-"""The buildings being tracked, as the API reaches them: one worker per building, loaded on first use, on a
-thread of this process (``server.buildings.workers``) or in a process of its own
+"""The buildings being tracked, as the API reaches them: one handle per building, loaded on first use, on a
+thread of this process (``server.buildings.handles``) or in a process of its own
 (``server.buildings.process``).
 """
 
@@ -12,9 +12,9 @@ from typing import Protocol
 from sqlalchemy.orm import Session, sessionmaker
 
 from server.buildings.config import TrackingConfig
-from server.buildings.process import ProcessBuildingWorker
-from server.buildings.tracking import BuildingTracking
-from server.buildings.workers import BuildingWorker, Worker
+from server.buildings.handles import BuildingHandle, BuildingThread
+from server.buildings.host import BuildingHost
+from server.buildings.process import BuildingProcess
 from server.errors import NotFoundError
 from server.live.broadcast import Broadcaster
 from server.recordings.recorder import BuildingRecorder
@@ -24,11 +24,11 @@ from server.store import repositories as repo
 
 class Buildings(Protocol):
     """What the API reaches buildings through: ``TrackingService`` here, or a cluster front's
-    ``server.cluster.front.ClusterBuildings`` (the buildings' workers elsewhere)."""
+    ``server.cluster.front.ClusterBuildings`` (the buildings on the cluster's workers)."""
 
-    async def worker(self, building_id: str) -> Worker: ...
+    async def handle(self, building_id: str) -> BuildingHandle: ...
     @property
-    def workers(self) -> dict[str, Worker]: ...
+    def handles(self) -> dict[str, BuildingHandle]: ...
     async def close(self) -> None: ...
 
 
@@ -52,52 +52,52 @@ class TrackingService:
         self._recordings = recordings
         self._sessions = sessions
         self._broadcaster = broadcaster
-        self._workers: dict[str, Worker] = {}
+        self._handles: dict[str, BuildingHandle] = {}
         self._loading = asyncio.Lock()
 
-    async def worker(self, building_id: str) -> Worker:
-        worker = self._workers.get(building_id)
-        if worker is not None and worker.alive:
-            return worker
+    async def handle(self, building_id: str) -> BuildingHandle:
+        handle = self._handles.get(building_id)
+        if handle is not None and handle.alive:
+            return handle
         async with self._loading:
-            worker = self._workers.get(building_id)
-            if worker is not None and not worker.alive:  # its process died: start it again
-                await worker.close()
-                worker = None
-            if worker is None and self._processes is not None:
+            handle = self._handles.get(building_id)
+            if handle is not None and not handle.alive:  # its process died: start it again
+                await handle.close()
+                handle = None
+            if handle is None and self._processes is not None:
                 if not await asyncio.to_thread(self._exists, building_id):  # never a process for nothing
                     raise NotFoundError(f"no building {building_id!r}")
-                worker = await ProcessBuildingWorker.start(building_id, self._processes, self._broadcaster)
-                self._workers[building_id] = worker
-            elif worker is None:
+                handle = await BuildingProcess.start(building_id, self._processes, self._broadcaster)
+                self._handles[building_id] = handle
+            elif handle is None:
                 recorder = (
                     None if self._recordings is None else BuildingRecorder(self._recordings, building_id)
                 )
-                building = await asyncio.to_thread(
-                    BuildingTracking, building_id, self._sessions, self._config, recorder
+                host = await asyncio.to_thread(
+                    BuildingHost, building_id, self._sessions, self._config, recorder
                 )
-                worker = self._workers[building_id] = BuildingWorker(
-                    building, self._broadcaster, self._kernel_threads
+                handle = self._handles[building_id] = BuildingThread(
+                    host, self._broadcaster, self._kernel_threads
                 )
-        return worker
+        return handle
 
     def _exists(self, building_id: str) -> bool:
         with self._sessions() as session:
             return repo.get_building(session, building_id) is not None
 
     @property
-    def workers(self) -> dict[str, Worker]:
-        return dict(self._workers)
+    def handles(self) -> dict[str, BuildingHandle]:
+        return dict(self._handles)
 
     async def unload(self, building_id: str, snapshot: bool = True) -> None:
         """Stop tracking the building here: with a snapshot (a clean handoff), or without (its lease was
         lost: another worker owns it and writes its state now)."""
         async with self._loading:
-            worker = self._workers.pop(building_id, None)
-        if worker is not None:
-            await (worker.close() if snapshot else worker.abandon())
+            handle = self._handles.pop(building_id, None)
+        if handle is not None:
+            await (handle.close() if snapshot else handle.abandon())
 
     async def close(self) -> None:
-        for worker in self._workers.values():
-            await worker.close()
-        self._workers.clear()
+        for handle in self._handles.values():
+            await handle.close()
+        self._handles.clear()

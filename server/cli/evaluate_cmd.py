@@ -71,11 +71,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "on by default, as on the server)",
     )
     parser.add_argument(
-        "--through-tracker",
-        action="store_true",
-        help="accepted and ignored: every evaluation runs through the server's tracker",
-    )
-    parser.add_argument(
         "--liars",
         type=int,
         default=0,

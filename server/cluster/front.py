@@ -25,10 +25,9 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from schemas.live import LiveMessage
 from server.buildings.counters import Counters
-from server.buildings.process import batch_fields
+from server.buildings.handles import BuildingHandle, LatencyWindow, check_call
 from server.buildings.recovery import building_geo
-from server.buildings.submissions import Submission
-from server.buildings.workers import CALLS, LatencyWindow, Worker
+from server.buildings.submissions import Submission, batch_fields
 from server.cluster import messages
 from server.cluster.batch_stream import BatchStream
 from server.cluster.live_relay import LiveRelay
@@ -95,7 +94,7 @@ class ClusterBuildings:
         ]
         return front
 
-    async def worker(self, building_id: str) -> Worker:
+    async def handle(self, building_id: str) -> BuildingHandle:
         building = self._buildings.get(building_id)
         checked = self._checked.get(building_id, -KNOWN_FOR_S)
         if building is None or time.monotonic() - checked > KNOWN_FOR_S:
@@ -116,7 +115,7 @@ class ClusterBuildings:
             return repo.get_building(session, building_id)
 
     @property
-    def workers(self) -> dict[str, Worker]:
+    def handles(self) -> dict[str, BuildingHandle]:
         return dict(self._buildings)
 
     def request(self) -> tuple[int, str, asyncio.Future[bytes]]:
@@ -157,7 +156,7 @@ class ClusterBuildings:
 
 
 class RemoteBuilding:
-    """A building as a front sees it, with ``Worker``'s interface; its tracking figures are on its worker."""
+    """A building as a front sees it, a ``BuildingHandle``; its tracking figures are on its worker's."""
 
     def __init__(self, front: ClusterBuildings, building_id: str, geo: GeoFrame | None) -> None:
         self.front = front
@@ -185,7 +184,9 @@ class RemoteBuilding:
         try:
             try:
                 await self.front.stream.publish(
-                    self.front.js, self.building_id, messages.encode_batch(reply_to, self.created, fields)
+                    self.front.js,
+                    self.building_id,
+                    messages.encode_stream_batch(reply_to, self.created, fields),
                 )
             except NatsError as exc:
                 raise ServiceUnavailableError(
@@ -209,8 +210,7 @@ class RemoteBuilding:
         return receipt
 
     async def call(self, name: str, *args: Any) -> Any:
-        if name not in CALLS:
-            raise ValueError(f"unknown building call {name!r}; valid: {', '.join(sorted(CALLS))}")
+        check_call(name)
         deadline = time.monotonic() + self.front.timeout_s
         try:
             while True:

@@ -8,17 +8,17 @@ from __future__ import annotations
 import pickle
 from typing import Any
 
-from server.buildings.process import BatchFields, transportable
+from server.buildings.submissions import BatchFields, transportable
 
 
-def encode_batch(reply_to: str, building_created: str, fields: BatchFields) -> bytes:
+def encode_stream_batch(reply_to: str, building_created: str, fields: BatchFields) -> bytes:
     """A batch in the stream: where its receipt goes, when its building was created (the stream may outlive a
     database, and a building its id: a worker applies only batches posted to the building it holds), and
     the batch as the front converted it."""
     return pickle.dumps((reply_to, building_created, fields), protocol=pickle.HIGHEST_PROTOCOL)
 
 
-def decode_batch(data: bytes) -> tuple[str, str, BatchFields]:
+def decode_stream_batch(data: bytes) -> tuple[str, str, BatchFields]:
     reply_to, building_created, fields = pickle.loads(data)
     return str(reply_to), str(building_created), fields
 

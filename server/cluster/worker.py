@@ -7,7 +7,7 @@ the embedded server does (``server.buildings``: the same tracker, batch log, sna
 - **Keeping.** Leases are rewritten every third of their TTL. A lease found taken, or not rewritten for
   most of its TTL (NATS unreachable: it may have expired), is lost: the building is dropped at once
   without a snapshot (another worker may own it and write its state now).
-- **Taking over.** A building is opened from its SQL snapshot and batch log (``BuildingTracking``), then its
+- **Taking over.** A building is opened from its SQL snapshot and batch log (``BuildingHost``), then its
   subject in the batch stream is read in order from the sequence after the last one committed
   (``repositories.stream_position``): batches another worker had received but not committed are applied
   here, and their receipts go to the fronts still waiting for them.
@@ -42,10 +42,10 @@ from nats.aio.msg import Msg
 from nats.aio.subscription import Subscription
 from sqlalchemy.orm import Session, sessionmaker
 
-from server.buildings.process import received_batch
+from server.buildings.handles import BuildingThread
+from server.buildings.host import tracking_config
 from server.buildings.registry import TrackingService
-from server.buildings.tracking import tracking_config
-from server.buildings.workers import BuildingWorker
+from server.buildings.submissions import received_batch
 from server.cluster import messages
 from server.cluster.batch_stream import BatchStream, StreamedBatch
 from server.cluster.connection import connect
@@ -79,7 +79,7 @@ class Owned:
 
     lease: Lease
     refreshed: float
-    worker: BuildingWorker | None = None
+    worker: BuildingThread | None = None
     consumer: asyncio.Task[None] | None = None
     calls: Subscription | None = None
     in_flight: set[asyncio.Task[None]] = field(default_factory=set)
@@ -209,8 +209,8 @@ class ClusterWorker:
             owned = self.owned[building_id] = Owned(lease, time.monotonic())
             try:
                 started = time.perf_counter()
-                worker = await self.tracking.worker(building_id)  # its snapshot and batch log, from SQL
-                assert isinstance(worker, BuildingWorker)  # a worker tracks on threads of its own process
+                worker = await self.tracking.handle(building_id)  # its snapshot and batch log, from SQL
+                assert isinstance(worker, BuildingThread)  # a worker tracks on threads of its own process
                 owned.worker = worker
                 owned.last_read, owned.created = await asyncio.to_thread(self._stream_position, building_id)
 
@@ -312,7 +312,7 @@ class ClusterWorker:
     def _queue(self, building_id: str, owned: Owned, item: StreamedBatch) -> None:
         assert owned.worker is not None
         try:
-            reply_to, created, fields = messages.decode_batch(item.body)
+            reply_to, created, fields = messages.decode_stream_batch(item.body)
         except Exception:
             logger.exception(
                 "worker %s: message %d of %s is unreadable", self.worker_id, item.sequence, building_id

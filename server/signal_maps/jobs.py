@@ -17,10 +17,10 @@ from pathlib import Path
 from typing import Any
 
 from schemas.signal_maps import SignalMapJob, SignalMapStatus
-from server.buildings.process import die_with
 from server.errors import ConflictError, NotFoundError, TooManyRequestsError
 from server.ingestion.convert import BuildingContext
 from server.ingestion.radio_maps import RECORD
+from server.process_lifetime import die_with
 from server.signal_maps.build import build_signal_maps
 
 MAX_PENDING_BUILDS = 4

@@ -82,8 +82,8 @@ def test_a_scenario_that_cannot_be_calibrated_is_a_clear_error(
 def test_every_evaluation_runs_through_the_tracker(small_scenario: Path, tmp_path: Path) -> None:
     """A small crowd's phones (8 walking 40 m, so that some meet) one batch at a time through the server's
     tracker: one estimate per batch with steps, human anchors applied in dynamicslam and none in
-    semanticslam, both better than plain dead reckoning. ``--through-tracker`` is accepted and changes
-    nothing; the same command gives the same figures, another filter seed other ones."""
+    semanticslam, both better than plain dead reckoning; the same command gives the same figures, another
+    filter seed other ones."""
     raw = json.loads(small_scenario.read_text())
     raw["users"]["count"] = 8
     crowd = tmp_path / "crowd.json"
@@ -108,7 +108,7 @@ def test_every_evaluation_runs_through_the_tracker(small_scenario: Path, tmp_pat
         return r["median_m"], r["p90_m"], r["n_estimates"]
 
     first = results["dynamicslam"]
-    assert figures("--through-tracker") == (first["median_m"], first["p90_m"], first["n_estimates"])
+    assert figures() == (first["median_m"], first["p90_m"], first["n_estimates"])
     other = figures("--filter-seed", "7")
     assert other[2] == first["n_estimates"]  # the same world and phones
     assert other[:2] != (first["median_m"], first["p90_m"])  # other filters' draws

@@ -26,10 +26,10 @@ def test_a_building_worker_refuses_calls_it_does_not_offer() -> None:
 
     import pytest
 
-    from server.buildings.workers import CALLS, BuildingWorker
+    from server.buildings.handles import CALLS, BuildingThread
 
     assert "process" not in CALLS  # batches go through submit, in order
-    worker = BuildingWorker.__new__(BuildingWorker)  # the check comes before the session is touched
+    worker = BuildingThread.__new__(BuildingThread)  # the check comes before the session is touched
     with pytest.raises(
         ValueError, match="unknown building call 'process'; valid: anchors, assign_device, context"
     ):

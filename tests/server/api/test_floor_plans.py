@@ -18,7 +18,7 @@ PLAN = "/v1/buildings/hq/floors/0/plan"
 
 def _tracked_plan(api: Api) -> object:
     """The plan the building's tracker weighs steps with (None: none)."""
-    worker: Any = api.client.app.state.crowdslam.tracking.workers["hq"]  # type: ignore[attr-defined]
+    worker: Any = api.client.app.state.crowdslam.tracking.handles["hq"]  # type: ignore[attr-defined]
     return worker.building.tracker.engine.floor_plan
 
 
@@ -42,7 +42,7 @@ def test_a_plan_is_stored_served_and_tracked(api: Api) -> None:
 
         again = stack.enter_context(TestClient(create_app(api.settings)))
         again.get("/v1/buildings/hq/anchors", headers=op)  # loads the building
-        worker: Any = again.app.state.crowdslam.tracking.workers["hq"]  # type: ignore[attr-defined]
+        worker: Any = again.app.state.crowdslam.tracking.handles["hq"]  # type: ignore[attr-defined]
         assert worker.building.tracker.engine.floor_plan.walls.shape == (5, 4)
 
 

@@ -93,5 +93,5 @@ def test_a_phone_without_a_fix_is_placed_by_the_buildings_radio_map(cold_api: Ap
     assert all(r["estimate"] is None for r in receipts[:placed_at])  # nothing reported before
     last = receipts[-1]["estimate"]
     assert abs(last["position"]["x_m"] - x) < 5.0
-    worker: Any = api.client.app.state.crowdslam.tracking.workers["hq"]  # type: ignore[attr-defined]
-    assert worker.building.tracker._radio_map_id == "build1"  # loaded with the building
+    worker: Any = api.client.app.state.crowdslam.tracking.handles["hq"]  # type: ignore[attr-defined]
+    assert worker.building.tracker.radio_map_id == "build1"  # loaded with the building

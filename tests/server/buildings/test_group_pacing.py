@@ -1,7 +1,7 @@
 """A busy building gathers the batches that arrive while it works into its next group (``GroupPacing``):
 a crowd's batches share groups (one a linger instead of one a batch), while a phone posting alone, or a
 replay posting each batch after the last one's receipt, never waits; in a building's thread
-(``BuildingWorker``) and in a building's process (``_BuildingLoop``) alike."""
+(``BuildingThread``) and in a building's process (``_BuildingLoop``) alike."""
 
 from __future__ import annotations
 
@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 
 from server.buildings import process as building_process
+from server.buildings.handles import BuildingThread, GroupPacing
 from server.buildings.process import _BuildingLoop, _frame
 from server.buildings.submissions import GroupResult
-from server.buildings.workers import BuildingWorker, GroupPacing
 from server.live.broadcast import Broadcaster
 
 
@@ -66,7 +66,7 @@ class _Building:
         pass
 
 
-async def _crowd(worker: BuildingWorker, batches: int, every_s: float) -> list[float]:
+async def _crowd(worker: BuildingThread, batches: int, every_s: float) -> list[float]:
     """A batch every ``every_s`` on average, at random as a crowd's phones post, each awaited apart; the
     seconds each waited for its receipt."""
     gaps = np.random.default_rng(0).exponential(every_s, batches)
@@ -87,7 +87,7 @@ async def _crowd(worker: BuildingWorker, batches: int, every_s: float) -> list[f
 def test_a_crowd_shares_groups_and_waits_no_longer_than_the_linger(linger_s: float) -> None:
     async def main() -> tuple[list[int], list[float]]:
         building = _Building(linger_s)
-        worker = BuildingWorker(building, Broadcaster())  # type: ignore[arg-type]
+        worker = BuildingThread(building, Broadcaster())  # type: ignore[arg-type]
         waits = await _crowd(worker, 120, 0.005)  # 200 batches a second, 2 ms a group
         await worker.close()
         return building.groups, waits
@@ -104,7 +104,7 @@ def test_a_crowd_shares_groups_and_waits_no_longer_than_the_linger(linger_s: flo
 def test_a_phone_posting_alone_never_waits() -> None:
     async def main() -> tuple[list[int], float]:
         building = _Building(0.5)
-        worker = BuildingWorker(building, Broadcaster())  # type: ignore[arg-type]
+        worker = BuildingThread(building, Broadcaster())  # type: ignore[arg-type]
         started = time.monotonic()
         for _ in range(20):  # each after the last one's receipt, as a replay posts
             await worker.submit(object())  # type: ignore[arg-type]

@@ -85,7 +85,7 @@ def test_an_unknown_building_starts_no_process(process_api: Api) -> None:
     device = api.key("hq", "device", "phone-1")
     r = api.client.get("/v1/buildings/elsewhere/anchors", headers=api.auth(api.operator))
     assert r.status_code == 404
-    assert api.client.app.state.crowdslam.tracking.workers == {}  # type: ignore[attr-defined]
+    assert api.client.app.state.crowdslam.tracking.handles == {}  # type: ignore[attr-defined]
     assert (
         api.client.post("/v1/buildings/hq/batches", json=_batch(0), headers=api.auth(device)).status_code
         == 200
@@ -104,7 +104,7 @@ def test_a_dead_building_process_is_started_again_from_its_snapshot_and_log(proc
             == "applied"
         )
     tracking = api.client.app.state.crowdslam.tracking  # type: ignore[attr-defined]
-    first = tracking.workers["hq"]
+    first = tracking.handles["hq"]
     os.kill(first.pid, signal.SIGKILL)
     deadline = time.monotonic() + 30
     while first.alive and time.monotonic() < deadline:
@@ -114,7 +114,7 @@ def test_a_dead_building_process_is_started_again_from_its_snapshot_and_log(proc
     retry = api.client.post("/v1/buildings/hq/batches", json=_batch(2), headers=api.auth(device))
     assert retry.status_code == 200, retry.text
     assert retry.json()["status"] == "duplicate"
-    assert tracking.workers["hq"] is not first
+    assert tracking.handles["hq"] is not first
     nxt = api.client.post("/v1/buildings/hq/batches", json=_batch(3), headers=api.auth(device)).json()
     assert nxt["status"] == "applied"
     assert nxt["tracking"] is True  # the filter came back: no new fix needed
@@ -133,7 +133,7 @@ def test_a_clean_shutdown_snapshots_every_building_process(tmp_path: Path) -> No
         for seq in range(3):
             client.post("/v1/buildings/hq/batches", json=_batch(seq), headers=api.auth(device))
         assert _logged_and_snapshots(url)[0] == 3  # acknowledged, not yet covered by a snapshot
-        worker = client.app.state.crowdslam.tracking.workers["hq"]  # type: ignore[attr-defined]
+        worker = client.app.state.crowdslam.tracking.handles["hq"]  # type: ignore[attr-defined]
     assert _logged_and_snapshots(url) == (0, 1)
     assert not worker._process.is_alive()
 
@@ -150,7 +150,7 @@ def test_the_kernels_are_compiled_once_in_a_child_before_the_server_takes_reques
     ):
         assert client.get("/healthz").status_code == 200
         assert any(r.getMessage().startswith("kernels compiled into the cache in") for r in caplog.records)
-        assert client.app.state.crowdslam.tracking.workers == {}  # type: ignore[attr-defined]
+        assert client.app.state.crowdslam.tracking.handles == {}  # type: ignore[attr-defined]
 
 
 def _exit_three(settings: Settings, steps: object) -> None:

@@ -14,8 +14,8 @@ from sqlalchemy import Engine, func, select
 from schemas.anchors import KnownAnchorIn
 from schemas.common import Position
 from server.buildings.config import Retention, TrackingConfig
+from server.buildings.host import BuildingHost
 from server.buildings.submissions import Submission
-from server.buildings.tracking import BuildingTracking
 from server.engine.config import load_calibration, tracker_params
 from server.settings import Settings
 from server.simulation.phones import KnownAnchor, known_anchors, simulated_batches
@@ -49,14 +49,14 @@ def _building(
     snapshot_period_s: float = math.inf,
     n_particles: int | None = None,
     retention: Retention | None = None,
-) -> BuildingTracking:
+) -> BuildingHost:
     tp = tracker_params(SETTINGS)
     if n_particles is not None:
         tp = replace(tp, filter=replace(tp.filter, n_particles=n_particles))
     config = TrackingConfig(
         tp, load_calibration(None), SETTINGS.seed, snapshot_period_s, retention or Retention()
     )
-    return BuildingTracking("hq", make_session_factory(engine), config)
+    return BuildingHost("hq", make_session_factory(engine), config)
 
 
 def _fresh_building(url: str) -> Engine:
@@ -67,7 +67,7 @@ def _fresh_building(url: str) -> Engine:
     return engine
 
 
-def _pin_known(session: BuildingTracking) -> None:
+def _pin_known(session: BuildingHost) -> None:
     for k, anchor in enumerate(KNOWN):
         body = KnownAnchorIn(
             type=anchor.type, position=Position(x_m=anchor.position[0], y_m=anchor.position[1])
@@ -75,7 +75,7 @@ def _pin_known(session: BuildingTracking) -> None:
         session.put_known_anchor(f"known-{k}", body)
 
 
-def _estimates(session: BuildingTracking) -> dict[str, object]:
+def _estimates(session: BuildingHost) -> dict[str, object]:
     return {u: session.latest_estimate(u) for u in session.tracker.users}
 
 
@@ -281,7 +281,7 @@ def test_idle_users_are_forgotten_at_a_snapshot_and_stay_forgotten_after_a_resta
 
     engine = _fresh_building(sqlite_url)
 
-    def session() -> BuildingTracking:
+    def session() -> BuildingHost:
         return _building(engine, retention=Retention(user_idle_s=1e-9))
 
     first = session()

@@ -142,13 +142,12 @@ class Cluster:
         the same id."""
         import nats
 
-        from server.buildings.process import batch_fields
-        from server.buildings.submissions import Submission
+        from server.buildings.submissions import Submission, batch_fields
         from server.cluster import messages
         from server.cluster.batch_stream import BatchStream
 
         raw = batch.model_dump_json(exclude_none=True).encode()
-        body = messages.encode_batch(
+        body = messages.encode_stream_batch(
             "crowdslam.receipts.gone.0",
             "1999-01-01T00:00:00+00:00",
             batch_fields(Submission.of(batch, raw, time.time_ns())),

@@ -30,7 +30,7 @@ from server.simulation.phones import simulated_batches
 from server.store.db import make_engine, make_session_factory
 from server.store.migrate import upgrade
 from server.store.models import BuildingRow
-from server.buildings.tracking import BuildingTracking
+from server.buildings.host import BuildingHost
 from slam_core.filter.kernels.serial import PARALLEL_MIN_USERS
 from slam_core.sim.simulation import simulate
 from tests.server.recordings.test_recorder import small_crowd
@@ -55,7 +55,7 @@ with tempfile.TemporaryDirectory() as tmp:
     sessions = make_session_factory(engine)
     with sessions.begin() as session:
         session.add(BuildingRow(id="b", name="b", rotation_rad=0.0))
-    building = BuildingTracking("b", sessions, TrackingConfig(params, calibration))
+    building = BuildingHost("b", sessions, TrackingConfig(params, calibration))
     groups = {{}}
     for batch in simulated_batches(simulate(small_crowd(users=23, walk_m=150.0), 3), "b"):
         groups.setdefault((batch.time_span_ms() or (0, 0))[1], []).append(batch)

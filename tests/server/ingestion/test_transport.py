@@ -16,8 +16,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from schemas.sensors import SensorBatch
-from server.buildings.process import batch_fields, received_batch
-from server.buildings.submissions import BatchHeader, Submission
+from server.buildings.submissions import BatchHeader, Submission, batch_fields, received_batch
 from server.errors import InvalidInputError
 from server.ingestion import convert
 from server.ingestion import transport as batch_transport

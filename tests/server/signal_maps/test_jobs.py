@@ -126,11 +126,11 @@ def test_a_build_from_recordings_serves_maps(sqlite_api: Api) -> None:
     radio = json.loads(api.client.get(f"{base}/radio_map.json", headers=op).content)["scans"]
     assert len(radio) == 20  # a scan every 2 s of two 20 s walks
     assert all(abs(s["y_m"]) < 1.0 and set(s["aps"]) <= set(APS) for s in radio)
-    tracker: Any = api.client.app.state.crowdslam.tracking.workers["hq"].building.tracker  # type: ignore[attr-defined]
+    tracker: Any = api.client.app.state.crowdslam.tracking.handles["hq"].building.tracker  # type: ignore[attr-defined]
     deadline = time.monotonic() + 10
-    while tracker._radio_map_id != job["id"] and time.monotonic() < deadline:
+    while tracker.radio_map_id != job["id"] and time.monotonic() < deadline:
         time.sleep(0.05)
-    assert tracker._radio_map_id == job["id"]
+    assert tracker.radio_map_id == job["id"]
     assert tracker.fingerprints.map._per_owner[SURVEY_OWNER] >= 5  # at most 4 a 4 m cell: the 28 m corridor
 
 

@@ -1,9 +1,9 @@
 """A building's worker: what the API submits batches and anchor edits to, one building at a time.
 
-``BuildingWorker`` runs the building on a thread of this process: requests enqueue and await their receipt;
+``BuildingThread`` runs the building on a thread of this process: requests enqueue and await their receipt;
 the building's task drains the queue into a group, runs it in the building's thread (numba kernels release
 the GIL, SQL waits on I/O) and publishes the group's live messages. ``server.buildings.process`` runs the
-same behind the same ``Worker`` protocol in a process of its own.
+same behind the same ``BuildingHandle`` protocol in a process of its own.
 """
 
 from __future__ import annotations
@@ -21,8 +21,8 @@ import numba
 
 from schemas.live import LiveMessage
 from server.buildings.counters import Counters
+from server.buildings.host import BuildingHost
 from server.buildings.submissions import Submission
-from server.buildings.tracking import BuildingTracking
 from server.errors import ProblemError, ServiceUnavailableError
 from server.live.broadcast import Broadcaster
 from slam_core.geo import GeoFrame
@@ -44,12 +44,18 @@ CALLS = frozenset(
         "context",
     }
 )
-"""The building's methods the API may call (``BuildingWorker.call``), in order with its batches."""
+"""The building's methods the API may call (``BuildingThread.call``), in order with its batches."""
 
 
-class Worker(Protocol):
-    """What the API sees of a building: ``BuildingWorker`` (a thread of this process) or
-    ``server.buildings.process.ProcessBuildingWorker`` (a process of its own)."""
+def check_call(name: str) -> None:
+    """Refuse a call of anything but one of the building's ``CALLS``, wherever a call is taken or sent."""
+    if name not in CALLS:
+        raise ValueError(f"unknown building call {name!r}; valid: {', '.join(sorted(CALLS))}")
+
+
+class BuildingHandle(Protocol):
+    """What the API sees of a building: ``BuildingThread`` (a thread of this process) or
+    ``server.buildings.process.BuildingProcess`` (a process of its own)."""
 
     alive: bool
     latency: LatencyWindow
@@ -117,9 +123,9 @@ class LatencyWindow:
             del self.values[: len(self.values) - self.limit]
 
 
-class BuildingWorker:
+class BuildingThread:
     def __init__(
-        self, building: BuildingTracking, broadcaster: Broadcaster, kernel_threads: int | None = None
+        self, building: BuildingHost, broadcaster: Broadcaster, kernel_threads: int | None = None
     ) -> None:
         """``kernel_threads``: the numba threads the building's kernels may use (default: numba's, every
         core); a cluster worker gives each building one, as a building's process does."""
@@ -167,8 +173,7 @@ class BuildingWorker:
     async def call(self, name: str, *args: Any) -> Any:
         """Run one of the building's ``CALLS`` on the building's thread (anchor edits stay ordered with
         batches)."""
-        if name not in CALLS:
-            raise ValueError(f"unknown building call {name!r}; valid: {', '.join(sorted(CALLS))}")
+        check_call(name)
         method = getattr(self.building, name)
         return await asyncio.get_running_loop().run_in_executor(self._executor, lambda: method(*args))
 
@@ -214,10 +219,7 @@ class BuildingWorker:
     def _process(self, group: list[Submission]) -> tuple[list[bytes | ProblemError], list[LiveMessage]]:
         """On the building's thread: the group, with its receipts serialised there."""
         result = self.building.process(group)
-        receipts = [
-            r if isinstance(r, ProblemError) else r.model_dump_json().encode() for r in result.receipts
-        ]
-        return receipts, result.messages
+        return result.wire_receipts(), result.messages
 
     async def close(self) -> None:
         # a clean stop leaves nothing to replay: the next start loads this snapshot and an empty log

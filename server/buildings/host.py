@@ -1,6 +1,6 @@
 """One owner per building: its tracker, its anchor map in SQL, and the batch path of GUIDE.md.
 
-``BuildingTracking`` is synchronous and used only from its building's single worker thread, so a building's
+``BuildingHost`` is synchronous and used only from its building's single worker thread, so a building's
 batches and anchor edits are applied one group at a time, in arrival order. Batches that arrive while a
 group is being processed form the next group: under load, one engine call and one transaction serve many
 phones.
@@ -53,7 +53,7 @@ from slam_core.tracking.tracker import EstimateRow, UserBatch
 logger = logging.getLogger(__name__)
 
 
-class BuildingTracking(RecoverableBuilding):
+class BuildingHost(RecoverableBuilding):
     """A building's batch path and its operator's anchor edits, on its recoverable tracking state."""
 
     def __init__(
@@ -493,7 +493,7 @@ def tracking_config(settings: Settings) -> TrackingConfig:
     )
 
 
-def open_building(settings: Settings, building_id: str, engine: Engine | None = None) -> BuildingTracking:
+def open_building(settings: Settings, building_id: str, engine: Engine | None = None) -> BuildingHost:
     """A building's tracking as the settings describe it, on its own database engine (a building's
     process; ``engine``: that engine, made by the caller, who disposes of it), its write-ahead log
     checkpointed beside the batch path; raises NotFoundError for an unknown building."""
@@ -501,4 +501,4 @@ def open_building(settings: Settings, building_id: str, engine: Engine | None = 
     checkpoint_in_background(engine, settings.sqlite_checkpoint_period_s)  # stops when the process does
     sessions = make_session_factory(engine)
     recorder = BuildingRecorder(settings.recordings_dir, building_id) if settings.record else None
-    return BuildingTracking(building_id, sessions, tracking_config(settings), recorder)
+    return BuildingHost(building_id, sessions, tracking_config(settings), recorder)

@@ -1,0 +1,19 @@
+"""A process the server starts (a building's, a signal-map build's) lives no longer than the server."""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import os
+import signal
+import sys
+
+
+def die_with(parent_pid: int) -> None:
+    """Be killed when the process that started this one dies (Linux); elsewhere the caller notices otherwise
+    (a building's closed socket ends its loop)."""
+    if sys.platform.startswith("linux"):
+        with contextlib.suppress(OSError, AttributeError):
+            ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    if os.getppid() != parent_pid:  # the parent died before the line above
+        os._exit(0)
