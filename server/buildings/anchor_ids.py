@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from slam_core.crowd.anchor_map import CrowdMapBuilder
+
 
 class AnchorIds:
     """Public id <-> crowd index, with each anchor's label. Anchors the crowd found get ``a-<n>`` ids when
@@ -27,3 +29,14 @@ class AnchorIds:
                 self._next += 1
             self.link(index, f"a-{self._next}", None)
         return self.public[index]
+
+    def known_positions(self, crowd: CrowdMapBuilder) -> dict[str, tuple[float, float]]:
+        """The live anchors operators pinned, by public id: where converting a batch finds an anchor reading's
+        position."""
+        known = {}
+        for public_id, index in self.index.items():
+            if crowd.is_live(index):
+                mean, _, _, is_known, _, _ = crowd.anchor(index)
+                if is_known:
+                    known[public_id] = (float(mean[0]), float(mean[1]))
+        return known

@@ -12,6 +12,7 @@ import dataclasses
 import logging
 import math
 import time
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import Literal
 
@@ -24,8 +25,10 @@ from schemas.api import BatchReceipt
 from schemas.estimates import EncounterEvent, Estimate, EstimateSource
 from schemas.floor_plans import FloorPlan
 from schemas.live import AnchorMessage, EncounterMessage, LiveMessage, PositionMessage, UserForgottenMessage
+from server.buildings import snapshot as tracker_snapshot
 from server.buildings.config import Retention, TrackingConfig
-from server.buildings.recovery import TRACKED_LEVEL, RecoverableBuilding
+from server.buildings.counters import Counters
+from server.buildings.recovery import TRACKED_LEVEL, Recovery, load_radio_map
 from server.buildings.rows import anchor_row, position_row
 from server.buildings.submissions import BatchHeader, GroupResult, Submission
 from server.engine.config import load_calibration, tracker_params
@@ -53,8 +56,9 @@ from slam_core.tracking.tracker import EstimateRow, UserBatch
 logger = logging.getLogger(__name__)
 
 
-class BuildingHost(RecoverableBuilding):
-    """A building's batch path and its operator's anchor edits, on its recoverable tracking state."""
+class BuildingHost:
+    """A building's batch path and its operator's anchor edits, over its tracker; its ``Recovery`` loads it
+    and writes its snapshots. Used from the building's single worker thread only."""
 
     def __init__(
         self,
@@ -63,11 +67,124 @@ class BuildingHost(RecoverableBuilding):
         config: TrackingConfig,
         recorder: BuildingRecorder | None = None,
     ) -> None:
+        self.building_id = building_id
         self.recorder = recorder
+        self.retention = config.retention
+        self.group_linger_s = config.group_linger_s
+        self._sessions = sessions
+        self.counters = Counters()
+        self._config = config
         self._last_prune = -math.inf
-        super().__init__(building_id, sessions, config)
+        self._last_heard: dict[str, float] = {}  # user -> wall time of its last applied batch
+        self.recovery = Recovery(building_id, sessions, config, self.counters)
+        self._load()
         with sessions() as session:
             self._writer_turns = writer_turns(session.get_bind().engine)
+
+    # ------------------------------------------------------------------ loading and snapshots
+    def _load(self, snapshot_always: bool = True) -> None:
+        """The building as its SQL holds it (``Recovery.load``). Then a snapshot covering the whole log,
+        unless ``snapshot_always`` is off and the one in SQL was used: it still is the state before the log,
+        which the log replays to the same filters."""
+        loaded = self.recovery.load()
+        self.tracker = loaded.tracker
+        self.ids = loaded.ids
+        self._device_of_user = loaded.device_of_user
+        self._round = loaded.applied_round
+        self.devices = loaded.devices
+        self.geo = loaded.geo
+        self.extent = loaded.extent
+        self.replayed = loaded.replayed
+        """Batches the last load replayed from the batch log (none after a clean stop)."""
+        if snapshot_always or not loaded.restored:
+            self.snapshot(clear_log=True)  # it covers the whole log now
+
+    @property
+    def restore_problem(self) -> str | None:
+        """Why the building's last snapshot could not be used, if it could not."""
+        return self.recovery.restore_problem
+
+    def reload(self) -> None:
+        """Throw the in-memory state away and load the building again from SQL, exactly as a restart does:
+        what a rolled-back transaction had changed in the tracker is gone, what committed is all there."""
+        self.recovery.discard()  # a snapshot taken from the state thrown away is never written
+        self._load(snapshot_always=False)  # a reload pickles nothing: the snapshot in SQL is still right
+        self.counters.reloads += 1
+
+    def load_radio_map(self) -> int:
+        """Load the radio map of the building's latest finished signal-map build into the tracker's
+        fingerprints (once per build); returns the scans that joined."""
+        return load_radio_map(self.tracker, self._config.signal_maps_dir, self.building_id)
+
+    def context(self) -> convert.BuildingContext:
+        """What converting a batch needs of the building: its geo frame and its known anchors by id."""
+        return convert.BuildingContext(
+            self.building_id, self.geo, self.ids.known_positions(self.tracker.crowd), extent=self.extent
+        )
+
+    def building_state(self) -> tracker_snapshot.BuildingState:
+        """What a snapshot holds: the tracker and the building's bookkeeping, as of the last engine call."""
+        return tracker_snapshot.BuildingState(
+            self.tracker,
+            dict(self.ids.public),
+            dict(self.ids.labels),
+            dict(self._device_of_user),
+            self._round,
+        )
+
+    def snapshot(self, clear_log: bool = False) -> None:
+        """Snapshot now (on load, after operator edits, at shutdown); with ``clear_log`` the bodies it
+        covers are cleared in the same transaction, else a chunk per group from the next group on."""
+        with self._sessions.begin() as session:
+            rows = self._save_snapshot(session)
+            if clear_log:
+                self.recovery.clear_log(session, None)
+        self.devices.saved(rows)
+
+    def close(self) -> None:
+        """Snapshot now and stop the snapshot thread (a clean stop leaves nothing to replay)."""
+        self.snapshot(clear_log=True)
+        self.recovery.close()
+
+    def abandon(self) -> None:
+        """Stop without writing anything: the building is another worker's now (its lease was lost)."""
+        self.recovery.close()  # drops the pending snapshot unwritten
+
+    def _save_snapshot(self, session: Session) -> list[dict[str, object]]:
+        """Write the snapshot and the devices' last sequence numbers in the caller's transaction; returns the
+        device rows written (the ledger counts them saved once the transaction commits)."""
+        rows = self._snapshot_start(session)
+        self.recovery.write(session, self.building_state())
+        return rows
+
+    def _periodic_snapshot(self, session: Session) -> list[dict[str, object]]:
+        """In a group's transaction: write the snapshot compressed since an earlier group, or take one when
+        due. Returns the device rows written."""
+        if self.recovery.write_ready(session) or not self.recovery.due:
+            return []
+        rows = self._snapshot_start(session)
+        self.recovery.take(self.building_state())
+        return rows
+
+    def _snapshot_start(self, session: Session) -> list[dict[str, object]]:
+        """Before a snapshot: idle users forgotten, the devices' unsaved rows written."""
+        self._evict_idle_users()
+        rows = self.devices.unsaved_rows()
+        repo.upsert_devices(session, rows)
+        return rows
+
+    def _evict_idle_users(self) -> None:
+        """Forget the users not heard from for ``Retention.user_idle_s`` (right before a snapshot)."""
+        idle_s = self.retention.user_idle_s
+        if idle_s is None:
+            return
+        now = time.time()
+        idle = [u for u in self.tracker.users if now - self._last_heard.setdefault(u, now) > idle_s]
+        if idle:
+            self.tracker.remove_users(idle)
+            for u in idle:
+                del self._last_heard[u]
+            self.counters.users_evicted += len(idle)
 
     # ------------------------------------------------------------------ anchors
     def anchor(self, index: int) -> BuildingAnchor:
@@ -324,9 +441,13 @@ class BuildingHost(RecoverableBuilding):
             for call in sorted(by_call):
                 now = by_call[call]
                 self._round = base + call
-                self._apply(session, group, converted, now, results, messages, estimates_to_record)
+                applied = self._apply(session, group, converted, now)
+                for i, receipt in applied.receipts.items():
+                    results[i] = receipt
+                messages += applied.messages
+                estimates_to_record.append((applied.estimates, group[now[0]].received_ns))
             device_rows += self._periodic_snapshot(session)
-            self._clear_log(session, max(1, int(self.retention.log_clear_per_batch * len(group))))
+            self.recovery.clear_log(session, max(1, int(self.retention.log_clear_per_batch * len(group))))
             if time.monotonic() - self._last_prune >= self.retention.prune_period_s:
                 self._prune(session)
         self.devices.saved(device_rows)
@@ -347,12 +468,10 @@ class BuildingHost(RecoverableBuilding):
         group: list[Submission],
         converted: dict[int, tuple[UserBatch, list[str]]],
         now: list[int],
-        results: list[BatchReceipt | ProblemError | None],
-        messages: list[LiveMessage],
-        estimates_to_record: list[tuple[list[Estimate], int]],
-    ) -> None:
-        """One engine call over these batches (at most one per user); their receipts, positions, anchor
-        changes and live messages, and the estimates to record once the transaction commits."""
+    ) -> _Applied:
+        """One engine call over the batches ``now`` (indices into ``group``, at most one per user): their
+        positions and anchor changes written in ``session``; their receipts, the live messages, and the
+        estimates to record once the transaction commits."""
         outcome = self.tracker.apply([converted[i][0] for i in now])
         heard = time.time()
         for i in now:
@@ -363,7 +482,7 @@ class BuildingHost(RecoverableBuilding):
         self.counters.encounter_detections += outcome.detections
         estimates = {u: self._estimate(u, row) for u, row in outcome.estimates.items()}
         self.counters.estimates += len(estimates)
-        estimates_to_record.append((list(estimates.values()), group[now[0]].received_ns))
+        messages: list[LiveMessage] = []
         stored_at_ms = int(heard * 1000)
         rows = [position_row(self.building_id, e, stored_at_ms) for e in estimates.values()]
         repo.add_positions(session, rows)
@@ -379,6 +498,7 @@ class BuildingHost(RecoverableBuilding):
             by_user.setdefault(e.user_a, []).append(e)
             if e.user_b != e.user_a:
                 by_user.setdefault(e.user_b, []).append(e)
+        receipts: dict[int, BatchReceipt] = {}
         for i in now:
             b = group[i].header
             report = outcome.reports[converted[i][0].user]
@@ -400,9 +520,10 @@ class BuildingHost(RecoverableBuilding):
                 )
             if report.steps_dropped:
                 warnings.append(_dropped_warning(report.steps_dropped, report.status))
-            results[i] = self._receipt(
+            receipts[i] = self._receipt(
                 b, "applied", warnings, estimates.get(b.effective_user_id), by_user.get(b.effective_user_id)
             )
+        return _Applied(receipts, messages, list(estimates.values()))
 
     def _pass_over(self, sub: Submission) -> None:
         """A streamed batch that failed alone is still passed in the stream, so that the next owner of the
@@ -463,6 +584,16 @@ class BuildingHost(RecoverableBuilding):
             encounters=encounters or [],
             warnings=warnings,
         )
+
+
+@dataclass(frozen=True)
+class _Applied:
+    """What one engine call over a group's batches gives: their receipts (by index in the group), the live
+    messages, and the estimates to record."""
+
+    receipts: dict[int, BatchReceipt]
+    messages: list[LiveMessage]
+    estimates: list[Estimate]
 
 
 def _dropped_warning(n: int, status: str) -> str:

@@ -158,7 +158,7 @@ def test_a_snapshot_compressed_in_the_background_covers_its_own_engine_calls_onl
     assert _snapshot_round(engine) == loaded_round
     assert _logged(engine) == len(g0)
     taken_at = session._round
-    session._background.wait()
+    session.recovery.wait()
     session.process(g1)  # writes it: g0 is covered, g1 is not
     assert _snapshot_round(engine) == taken_at
     assert _logged(engine) == len(g1) == _logged_after(engine, taken_at)
@@ -185,7 +185,7 @@ def test_a_log_cleared_slower_than_it_grows_replays_from_the_snapshots_round_onl
     session = _building(engine, snapshot_period_s=0.0, retention=Retention(log_clear_per_batch=0.5))
     for group in groups:
         session.process(group)
-        session._background.wait()
+        session.recovery.wait()
     after_snapshot = _logged_after(engine, _snapshot_round(engine))
     assert session.counters.log_bodies_cleared > 0
     assert _logged(engine) > after_snapshot  # covered bodies not cleared yet
