@@ -32,7 +32,7 @@ from report import emit
 from server.datasets.msindoor import FloorInfo
 from slam_core.filter import reference
 from slam_core.filter.dynamic_slam import DynamicSlam
-from slam_core.filter.floor_plan import FloorPlan
+from slam_core.filter.floor_plan import PlanIndex
 from slam_core.filter.kernels.serial import PARALLEL_MIN_USERS
 from slam_core.filter.params import FilterParams
 
@@ -71,7 +71,7 @@ def bench_motion(engine: DynamicSlam, users: np.ndarray, rng: np.random.Generato
     return _median_ms(tick, 7)
 
 
-def _mall_floor(floor: Path) -> tuple[FloorInfo, FloorPlan]:
+def _mall_floor(floor: Path) -> tuple[FloorInfo, PlanIndex]:
     """A floor of the Indoor Location 2.0 data set and the engine's index of its plan."""
     from server.datasets.msindoor import read_floor, read_floor_plan
     from server.ingestion.floor_plans import engine_plan
@@ -83,7 +83,7 @@ def _mall_floor(floor: Path) -> tuple[FloorInfo, FloorPlan]:
     return info, engine_plan(wire)
 
 
-def bench_motion_plan(n_users: int, params: FilterParams, plan: FloorPlan) -> tuple[float, float]:
+def bench_motion_plan(n_users: int, params: FilterParams, plan: PlanIndex) -> tuple[float, float]:
     """The motion update of users spread over a mall floor's walkable area, without and with its plan (the
     plan's update also resamples the users whose weights the walls spread): medians of alternating runs."""
     rng = np.random.default_rng(1)
@@ -120,7 +120,7 @@ def _walked_steps(waypoints: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nda
 
 
 def bench_motion_plan_walks(
-    n_users: int, params: FilterParams, info: FloorInfo, plan: FloorPlan
+    n_users: int, params: FilterParams, info: FloorInfo, plan: PlanIndex
 ) -> tuple[float, float, float]:
     """The motion update of users walking the floor's surveyed walks (each user one walk, from a random point
     of it, out and back), with each phone's dead-reckoning error as measured on these walks (a heading bias

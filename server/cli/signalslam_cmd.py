@@ -43,7 +43,7 @@ def run(args: argparse.Namespace) -> int:
 
     from server.datasets.msindoor import TraceFormatError
     from server.datasets.msindoor_signalslam import run_signalslam
-    from slam_core.signalslam.graph import MODALITIES, GraphParams
+    from slam_core.signalslam.graph import MODALITIES, SignalGraphParams
 
     if args.folds < 2:
         print("crowdslam signalslam: --folds must be at least 2")
@@ -62,7 +62,7 @@ def run(args: argparse.Namespace) -> int:
         try:
             run_ = run_signalslam(
                 args.msindoor,
-                GraphParams(modalities=modalities, solver=args.solver),
+                SignalGraphParams(modalities=modalities, solver=args.solver),
                 folds=args.folds,
                 progress=progress,
             )

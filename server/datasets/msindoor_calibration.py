@@ -33,7 +33,7 @@ from slam_core.sensing.pdr.online import ImuSamples, PdrParams, PdrState, pdr_st
 from slam_core.signalslam.windows import rss_matrix
 from slam_core.wifi.pairs import (
     STALE_AP_MS,
-    eq3_matrix,
+    dense_eq3_matrix,
     fingerprint_matrix,
     precision_at_recall,
     precision_recall,
@@ -123,7 +123,7 @@ def cross_walk_pairs(scans: LabelledScans, eq3: WifiEq3Params) -> Pairs:
     other = scans.walk[i] != scans.walk[j]
     i, j = i[other], j[other]
     distance = np.linalg.norm(scans.xy[i] - scans.xy[j], axis=1)
-    eq3_sim = eq3_matrix(scans.rss, eq3.strongest_n, eq3.min_common)[i, j]
+    eq3_sim = dense_eq3_matrix(scans.rss, eq3.strongest_n, eq3.min_common)[i, j]
     fingerprint = fingerprint_matrix(scans.rss)[i, j]
     return Pairs(distance, {"eq3": eq3_sim, "fingerprint": fingerprint})
 

@@ -40,7 +40,7 @@ from server.ingestion.convert import BuildingContext, to_user_batch
 from server.ingestion.floor_plans import engine_plan
 from server.ingestion.radio_maps import RadioMap
 from slam_core.encounters.models import Calibration
-from slam_core.filter.floor_plan import FloorPlan as EnginePlan
+from slam_core.filter.floor_plan import PlanIndex
 from slam_core.sim.statistics import error_summary
 from slam_core.tracking.tracker import BuildingTracker, TrackerParams, UserBatch
 
@@ -219,7 +219,7 @@ def replay_floor(
     return result, errors
 
 
-def _plan_reading(reading: PlanReading, index: EnginePlan | None, traces: list[Trace]) -> dict[str, Any]:
+def _plan_reading(reading: PlanReading, index: PlanIndex | None, traces: list[Trace]) -> dict[str, Any]:
     """What of the floor's map the plan left out, and the share of every walk's surveyed waypoints inside
     its walkable area: a plan that does not line up with the floor shows here before it misleads a filter."""
     waypoints = np.concatenate([t.waypoints[:, 1:3] for t in traces])

@@ -21,7 +21,7 @@ import numpy as np
 from server.datasets.msindoor import Trace, read_floor, read_trace
 from slam_core.sensing.pdr.heading import with_final_offset
 from slam_core.sensing.pdr.online import ImuSamples, PdrParams, PdrState, pdr_steps
-from slam_core.signalslam.graph import GraphParams, Trajectories, Walk, position_at, solve
+from slam_core.signalslam.graph import SignalGraphParams, Trajectories, Walk, position_at, solve
 from slam_core.signalslam.maps import FingerprintGrid, fingerprint_grid, localise_kernel, localise_knn
 from slam_core.signalslam.windows import (
     WINDOW_STEP_MS,
@@ -130,7 +130,7 @@ class SignalSlamRun:
 
 def run_signalslam(
     floor_dir: Path,
-    params: GraphParams | None = None,
+    params: SignalGraphParams | None = None,
     folds: int = 5,
     progress: Callable[[str], None] | None = None,
 ) -> SignalSlamRun:
@@ -148,7 +148,7 @@ def run_signalslam(
         raise ValueError(f"{floor_dir}: no walk has an accelerometer, a rotation vector and two waypoints")
     prepared = [_with_windows(p, len(ap_index), len(beacon_index)) for p in prepared]
     say(f"optimising {len(prepared)} walks jointly (gtsam)")
-    trajectories = solve([p.walk for p in prepared], params or GraphParams())
+    trajectories = solve([p.walk for p in prepared], params or SignalGraphParams())
     result: dict[str, Any] = {"floor": str(floor_dir), "walks": len(prepared)}
     for name in ("raw", "calibrated", "graphslam", "signalslam"):
         errors = _checkpoint_errors(prepared, getattr(trajectories, name))

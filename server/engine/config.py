@@ -9,7 +9,6 @@ from importlib import resources
 from pathlib import Path
 
 from server.settings import Settings
-from slam_core.crowd.fingerprints import FingerprintParams
 from slam_core.encounters.models import Calibration, DetectionParams
 from slam_core.filter.params import (
     BuildingAnchorParams,
@@ -18,7 +17,7 @@ from slam_core.filter.params import (
     MotionParams,
     extended_confusion,
 )
-from slam_core.tracking.params import MODES, ColdStartParams, TrackerParams
+from slam_core.tracking.params import MODES, ColdStartParams, TrackerParams, in_mode
 
 
 def load_calibration(path: Path | None) -> Calibration:
@@ -32,16 +31,12 @@ def load_calibration(path: Path | None) -> Calibration:
 
 def tracker_params(settings: Settings) -> TrackerParams:
     n_types = len(extended_confusion(10))
-    return TrackerParams(
-        filter=FilterParams(
-            anchors=BuildingAnchorParams(confusion=extended_confusion(n_types)),
-            use_human_anchors=settings.mode == "dynamicslam",
-        ),
+    params = TrackerParams(
+        filter=FilterParams(anchors=BuildingAnchorParams(confusion=extended_confusion(n_types))),
         detection=DetectionParams(wifi_model=settings.encounter_wifi_model),
-        # other users' scans, like human anchors: off in semanticslam mode (building anchors only)
-        fingerprints=FingerprintParams(enabled=settings.fingerprint_fixes and settings.mode == "dynamicslam"),
         cold_start=ColdStartParams(enabled=settings.cold_start),
     )
+    return in_mode(params, settings.mode, settings.fingerprint_fixes)
 
 
 @dataclass(frozen=True)
@@ -91,20 +86,17 @@ def replay_params(base: TrackerParams, options: ReplayOptions) -> TrackerParams:
     """The server's tracker parameters (``base``) in the options' mode: ``pdr`` scores plain dead reckoning,
     ``semanticslam`` uses building anchors only, ``dynamicslam`` also human anchors and (unless the options
     turn them off) fixes on the crowd's WiFi fingerprint map, which come from other users' scans too."""
-    return replace(
+    params = replace(
         base,
         filter=replace(
             base.filter,
             n_particles=options.particles,
             motion=MotionParams(model=options.motion_model),
             human=HumanAnchorParams(sampling=options.sampling),
-            use_human_anchors=options.mode == "dynamicslam",
             floor_plan=replace(base.filter.floor_plan, heading_axes=options.heading_axes),
         ),
         crowd_solver=options.crowd_solver,
         # a scored walk without its start fix is placed by the crowd's map, whatever the server's default
         cold_start=replace(base.cold_start, enabled=base.cold_start.enabled or not options.start_fix),
-        fingerprints=replace(
-            base.fingerprints, enabled=options.fingerprints and options.mode == "dynamicslam"
-        ),
     )
+    return in_mode(params, options.mode, options.fingerprints)

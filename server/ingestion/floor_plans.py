@@ -9,7 +9,7 @@ import numpy as np
 
 from schemas.floor_plans import FloorPlan, PlanKind, Point
 from server.ingestion.extent import Extent
-from slam_core.filter.floor_plan import FloorPlan as EnginePlan
+from slam_core.filter.floor_plan import PlanIndex
 from slam_core.geo import GeoFrame
 
 
@@ -47,7 +47,7 @@ def map_positions(coordinates: Any, place: Callable[[Any], list[float]]) -> Any:
     return [map_positions(c, place) for c in coordinates]
 
 
-def engine_plan(plan: FloorPlan) -> EnginePlan:
+def engine_plan(plan: FloorPlan) -> PlanIndex:
     """The engine's index of a local-frame plan: walls from wall features and obstacles' outlines, the
     walkable area from walkable polygons (their outlines are not walls: a particle outside may come back)."""
     if plan.frame != "local":
@@ -66,4 +66,4 @@ def engine_plan(plan: FloorPlan) -> EnginePlan:
             points = np.asarray(line, dtype=np.float64)
             segments.append(np.hstack([points[:-1], points[1:]]))
     walls = np.concatenate(segments) if segments else np.zeros((0, 4))
-    return EnginePlan.build(walls, rings)
+    return PlanIndex.build(walls, rings)

@@ -32,7 +32,7 @@ from server.recordings.recorder import read_batches
 from slam_core.sensing.detectors import integrate_headings
 from slam_core.sensing.pdr.heading import with_final_offset
 from slam_core.sensing.pdr.online import PdrParams, PdrState, pdr_steps
-from slam_core.signalslam.graph import GraphParams, Walk, position_at, solve
+from slam_core.signalslam.graph import SignalGraphParams, Walk, position_at, solve
 from slam_core.signalslam.windows import (
     WINDOW_STEP_MS,
     rss_matrix,
@@ -203,8 +203,8 @@ def build_signal_maps(
     files: list[str], out_dir: str, ctx: BuildingContext, modalities: tuple[str, ...] = ("wifi",)
 ) -> dict[str, Any]:
     """Build and write the maps; returns the job's summary (segments, devices, files written). The
-    signal edges use ``modalities`` (``GraphParams.modalities``); the maps cover the most-heard WiFi APs and
-    LTE cells and the magnetic magnitude, whatever the recordings hold."""
+    signal edges use ``modalities`` (``SignalGraphParams.modalities``); the maps cover the most-heard WiFi
+    APs and LTE cells and the magnetic magnitude, whatever the recordings hold."""
 
     columns = _Columns()
     devices, skipped = _collect(files, ctx, columns)
@@ -214,7 +214,7 @@ def build_signal_maps(
             "no stretch of any device's steps lies between two landmarks (position fixes, known-anchor "
             "readings or tags with a position): SignalSLAM needs a landmark at each end of a walk"
         )
-    trajectories = solve([s.walk for s in segments], GraphParams(modalities=modalities))
+    trajectories = solve([s.walk for s in segments], SignalGraphParams(modalities=modalities))
     folder = Path(out_dir)
     folder.mkdir(parents=True, exist_ok=True)
     placed, rows, lte_xy, lte_rows, mag_xy, mag_values = [], [], [], [], [], []

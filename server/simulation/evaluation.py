@@ -45,7 +45,8 @@ def evaluate_scenario(
     estimate (metres)."""
     started = time.perf_counter()
     sim = simulate(scenario, options.seed)
-    tracker = BuildingTracker(replay_params(base_params, options), calibration, seed=options.tracker_seed)
+    params = replay_params(base_params, options)
+    tracker = BuildingTracker(params, calibration, seed=options.tracker_seed)
     known: dict[str, tuple[float, float]] = {}
     for k, anchor in enumerate(known_anchors(sim)):
         tracker.pin_anchor(np.array(anchor.position), anchor_type_index(anchor.type))
@@ -81,7 +82,7 @@ def evaluate_scenario(
         "particles": options.particles,
         "motion_model": options.motion_model,
         "crowd_solver": options.crowd_solver,
-        "fingerprints": options.fingerprints and options.mode == "dynamicslam",
+        "fingerprints": params.fingerprints.enabled,
         **error_summary(errors),
         "n_estimates": int(errors.size),
         "anchors_passed_per_user": sim.anchors_passed_per_user,

@@ -31,7 +31,7 @@ class _UserTrack:
 
 
 @dataclass(frozen=True)
-class GraphParams:
+class CrowdGraphParams:
     start_sigma_m: float = 0.5
     detection_sigma_m: float = 0.5
     drift_fraction: float = 0.03
@@ -51,8 +51,8 @@ class GraphProblem:
 
 
 class CrowdGraph:
-    def __init__(self, params: GraphParams | None = None) -> None:
-        self.params = params or GraphParams()
+    def __init__(self, params: CrowdGraphParams | None = None) -> None:
+        self.params = params or CrowdGraphParams()
         self._users: dict[int, _UserTrack] = {}
         self._known: dict[int, np.ndarray] = {}
         # the last solution's heading bias and step scale per user: warm starts of the next solve

@@ -13,7 +13,7 @@ import numpy as np
 from scipy.special import logsumexp
 
 from slam_core.filter.dense_ids import unique_ints
-from slam_core.filter.floor_plan import FloorPlan
+from slam_core.filter.floor_plan import PlanIndex
 from slam_core.filter.kernels.building import (
     building_anchor_update,
     building_anchor_update_serial,
@@ -40,7 +40,7 @@ from slam_core.filter.params import FilterParams
 from slam_core.filter.state import FilterState, SlotAllocator, user_key
 
 SUMMARY_FIELDS = ("x", "y", "cov_xx", "cov_xy", "cov_yy", "best_x", "best_y", "heading")
-_NO_PLAN = FloorPlan.empty()
+_NO_PLAN = PlanIndex.empty()
 
 
 @dataclass(frozen=True)
@@ -82,7 +82,7 @@ class EncounterOutcome:
 
 
 class DynamicSlam:
-    floor_plan: FloorPlan | None = None
+    floor_plan: PlanIndex | None = None
     """The floor plan that weighs each step (beyond the papers), set by the tracker; None: no plan."""
 
     def __init__(
@@ -276,7 +276,7 @@ class DynamicSlam:
     MAP_START = 4
 
     @property
-    def _weighing_plan(self) -> FloorPlan | None:
+    def _weighing_plan(self) -> PlanIndex | None:
         """The floor plan, when it has walls or a walkable area to weigh steps by; else None."""
         plan = self.floor_plan
         return plan if plan is not None and not plan.is_empty else None
@@ -461,7 +461,7 @@ class DynamicSlam:
         measured them, along ``stretch_heading[i]`` (rad, counter-clockwise from east). Each particle turns
         that direction by its own heading error (its heading less the last measured step heading: its bias
         and walk in the bias-scale model) and is weighted by how close the result lies to the floor plan's
-        grid (``FloorPlan.axis_rad``, modulo 90 degrees):
+        grid (``PlanIndex.axis_rad``, modulo 90 degrees):
         s N(delta; 0, sigma^2) + (1 - s) / (pi / 2), with delta the offset from the nearest grid direction,
         so a stretch across open space changes the weights almost uniformly. Heuristic drift elimination
         (Borenstein et al., 2009) as a likelihood: particles whose bias walks the user along the corridors

@@ -35,14 +35,14 @@ PlanArrays = tuple[
     np.ndarray,
     np.ndarray,
 ]
-"""What the kernels take (``FloorPlan.arrays``), flat (a parallel kernel takes no nested tuple): the wall
+"""What the kernels take (``PlanIndex.arrays``), flat (a parallel kernel takes no nested tuple): the wall
 grid's origin x, y, cells per metre, columns and rows, its CSR starts and wall indices, the walls (S, 4), the
 raster's origin x, y and cells per metre, the raster (rows, columns) of uint8, and the wall grid's free cells
 (uint8 per cell: no wall and wholly walkable), and the raster's summed-area table of unwalkable cells."""
 
 
 @dataclass(frozen=True)
-class FloorPlan:
+class PlanIndex:
     walls: np.ndarray
     """(S, 4) float64: x0, y0, x1, y1 in the local frame (metres), each segment once: adjacent obstacles
     draw their shared edge twice (on a mall floor, half of the segments), and a step crosses it once."""
@@ -79,7 +79,7 @@ class FloorPlan:
         walkable_rings: Sequence[np.ndarray] = (),
         cell_m: float = 2.0,
         raster_m: float = 0.5,
-    ) -> FloorPlan:
+    ) -> PlanIndex:
         """Index ``walls`` (S, 4) and rasterise the area inside ``walkable_rings`` (even-odd rule)."""
         walls = np.ascontiguousarray(walls, dtype=np.float64).reshape(-1, 4)
         rings = tuple(np.ascontiguousarray(r, dtype=np.float64).reshape(-1, 2) for r in walkable_rings)
@@ -127,7 +127,7 @@ class FloorPlan:
         )
 
     @classmethod
-    def empty(cls) -> FloorPlan:
+    def empty(cls) -> PlanIndex:
         """No walls, no area: every step is as likely as without a plan."""
         return cls.build(np.zeros((0, 4)))
 

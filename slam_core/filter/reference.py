@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from slam_core.filter.floor_plan import FloorPlan
+from slam_core.filter.floor_plan import PlanIndex
 from slam_core.filter.params import FilterParams
 from slam_core.filter.state import FilterState
 
@@ -136,7 +136,7 @@ def motion(
     length: float,
     obs_heading: float,
     params: FilterParams,
-    plan: FloorPlan | None = None,
+    plan: PlanIndex | None = None,
 ) -> None:
     mp = params.motion
     log_crossing, log_outside = params.floor_plan.log_weights

@@ -40,7 +40,8 @@ class CalibrationPrior:
     step_sigma_m: float = 0.11
     """Per-step position noise that does not come from scale or bias (a step's length noise of ~0.1 m and
     0.05 m across, combined): the landmark J is matched to within sqrt(N) of it. The graph's own along-step
-    sigma is wider (``GraphParams.step_sigma_along_m``, an upper bound measured against the waypoints)."""
+    sigma is wider (``SignalGraphParams.step_sigma_along_m``, an upper bound measured against the
+    waypoints)."""
     landmark_sigma_m: float = 0.5
     """Each landmark's own position error."""
 

@@ -12,7 +12,7 @@ Each walk is a chain of ``Pose2`` vertices, one per PDR step between its first a
   signal neighbours are far away (wrong similarity).
 
 Departures from the paper, said here: the paper sets every information matrix to identity (omega_33 = 4) on
-stride edges; our vertices are single steps, so the motion noise is per step (``GraphParams``), and the
+stride edges; our vertices are single steps, so the motion noise is per step (``SignalGraphParams``), and the
 signal-edge sigma is the regression's measured accuracy (metres, not the paper's unit information), widened
 for the overlap of the 10 s windows. Beyond the paper, each walk's start pose has a prior on its heading (the
 phone's heading, with the heading-bias sigma): with landmarks at both ends a straight walk is held by them,
@@ -42,7 +42,7 @@ SOLVERS = ("lm", "isam2")
 
 
 @dataclass(frozen=True)
-class GraphParams:
+class SignalGraphParams:
     step_sigma_along_m: float = 0.20
     """Per step, what a walk's scale does not explain: between consecutive waypoints of msindoor site1 F1,
     after each walk's own scale, segment lengths scatter by 0.10 in log ratio over ~12 steps, about 0.25 m
@@ -141,7 +141,7 @@ def _relative(h0: float, h1: float, length: float) -> gtsam.Pose2:
 class WalkGraph:
     """The joint graph of all walks: motion and landmark edges; signal edges added per iteration."""
 
-    def __init__(self, walks: list[Walk], params: GraphParams) -> None:
+    def __init__(self, walks: list[Walk], params: SignalGraphParams) -> None:
         self.walks = walks
         self.params = params
         self.offsets = np.concatenate([[0], np.cumsum([w.lengths.size + 1 for w in walks])]).astype(int)
@@ -264,7 +264,9 @@ def calibrated_positions(
     return out
 
 
-def signal_neighbours(walks: list[Walk], params: GraphParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def signal_neighbours(
+    walks: list[Walk], params: SignalGraphParams
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """For every window: its walk, the indices of its ``n`` most similar windows on other walks (or far in
     time on its own), and their kernel values. Kernels (Section II-D): KL on WiFi AP visibility, KL on
     Bluetooth beacon visibility, Gaussian on magnetic magnitude, Gaussian on LTE RSRP over the union of
@@ -307,10 +309,10 @@ def _visibility_kernel(counts: np.ndarray, alpha: float) -> np.ndarray:
     return kernel
 
 
-def solve(walks: list[Walk], params: GraphParams | None = None) -> Trajectories:
+def solve(walks: list[Walk], params: SignalGraphParams | None = None) -> Trajectories:
     """Raw PDR, recalibrated PDR (Eq. 4), GraphSLAM (motion + landmark edges) and SignalSLAM (plus signal
     edges, Eq. 7, iterated) positions of every walk's poses."""
-    params = params or GraphParams()
+    params = params or SignalGraphParams()
     raw = [np.vstack([w.start, dead_reckon(w.lengths, w.headings, w.start)]) for w in walks]
     calibrated = calibrated_positions(walks, prior=CalibrationPrior() if params.calibration_prior else None)
     graph = WalkGraph(walks, params)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from slam_core.crowd.fingerprints import FingerprintParams
 from slam_core.encounters.models import DetectionParams
@@ -74,3 +74,17 @@ class TrackerParams:
     def __post_init__(self) -> None:
         if self.crowd_solver not in CROWD_SOLVERS:
             raise ValueError(f"unknown crowd solver {self.crowd_solver!r}; valid: {', '.join(CROWD_SOLVERS)}")
+
+
+def in_mode(params: TrackerParams, mode: str, fingerprint_fixes: bool = True) -> TrackerParams:
+    """The parameters in a mode (``MODES``): human anchors and, if ``fingerprint_fixes``, fixes on the
+    crowd's fingerprint map in ``dynamicslam`` only, both being other users' readings; ``semanticslam`` and
+    ``pdr`` track on building anchors (``pdr`` is then scored on plain dead reckoning)."""
+    if mode not in MODES:
+        raise ValueError(f"unknown mode {mode!r}; valid: {', '.join(MODES)}")
+    others = mode == "dynamicslam"
+    return replace(
+        params,
+        filter=replace(params.filter, use_human_anchors=others),
+        fingerprints=replace(params.fingerprints, enabled=fingerprint_fixes and others),
+    )

@@ -41,10 +41,10 @@ import numpy as np
 
 from slam_core.crowd.anchor_map import CrowdMapBuilder
 from slam_core.crowd.fingerprints import NOBODY
-from slam_core.crowd.graph import CrowdGraph, GraphParams
+from slam_core.crowd.graph import CrowdGraph, CrowdGraphParams
 from slam_core.encounters.models import Calibration
 from slam_core.filter.dynamic_slam import DynamicSlam
-from slam_core.filter.floor_plan import FloorPlan
+from slam_core.filter.floor_plan import PlanIndex
 from slam_core.filter.kernels.linalg2 import largest_eigenvalue2
 from slam_core.sensing.front_end import FrontEnd, RadioArrays
 from slam_core.tracking.batches import (
@@ -89,7 +89,7 @@ class BuildingTracker:
             fp.anchors.new_anchor_likelihood,
             fuse=params.crowd_solver == "fusion",
         )
-        self.graph = CrowdGraph(GraphParams(detection_sigma_m=fp.anchors.detection_sigma_m))
+        self.graph = CrowdGraph(CrowdGraphParams(detection_sigma_m=fp.anchors.detection_sigma_m))
         self.signatures = SignatureStage(params, self.crowd, self.graph)
         self.fingerprints = FingerprintStage(params.fingerprints, params.detection.stale_ap_ms)
         self.encounters = EncounterStage(params, calibration)
@@ -114,7 +114,7 @@ class BuildingTracker:
         """``FingerprintStage.load_radio_map``: a signal-map build's scans join the crowd's fingerprints."""
         return self.fingerprints.load_radio_map(map_id, xy, bssids, rss, t_ms)
 
-    def set_floor_plan(self, plan: FloorPlan | None) -> None:
+    def set_floor_plan(self, plan: PlanIndex | None) -> None:
         """The floor plan that weighs every user's steps from now on (beyond the papers); None: none."""
         self.engine.floor_plan = plan
 

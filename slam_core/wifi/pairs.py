@@ -37,8 +37,10 @@ def strongest_mask(rss: np.ndarray, n: int) -> np.ndarray:
     return mask
 
 
-def eq3_matrix(rss: np.ndarray, strongest_n: int = 5, min_common: int = 1) -> np.ndarray:
-    """Eq. 3 between every pair of scans (S, S); +inf where fewer than ``min_common`` APs are common."""
+def dense_eq3_matrix(rss: np.ndarray, strongest_n: int = 5, min_common: int = 1) -> np.ndarray:
+    """Eq. 3 between every pair of scans given as a dense (S, APs) RSS matrix: each scan's strongest
+    ``strongest_n`` taken for ``similarity.eq3_matrix``; (S, S), +inf where fewer than ``min_common`` APs are
+    common."""
     top = strongest_mask(rss, strongest_n)
     top_ap = np.full((rss.shape[0], strongest_n), -1, dtype=np.int64)
     top_rss = np.zeros((rss.shape[0], strongest_n))

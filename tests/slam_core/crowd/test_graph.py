@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.optimize import approx_fprime
 
-from slam_core.crowd.graph import CrowdGraph, GraphParams
+from slam_core.crowd.graph import CrowdGraph, CrowdGraphParams
 
 
 def _rot(b: float, v: np.ndarray) -> np.ndarray:
@@ -18,7 +18,7 @@ def _synthetic(
     rng: np.random.Generator, noise: float, known: tuple[int, ...] = (0,)
 ) -> tuple[CrowdGraph, np.ndarray, dict[int, float]]:
     anchors = np.array([[0.0, 0.0], [20.0, 0.0], [20.0, 15.0], [0.0, 15.0], [10.0, 8.0]])
-    graph = CrowdGraph(GraphParams(drift_fraction=0.01))
+    graph = CrowdGraph(CrowdGraphParams(drift_fraction=0.01))
     for k in known:
         graph.set_known(k, anchors[k])
     biases = {}

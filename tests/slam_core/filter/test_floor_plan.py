@@ -12,7 +12,7 @@ from matplotlib.path import Path as PolygonPath
 
 from slam_core.filter import reference
 from slam_core.filter.dynamic_slam import DynamicSlam
-from slam_core.filter.floor_plan import FloorPlan, dominant_axis
+from slam_core.filter.floor_plan import PlanIndex, dominant_axis
 from slam_core.filter.kernels.walls import (
     MAX_NEAR_WALLS,
     crosses_wall,
@@ -38,7 +38,7 @@ def _random_walls(rng: np.random.Generator, n: int) -> np.ndarray:
 def test_the_grid_finds_every_crossing_brute_force_finds() -> None:
     rng = np.random.default_rng(1)
     walls = _random_walls(rng, 300)
-    plan = FloorPlan.build(walls, cell_m=2.0)
+    plan = PlanIndex.build(walls, cell_m=2.0)
     arrays = plan.arrays()
     crossings = 0
     for _ in range(3000):
@@ -70,7 +70,7 @@ def test_a_shared_edge_drawn_twice_is_one_wall() -> None:
     rng = np.random.default_rng(14)
     walls = _random_walls(rng, 100)
     drawn = np.vstack([walls, walls[:40, [2, 3, 0, 1]], walls[40:60]])
-    plan = FloorPlan.build(drawn, cell_m=2.0)
+    plan = PlanIndex.build(drawn, cell_m=2.0)
     np.testing.assert_array_equal(plan.walls, walls)
     assert (plan.axis_rad, plan.axis_strength) == dominant_axis(drawn)  # the grid is read from the drawing
     arrays = plan.arrays()
@@ -85,7 +85,7 @@ def test_the_walls_near_a_box_are_each_wall_that_meets_it_once() -> None:
     once, and no wall whose own box misses it; a list too short for them says so (-1)."""
     rng = np.random.default_rng(11)
     walls = _random_walls(rng, 300)
-    plan = FloorPlan.build(walls, cell_m=2.0)
+    plan = PlanIndex.build(walls, cell_m=2.0)
     arrays = plan.arrays()
     near = np.empty((MAX_NEAR_WALLS, 4))
     listed_total = 0
@@ -116,7 +116,7 @@ def test_a_users_steps_cross_the_walls_near_it_as_the_grid_says() -> None:
     against its general one)."""
     rng = np.random.default_rng(12)
     walls = _random_walls(rng, 300)
-    plan = FloorPlan.build(walls, cell_m=2.0)
+    plan = PlanIndex.build(walls, cell_m=2.0)
     arrays = plan.arrays()
     near = np.empty((MAX_NEAR_WALLS, 4))
     crossings = 0
@@ -140,7 +140,7 @@ def test_a_users_steps_cross_the_walls_near_it_as_the_grid_says() -> None:
 
 
 def test_a_wholly_walkable_box_holds_only_walkable_cells() -> None:
-    plan = FloorPlan.build(np.zeros((0, 4)), [SQUARE, HOLE], raster_m=0.5)
+    plan = PlanIndex.build(np.zeros((0, 4)), [SQUARE, HOLE], raster_m=0.5)
     arrays = plan.arrays()
     rng = np.random.default_rng(13)
     answers = set()
@@ -155,12 +155,12 @@ def test_a_wholly_walkable_box_holds_only_walkable_cells() -> None:
         assert got == (inside and bool(np.all(plan.raster[r0 : r1 + 1, c0 : c1 + 1] == 1)))
         answers.add(got)
     assert answers == {True, False}
-    empty = FloorPlan.empty().arrays()
+    empty = PlanIndex.empty().arrays()
     assert wholly_walkable(empty[8:11], empty[11], empty[13], -1e6, -1e6, 1e6, 1e6)
 
 
 def test_the_raster_is_the_even_odd_inside_of_the_rings() -> None:
-    plan = FloorPlan.build(np.zeros((0, 4)), [SQUARE, HOLE], raster_m=0.25)
+    plan = PlanIndex.build(np.zeros((0, 4)), [SQUARE, HOLE], raster_m=0.25)
     rng = np.random.default_rng(2)
     points = rng.uniform(-5, 45, size=(5000, 2))
     expected = PolygonPath(SQUARE).contains_points(points) & ~PolygonPath(HOLE).contains_points(points)
@@ -176,14 +176,14 @@ def test_the_raster_is_the_even_odd_inside_of_the_rings() -> None:
     assert all(
         walkable(arrays[8:11], arrays[11], *p) == g for p, g in zip(points[:500], got[:500], strict=True)
     )
-    assert FloorPlan.empty().walkable(points).all()
+    assert PlanIndex.empty().walkable(points).all()
 
 
 def test_free_cells_hold_no_wall_and_only_walkable_ground() -> None:
     """A free cell of the wall grid (the motion update skips users whose steps stay in free cells) holds no
     wall and every point in it is walkable; a corridor of free cells runs between the walls."""
     walls = np.array([[0.0, 0.0, 40.0, 0.0], [0.0, 10.0, 40.0, 10.0]])
-    plan = FloorPlan.build(walls, [SQUARE, HOLE], cell_m=2.0, raster_m=0.25)
+    plan = PlanIndex.build(walls, [SQUARE, HOLE], cell_m=2.0, raster_m=0.25)
     rng = np.random.default_rng(5)
     columns = plan.grid_shape[1]
     free = np.flatnonzero(plan.free)
@@ -201,31 +201,31 @@ def test_free_cells_hold_no_wall_and_only_walkable_ground() -> None:
 
 def test_a_huge_site_gets_coarser_cells_not_a_huge_raster() -> None:
     site = np.array([[0.0, 0.0], [20_000.0, 0.0], [20_000.0, 20_000.0], [0.0, 20_000.0]])
-    plan = FloorPlan.build(np.array([[0.0, 0.0, 20_000.0, 20_000.0]]), [site])
+    plan = PlanIndex.build(np.array([[0.0, 0.0, 20_000.0, 20_000.0]]), [site])
     assert plan.raster.size <= 4_100_000
     assert plan.cell_start.size <= 4_100_000
 
 
 def test_invalid_plans_are_refused() -> None:
     with pytest.raises(ValueError, match="finite"):
-        FloorPlan.build(np.array([[0.0, 0.0, np.nan, 1.0]]))
+        PlanIndex.build(np.array([[0.0, 0.0, np.nan, 1.0]]))
     with pytest.raises(ValueError, match="three points"):
-        FloorPlan.build(np.zeros((0, 4)), [np.array([[0.0, 0.0], [1.0, 1.0]])])
+        PlanIndex.build(np.zeros((0, 4)), [np.array([[0.0, 0.0], [1.0, 1.0]])])
     diagonals = np.tile([0.0, 0.0, 1000.0, 1000.0], (100, 1))  # each wall's box: 250,000 cells
     diagonals[:, 0] += np.arange(100) * 0.01  # distinct walls (a repeated one is indexed once)
     with pytest.raises(ValueError, match="boxes span"):
-        FloorPlan.build(diagonals)
+        PlanIndex.build(diagonals)
     with pytest.raises(ValueError, match="in \\(0, 1\\]"):
         FloorPlanParams(wall_crossing_likelihood=0.0)
 
 
-def _corridor() -> FloorPlan:
+def _corridor() -> PlanIndex:
     """A corridor 3 m wide along x from 0 to 60 m, walls on both sides, between two large rooms' walls."""
     walls = np.array(
         [[0.0, 0.0, 60.0, 0.0], [0.0, 3.0, 60.0, 3.0], [0.0, 0.0, 0.0, 3.0], [60.0, 0.0, 60.0, 3.0]]
     )
     outline = np.array([[-1.0, -1.0], [61.0, -1.0], [61.0, 4.0], [-1.0, 4.0]])
-    return FloorPlan.build(walls, [outline])
+    return PlanIndex.build(walls, [outline])
 
 
 def test_the_kernel_weighs_steps_as_the_reference_does() -> None:
@@ -264,7 +264,7 @@ def test_users_the_walls_thin_out_are_resampled_as_the_reference_does() -> None:
     assert engine.state.n_resamples[u] == resampled
 
 
-def _drift(plan: FloorPlan | None, seed: int) -> np.ndarray:
+def _drift(plan: PlanIndex | None, seed: int) -> np.ndarray:
     """A walker going east along the corridor's middle while its phone's heading reads 8 degrees left."""
     engine = DynamicSlam(FilterParams(), seed=seed)
     engine.floor_plan = plan
@@ -296,7 +296,7 @@ def test_a_user_admitted_under_a_plan_draws_its_step_scale_from_the_plans_prior(
     with_plan, without = DynamicSlam(params, seed=3), DynamicSlam(params, seed=3)
     with_plan.floor_plan = _corridor()
     empty = DynamicSlam(params, seed=3)
-    empty.floor_plan = FloorPlan.empty()
+    empty.floor_plan = PlanIndex.empty()
     held = with_plan.add_user(2.0, 1.5)
     assert np.all(with_plan.state.scale[held] == 1.0)
     for engine in (without, empty):
@@ -312,7 +312,7 @@ def test_a_user_admitted_under_a_plan_draws_its_step_scale_from_the_plans_prior(
 
 def test_without_a_plan_the_update_is_the_plain_motion_update() -> None:
     a, b = DynamicSlam(FilterParams(), seed=2), DynamicSlam(FilterParams(), seed=2)
-    b.floor_plan = FloorPlan.empty()
+    b.floor_plan = PlanIndex.empty()
     ua, ub = a.add_user(0.0, 0.0), b.add_user(0.0, 0.0)
     for engine, u in ((a, ua), (b, ub)):
         engine.step(np.array([u]), np.array([0, 3]), np.array([0.7, 0.7, 0.6]), np.array([0.1, 0.2, 0.1]))

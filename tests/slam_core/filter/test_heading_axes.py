@@ -11,7 +11,7 @@ import pytest
 
 from slam_core.encounters.models import Calibration, RangeModel
 from slam_core.filter.dynamic_slam import DynamicSlam
-from slam_core.filter.floor_plan import FloorPlan, dominant_axis
+from slam_core.filter.floor_plan import PlanIndex, dominant_axis
 from slam_core.filter.params import FilterParams, FloorPlanParams, ResamplingParams
 from slam_core.tracking.stretches import StraightStretches
 from slam_core.tracking.tracker import BuildingTracker, TrackerParams, UserBatch
@@ -24,11 +24,11 @@ def _rotated(points: np.ndarray, angle: float) -> np.ndarray:
     return points @ np.array([[c, s], [-s, c]])
 
 
-def _hall(angle: float = GRID, half: float = 150.0) -> FloorPlan:
+def _hall(angle: float = GRID, half: float = 150.0) -> PlanIndex:
     """A square hall 300 m across, turned by ``angle``: its four walls are its grid, far from the walker."""
     corners = _rotated(np.array([[-half, -half], [half, -half], [half, half], [-half, half]]), angle)
     walls = np.hstack([corners, np.roll(corners, -1, axis=0)])
-    return FloorPlan.build(walls, [corners])
+    return PlanIndex.build(walls, [corners])
 
 
 def test_the_grid_is_the_walls_direction_modulo_90_degrees() -> None:
@@ -45,7 +45,7 @@ def test_the_grid_is_the_walls_direction_modulo_90_degrees() -> None:
     scattered = np.column_stack([np.zeros((4000, 2)), np.cos(angles), np.sin(angles)])
     assert dominant_axis(scattered)[1] < 0.05
     assert dominant_axis(np.zeros((0, 4))) == (0.0, 0.0)
-    assert FloorPlan.empty().axis_strength == 0.0
+    assert PlanIndex.empty().axis_strength == 0.0
 
 
 def test_stretches_are_cut_at_turns_and_every_stretch_length() -> None:
@@ -72,7 +72,7 @@ def test_stretches_are_cut_at_turns_and_every_stretch_length() -> None:
         FloorPlanParams(stretch_m=0.0)
 
 
-def _engine(plan: FloorPlan | None, ess_threshold: float = 0.5, seed: int = 0) -> tuple[DynamicSlam, int]:
+def _engine(plan: PlanIndex | None, ess_threshold: float = 0.5, seed: int = 0) -> tuple[DynamicSlam, int]:
     params = FilterParams(resampling=ResamplingParams(ess_threshold=ess_threshold))
     engine = DynamicSlam(params, seed=seed)
     engine.floor_plan = plan
@@ -102,7 +102,7 @@ def test_particles_are_weighed_by_the_likelihood_of_their_stretch() -> None:
 def test_without_a_grid_the_weights_do_not_change() -> None:
     rng = np.random.default_rng(4)
     angles = rng.uniform(0, 2 * math.pi, 400)
-    scattered = FloorPlan.build(
+    scattered = PlanIndex.build(
         np.column_stack([rng.uniform(-50, 50, (400, 2)), np.cos(angles), np.sin(angles)])
     )
     assert scattered.axis_strength < FloorPlanParams().axis_min_strength
@@ -139,7 +139,7 @@ def _heading_error(engine: DynamicSlam, u: int) -> float:
     return math.degrees(float(np.exp(s.logw[u]) @ error))
 
 
-def _walk(plan: FloorPlan | None, observe: bool, seed: int) -> float:
+def _walk(plan: PlanIndex | None, observe: bool, seed: int) -> float:
     """A walker goes 100 m along the grid while its phone reads 10 degrees left of it; returns the particles'
     mean heading error at the end (the truth is -10 degrees)."""
     engine, u = _engine(plan, seed=seed)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from slam_core.signalslam.calibration import CalibrationGrid, CalibrationPrior, calibrate_segment, dead_reckon
-from slam_core.signalslam.graph import GraphParams, Walk, position_at, solve
+from slam_core.signalslam.graph import SignalGraphParams, Walk, position_at, solve
 from slam_core.signalslam.similarity import gaussian_kernel, kl_kernel, symmetric_kl, visibility_multinomials
 
 
@@ -97,7 +97,7 @@ def test_the_start_heading_prior_holds_a_closed_loop_to_the_phones_heading(solve
     walk = Walk(t_ms=t.astype(np.int64), lengths=lengths, headings=headings, start=np.zeros(2),
                 end=np.array([1.2, 0.0]), window_t=t[1:].astype(np.int64),
                 window_counts=np.zeros((lengths.size, 0)))  # fmt: skip
-    held = solve([walk], GraphParams(iterations=0, solver=solver, chunk_poses=7))
+    held = solve([walk], SignalGraphParams(iterations=0, solver=solver, chunk_poses=7))
     error = np.linalg.norm(held.graphslam[0][1:] - truth, axis=1)
     assert error.max() < 1.3  # the chain bends its last steps onto the late landmark, no more
     assert np.linalg.norm(held.graphslam[0][1:31] - truth[:30], axis=1).max() < 0.6
@@ -169,17 +169,17 @@ def _corridor_walk(bulge: float, n: int = 40, t0: int = 0, aps: int = 20) -> tup
 def test_graphslam_closes_a_walk_between_its_landmarks(solver: str) -> None:
     walk, truth = _corridor_walk(bulge=0.0)
     rotated = Walk(**{**walk.__dict__, "headings": walk.headings + math.radians(8.0)})
-    result = solve([rotated], GraphParams(iterations=0, solver=solver, chunk_poses=7))
+    result = solve([rotated], SignalGraphParams(iterations=0, solver=solver, chunk_poses=7))
     assert np.linalg.norm(result.raw[0][1:] - truth, axis=1).max() > 5.0
     # a constant heading bias costs the chain little: its start heading has only a 10 deg prior, against the
     # landmark 40 m away (with the prior off it costs nothing)
     assert np.linalg.norm(result.graphslam[0][1:] - truth, axis=1).max() < 0.2
     free = solve(
-        [rotated], GraphParams(iterations=0, solver=solver, chunk_poses=7, start_heading_prior=False)
+        [rotated], SignalGraphParams(iterations=0, solver=solver, chunk_poses=7, start_heading_prior=False)
     )
     assert np.linalg.norm(free.graphslam[0][1:] - truth, axis=1).max() < 0.1
     scaled = Walk(**{**rotated.__dict__, "lengths": walk.lengths * 1.1})
-    result = solve([scaled], GraphParams(iterations=0, solver=solver, chunk_poses=7))
+    result = solve([scaled], SignalGraphParams(iterations=0, solver=solver, chunk_poses=7))
     raw_error = np.linalg.norm(result.raw[0][1:] - truth, axis=1).mean()
     # a scale error is spread over the steps' length noise (no scale variable in the pose graph) ...
     assert np.linalg.norm(result.graphslam[0][1:] - truth, axis=1).mean() < 0.2 * raw_error
@@ -194,7 +194,7 @@ def test_signal_edges_pull_a_walk_onto_similar_places_of_another(solver: str, mo
     the corridor."""
     walks = [_corridor_walk(bulge=0.0, t0=100_000 * i)[0] for i in range(3)]
     wandering, truth = _corridor_walk(bulge=0.25, t0=400_000)
-    params = GraphParams(signal_sigma_m=1.0, solver=solver, chunk_poses=11, modalities=(modality,))
+    params = SignalGraphParams(signal_sigma_m=1.0, solver=solver, chunk_poses=11, modalities=(modality,))
     result = solve([*walks, wandering], params)
     middle = slice(10, 30)
 
@@ -230,20 +230,24 @@ def test_modalities_multiply_and_a_missing_one_is_neutral() -> None:
         Walk(t, one, zero, np.zeros(2), np.ones(2), windows, wifi[:3], beacons[:3], magnetic[:3]),
         Walk(t, one, zero, np.zeros(2), np.ones(2), windows, wifi[3:], beacons[3:], magnetic[3:]),
     ]
-    only_wifi = signal_neighbours(walks, GraphParams(neighbours=3))
-    both = signal_neighbours(walks, GraphParams(neighbours=3, modalities=("wifi", "bluetooth", "magnetic")))
+    only_wifi = signal_neighbours(walks, SignalGraphParams(neighbours=3))
+    both = signal_neighbours(
+        walks, SignalGraphParams(neighbours=3, modalities=("wifi", "bluetooth", "magnetic"))
+    )
     # window 0 has no beacons: its weights change only through the magnetic kernel
     for col in range(3):
         j = int(both[1][0, col])
         assert j >= 3  # neighbours come from the other walk
     kernel_wifi = dict(zip(only_wifi[1][0], only_wifi[2][0], strict=True))
     for j, w in zip(both[1][0], both[2][0], strict=True):
-        expected = kernel_wifi[j] * math.exp(-GraphParams().magnetic_alpha * (magnetic[0] - magnetic[j]) ** 2)
+        expected = kernel_wifi[j] * math.exp(
+            -SignalGraphParams().magnetic_alpha * (magnetic[0] - magnetic[j]) ** 2
+        )
         assert w == pytest.approx(expected, rel=1e-9)
     with pytest.raises(ValueError, match="unknown modalities"):
-        GraphParams(modalities=("lte-in-a-mall",))
+        SignalGraphParams(modalities=("lte-in-a-mall",))
     with pytest.raises(ValueError, match="solver"):
-        GraphParams(solver="gauss-newton-by-hand")
+        SignalGraphParams(solver="gauss-newton-by-hand")
 
 
 def test_union_gaussian_kernel_matches_a_direct_computation() -> None:
@@ -295,10 +299,10 @@ def test_lte_kernel_joins_the_product_and_a_window_without_lte_is_neutral() -> N
         Walk(t, one, zero, np.zeros(2), np.ones(2), windows, wifi[:3], window_lte=lte[:3]),
         Walk(t, one, zero, np.zeros(2), np.ones(2), windows, wifi[3:], window_lte=lte[3:]),
     ]
-    only_wifi = signal_neighbours(walks, GraphParams(neighbours=3))
-    both = signal_neighbours(walks, GraphParams(neighbours=3, modalities=("wifi", "lte")))
+    only_wifi = signal_neighbours(walks, SignalGraphParams(neighbours=3))
+    both = signal_neighbours(walks, SignalGraphParams(neighbours=3, modalities=("wifi", "lte")))
     np.testing.assert_allclose(both[2][0], only_wifi[2][0])  # window 0: LTE says nothing
-    p = GraphParams()
+    p = SignalGraphParams()
     lte_kernel = union_gaussian_kernel(lte, p.lte_alpha, p.lte_floor_dbm)
     kernel_wifi = dict(zip(only_wifi[1][1], only_wifi[2][1], strict=True))
     for j, w in zip(both[1][1], both[2][1], strict=True):

@@ -11,7 +11,7 @@ import pytest
 from slam_core.crowd.fingerprints import FingerprintParams
 from slam_core.encounters.models import Calibration, RangeModel
 from slam_core.filter.dynamic_slam import DynamicSlam
-from slam_core.filter.floor_plan import FloorPlan
+from slam_core.filter.floor_plan import PlanIndex
 from slam_core.filter.params import FilterParams
 from slam_core.tracking.params import ColdStartParams
 from slam_core.tracking.tracker import BuildingTracker, TrackerParams, UserBatch
@@ -104,7 +104,7 @@ def test_without_cold_starts_or_a_map_a_phone_waits_for_a_fix() -> None:
 
 def test_particles_start_among_the_candidates_and_off_the_plan_weigh_less() -> None:
     engine = DynamicSlam(FilterParams(n_particles=200), seed=2)
-    engine.floor_plan = FloorPlan.build(
+    engine.floor_plan = PlanIndex.build(
         np.zeros((0, 4)), [np.array([[0, -5], [100, -5], [100, 5], [0, 5.0]])]
     )
     centres = np.array([[10.0, 0.0], [60.0, 0.0], [60.0, 30.0]])  # the last off the walkable corridor

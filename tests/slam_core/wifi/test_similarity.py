@@ -10,7 +10,7 @@ import pytest
 
 from slam_core.encounters.models import WifiEq3Params, wifi_eq3_similarity
 from slam_core.wifi import similarity
-from slam_core.wifi.pairs import eq3_matrix, fingerprint_matrix
+from slam_core.wifi.pairs import dense_eq3_matrix, fingerprint_matrix
 from tests.slam_core.wifi.reference import (
     eq3_dense,
     eq3_matrix_products,
@@ -85,7 +85,7 @@ def test_union_rms_kernel_matches_the_sparse_definition() -> None:
 def test_every_caller_of_eq3_agrees_with_the_references(min_common: int) -> None:
     rss = _scans()
     params = WifiEq3Params(min_common=min_common)
-    matrix = eq3_matrix(rss, params.strongest_n, min_common)
+    matrix = dense_eq3_matrix(rss, params.strongest_n, min_common)
     products = eq3_matrix_products(rss, params.strongest_n, min_common)
     assert np.array_equal(np.isinf(matrix), np.isinf(products))
     finite = np.isfinite(products)
