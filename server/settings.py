@@ -116,7 +116,7 @@ class Settings(BaseSettings):
         le=1000.0,
         description="While batches arrive faster than a building applies them one by one, its next group "
         "starts this long after the previous one started, so that the batches arriving meanwhile share its "
-        "fixed cost (~2 ms: a transaction, the filters' calls). A phone posting alone never waits. 0: every "
+        "fixed cost (a transaction, the filters' calls). A phone posting alone never waits. 0: every "
         "group starts as soon as the building is free.",
     )
     key_cache_s: float = Field(
@@ -166,7 +166,7 @@ class Settings(BaseSettings):
         description="FastAPI's native OpenTelemetry: request spans, metrics and logs sent to the "
         "providers an OpenTelemetry SDK configures (FASTAPI_OTEL_AUTO_CONFIGURE=true adds OTLP "
         "exporters from the OTEL_* environment). Off, the server's own metrics are at /metrics; on, "
-        "every request looks its providers up in the environment first (~4-8 us).",
+        "every request looks its providers up in the environment first.",
     )
 
     role: Literal["all", "front", "worker"] = Field(

@@ -3,9 +3,8 @@
 runs the rounds of its filters and the fingerprint fixes. The result is the same as run inline; only the
 time it takes changes.
 
-The calls run on a few threads kept for the process's life (``WORKERS``): starting a thread for each
-call had cost its caller ~0.3 ms under load, 1.5 % of a building's thread at 2,000 phones (50 calls a
-second)."""
+The calls run on a few threads kept for the process's life (``WORKERS``): a thread started for each call
+would cost its caller more than a busy building can spare."""
 
 from __future__ import annotations
 

@@ -21,8 +21,8 @@ class Retention:
     prune_chunk: int = 10_000
     log_clear_per_batch: float = 2.0
     """Each group clears this many logged batch bodies per batch it holds, of those a snapshot covers: the
-    clearing outpaces the logging, and costs each group in proportion to its size (~7 us a row on SQLite),
-    where clearing a minute's log at once would hold one group for ~0.6 s at 1,000 phones."""
+    clearing outpaces the logging and costs each group in proportion to its size, where clearing a minute's
+    log at once would hold one group far longer than any other."""
     user_idle_s: float | None = 900.0
     """A user not heard from for this long is forgotten by the tracker (its slot, particles and maps freed;
     it needs a new fix when it comes back), at the next snapshot, so a restart's replay never spans an
@@ -44,5 +44,5 @@ class TrackingConfig:
     """How far beyond its floors a position posted to a building may lie (``server.ingestion.extent``)."""
     group_linger_s: float = 0.02
     """How long a busy building lets batches gather into its next group (``server.buildings.handles.
-    GroupPacing``): each group pays a fixed ~2 ms (a transaction, the filters' calls), and a building that
-    applied every batch as it came spent a core at 125 batches a second."""
+    GroupPacing``): each group pays a fixed cost (a transaction, the filters' calls), which batches
+    gathered into one group share."""

@@ -75,10 +75,10 @@ class BuildingHandle(Protocol):
 
 
 class GroupPacing:
-    """When a building's next group starts: a group of one batch costs ~2 ms (a transaction, the filters'
-    and the encounters' calls) and a batch in a group of forty ~0.5 ms. Applying each batch as soon as the
-    building is free kept the groups at one batch at moderate loads (125 batches a second took a core, four
-    such buildings two), so while the building is busy, which its last group says (it held more than one
+    """When a building's next group starts: a group pays a fixed cost (a transaction, the filters' and the
+    encounters' calls) that its batches share, and applying each batch as soon as the building is free
+    keeps the groups at one batch at moderate loads. So while the building is busy, which its last group
+    says (it held more than one
     batch, or batches were waiting when it ended), the next group starts ``linger_s`` after the previous
     one started and takes what arrived meanwhile, as Kafka's ``linger.ms`` and PostgreSQL's
     ``commit_delay`` do. A phone posting alone, or a replay posting one batch after another's receipt,

@@ -94,8 +94,8 @@ class BuildingHost:
         self.devices = loaded.devices
         self.geo = loaded.geo
         self.extent = loaded.extent
+        # Batches the last load replayed from the batch log (none after a clean stop).
         self.replayed = loaded.replayed
-        """Batches the last load replayed from the batch log (none after a clean stop)."""
         if snapshot_always or not loaded.restored:
             self.snapshot(clear_log=True)  # it covers the whole log now
 

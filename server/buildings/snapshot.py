@@ -47,7 +47,7 @@ def encode(state: BuildingState) -> bytes:
 def pickled(state: BuildingState) -> bytes:
     """The state as bytes, before compression (the part of a snapshot that holds the building's thread).
     The cyclic collector is paused meanwhile: pickling makes many short-lived objects, and the collections
-    they set off had been ~4 of the ~30 ms of a 2,000-user snapshot."""
+    they would set off only slow it down."""
     collecting = gc.isenabled()
     gc.disable()
     try:
@@ -64,9 +64,9 @@ def _compress(raw: bytes) -> bytes:
 class BackgroundSnapshots:
     """Periodic snapshots compressed off the batch path.
 
-    The state is pickled where it is consistent (the building's thread, between groups: ~0.07 s for 1,000
-    load-test users), but compressing it took two to three times as long again, and far more with full
-    particle maps: zlib releases the GIL, so it runs on a thread of its own while the building applies the
+    The state is pickled where it is consistent (the building's thread, between groups), but compressing
+    it takes longer again, and far more with full particle maps: zlib releases the GIL, so it runs on a
+    thread of its own while the building applies the
     next groups. The blob is then written by a later group's transaction (``ready``); from then on the
     logged batch bodies up to the snapshot's engine call are cleared a chunk per group: the batches
     applied meanwhile stay logged, and a crash in between restarts from the previous snapshot and the

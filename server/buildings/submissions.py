@@ -79,7 +79,7 @@ class GroupResult:
 BatchFields = tuple[bytes, int, tuple[Any, ...], tuple[Any, ...] | None]
 """A batch on the socket: raw body, received_ns, its ``BatchHeader`` and its packed conversion (None: the
 building decodes the raw body), the last two as plain tuples (a named tuple pickles by its class, which
-had cost ~10 us a batch on both sides)."""
+costs both sides of every batch)."""
 
 
 def batch_fields(submission: Submission) -> BatchFields:

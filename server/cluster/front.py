@@ -162,12 +162,12 @@ class RemoteBuilding:
         self.front = front
         self.building_id = building_id
         self.geo = geo
+        # When the building's row was created: the batches carry it to the worker.
         self.created = ""
-        """When the building's row was created: the batches carry it to the worker."""
         self.alive = True
         self.counters = Counters()
+        # Here: the time from publishing a batch to its receipt.
         self.latency = LatencyWindow()
-        """Here: the time from publishing a batch to its receipt."""
         self.group_sizes = LatencyWindow()
         self._waiting = 0
 

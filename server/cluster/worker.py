@@ -159,9 +159,8 @@ class ClusterWorker:
             await self._hand_off(newest)
             return
         free = [b for b in buildings if b not in self.owned]
-        free.sort(
-            key=lambda b: hash((self.worker_id, b))
-        )  # workers try the free buildings in different orders
+        # workers try the free buildings in different orders
+        free.sort(key=lambda b: hash((self.worker_id, b)))
         for building_id in free:
             if len(self.owned) >= share:
                 break
@@ -334,9 +333,8 @@ class ClusterWorker:
             return
         try:
             submission = dataclasses.replace(received_batch(*fields), stream_sequence=item.sequence)
-        except (
-            ProblemError
-        ) as exc:  # what the building's decoding refuses, answered as the embedded server does
+        except ProblemError as exc:
+            # what the building's decoding refuses, answered as the embedded server does
             owned.window.release()
             self._in_background(self.connection.publish(reply_to, messages.encode_answer(exc)))
             return

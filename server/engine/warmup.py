@@ -1,7 +1,7 @@
 """Compile (or load from numba's on-disk cache) every kernel the batch path uses, before the first request.
 
 A kernel first called by a request is compiled while that request and every one queued behind it waits
-(~30 s for all of them on a cold cache, 2-core machine). The warm-up therefore runs the tracker through
+(tens of seconds for all of them on a cold cache). The warm-up therefore runs the tracker through
 what a busy building does: single phones and groups, each on the serial twins and on the parallel kernels
 (``slam_core.filter.kernels.serial``), and a small crowd long enough that its WiFi scans meet (Eq. 3), its
 Bluetooth sightings pair up, its scans outgrow the encounter index and the fingerprint map (both
@@ -163,10 +163,9 @@ def warm_kernels_for(settings: Settings, steps: Queue[int] | None = None) -> Non
 def compile_kernels_in_child(settings: Settings, progress: Progress | None = None) -> None:
     """For buildings in processes of their own: compile every kernel once into numba's on-disk cache, in a
     short-lived child, before the server takes requests. Each building's process warms its kernels when
-    it starts, at its building's first request; on a cold cache that is a compile of ~30 s (2-core machine,
-    ~1.6 s from the cache), which the building's first batches waited for and which buildings starting
-    together would each repeat. A child rather than the front itself, so that the front does not keep
-    compiled code it never runs."""
+    it starts, at its building's first request: from the cache that takes a second or two, where a cold
+    compile would hold the building's first batches and be repeated by every building starting with it. A
+    child rather than the front itself, so that the front does not keep compiled code it never runs."""
     started = time.perf_counter()
     context = multiprocessing.get_context("spawn")
     steps: Queue[int] = context.Queue()

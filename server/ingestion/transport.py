@@ -2,8 +2,8 @@
 
 The front of a building process validates every batch anyway; converting it there too
 (``server.ingestion.convert``) takes the re-validation and the conversion off the building's core, the one a
-busy building is short of (they had been ~18 % of it under ``bench/load.py``; ``bench/building.py --path
-both``: 12-15 % less per batch). Pickled as it is, a ``UserBatch`` is ~25 small arrays that unpickle one by
+busy building is short of (``bench/building.py --path both`` measures it). Pickled as it is, a ``UserBatch``
+is ~25 small arrays that unpickle one by
 one more slowly than the JSON decodes, so it travels as one buffer of its integers, one of its floats, their
 lengths, and its strings; the building cuts the buffers back into arrays (views of one aligned, writable copy:
 the numba kernels see the types a conversion gives them).
@@ -127,8 +127,8 @@ def unpack(packed: PackedBatch) -> UserBatch:
 
 
 # Most of a batch's fields are empty (no fix, no detection, no beacon): one shared empty array each (by row
-# width), as the conversion does (``server.ingestion.convert``): slicing them out one by one had been half of
-# unpacking. Nothing can be written into an empty array.
+# width), as the conversion does (``server.ingestion.convert``), rather than one sliced out per field.
+# Nothing can be written into an empty array.
 _NO_INTS = {1: np.zeros(0, dtype=np.int64)}
 _NO_FLOATS = {width: np.zeros((0, width)) if width > 1 else np.zeros(0) for width in (1, 2, 4, 5)}
 

@@ -29,8 +29,8 @@ MAX_PENDING_BUILDS = 4
 
 class SignalMapService:
     def __init__(self, root: Path, recordings: Path | None, modalities: tuple[str, ...] = ("wifi",)) -> None:
+        # Called with the building's id when one of its builds is done (from the pool's thread).
         self.on_built: Callable[[str], None] | None = None
-        """Called with the building's id when one of its builds is done (from the pool's thread)."""
         self.root = root
         self.recordings = recordings
         self.modalities = modalities

@@ -2,9 +2,8 @@
 
 SQLite checkpoints in the commit that takes the log past 1,000 pages: that commit copies every page the
 log holds into the database file (a read and a write each), syncs, and the next transaction starts the log
-again from its beginning. A building applying 2,000 batches a second fills that log about once a second,
-and the group whose commit did the copying stalled 10-19 ms (measured under ``bench/load.py``; the syncs
-take ~1 ms of it on this machine). Here a daemon thread runs a ``PASSIVE`` checkpoint every ``period_s``:
+again from its beginning. A busy building fills that log every second or so, and the group whose commit
+does the copying stalls behind it. Here a daemon thread runs a ``PASSIVE`` checkpoint every ``period_s``:
 it waits for no reader or writer, and the sqlite3 module releases the GIL while it copies, so the copying
 runs beside the batch path, and the commit that crosses 1,000 pages finds all but the last ``period_s``
 of pages copied already. The commits keep SQLite's own threshold: the log is started again only by a

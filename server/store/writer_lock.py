@@ -31,14 +31,14 @@ class WriterTurns:
     """An exclusive ``flock`` on ``path``, taken and released around each write transaction, on a file
     opened for that turn alone: two buildings in one process take turns as two in two processes do
     (``flock`` locks belong to an open file, not to a process), and a session dropped without closing
-    holds no file (~10 us a group for the open and close)."""
+    holds no file."""
 
     def __init__(self, path: Path) -> None:
         self.path = path
         self._file: BinaryIO | None = None
+        # False once the file system refused ``flock`` (some network file systems): the transactions then wait
+        # in SQLite's busy handler, as they did before the turns.
         self.supported = True
-        """False once the file system refused ``flock`` (some network file systems): the transactions then
-        wait in SQLite's busy handler, as they did before the turns."""
 
     def __enter__(self) -> WriterTurns:
         if self._file is not None:

@@ -136,8 +136,8 @@ def union_nearest(
     ``cols`` and ``gains`` are the query's APs known to the index; ``query_norm`` and ``query_count`` are over
     all of its APs. ``dot`` and ``shared`` are per-row scratch, zero on entry and left zero."""
     # The walk is branch-free: whether a posting is live, and whether it is its row's first, are as good as
-    # random, and their mispredicted branches cost a quarter of the walk (69 against 51 us a query on
-    # bench/fingerprints.py's map, 10,500 postings; identical results). A stale posting adds nothing, and
+    # random, and mispredicted branches would cost the walk more than the arithmetic (bench/fingerprints.py
+    # measures it). A stale posting adds nothing, and
     # ``touched`` always takes the row but keeps it only when it counts. A user's own rows are skipped after.
     touched = np.empty(row_serial.size + 1, dtype=np.int64)
     n_touched = 0

@@ -9,8 +9,8 @@ references: they would only confirm its own estimate.
 
 Memory is bounded (``max_references``, oldest dropped first) and proportional to the APs the references
 heard: the scans are posted in an inverted index by AP (``slam_core.crowd.fingerprint_index``), so a query
-costs the postings of its own APs, not references x APs. (A dense references x APs matrix took ~390 MB on a
-2,400-AP mall floor at 20,000 references, and ~1 ms per query.)
+costs the postings of its own APs, not references x APs (a dense matrix of a mall floor's thousands of APs by
+its references would take hundreds of megabytes).
 """
 
 from __future__ import annotations
@@ -26,10 +26,8 @@ from slam_core.filter.kernels.linalg2 import largest_eigenvalue2
 
 STALE_BOUND = 1.25
 """The index is compacted once its slabs hold more than this many postings per live one. A query walks
-every posting of its APs and skips the stale ones: with the pool's memory bound alone (3x), a full map on
-``bench/load.py``'s floor held ~20 % stale postings a query. With this bound, 50,000 scans located and added
-on that floor took 0.93-0.94 of the time (the two maps alternating in one process; identical results). A
-compaction costs ~0.4 ms at 30,000 postings, what a few queries save."""
+every posting of its APs and skips the stale ones, so stale postings cost every query; a compaction costs
+what a few queries save (``bench/fingerprints.py``; docs/experiments.md)."""
 
 
 @dataclass(frozen=True)

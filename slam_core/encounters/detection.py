@@ -134,12 +134,10 @@ class EncounterDetector:
         self._store = ScanStore(params.wifi.strongest_n, scan_capacity)
         # per pair (``_pair_key``), its sightings within the smoothing window as packed (t_ms, rss) doubles
         # (``_SIGHTING``). Neither ints nor bytes are objects the garbage collector tracks, and pickle
-        # writes both natively: tuples of (t, rss) tuples, replaced at every sighting, had been ~85,000 new
-        # tracked objects between two young collections at 2,000 phones (each collection then took 30-50
-        # ms), and a third of a snapshot's pickling (deques before them ~0.1 s at 1,000 phones). Least
-        # recently heard first: an OrderedDict, whose first key is found at once (a dict's first key, after
-        # the deletions of pairs moved to its end, is found by skipping every deleted slot before it: ~10
-        # us a sighting with 60,000 pairs).
+        # writes both natively, where tuples of tuples replaced at every sighting would be tens of thousands
+        # of tracked objects in a busy building and much of a snapshot's pickling. Least recently heard
+        # first: an OrderedDict, whose first key is found at once (a dict's first key, after the deletions
+        # of pairs moved to its end, is found by skipping every deleted slot before it).
         self._bt: OrderedDict[int, bytes] = OrderedDict()
         self._bt_newest_ms = 0
         self._pending: BackgroundCall[DetectionArrays] | None = None  # scans compared on a thread
@@ -352,8 +350,7 @@ class EncounterDetector:
     def _advance_bluetooth(self, t_ms: int) -> None:
         """Forget pairs not heard within ``retention_ms``: their sightings can no longer be averaged with
         anything new. Only the least recently heard pairs are looked at (the dict's front), so the cost
-        follows the pairs dropped; rebuilding the dict of a 1,000-phone building's pairs had stalled a group
-        for ~10 ms every few seconds."""
+        follows the pairs dropped, never a rebuild of every pair's entry."""
         if t_ms <= self._bt_newest_ms:
             return
         self._bt_newest_ms = t_ms

@@ -1,9 +1,8 @@
 """Sorted unique values of small non-negative integers (filter slots, interned user ids) by a table instead of
 a sort.
 
-A busy tracker call holds ~10,000 encounter detections (2,000 phones on ``bench/load.py``'s floor, a group of
-128 batches), and ``np.unique`` sorted their user ids and slots several times a call, ~1 ms each on the
-development machine. Ids and slots are bounded by the users the building has seen, so a boolean table as
+A busy tracker call holds thousands of encounter detections, whose user ids and slots ``np.unique`` would
+sort several times a call. Ids and slots are bounded by the users the building has seen, so a boolean table as
 long as the largest value finds the same answer in one pass. Short arrays (where the table's set-up costs
 more than the sort), and values that are negative or spread far wider than the array is long, go to
 ``np.unique``.

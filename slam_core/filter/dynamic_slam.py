@@ -93,8 +93,8 @@ class DynamicSlam:
         parallel_min_users: int = PARALLEL_MIN_USERS,
     ) -> None:
         self.params = params
+        # Calls over fewer users run the kernels' serial twins (``slam_core.filter.kernels.serial``).
         self.parallel_min_users = parallel_min_users
-        """Calls over fewer users run the kernels' serial twins (``slam_core.filter.kernels.serial``)."""
         self.seed = seed
         start_room = min(self.MAP_START, params.anchors.capacity)
         self.state = FilterState.empty(initial_capacity, params.n_particles, start_room)
@@ -102,9 +102,9 @@ class DynamicSlam:
         self._admitted = 0
         self._type_posterior = params.anchors.type_posterior
         self._n_types = self._type_posterior.shape[0]
+        # ``means``' kept rows (capacity x 2) and which slots hold a current one; None until first asked.
         self._mean: np.ndarray | None = None
         self._mean_known: np.ndarray | None = None
-        """``means``' kept rows (capacity x 2) and which slots hold a current one; None until first asked."""
 
     def __getstate__(self) -> dict[str, object]:
         """Pickled without its floor plan: the plan lives in the building's store and is set again on load."""
@@ -648,8 +648,8 @@ class DynamicSlam:
     ) -> None:
         s = self.state
         h = self.params.human
-        # the seven arrays it uses, not the state's bundle: a call for one encounter is ~8 us, and each array
-        # passed costs its dispatch ~0.07 us
+        # the seven arrays it uses, not the state's bundle: a call is short, and each array passed costs its
+        # dispatch
         pick(human_anchor_update, human_anchor_update_serial, users.shape[0], self.parallel_min_users)(
             s.x,
             s.y,
@@ -699,7 +699,7 @@ class DynamicSlam:
     def means(self, users: np.ndarray) -> np.ndarray:
         """(n, 2) weighted means: ``summaries(users)[:, 0:2]``, exactly. A user's mean is kept until its
         particles change (``_moved``): the encounter selection asks for the means of every user a call's
-        detections name, most of whom this call did not touch (~0.9 ms a group at 2,000 phones)."""
+        detections name, most of whom this call did not touch."""
         users = np.ascontiguousarray(users, dtype=np.int64)
         self._check_users(users, allow_repeats=True)
         s = self.state

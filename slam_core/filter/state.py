@@ -96,8 +96,8 @@ class FilterState:
 
     # Pickled (the server's snapshots) without the unused tail of the particle maps: they have room for
     # map_capacity anchors per particle (grown by use up to 48, ``DynamicSlam._map_room``), so 1,024 user
-    # slots x 75 particles can hold ~200 MB however few anchors are in use, and pickling and compressing it
-    # all had frozen a building for ~1 s. Past a particle's map_n nothing is ever read (resampling copies
+    # slots x 75 particles can hold ~200 MB however few anchors are in use, which a building would freeze to
+    # pickle and compress. Past a particle's map_n nothing is ever read (resampling copies
     # only up to it), so the tail comes back as the empty state's defaults.
     def __getstate__(self) -> dict[str, object]:
         used = int(self.map_n.max()) if self.map_n.size else 0

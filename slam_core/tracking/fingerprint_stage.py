@@ -21,8 +21,8 @@ class FingerprintStage:
         self.params = params
         self.stale_ap_ms = stale_ap_ms
         self.map = CrowdFingerprints(params)
+        # The signal-map build whose radio map the map holds (None: none loaded).
         self.radio_map_id: str | None = None
-        """The signal-map build whose radio map the map holds (None: none loaded)."""
 
     def load_radio_map(
         self, map_id: str, xy: np.ndarray, bssids: list[list[str]], rss: list[np.ndarray], t_ms: np.ndarray

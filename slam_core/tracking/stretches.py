@@ -21,8 +21,8 @@ class StraightStretches:
             raise ValueError("a stretch's length and turn must be > 0")
         self.length_m = length_m
         self.turn_rad = turn_rad
+        # Per user, its open stretch: the sum of its steps as vectors (x, y) and its length.
         self._open: dict[str, tuple[float, float, float]] = {}
-        """Per user, its open stretch: the sum of its steps as vectors (x, y) and its length."""
 
     def add(self, user: str, lengths: np.ndarray, headings: np.ndarray) -> list[float]:
         """The user's next steps (metres; rad, counter-clockwise from east); returns the direction of each

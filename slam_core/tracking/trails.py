@@ -49,8 +49,7 @@ class UserTrack:
     trail: array[float] = field(default_factory=lambda: array("d"))
     """Recent steps, four numbers each: time (ms, exact in a double), displacement x and y after it, distance
     walked after it. A flat array of doubles: the garbage collector does not walk it and a snapshot writes
-    it as one block (a list of small tuples and lists had cost a 1,000-user building ~100,000 objects in
-    every full collection and ~75 ms of pickling in the building's thread)."""
+    it as one block, where a list of small tuples would be thousands of objects a user for both."""
 
     # A user travels in a snapshot as one flat tuple, its fields in declaration order and its 2-vectors as
     # plain floats: thousands of tiny arrays, or of dicts naming every field, pickle slowly one by one, in

@@ -3,9 +3,8 @@
 A kernel takes the bundle and picks what it uses, ``x = arrays[X]``: the indices are module constants, which
 numba folds, so each pick is typed and costs nothing. One bundle instead of a kernel's twenty arrays keeps
 the batch kernels' signatures short and their per-user bodies' alike, and dispatches no slower than as many
-arrays: a serial call took 1.9 us with a 21-array tuple against 1.8 us with 21 arrays, and a parallel region
-24 against 107 us (numba 0.68, 2-core machine). Each array costs a call's dispatch ~0.07 us, so a small
-kernel that reads a few of them (the human-anchor update, ~8 us a call) takes just those.
+arrays (a parallel region faster). Each array passed costs a call's dispatch, so a small kernel that reads
+a few of them (the human-anchor update) takes just those.
 """
 
 from __future__ import annotations

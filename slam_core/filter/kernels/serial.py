@@ -2,9 +2,8 @@
 
 A ``parallel=True`` kernel hands its ``prange`` to numba's thread pool. When the machine's other core is
 busy (on the server: the HTTP front, the phones' sockets), waking the pool costs more than the work of a few
-dozen users: summarising 32 users took 85 us serially and 340 us on average in parallel with the other
-core busy, with a p99 of 10 ms while the parallel region waited for its second thread to be scheduled
-(2-core machine; ``python bench/kernel_dispatch.py`` measures it). The server's building applies a group
+dozen users, and its tail is long while the parallel region waits for its second thread to be scheduled
+(``python bench/kernel_dispatch.py`` measures it). The server's building applies a group
 of some tens of phones per call, so its kernels run serially; a call over many users (a benchmark tick, a
 crowd-map merge over a whole building) still runs in parallel.
 
