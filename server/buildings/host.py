@@ -1,4 +1,4 @@
-"""One owner per building: its tracker, its anchor map in SQL, and the batch path of GUIDE.md.
+"""One owner per building: its tracker, its anchor map in SQL, and the path of one batch (docs/architecture).
 
 ``BuildingHost`` is synchronous and used only from its building's single worker thread, so a building's
 batches and anchor edits are applied one group at a time, in arrival order. Batches that arrive while a

@@ -1,4 +1,4 @@
-"""Simulate a scenario exactly as given (the paper testbed: ``shared/scenarios/paper-testbed.json``).
+"""Simulate a scenario exactly as given (the paper testbed: ``server/data/paper-testbed.json``).
 
 Produces what phones would send (PDR steps with the scenario's noise model, WiFi scans with path loss, walls
 and correlated shadowing, Bluetooth RSS between phones, building-anchor detections with confused types,

@@ -71,7 +71,7 @@ def test_batches_cover_every_sample_once_and_validate() -> None:
 def test_cached_wifi_entries_keep_their_last_seen_time() -> None:
     trace = read_trace(SMALL_WALK)
     ages = np.concatenate([s.t_ms - s.last_seen_ms for s in trace.wifi])
-    assert np.mean(ages > 3000) > 0.2  # re-reported cached APs are common (GUIDE: 50-60 %)
+    assert np.mean(ages > 3000) > 0.2  # re-reported cached APs are common (50-60 % on this floor)
 
 
 def test_lines_out_of_time_order_are_sorted(tmp_path: Path) -> None:
