@@ -21,7 +21,7 @@ from schemas.signal_maps import SignalMapJob, SignalMapStatus
 from server.cli.background_server import CLI, free_port, serve_process
 from server.datasets.signalslam_plots import write_scan_maps
 from server.signal_maps.jobs import RECORD
-from tests.dashboard.conftest import Demo, Watch, open_page
+from tests.server.dashboard.conftest import Demo, Watch, open_page
 
 
 def root_data(page: Page, name: str) -> str:

@@ -22,7 +22,7 @@ from server.signal_maps.tagged_walks import radio_map_of_walks
 from slam_core.crowd.fingerprints import FingerprintParams
 from slam_core.tracking.tracker import BuildingTracker
 from tests.conftest import TESTBED, whole_floor
-from tests.datasets.conftest import FLOOR, WALKS
+from tests.server.datasets.conftest import FLOOR, WALKS
 
 pytestmark = pytest.mark.walks
 
