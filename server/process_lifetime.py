@@ -11,7 +11,10 @@ import sys
 
 def die_with(parent_pid: int) -> None:
     """Be killed when the process that started this one dies (Linux); elsewhere the caller notices otherwise
-    (a building's closed socket ends its loop)."""
+    (a building's closed socket ends its loop). Ctrl-C is left to the parent: a terminal sends it to the
+    whole process group, and the parent stops its children in order (a building's last snapshot first),
+    where an interrupt would cut a child short in the middle of a transaction."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     if sys.platform.startswith("linux"):
         with contextlib.suppress(OSError, AttributeError):
             ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
