@@ -37,6 +37,13 @@ and the dashboards are dealt round the fronts. The rows then split the CPU per b
 fronts, workers, NATS and PostgreSQL (every ``postgres`` process of the machine), and give their sum,
 ``cluster_cpu_ms_per_batch``; the single process serves the same load on the same PostgreSQL first, and
 ``cpu_vs_single_process`` is the ratio of the two costs (server and PostgreSQL).
+
+With ``--soak SECONDS`` (and a long ``--duration``), every SECONDS the run samples the resident memory of
+each process (the server's front, each building process, this generator, the dashboards' process) and the
+disk the server takes (its data directory, the recordings, the database), and reports each series' slope
+per minute after ``--soak-warmup`` and the bytes each batch costs on disk; ``--plot`` draws them.
+``--server-env CROWDSLAM_...=...`` changes a setting of the server's (shorter retention windows show the
+database level off within a run). ``--keep-recordings DIR`` keeps the recordings for a replay.
 """
 
 from __future__ import annotations
@@ -49,6 +56,7 @@ import math
 import multiprocessing
 import os
 import re
+import shutil
 import sys
 import tempfile
 import time
@@ -73,6 +81,7 @@ from schemas.api import KeyScope
 from server.auth import mint_key
 from server.cli.background_server import free_port, serve_process
 from server.cli.local_cluster import nats_server, postgres_database, worker_process
+from server.storage import database_bytes, tree_bytes
 from server.store.db import make_engine, make_session_factory
 from server.store.migrate import upgrade
 from server.store.models import BuildingRow
@@ -228,14 +237,67 @@ class Connection:
         return int(parts[1]) if len(parts) > 1 else 0
 
 
+class LogHistogram:
+    """Counts of values in bins 0.5 % wide (geometric, from 10 us to ~17 min), so that a run of millions of
+    latencies takes the same memory as one of thousands: percentiles to within half a percent."""
+
+    LOW = 0.01
+    RATIO = 1.005
+    BINS = 3_700
+
+    def __init__(self) -> None:
+        self.counts = np.zeros(self.BINS, dtype=np.int64)
+        self.n = 0
+
+    def add(self, value: float) -> None:
+        k = 0 if value <= self.LOW else int(math.log(value / self.LOW) / math.log(self.RATIO)) + 1
+        self.counts[min(k, self.BINS - 1)] += 1
+        self.n += 1
+
+    def merge(self, counts: np.ndarray) -> None:
+        self.counts += counts
+        self.n += int(counts.sum())
+
+    def percentile(self, q: float) -> float:
+        """The value below which ``q`` % of the values lie (the upper edge of its bin); inf when empty."""
+        if not self.n:
+            return math.inf
+        k = int(np.searchsorted(np.cumsum(self.counts), math.ceil(q / 100.0 * self.n)))
+        return float(self.LOW * self.RATIO**k)
+
+
+class PerSecondMedians:
+    """The median latency of the posts due in each second, kept as each second's posts are all answered
+    (``SETTLE_S`` after it), so that only the seconds still open hold their latencies."""
+
+    SETTLE_S = 30
+
+    def __init__(self) -> None:
+        self._open: dict[int, list[float]] = {}
+        self.medians: dict[int, float] = {}
+
+    def add(self, second: int, latency_ms: float) -> None:
+        self._open.setdefault(second, []).append(latency_ms)
+        for done in [s for s in self._open if s < second - self.SETTLE_S]:
+            self.medians[done] = float(np.median(self._open.pop(done)))
+
+    def close(self) -> list[float]:
+        for done in list(self._open):
+            self.medians[done] = float(np.median(self._open.pop(done)))
+        return [round(self.medians[s], 1) for s in sorted(self.medians)]
+
+
 @dataclass
 class Results:
-    latencies_ms: list[float] = field(default_factory=list)
-    due_s: list[int] = field(default_factory=list)
-    """The second of the run each measured post was due in (beside its latency)."""
-    ws_lag_ms: list[float] = field(default_factory=list)
+    latencies_ms: LogHistogram = field(default_factory=LogHistogram)
+    per_second: PerSecondMedians = field(default_factory=PerSecondMedians)
+    ws_lag_ms: LogHistogram = field(default_factory=LogHistogram)
     errors: int = 0
     sent: int = 0
+    posted: int = 0
+    """Every post, measured or not (the soak's batches)."""
+    soak: list[dict[str, Any]] = field(default_factory=list)
+    """The soak's samples (``Sampler``), one every ``--soak`` seconds."""
     dashboard_errors: list[str] = field(default_factory=list)
     cpu_s: dict[str, float] = field(default_factory=dict)
     """CPU seconds (user + system) each measured part of the server used while the measured batches were
@@ -291,10 +353,11 @@ _POSITION = re.compile(
 not all match (the estimate's fields reordered) is counted as an error, not skipped."""
 
 
-async def _dashboard(url: str, lags: list[float], since_ms: float, stop: asyncio.Event) -> None:
-    # an encounter re-publishes the peer's estimate with the peer's older time: count each (user, time) once,
-    # so the lag is from a batch's last step to the first position it produced
-    seen: set[tuple[str, int]] = set()
+async def _dashboard(url: str, lags: LogHistogram, since_ms: float, stop: asyncio.Event) -> None:
+    # an encounter re-publishes the peer's estimate with the peer's older time: count a user's time once, the
+    # first time it is newer than any before, so the lag is from a batch's last step to the first position it
+    # produced (a user's newest time, not every (user, time) seen: the dashboards' memory stays flat)
+    newest: dict[str, int] = {}
     async with connect(url, max_size=None) as ws:
         while not stop.is_set():
             try:
@@ -307,27 +370,31 @@ async def _dashboard(url: str, lags: list[float], since_ms: float, stop: asyncio
             if len(found) != frame.count('"type":"position"'):
                 raise ValueError(f"a position message not in the expected form: {frame[:200]}")
             for user, t in found:
-                key = (user, int(t))
-                if key[1] >= since_ms and key not in seen:
-                    seen.add(key)
-                    lags.append(received - key[1])
+                t_ms = int(t)
+                if t_ms >= since_ms and t_ms > newest.get(user, -1):
+                    newest[user] = t_ms
+                    lags.add(received - t_ms)
 
 
 def _dashboards(urls: list[str], n: int, since_ms: float, stop: Any, out: Any) -> None:
     """The dashboards, in a process of their own so that reading frames does not wait behind the phones'
     requests in one event loop (which read as live lag); sends back (lags, errors) when ``stop`` is set."""
 
-    async def run() -> tuple[list[float], list[str]]:
-        lags: list[float] = []
+    async def run() -> tuple[np.ndarray, list[str]]:
+        lags = LogHistogram()
         done = asyncio.Event()
         tasks = [asyncio.create_task(_dashboard(urls[k % len(urls)], lags, since_ms, done)) for k in range(n)]
         while not stop.is_set():
             await asyncio.sleep(0.2)
         done.set()
         outcomes = await asyncio.gather(*tasks, return_exceptions=True)
-        return lags, [repr(o) for o in outcomes if isinstance(o, Exception)]
+        return lags.counts, [repr(o) for o in outcomes if isinstance(o, Exception)]
 
     out.send(asyncio.run(run()))
+
+
+Sampler = Callable[[int], dict[str, Any]]
+"""A soak's sample of the server (memory, disk), given the dashboards' process id."""
 
 
 async def _drive(
@@ -339,6 +406,8 @@ async def _drive(
     connections: int,
     meters: Meters,
     prefix: str = "",
+    sampler: Sampler | None = None,
+    sample_every_s: float = 60.0,
 ) -> Results:
     """The phones' connections are dealt round the ``ports`` (a cluster's fronts), the dashboards too."""
     n = len(keys)
@@ -371,7 +440,17 @@ async def _drive(
     tasks: set[asyncio.Task[None]] = set()
     warmup_s = _warmup_s(duration_s)
 
+    async def sample_forever() -> None:
+        assert sampler is not None
+        while True:
+            sample = await asyncio.to_thread(sampler, dashboards.pid or 0)
+            results.soak.append(
+                {"t_s": round(time.perf_counter() - start, 1), "batches": results.posted, **sample}
+            )
+            await asyncio.sleep(sample_every_s)
+
     async def send(phone: int, seq: int, due: float, body: bytes, measure: bool) -> None:
+        results.posted += 1
         conn = await pool.get()
         try:
             status = await conn.post(
@@ -384,13 +463,15 @@ async def _drive(
             if status != 200:
                 results.errors += 1
             elif measure:
-                results.latencies_ms.append((time.perf_counter() - due) * 1000.0)
-                results.due_s.append(int(due - start))
+                latency = (time.perf_counter() - due) * 1000.0
+                results.latencies_ms.add(latency)
+                results.per_second.add(int(due - start), latency)
         finally:
             pool.put_nowait(conn)
 
     joins = _join_second(n, duration_s)
     start = time.perf_counter()
+    sampling = asyncio.create_task(sample_forever()) if sampler is not None else None
     second = 0
     while second < duration_s:
         crowd.walk()
@@ -420,12 +501,17 @@ async def _drive(
         second += 1
     if tasks:
         await asyncio.wait(tasks, timeout=30.0)
+    if sampling is not None:
+        sampling.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await sampling
     results.cpu_s = {part: meter() - cpu_at[0][part] for part, meter in meters.items()}
     results.generator_cpu_s = _cpu_seconds(os.getpid()) - cpu_at[1]
     results.measured_wall_s = time.perf_counter() - cpu_at[2]
     results.dashboards_cpu_s = _cpu_seconds(dashboards.pid or 0) - cpu_at[3]
     stop.set()
-    results.ws_lag_ms, results.dashboard_errors = receive_lags.recv()
+    lag_counts, results.dashboard_errors = receive_lags.recv()
+    results.ws_lag_ms.merge(lag_counts)
     dashboards.join(timeout=30.0)
     while not pool.empty():
         pool.get_nowait().writer.close()
@@ -470,12 +556,21 @@ def run_one(
     connections: int,
     buildings: int = 1,
     postgres: str | None = None,
+    server_env: dict[str, str] | None = None,
+    soak_every_s: float | None = None,
+    soak_warmup_s: float = 300.0,
+    keep_recordings: Path | None = None,
 ) -> dict[str, Any]:
     with tempfile.TemporaryDirectory() as tmp, _database(Path(tmp), postgres) as database_url:
         data_dir = Path(tmp)
         keys, dashboards = _prepare(database_url, n, buildings)
         port = free_port()
-        env = {**os.environ, "CROWDSLAM_DATA_DIR": str(data_dir), "CROWDSLAM_DATABASE_URL": database_url}
+        env = {
+            **os.environ,
+            "CROWDSLAM_DATA_DIR": str(data_dir),
+            "CROWDSLAM_DATABASE_URL": database_url,
+            **(server_env or {}),
+        }
         server = serve_process(env, port, data_dir / "server.log", log_level="warning")
         pid = server.pid
         meters: Meters = {
@@ -484,15 +579,30 @@ def run_one(
         }
         if postgres is not None:
             meters["postgresql"] = _postgres_cpu_seconds
+        engine = make_engine(database_url)
+        sampler = None if soak_every_s is None else _soak_sampler(pid, data_dir, engine)
         try:
             started = time.perf_counter()
             results = asyncio.run(
-                _drive([port], keys, dashboards, duration_s, n_dashboards, connections, meters)
+                _drive(
+                    [port],
+                    keys,
+                    dashboards,
+                    duration_s,
+                    n_dashboards,
+                    connections,
+                    meters,
+                    sampler=sampler,
+                    sample_every_s=soak_every_s or 60.0,
+                )
             )
             elapsed = time.perf_counter() - started
         finally:
             server.terminate()
             server.wait(timeout=60)
+            engine.dispose()
+        if keep_recordings is not None and (data_dir / "recordings").is_dir():
+            shutil.copytree(data_dir / "recordings", keep_recordings, dirs_exist_ok=True)
     row = _row(n, buildings, "sqlite" if postgres is None else "postgresql", duration_s, results, elapsed)
     cpu, wall = results.cpu_s, results.measured_wall_s
     row |= {
@@ -504,7 +614,82 @@ def run_one(
     if "postgresql" in cpu:
         row["postgresql_cpu_ms_per_batch"] = round(1e3 * cpu["postgresql"] / max(results.sent, 1), 3)
         row["postgresql_cores"] = round(cpu["postgresql"] / wall, 2)
+    if soak_every_s is not None:
+        row["soak"] = soak_summary(results.soak, soak_warmup_s, soak_every_s, server_env or {})
     return row
+
+
+def _rss_mb(pid: int) -> float:
+    """Resident memory of a process (MB, 10^6 bytes): Linux /proc; NaN when it is gone."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) * 1024 / 1e6
+    except OSError:
+        pass
+    return math.nan
+
+
+def _children(pid: int) -> list[int]:
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        with contextlib.suppress(OSError, IndexError):
+            if int(stat.read_text().rsplit(")", 1)[1].split()[1]) == pid:
+                found.append(int(stat.parent.name))
+    return sorted(found)
+
+
+def _soak_sampler(server_pid: int, data_dir: Path, engine: Any) -> Sampler:
+    """Every process's resident memory (the server's front and its building processes, this generator,
+    the dashboards) and the disk the server takes: its data directory, its recordings, its database."""
+
+    def sample(dashboards_pid: int) -> dict[str, Any]:
+        return {
+            "front_rss_mb": round(_rss_mb(server_pid), 1),
+            "building_rss_mb": [round(_rss_mb(p), 1) for p in _children(server_pid)],
+            "generator_rss_mb": round(_rss_mb(os.getpid()), 1),
+            "dashboards_rss_mb": round(_rss_mb(dashboards_pid), 1),
+            "data_dir_mb": round(tree_bytes(data_dir) / 1e6, 2),
+            "recordings_mb": round(tree_bytes(data_dir / "recordings") / 1e6, 2),
+            "database_mb": round(database_bytes(engine) / 1e6, 2),
+        }
+
+    return sample
+
+
+def soak_summary(
+    samples: list[dict[str, Any]], warmup_s: float, every_s: float, server_env: dict[str, str]
+) -> dict[str, Any]:
+    """The soak's samples and, after ``warmup_s``, each series' slope (a least-squares line, per minute)
+    and the disk each batch costs (the series' growth over the batches posted meanwhile)."""
+    after = [s for s in samples if s["t_s"] >= warmup_s]
+    slopes: dict[str, Any] = {}
+    per_batch: dict[str, float] = {}
+    if len(after) >= 3:
+        minutes = np.array([s["t_s"] for s in after]) / 60.0
+        batches = np.array([s["batches"] for s in after], dtype=float)
+
+        def slope(values: list[float]) -> float:
+            return round(float(np.polyfit(minutes, np.array(values, dtype=float), 1)[0]), 3)
+
+        for key in ("front_rss_mb", "generator_rss_mb", "dashboards_rss_mb", "data_dir_mb", "recordings_mb",
+                    "database_mb"):  # fmt: skip
+            slopes[key] = slope([s[key] for s in after])
+        n_buildings = min(len(s["building_rss_mb"]) for s in after)
+        slopes["building_rss_mb"] = [
+            slope([s["building_rss_mb"][k] for s in after]) for k in range(n_buildings)
+        ]
+        batches_per_min = float(np.polyfit(minutes, batches, 1)[0])
+        for key in ("data_dir_mb", "recordings_mb", "database_mb"):
+            per_batch[key.replace("_mb", "")] = round(slopes[key] * 1e6 / max(batches_per_min, 1.0), 1)
+    return {
+        "every_s": every_s,
+        "warmup_s": warmup_s,
+        "server_env": server_env,
+        "slopes_per_min_after_warmup": slopes,
+        "bytes_per_batch_after_warmup": per_batch,
+        "samples": samples,
+    }
 
 
 def run_cluster(
@@ -596,37 +781,26 @@ def _pids_named(name: str) -> list[int]:
 def _row(
     n: int, buildings: int, database: str, duration_s: float, results: Results, elapsed: float
 ) -> dict[str, Any]:
-    lat = np.array(results.latencies_ms) if results.latencies_ms else np.array([math.inf])
-    lag = np.array(results.ws_lag_ms) if results.ws_lag_ms else np.array([math.inf])
+    lat, lag = results.latencies_ms, results.ws_lag_ms
     measured_s = duration_s - _warmup_s(duration_s)
     return {
         "phones": n,
         "buildings": buildings,
         "database": database,
         "offered_per_s": n,
-        "batches_per_s": round(len(results.latencies_ms) / measured_s, 1),
-        "p50_ms": round(float(np.percentile(lat, 50)), 1),
-        "p99_ms": round(float(np.percentile(lat, 99)), 1),
-        "ws_lag_p50_ms": round(float(np.percentile(lag, 50)), 1),
-        "ws_lag_p99_ms": round(float(np.percentile(lag, 99)), 1),
-        "p50_ms_per_second": _p50_per_second(results),
-        "ws_positions": len(results.ws_lag_ms),
+        "batches_per_s": round(lat.n / measured_s, 1),
+        "p50_ms": round(lat.percentile(50), 1),
+        "p99_ms": round(lat.percentile(99), 1),
+        "ws_lag_p50_ms": round(lag.percentile(50), 1),
+        "ws_lag_p99_ms": round(lag.percentile(99), 1),
+        "p50_ms_per_second": results.per_second.close(),
+        "ws_positions": lag.n,
         "errors": results.errors + len(results.dashboard_errors),
         "generator_cores": round(results.generator_cpu_s / results.measured_wall_s, 2),
         "dashboards_cores": round(results.dashboards_cpu_s / results.measured_wall_s, 2),
         "dashboard_errors": results.dashboard_errors[:3],
         "seconds": round(elapsed, 1),
     }
-
-
-def _p50_per_second(results: Results) -> list[float]:
-    """Median latency of the posts due in each measured second: a backlog that drains falls along it, one
-    that the server never catches up on (the load at or above capacity) stays."""
-    if not results.latencies_ms:
-        return []
-    second = np.array(results.due_s)
-    lat = np.array(results.latencies_ms)
-    return [round(float(np.median(lat[second == s])), 1) for s in np.unique(second)]
 
 
 def main() -> int:
@@ -657,8 +831,31 @@ def main() -> int:
     parser.add_argument(
         "--nats", metavar="URL", help="the cluster's NATS (default: a private nats-server -js per run)"
     )
+    parser.add_argument(
+        "--soak",
+        type=float,
+        metavar="SECONDS",
+        help="a soak: sample every process's memory and the server's disk this often, and report their "
+        "slopes after --soak-warmup (run it with a long --duration)",
+    )
+    parser.add_argument("--soak-warmup", type=float, default=300.0, metavar="SECONDS")
+    parser.add_argument(
+        "--server-env",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a setting of the server's (e.g. CROWDSLAM_POSITION_HISTORY_DAYS=0.01 to shorten a window)",
+    )
+    parser.add_argument("--plot", type=Path, help="with --soak: draw memory and disk over time here (PNG)")
+    parser.add_argument(
+        "--keep-recordings",
+        type=Path,
+        metavar="DIR",
+        help="copy the server's recordings here at the end (e.g. to replay them: crowdslam replay --offline)",
+    )
     parser.add_argument("--json", type=Path, help="also write the result here")
     args = parser.parse_args()
+    server_env = dict(item.split("=", 1) for item in args.server_env)
     cluster = None
     if args.cluster is not None:
         try:
@@ -673,7 +870,20 @@ def main() -> int:
     rows = []
     for n in sorted(int(p) for p in args.phones.split(",")):
         if cluster is None:
-            row = run_one(n, args.duration, args.dashboards, args.connections, args.buildings, args.postgres)
+            row = run_one(
+                n,
+                args.duration,
+                args.dashboards,
+                args.connections,
+                args.buildings,
+                args.postgres,
+                server_env,
+                args.soak,
+                args.soak_warmup,
+                args.keep_recordings,
+            )
+            if args.plot is not None and "soak" in row:
+                plot_soak(row, args.plot.with_name(f"{args.plot.stem}-{n}{args.plot.suffix}"))
         else:
             # the single process on the same PostgreSQL first: the cluster's cost is a ratio to it
             single = run_one(
@@ -724,6 +934,34 @@ def main() -> int:
     }
     emit(result, args.json)
     return 0
+
+
+def plot_soak(row: dict[str, Any], path: Path) -> None:
+    """Memory (every process) and disk (data directory, recordings, database) over the soak."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    samples = row["soak"]["samples"]
+    minutes = [s["t_s"] / 60.0 for s in samples]
+    fig, (memory, disk) = plt.subplots(1, 2, figsize=(11, 4))
+    for key, label in (("front_rss_mb", "front"), ("generator_rss_mb", "load generator"),
+                       ("dashboards_rss_mb", "dashboards")):  # fmt: skip
+        memory.plot(minutes, [s[key] for s in samples], label=label)
+    for k in range(min(len(s["building_rss_mb"]) for s in samples)):
+        memory.plot(minutes, [s["building_rss_mb"][k] for s in samples], label=f"building {k}")
+    for key, label in (("data_dir_mb", "data directory"), ("recordings_mb", "recordings"),
+                       ("database_mb", "database")):  # fmt: skip
+        disk.plot(minutes, [s[key] for s in samples], label=label)
+    memory.set(xlabel="minutes", ylabel="resident memory (MB)", title=f"{row['phones']} phones")
+    disk.set(xlabel="minutes", ylabel="MB", title=f"disk, {row['database']}")
+    for axes in (memory, disk):
+        axes.axvline(row["soak"]["warmup_s"] / 60.0, color="grey", linestyle=":")
+        axes.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 if __name__ == "__main__":

@@ -94,8 +94,12 @@ class FailingBuilding(WireModel):
 
 class Health(WireModel):
     status: Literal["ok", "degraded"] = Field(
-        default="ok", description="degraded while a building has refused a batch in the last five minutes."
+        default="ok",
+        description="degraded while a building has refused a batch in the last five minutes, or while the "
+        "data directory's disk has less free space than CROWDSLAM_MIN_FREE_DISK_GB.",
     )
     database: str
     buildings_loaded: int
     failing_buildings: list[FailingBuilding] = Field(default_factory=list)
+    disk_free_bytes: int = Field(ge=0, description="Free space on the data directory's disk.")
+    low_disk: bool = Field(description="Less free space than CROWDSLAM_MIN_FREE_DISK_GB.")

@@ -41,6 +41,7 @@ from server.rate_limit import RateLimiter, retry_after_header
 from server.settings import Settings
 from server.signal_maps.jobs import SignalMapService
 from server.state import AppState
+from server.storage import StorageWatch
 from server.store.db import make_engine, make_session_factory
 from server.store.migrate import current_revision, head_revision
 from server.store.wal_checkpoints import checkpoint_in_background
@@ -102,6 +103,7 @@ def create_app(settings: Settings, tune_gc: bool = False, warming: Progress | No
             SignalMapService(
                 settings.data_dir / "signal_maps", recordings, tuple(settings.signal_map_modalities)
             ),
+            StorageWatch(settings.data_dir, engine),
             foxglove_live,
             RateLimiter(settings.device_rate_per_s, settings.device_burst),
         )

@@ -28,14 +28,18 @@ class ProblemError(Exception):
         return Problem(title=self.title, status=self.status, detail=self.detail, errors=self.errors)
 
     def __reduce__(self) -> tuple[Any, tuple[Any, ...]]:
-        """Pickled as what it says (status, title, detail, errors): it crosses from a building's process."""
-        return _problem_error, (self.status, self.title, self.detail, self.errors)
+        """Pickled as what it says (status, title, detail, errors, when to retry): it crosses from a
+        building's process."""
+        return _problem_error, (self.status, self.title, self.detail, self.errors, self.retry_after_s)
 
 
-def _problem_error(status: int, title: str, detail: str, errors: list[FieldProblem]) -> ProblemError:
+def _problem_error(
+    status: int, title: str, detail: str, errors: list[FieldProblem], retry_after_s: float | None = None
+) -> ProblemError:
     error = ProblemError(detail, errors)
     error.status = status
     error.title = title
+    error.retry_after_s = retry_after_s
     return error
 
 
@@ -107,6 +111,21 @@ class TooManyRequestsError(ProblemError):
     def __init__(self, detail: str, retry_after_s: float) -> None:
         super().__init__(detail)
         self.retry_after_s = retry_after_s
+
+
+class DiskFullError(ProblemError):
+    """The database's disk is full: nothing of the request was kept, and it may be sent again once there
+    is room (503, as a phone already handles: ``Retry-After``)."""
+
+    status = 503
+    title = "Service unavailable"
+
+    def __init__(self) -> None:
+        super().__init__("the server's disk is full: nothing of this was kept; send it again later")
+        self.retry_after_s = DISK_FULL_RETRY_S
+
+
+DISK_FULL_RETRY_S = 60.0
 
 
 class ServiceUnavailableError(ProblemError):

@@ -13,6 +13,7 @@ from prometheus_client.registry import Collector
 from server.buildings.counters import Counters
 from server.buildings.registry import Buildings
 from server.live.broadcast import Broadcaster
+from server.storage import Storage
 
 if TYPE_CHECKING:
     from collections.abc import Iterator
@@ -21,16 +22,17 @@ if TYPE_CHECKING:
 class Metrics:
     """Renders the current figures on each scrape (no global registry: one per app)."""
 
-    def render(self, tracking: Buildings, broadcaster: Broadcaster) -> bytes:
+    def render(self, tracking: Buildings, broadcaster: Broadcaster, storage: Storage) -> bytes:
         registry = CollectorRegistry()
-        registry.register(_Collector(tracking, broadcaster))
+        registry.register(_Collector(tracking, broadcaster, storage))
         return bytes(generate_latest(registry))
 
 
 class _Collector(Collector):
-    def __init__(self, tracking: Buildings, broadcaster: Broadcaster) -> None:
+    def __init__(self, tracking: Buildings, broadcaster: Broadcaster, storage: Storage) -> None:
         self._tracking = tracking
         self._broadcaster = broadcaster
+        self._storage = storage
 
     def collect(self) -> Iterator[Metric]:
 
@@ -68,3 +70,15 @@ class _Collector(Collector):
         published = CounterMetricFamily("crowdslam_live_messages", "live messages published")
         published.add_metric([], float(self._broadcaster.published))
         yield published
+        for name, text, value in (
+            ("crowdslam_data_dir_bytes", "bytes under the data directory", self._storage.data_dir_bytes),
+            ("crowdslam_database_bytes", "bytes of the database", self._storage.database_bytes),
+            (
+                "crowdslam_disk_free_bytes",
+                "free bytes on the data directory's disk",
+                self._storage.free_bytes,
+            ),
+        ):
+            gauge = GaugeMetricFamily(name, text)
+            gauge.add_metric([], float(value))
+            yield gauge

@@ -85,17 +85,43 @@ class Settings(BaseSettings):
         "(server/store/wal_checkpoints.py). 0 leaves it all to the commits' checkpoints.",
     )
     position_history_days: float = Field(
-        default=7.0,
-        ge=0.0,
-        description="How long each user's position history is kept (GET .../users/{user}/positions); older "
-        "rows are pruned in the background. Every user's latest position is kept regardless. 0 keeps all.",
-    )
-    batch_ids_days: float = Field(
         default=2.0,
         ge=0.0,
-        description="How long the ids of accepted batches are kept to recognise retries. A batch retried "
-        "later answers late instead of duplicate (its sequence number is not after its device's last): "
-        "either way it changes nothing. Batches a restart would replay are never pruned. 0 keeps all.",
+        description="How long each user's position history is kept (GET .../users/{user}/positions, "
+        "GET .../positions?at_ms=, the dashboard's history slider); older rows are pruned in the background. "
+        "Every user's latest position is kept regardless. 0 keeps all.",
+    )
+    position_history_period_s: float = Field(
+        default=2.0,
+        ge=0.0,
+        le=3600.0,
+        description="A user's position history keeps one estimate in this period (its latest position is "
+        "updated with every batch): the dashboard's history slider shows a point every 2 s. 0 keeps every "
+        "estimate.",
+    )
+    batch_ids_hours: float = Field(
+        default=1.0,
+        ge=0.0,
+        description="How long the ids of accepted batches are kept, so that a retry answers duplicate. A "
+        "batch retried later answers late instead (its sequence number is not after its device's last): "
+        "either way it is never applied twice. Batches a restart would replay are never pruned. 0 keeps all.",
+    )
+    recording_days: float = Field(
+        default=7.0,
+        ge=0.0,
+        description="How long the MCAP recordings are kept: whole hourly files older than this are deleted, "
+        "oldest first (replay and signal-map builds read what is left). 0 keeps all.",
+    )
+    recording_max_gb: float = Field(
+        default=0.0,
+        ge=0.0,
+        description="The most the recordings of all buildings may take, in GB (10^9 bytes): past it the "
+        "oldest hourly files are deleted first. 0: no cap but the days.",
+    )
+    min_free_disk_gb: float = Field(
+        default=2.0,
+        ge=0.0,
+        description="Below this much free space on the data directory's disk, /healthz says degraded.",
     )
     user_idle_s: float = Field(
         default=900.0,
@@ -240,6 +266,18 @@ class Settings(BaseSettings):
         if self.database_url:
             return self.database_url
         return f"sqlite:///{(self.data_dir / 'crowdslam.sqlite3').resolve()}"
+
+
+RETIRED = {
+    "CROWDSLAM_BATCH_IDS_DAYS": "set CROWDSLAM_BATCH_IDS_HOURS instead (in hours; default 1)",
+}
+"""Variables a server no longer reads, with what replaced them."""
+
+
+def retired_variables() -> list[str]:
+    """What the environment sets that this version no longer reads, and what to set instead: a setting
+    silently ignored would leave an operator believing it holds."""
+    return [f"{name} is no longer read: {instead}" for name, instead in RETIRED.items() if name in os.environ]
 
 
 def usable_cores() -> int:

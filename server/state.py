@@ -15,6 +15,7 @@ from server.metrics import Metrics
 from server.rate_limit import RateLimiter
 from server.settings import Settings
 from server.signal_maps.jobs import SignalMapService
+from server.storage import StorageWatch
 
 if TYPE_CHECKING:
     from server.live.foxglove import FoxgloveLive  # the SDK is imported only when its port is set
@@ -31,6 +32,7 @@ class AppState:
     started: float
     keys: KeyCache
     signal_maps: SignalMapService
+    storage: StorageWatch
     foxglove: FoxgloveLive | None = None
     rate: RateLimiter = field(default_factory=lambda: RateLimiter(0.0, 1.0))
     live_sockets: dict[int, int] = field(default_factory=dict)

@@ -54,7 +54,17 @@ LAYERS: dict[str, list[list[str]]] = {
         ["sim"],
     ],
     "server": [
-        ["settings", "errors", "gc_tuning", "process_lifetime", "rate_limit", "live", "data", "dashboard"],
+        [
+            "settings",
+            "errors",
+            "gc_tuning",
+            "process_lifetime",
+            "storage",
+            "rate_limit",
+            "live",
+            "data",
+            "dashboard",
+        ],
         ["store", "engine"],
         ["auth", "ingestion", "recordings"],
         ["buildings"],

@@ -13,6 +13,7 @@ from server.api.contract import problems
 from server.api.deps import Caller, State
 from server.errors import ForbiddenError
 from server.state import AppState
+from server.storage import free_bytes
 
 router = APIRouter(tags=["health"])
 
@@ -36,11 +37,15 @@ def get_health(state: State) -> Health:
         for building_id, handle in sorted(handles.items())
         if (counters := handle.counters).failed_batches and now - counters.last_failure_unix_s < DEGRADED_S
     ]
+    free = free_bytes(state.settings.data_dir)
+    low_disk = free < state.settings.min_free_disk_gb * 1e9
     return Health(
-        status="degraded" if failing else "ok",
+        status="degraded" if failing or low_disk else "ok",
         database=state.engine.dialect.name,
         buildings_loaded=len(handles),
         failing_buildings=failing,
+        disk_free_bytes=free,
+        low_disk=low_disk,
     )
 
 
@@ -54,7 +59,8 @@ _METRICS_OK: dict[int | str, dict[str, Any]] = {
 
 
 def _render(state: AppState) -> Response:
-    return Response(state.metrics.render(state.tracking, state.broadcaster), media_type=_METRICS_MEDIA_TYPE)
+    body = state.metrics.render(state.tracking, state.broadcaster, state.storage.storage())
+    return Response(body, media_type=_METRICS_MEDIA_TYPE)
 
 
 def metrics_router(need_key: bool) -> APIRouter:

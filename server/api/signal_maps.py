@@ -44,6 +44,7 @@ async def start_signal_map_build(building_id: str, caller: Caller, state: State)
     database, the optimised trajectories)."""
     caller.require_operator(building_id)
     building = await state.tracking.handle(building_id)
+    await building.call("flush_recording")  # the build reads every batch recorded until now
     ctx = await building.call("context")
     return state.signal_maps.start(ctx)
 

@@ -11,10 +11,15 @@ from slam_core.tracking.tracker import TrackerParams
 
 @dataclass(frozen=True)
 class Retention:
-    """How much history SQL keeps (``Settings.position_history_days``, ``batch_ids_days``; None: all)."""
+    """How much history SQL and the recordings keep (``Settings.position_history_days``, ``batch_ids_hours``,
+    ``recording_days``, ``recording_max_gb``; None: all)."""
 
-    position_history_days: float | None = 7.0
-    batch_ids_days: float | None = 2.0
+    position_history_days: float | None = 2.0
+    position_history_period_s: float = 2.0
+    """A user's history keeps one estimate in this period; 0 keeps every one."""
+    batch_ids_hours: float | None = 1.0
+    recording_days: float | None = 7.0
+    recording_max_bytes: int | None = None
     prune_period_s: float = 1.0
     """Old rows are deleted at most this often, ``prune_chunk`` per table at a time: a building inserting
     3,000 position rows a second keeps up, and no group waits behind a long delete."""

@@ -33,6 +33,8 @@ class Counters:
     """Position history rows deleted past their retention."""
     pruned_batches: int = 0
     """Batch id rows deleted past their retention."""
+    reclaimed_pages: int = 0
+    """SQLite pages handed back to the file system (``server.store.db.reclaim_free_pages``)."""
     fingerprint_fixes: int = 0
     """Scans located on the crowd's WiFi fingerprint map and applied as position fixes."""
     users_evicted: int = 0
@@ -41,6 +43,13 @@ class Counters:
     """Snapshots refused on load (another format, other parameters): tracking restarted from the SQL map."""
     reloads: int = 0
     """Times the building was loaded again from SQL after a group's transaction failed."""
+    recording_failures: int = 0
+    """Groups whose batches and estimates could not be written to the recording (a full disk): they were
+    acknowledged all the same (the batch log in SQL is the acknowledgement)."""
+    pruned_recordings: int = 0
+    """Hourly recording files deleted past ``CROWDSLAM_RECORDING_DAYS`` or over ``_MAX_GB``."""
+    disk_full_refusals: int = 0
+    """Groups of batches refused (503) because the database's disk was full; nothing of them was kept."""
     failed_batches: int = 0
     """Batches that could not be applied (each answered with its own error; nothing of them kept)."""
     last_failure_unix_s: float = 0.0

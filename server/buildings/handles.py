@@ -21,7 +21,7 @@ import numba
 
 from schemas.live import LiveMessage
 from server.buildings.counters import Counters
-from server.buildings.host import BuildingHost
+from server.buildings.host import IDLE_S, BuildingHost
 from server.buildings.submissions import Submission
 from server.errors import ProblemError, ServiceUnavailableError
 from server.live.broadcast import Broadcaster
@@ -42,6 +42,7 @@ CALLS = frozenset(
         "put_floor_plan",
         "load_radio_map",
         "context",
+        "flush_recording",
     }
 )
 """The building's methods the API may call (``BuildingThread.call``), in order with its batches."""
@@ -183,7 +184,11 @@ class BuildingThread:
     async def _run(self) -> None:
         loop = asyncio.get_running_loop()
         while True:
-            group = [await self._queue.get()]
+            try:
+                group = [await asyncio.wait_for(self._queue.get(), IDLE_S)]
+            except TimeoutError:
+                await loop.run_in_executor(self._executor, self.building.idle)
+                continue
             try:
                 wait = self._pacing.wait_s(time.monotonic())
                 if wait > 0:

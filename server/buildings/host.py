@@ -35,25 +35,33 @@ from server.engine.config import load_calibration, tracker_params
 from server.errors import (
     BatchFailedError,
     ConflictError,
+    DiskFullError,
     ForbiddenError,
     InvalidInputError,
     NotFoundError,
     ProblemError,
 )
 from server.ingestion import convert, floor_plans
-from server.recordings.recorder import BuildingRecorder
+from server.recordings.recorder import BuildingRecorder, prune_recordings
 from server.settings import Settings
 from server.store import repositories as repo
 from server.store.batches import (
     AcceptedBatch,
     insert_batches_once,
 )
-from server.store.db import make_engine, make_session_factory
+from server.store.db import is_disk_full, make_engine, make_session_factory, reclaim_free_pages
 from server.store.wal_checkpoints import checkpoint_in_background
 from server.store.writer_lock import writer_turns
 from slam_core.tracking.tracker import EstimateRow, UserBatch
 
 logger = logging.getLogger(__name__)
+
+RECORDING_PRUNE_S = 60.0
+"""How often a building deletes the recordings past their retention (a listing of every building's files)."""
+IDLE_S = 5.0
+"""A building that has had no batch for this long is told so (``BuildingHost.idle``)."""
+RECLAIM_PAGES = 2048
+"""At most this many free SQLite pages (8 MB of 4 KiB pages) handed back per prune."""
 
 
 class BuildingHost:
@@ -75,7 +83,9 @@ class BuildingHost:
         self.counters = Counters()
         self._config = config
         self._last_prune = -math.inf
+        self._last_recording_prune = -math.inf
         self._last_heard: dict[str, float] = {}  # user -> wall time of its last applied batch
+        self._history_t_ms: dict[str, int] = {}  # user -> phone time of its latest row of history
         self.recovery = Recovery(building_id, sessions, config, self.counters)
         self._load()
         with sessions() as session:
@@ -108,7 +118,13 @@ class BuildingHost:
         """Throw the in-memory state away and load the building again from SQL, exactly as a restart does:
         what a rolled-back transaction had changed in the tracker is gone, what committed is all there."""
         self.recovery.discard()  # a snapshot taken from the state thrown away is never written
-        self._load(snapshot_always=False)  # a reload pickles nothing: the snapshot in SQL is still right
+        try:
+            self._load(snapshot_always=False)  # a reload pickles nothing: the snapshot in SQL is still right
+        except Exception as exc:
+            if not is_disk_full(exc):
+                raise
+            # loaded, but its snapshot (of a building without a usable one) could not be written: the log
+            # still holds every batch it would cover, and the next snapshot will
         self.counters.reloads += 1
 
     def load_radio_map(self) -> int:
@@ -184,6 +200,7 @@ class BuildingHost:
             self.tracker.remove_users(idle)
             for u in idle:
                 del self._last_heard[u]
+                self._history_t_ms.pop(u, None)
             self.counters.users_evicted += len(idle)
 
     # ------------------------------------------------------------------ anchors
@@ -302,6 +319,7 @@ class BuildingHost:
             self.tracker.remove_user(user_id)
             self._device_of_user.pop(user_id, None)
             self._last_heard.pop(user_id, None)
+            self._history_t_ms.pop(user_id, None)
         try:
             with self._writer_turns, self._sessions.begin() as session:
                 deleted = repo.delete_user_positions(session, self.building_id, user_id)
@@ -357,6 +375,14 @@ class BuildingHost:
             vars(self.counters).update(vars(counted))
             raise
         except Exception as exc:
+            if is_disk_full(exc):
+                # nothing of the group committed: the building as its SQL holds it, every batch refused as
+                # one that may be sent again (not one batch after another: each would fail the same way)
+                vars(self.counters).update(vars(counted))
+                logger.error("building %s: the database's disk is full (%s)", self.building_id, exc)
+                self.reload()
+                self.counters.disk_full_refusals += 1
+                return GroupResult([DiskFullError() for _ in group])
             logger.warning(
                 "building %s: a group of %d failed (%r); reloading", self.building_id, len(group), exc
             )
@@ -454,11 +480,7 @@ class BuildingHost:
         # recorded once committed: a batch whose transaction failed is not in the recording (a crash between
         # the commit and these writes leaves an acknowledged batch out of it, never a refused one in)
         if self.recorder is not None:
-            for i in to_record:
-                self.recorder.record_batch(group[i].raw, group[i].received_ns)
-            for estimates, received_ns in estimates_to_record:
-                self.recorder.record_estimates(estimates, received_ns)
-            self.recorder.flush()
+            self._record([group[i] for i in to_record], estimates_to_record)
         self.counters.batches += len(group)
         return GroupResult([r if r is not None else ProblemError("not processed") for r in results], messages)
 
@@ -485,7 +507,7 @@ class BuildingHost:
         messages: list[LiveMessage] = []
         stored_at_ms = int(heard * 1000)
         rows = [position_row(self.building_id, e, stored_at_ms) for e in estimates.values()]
-        repo.add_positions(session, rows)
+        repo.add_positions(session, rows, [self._into_history(e) for e in estimates.values()])
         for index in outcome.anchors_changed:
             if self.tracker.crowd.is_live(index):
                 anchor = self.anchor(index)
@@ -525,6 +547,56 @@ class BuildingHost:
             )
         return _Applied(receipts, messages, list(estimates.values()))
 
+    def _record(self, batches: list[Submission], estimates: list[tuple[list[Estimate], int]]) -> None:
+        """Write the group's accepted batches and its estimates to the recording, and delete the recordings
+        past their retention (every ``RECORDING_PRUNE_S``). A recording that cannot be written (a full disk)
+        is logged and counted: the batches are acknowledged all the same, their log is in SQL."""
+        assert self.recorder is not None
+        try:
+            for sub in batches:
+                self.recorder.record_batch(sub.raw, sub.received_ns)
+            for rows, received_ns in estimates:
+                self.recorder.record_estimates(rows, received_ns)
+            self.recorder.flush()
+        except OSError as exc:
+            if not self.counters.recording_failures:
+                logger.error("building %s: the recording cannot be written (%s)", self.building_id, exc)
+            self.counters.recording_failures += 1
+        r = self.retention
+        now = time.monotonic()
+        if (
+            r.recording_days or r.recording_max_bytes
+        ) and now - self._last_recording_prune >= RECORDING_PRUNE_S:
+            self._last_recording_prune = now
+            max_age = None if r.recording_days is None else r.recording_days * 86_400
+            pruned = prune_recordings(self.recorder.root, max_age, r.recording_max_bytes, time.time())
+            self.counters.pruned_recordings += pruned.files
+
+    def idle(self) -> None:
+        """Called when no batch has come for ``IDLE_S``: the recording's chunk in progress is written, so that
+        a building gone quiet loses at most seconds of recording in a crash, and a build reads all of it."""
+        self.flush_recording()
+
+    def flush_recording(self) -> None:
+        """Write the recording's chunk in progress now (before a signal-map build reads the recordings)."""
+        if self.recorder is None:
+            return
+        try:
+            self.recorder.flush(now=True)
+        except OSError as exc:
+            logger.error("building %s: the recording cannot be written (%s)", self.building_id, exc)
+            self.counters.recording_failures += 1
+
+    def _into_history(self, estimate: Estimate) -> bool:
+        """Whether the estimate joins its user's position history: one a ``position_history_period_s`` of
+        the phone's time (a history dense enough for the dashboard's slider, not one row per batch)."""
+        period_ms = self.retention.position_history_period_s * 1000.0
+        last = self._history_t_ms.get(estimate.user_id)
+        if last is not None and 0 <= estimate.t_ms - last < period_ms:
+            return False
+        self._history_t_ms[estimate.user_id] = estimate.t_ms
+        return True
+
     def _pass_over(self, sub: Submission) -> None:
         """A streamed batch that failed alone is still passed in the stream, so that the next owner of the
         building does not apply it again (its answer would be the same failure)."""
@@ -541,13 +613,16 @@ class BuildingHost:
             None if r.position_history_days is None else int((now - r.position_history_days * 86_400) * 1e3)
         )
         batches_before = (
-            None if r.batch_ids_days is None else datetime.fromtimestamp(now - r.batch_ids_days * 86_400, UTC)
+            None
+            if r.batch_ids_hours is None
+            else datetime.fromtimestamp(now - r.batch_ids_hours * 3_600, UTC)
         )
         positions, batches = repo.prune_history(
             session, self.building_id, positions_before, batches_before, r.prune_chunk
         )
         self.counters.pruned_positions += positions
         self.counters.pruned_batches += batches
+        self.counters.reclaimed_pages += reclaim_free_pages(session, RECLAIM_PAGES)
         self._last_prune = time.monotonic()
 
     def _accepted(self, sub: Submission, call: int | None, base: int) -> AcceptedBatch:
@@ -609,7 +684,10 @@ def tracking_config(settings: Settings) -> TrackingConfig:
     """How the settings have every building tracked."""
     retention = Retention(
         position_history_days=settings.position_history_days or None,
-        batch_ids_days=settings.batch_ids_days or None,
+        position_history_period_s=settings.position_history_period_s,
+        batch_ids_hours=settings.batch_ids_hours or None,
+        recording_days=settings.recording_days or None,
+        recording_max_bytes=int(settings.recording_max_gb * 1e9) or None,
         user_idle_s=settings.user_idle_s or None,
     )
     return TrackingConfig(

@@ -38,7 +38,7 @@ import numba
 from schemas.live import LiveMessage
 from server.buildings.counters import Counters
 from server.buildings.handles import MAX_GROUP, GroupPacing, LatencyWindow, check_call
-from server.buildings.host import BuildingHost, open_building
+from server.buildings.host import IDLE_S, BuildingHost, open_building
 from server.buildings.submissions import BatchFields, Submission, batch_fields, received_batch, transportable
 from server.engine.warmup import warm_kernels_for
 from server.errors import ProblemError, ServiceUnavailableError
@@ -175,9 +175,12 @@ class _BuildingLoop:
     def run(self) -> None:
         reader = self.reader
         while True:
-            frame = reader.next()
+            frame = reader.ready(IDLE_S)
             if frame is None:  # the front is gone without closing us: a crash, nothing more to write
                 return
+            if frame is _NONE:
+                self.building.idle()
+                continue
             frames = [frame]
             now = time.monotonic()
             deadline = now + self.pacing.wait_s(now) if frame[0] == "batch" else now

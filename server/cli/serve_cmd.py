@@ -27,8 +27,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     # deferred: the command's dependencies load when it runs (`crowdslam --help` loads none)
-    from server.settings import get_settings
+    from server.settings import get_settings, retired_variables
 
+    for retired in retired_variables():
+        raise SystemExit(f"crowdslam serve: {retired}")
     update: dict[str, object] = {}
     if args.role is not None:
         update["role"] = args.role

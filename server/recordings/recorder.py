@@ -2,15 +2,20 @@
 
 Channels use JSON encoding with JSON-schema schemas generated from ``schemas/``: ``/batches``
 (``SensorBatch``), ``/estimates`` (``Estimate``) and ``/poses`` (Foxglove's well-known ``PoseInFrame``, so a
-recording opens in Foxglove or Lichtblick). Chunking is off and the building flushes its file after each
-group of batches, before their receipts are sent, so a crash loses no acknowledged batch: a file cut short
-is still readable up to its last complete record.
+recording opens in Foxglove or Lichtblick). Records go in zstd-compressed chunks, written when a chunk is
+full (``CHUNK_BYTES``) and at least every ``FLUSH_S`` seconds: a crash loses at most the records of that last
+chunk, and a file cut short is still readable up to its last whole chunk. A recording is not the
+acknowledgement of a batch: the batch log in SQL is.
+
+Recordings are kept ``CROWDSLAM_RECORDING_DAYS`` and under ``CROWDSLAM_RECORDING_MAX_GB``
+(``prune_recordings``): whole files go, oldest first.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -20,10 +25,15 @@ from typing import IO, Any
 from mcap.exceptions import McapError
 from mcap.records import Channel, Message
 from mcap.stream_reader import StreamReader
-from mcap.writer import Writer
+from mcap.writer import CompressionType, Writer
 
 from schemas.estimates import Estimate
 from schemas.sensors import SensorBatch
+
+CHUNK_BYTES = 1 << 20
+"""A chunk is compressed and written once it holds this much (a busy building's second or so)."""
+FLUSH_S = 5.0
+"""...and at least this often, so that a quiet building's crash loses seconds of recording, not an hour."""
 
 BATCH_TOPIC = "/batches"
 ESTIMATE_TOPIC = "/estimates"
@@ -80,14 +90,24 @@ def pose_in_frame_json(estimate: Estimate) -> bytes:
 class BuildingRecorder:
     """Writes one building's recordings. Used from that building's worker thread only."""
 
-    def __init__(self, root: Path, building_id: str) -> None:
+    def __init__(
+        self, root: Path, building_id: str, chunk_bytes: int = CHUNK_BYTES, flush_s: float = FLUSH_S
+    ) -> None:
         self._dir = root / building_id
+        self._chunk_bytes = chunk_bytes
+        self._flush_s = flush_s
         self._hour: str | None = None
         self._file: IO[bytes] | None = None
         self._writer: Writer | None = None
         self._channels: dict[str, int] = {}
         self._hour_ends_ns = -1
+        self._flushed = time.monotonic()
         self.n_batches = 0
+
+    @property
+    def root(self) -> Path:
+        """The recordings of every building: this one's are in ``root / building_id``."""
+        return self._dir.parent
 
     def _open(self, t_ns: int) -> Writer:
         if self._writer is not None and t_ns < self._hour_ends_ns:
@@ -108,7 +128,7 @@ class BuildingRecorder:
             except FileExistsError:
                 n += 1
                 path = self._dir / f"{hour}-{n}.mcap"
-        writer = Writer(self._file, use_chunking=False)
+        writer = Writer(self._file, chunk_size=self._chunk_bytes, compression=CompressionType.ZSTD)
         writer.start(profile="", library="crowdslam")
         schemas = {
             BATCH_TOPIC: ("SensorBatch", SensorBatch.model_json_schema()),
@@ -127,7 +147,7 @@ class BuildingRecorder:
         return writer
 
     def record_batch(self, raw: bytes, received_ns: int) -> None:
-        """Append a batch as posted (``flush`` before acknowledging it)."""
+        """Append a batch as posted."""
         writer = self._open(received_ns)
         writer.add_message(
             self._channels[BATCH_TOPIC], log_time=received_ns, data=raw, publish_time=received_ns
@@ -149,10 +169,12 @@ class BuildingRecorder:
             pose = pose_in_frame_json(e)
             writer.add_message(self._channels[POSE_TOPIC], log_time=t, data=pose, publish_time=received_ns)
 
-    def flush(self) -> None:
-        """Everything recorded so far reaches the operating system (once per group, before its receipts)."""
-        if self._file is not None:
-            self._file.flush()
+    def flush(self, now: bool = False) -> None:
+        """Called once per group, and by a quiet building: the chunk in progress is compressed and written
+        once ``FLUSH_S`` have passed since the last (a full chunk is written as it fills), or ``now``."""
+        if self._writer is not None and (now or time.monotonic() - self._flushed >= self._flush_s):
+            self._writer.flush()  # type: ignore[no-untyped-call]
+            self._flushed = time.monotonic()
 
     def close(self) -> None:
         if self._writer is not None:
@@ -182,3 +204,47 @@ def read_batches(path: Path) -> Iterator[RecordedBatch]:
                     yield RecordedBatch(record.log_time, bytes(record.data))
         except (McapError, EOFError):
             return
+
+
+@dataclass(frozen=True)
+class Pruned:
+    files: int
+    bytes: int
+
+
+RECENT_S = 3600.0
+"""A recording written to in the last hour is never deleted: it may be one a building is writing."""
+
+
+def prune_recordings(root: Path, max_age_s: float | None, max_bytes: int | None, now: float) -> Pruned:
+    """Delete whole recordings under ``root`` (every building's ``*.mcap``): those last written more than
+    ``max_age_s`` before ``now`` (Unix seconds), then, oldest first, as many as it takes to bring them all
+    under ``max_bytes``. Age is the file's last write, not the hour in its name: a replay or an import
+    records batches received long ago into files written now. A file written to in the last ``RECENT_S``
+    is never deleted (any building may be writing it), nor counted. A file another process deleted first
+    is passed over."""
+    files = []
+    for path in root.glob("*/*.mcap"):
+        try:
+            stat = path.stat()
+        except FileNotFoundError:
+            continue
+        if now - stat.st_mtime >= RECENT_S:
+            files.append((stat.st_mtime, str(path), path, stat.st_size))
+    files.sort()
+    total = sum(size for *_, size in files) if max_bytes is not None else 0
+    deleted = freed = 0
+    for written, _, path, size in files:
+        too_old = max_age_s is not None and now - written > max_age_s
+        too_much = max_bytes is not None and total > max_bytes
+        if not (too_old or too_much):
+            break  # oldest first: the rest are younger, and the total fits
+        try:
+            path.unlink()
+        except FileNotFoundError:
+            pass
+        else:
+            deleted += 1
+            freed += size
+        total -= size
+    return Pruned(deleted, freed)

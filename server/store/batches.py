@@ -4,11 +4,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from sqlalchemy import select, update
+from sqlalchemy import delete, insert, select
 from sqlalchemy.orm import Session
 
-from server.store.db import insert_many_once
-from server.store.models import BatchRow, TrackerSnapshotRow
+from server.store.db import execute_many, insert_many_once
+from server.store.models import BatchLogRow, BatchRow, TrackerSnapshotRow
 
 
 @dataclass(frozen=True)
@@ -21,7 +21,8 @@ class AcceptedBatch:
     t_last_ms: int | None
     n_bytes: int
     body: bytes | None = None
-    """The batch as posted, logged until a tracker snapshot covers it; None when nothing will apply it."""
+    """The batch as posted, logged (``batch_log``) until a tracker snapshot covers it; None when nothing
+    will apply it."""
     applied_round: int | None = None
     """The building's engine call that applies it (the order a restart replays the log in); None: late."""
 
@@ -34,8 +35,9 @@ class LoggedBatch:
 
 
 def insert_batches_once(session: Session, batches: list[AcceptedBatch]) -> list[int | None]:
-    """Insert many batches in one statement; each one's row id, or None for a retry (already stored, or
-    repeated earlier in ``batches``). Same atomic decision as ``insert_batch_once``."""
+    """Insert many batches, one statement for their ids and one for the bodies of those newly inserted that
+    will be applied (the log); each one's row id, or None for a retry (already stored, or repeated earlier
+    in ``batches``). Same atomic decision as ``insert_batch_once``."""
     ids = {
         (device, batch_id): int(row_id)
         for row_id, device, batch_id in insert_many_once(
@@ -47,9 +49,24 @@ def insert_batches_once(session: Session, batches: list[AcceptedBatch]) -> list[
         )
     }
     out: list[int | None] = []
+    logged = []
     for b in batches:
-        out.append(ids.pop((b.device_id, b.batch_id), None))  # a repeat within the group gets None
+        row_id = ids.pop((b.device_id, b.batch_id), None)  # a repeat within the group gets None
+        out.append(row_id)
+        if row_id is not None and b.body is not None and b.applied_round is not None:
+            logged.append(
+                {
+                    "batch_row_id": row_id,
+                    "building_id": b.building_id,
+                    "applied_round": b.applied_round,
+                    "body": b.body,
+                }
+            )
+    execute_many(session, _LOG_INSERT, logged)
     return out
+
+
+_LOG_INSERT = insert(BatchLogRow)
 
 
 def _values(batch: AcceptedBatch) -> dict[str, object]:
@@ -63,7 +80,6 @@ def _values(batch: AcceptedBatch) -> dict[str, object]:
         "n_bytes": batch.n_bytes,
         "applied": batch.applied_round is not None,
         "applied_round": batch.applied_round,
-        "body": batch.body,
     }
 
 
@@ -77,28 +93,24 @@ def insert_batch_once(session: Session, batch: AcceptedBatch) -> int | None:
 
 
 def clear_covered_bodies(session: Session, building_id: str, limit: int | None = None) -> int:
-    """Forget the bodies of a building's batches that its tracker snapshot covers (applied by engine calls
-    up to the snapshot's round), and of batches never applied (late ones are not replayed). The snapshot's
-    round is read in the same statement, so nothing is cleared that the snapshot in SQL does not cover.
-    At most ``limit`` rows when given: a building applying thousands of batches a minute clears its log a
-    chunk per group instead of in one long statement. Returns how many bodies went."""
+    """Delete the logged bodies of a building's batches that its tracker snapshot covers (applied by engine
+    calls up to the snapshot's round). The snapshot's round is read in the same statement, so nothing is
+    deleted that the snapshot in SQL does not cover. At most ``limit`` rows when given: a building applying
+    thousands of batches a minute clears its log a chunk per group instead of in one long statement.
+    Returns how many bodies went."""
     session.flush()  # a snapshot saved in this transaction through the ORM is what the statement reads
     snapshot_round = (
         select(TrackerSnapshotRow.applied_round)
         .where(TrackerSnapshotRow.building_id == building_id)
         .scalar_subquery()
     )
-    covered = (
-        BatchRow.building_id == building_id,
-        BatchRow.body.is_not(None),
-        BatchRow.applied_round.is_(None) | (BatchRow.applied_round <= snapshot_round),
-    )
+    covered = (BatchLogRow.building_id == building_id, BatchLogRow.applied_round <= snapshot_round)
     if limit is None:
-        stmt = update(BatchRow).where(*covered)
+        stmt = delete(BatchLogRow).where(*covered)
     else:
-        doomed = select(BatchRow.id).where(*covered).limit(limit).scalar_subquery()
-        stmt = update(BatchRow).where(BatchRow.id.in_(doomed))
-    return int(session.connection().execute(stmt.values(body=None)).rowcount or 0)
+        doomed = select(BatchLogRow.batch_row_id).where(*covered).limit(limit).scalar_subquery()
+        stmt = delete(BatchLogRow).where(BatchLogRow.batch_row_id.in_(doomed))
+    return int(session.connection().execute(stmt).rowcount or 0)
 
 
 def logged_batches(session: Session, building_id: str, after_round: int | None = None) -> list[LoggedBatch]:
@@ -106,21 +118,13 @@ def logged_batches(session: Session, building_id: str, after_round: int | None =
     ``after_round`` (the round of the snapshot they are replayed onto; older bodies the snapshot covers may
     not be cleared yet), or all when None."""
     stmt = (
-        select(BatchRow.id, BatchRow.applied_round, BatchRow.body)
-        .where(
-            BatchRow.building_id == building_id,
-            BatchRow.applied.is_(True),
-            BatchRow.body.is_not(None),
-        )
-        .order_by(BatchRow.applied_round, BatchRow.id)
+        select(BatchLogRow.batch_row_id, BatchLogRow.applied_round, BatchLogRow.body)
+        .where(BatchLogRow.building_id == building_id)
+        .order_by(BatchLogRow.applied_round, BatchLogRow.batch_row_id)
     )
     if after_round is not None:
-        stmt = stmt.where(BatchRow.applied_round > after_round)
-    return [
-        LoggedBatch(int(i), int(r if r is not None else 0), bytes(b))
-        for i, r, b in session.execute(stmt)
-        if b is not None
-    ]
+        stmt = stmt.where(BatchLogRow.applied_round > after_round)
+    return [LoggedBatch(int(i), int(r), bytes(b)) for i, r, b in session.execute(stmt)]
 
 
 def find_batch(session: Session, building_id: str, device_id: str, batch_id: str) -> BatchRow | None:

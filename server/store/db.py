@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 from collections.abc import Callable, Mapping, Sequence
 from functools import lru_cache
 from pathlib import Path
@@ -15,6 +16,9 @@ from sqlalchemy.orm import InstrumentedAttribute, Session, sessionmaker
 
 def _sqlite_pragmas(dbapi_connection: Any, _record: Any) -> None:
     cursor = dbapi_connection.cursor()
+    # takes effect only in a database with no table yet (a new one): freed pages can then be handed back to
+    # the file system (``reclaim_free_pages``); an older database reuses them, and converts with VACUUM
+    cursor.execute("PRAGMA auto_vacuum=INCREMENTAL")
     cursor.execute("PRAGMA foreign_keys=ON")
     cursor.execute("PRAGMA journal_mode=WAL")
     cursor.execute("PRAGMA synchronous=NORMAL")
@@ -105,6 +109,43 @@ def upsert(
         _dialect_name(session), mapped, tuple(values[0]), tuple(conflict_columns), tuple(keep_when_null)
     )
     execute_many(session, stmt, values)
+
+
+def reclaim_free_pages(session: Session, max_pages: int, keep_fraction: float = 0.1) -> int:
+    """On a SQLite database in incremental auto-vacuum, hand back to the file system up to ``max_pages`` of
+    its free pages beyond ``keep_fraction`` of the pages in use (pages freed by deletions that new rows
+    have not reused: the next inserts reuse those kept without growing the file). Elsewhere nothing:
+    PostgreSQL's autovacuum makes dead rows' space reusable. Returns how many pages went."""
+    if session.get_bind().dialect.name != "sqlite":
+        return 0
+    conn = session.connection()
+    if conn.exec_driver_sql("PRAGMA auto_vacuum").scalar() != 2:  # 2: INCREMENTAL
+        return 0
+    free = int(conn.exec_driver_sql("PRAGMA freelist_count").scalar() or 0)
+    pages = int(conn.exec_driver_sql("PRAGMA page_count").scalar() or 0)
+    surplus = min(max_pages, free - int(keep_fraction * (pages - free)))
+    if surplus <= 0:
+        return 0
+    # Python's sqlite3 steps a statement that returns no rows once, and each step of incremental_vacuum
+    # frees one page: one execution per page (microseconds each)
+    cursor = conn.connection.dbapi_connection.cursor()  # type: ignore[union-attr]
+    try:
+        for _ in range(surplus):
+            cursor.execute("PRAGMA incremental_vacuum(1)")
+    finally:
+        cursor.close()
+    return surplus
+
+
+def is_disk_full(exc: BaseException) -> bool:
+    """Whether the database refused a write for want of space: SQLite's ``SQLITE_FULL`` ("database or disk
+    is full"), PostgreSQL's ``disk_full`` (SQLSTATE 53100), or the operating system's ``ENOSPC``."""
+    cause = getattr(exc, "orig", None) or exc
+    if getattr(cause, "sqlite_errorcode", None) == 13:  # SQLITE_FULL
+        return True
+    if getattr(cause, "sqlstate", None) == "53100":
+        return True
+    return isinstance(cause, OSError) and cause.errno == errno.ENOSPC
 
 
 def execute_many(session: Session, stmt: Any, rows: Sequence[Mapping[str, Any]]) -> None:

@@ -20,7 +20,6 @@ from sqlalchemy import (
     Text,
     UniqueConstraint,
     func,
-    text,
 )
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 
@@ -128,21 +127,15 @@ class ApiKeyRow(Base):
 
 
 class BatchRow(Base):
-    """An accepted batch. The unique constraint on (building, device, batch id) is what detects retries."""
+    """An accepted batch's id, kept ``CROWDSLAM_BATCH_IDS_HOURS`` to answer a retry ``duplicate``. The unique
+    constraint on (building, device, batch id) is what detects retries. Its body, while a restart may need
+    it, is in ``batch_log``: a row that stays is small, and the log's rows leave whole."""
 
     __tablename__ = "batches"
     __table_args__ = (
         ForeignKeyConstraint(["building_id"], ["buildings.id"], ondelete="CASCADE"),
         UniqueConstraint("building_id", "device_id", "batch_id", name="uq_batches_device_batch"),
         Index("ix_batches_building_received", "building_id", "received_at"),
-        # the write-ahead log: the few rows that still hold a body, found without scanning the rest
-        Index(
-            "ix_batches_logged",
-            "building_id",
-            "applied_round",
-            sqlite_where=text("body IS NOT NULL"),
-            postgresql_where=text("body IS NOT NULL"),
-        ),
     )
 
     id: Mapped[int] = mapped_column(BigIntPk, primary_key=True, autoincrement=True)
@@ -156,9 +149,25 @@ class BatchRow(Base):
     applied: Mapped[bool] = mapped_column(Boolean, default=False)
     applied_round: Mapped[int | None] = mapped_column(BigInteger)
     """The building's engine call that applied it: a restart replays the log in the same groups."""
-    body: Mapped[bytes | None] = mapped_column(LargeBinary)
-    """The batch as posted, kept only until a tracker snapshot covers it (the write-ahead log)."""
     received_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), server_default=func.now())
+
+
+class BatchLogRow(Base):
+    """The write-ahead log: an applied batch's body as posted, from the transaction that acknowledges it until
+    a tracker snapshot covers it (then the row is deleted). With the snapshot it restores tracking after a
+    crash."""
+
+    __tablename__ = "batch_log"
+    __table_args__ = (
+        ForeignKeyConstraint(["batch_row_id"], ["batches.id"], ondelete="CASCADE"),
+        ForeignKeyConstraint(["building_id"], ["buildings.id"], ondelete="CASCADE"),
+        Index("ix_batch_log_building_round", "building_id", "applied_round"),
+    )
+
+    batch_row_id: Mapped[int] = mapped_column(BigIntPk, primary_key=True, autoincrement=False)
+    building_id: Mapped[str] = mapped_column(String(64))
+    applied_round: Mapped[int] = mapped_column(BigInteger)
+    body: Mapped[bytes] = mapped_column(LargeBinary)
 
 
 class AnchorRow(Base):

@@ -8,13 +8,14 @@ from collections.abc import Collection, Mapping, Sequence
 from datetime import UTC, datetime
 from typing import Any, cast
 
-from sqlalchemy import ColumnElement, CursorResult, Table, delete, func, insert, select, update
+from sqlalchemy import ColumnElement, CursorResult, Table, delete, exists, func, insert, select, update
 from sqlalchemy.orm import Session
 
 from server.store.db import execute_many, insert_once, upsert
 from server.store.models import (
     AnchorRow,
     ApiKeyRow,
+    BatchLogRow,
     BatchRow,
     BuildingRow,
     DeviceRow,
@@ -273,12 +274,16 @@ def delete_anchor(session: Session, building_id: str, public_id: str) -> bool:
 _POSITIONS_INSERT = insert(PositionSnapshotRow).inline()
 
 
-def add_positions(session: Session, rows: Sequence[dict[str, object]]) -> None:
-    """Many position snapshots in one executemany (column name -> value per row; ``stored_at_ms`` is left
-    out of the latest-position rows), and each user's latest one kept apart (rows in time order per user)."""
+def add_positions(
+    session: Session, rows: Sequence[dict[str, object]], history: Sequence[bool] | None = None
+) -> None:
+    """Each user's latest position kept apart (rows in time order per user; ``stored_at_ms`` left out), and
+    the rows ``history`` marks (all when None) added to the position history, in one executemany (column
+    name -> value per row)."""
     if not rows:
         return
-    execute_many(session, _POSITIONS_INSERT, rows)
+    kept = rows if history is None else [r for r, keep in zip(rows, history, strict=True) if keep]
+    execute_many(session, _POSITIONS_INSERT, kept)
     latest = {str(r["user_id"]): {k: v for k, v in r.items() if k != "stored_at_ms"} for r in rows}
     upsert(session, LatestPositionRow, list(latest.values()), ["building_id", "user_id"])
 
@@ -312,7 +317,7 @@ def prune_history(
     limit: int,
 ) -> tuple[int, int]:
     """Delete at most ``limit`` position snapshots stored before ``positions_before_ms`` and at most
-    ``limit`` batch rows received before ``batches_before`` whose body a snapshot already covers (the log a
+    ``limit`` batch ids received before ``batches_before`` whose body is no longer logged (the log a
     restart replays is never pruned); None keeps that history. Returns how many of each went."""
     positions = batches = 0
     if positions_before_ms is not None:
@@ -328,7 +333,8 @@ def prune_history(
             session,
             BatchRow,
             building_id,
-            (BatchRow.received_at < batches_before) & BatchRow.body.is_(None),
+            (BatchRow.received_at < batches_before)
+            & ~exists().where(BatchLogRow.batch_row_id == BatchRow.id),
             limit,
         )
     return positions, batches

@@ -81,7 +81,7 @@ def test_batches_track_a_user_and_retries_change_nothing(api: Api) -> None:
     assert positions.json()[0]["position"] == last["position"]
     history = api.client.get("/v1/buildings/hq/users/phone-1/positions", headers=api.auth(dashboard))
     assert [h["t_ms"] for h in history.json()] == sorted(h["t_ms"] for h in history.json())
-    assert len(history.json()) == 5
+    assert len(history.json()) == 3  # one estimate a 2 s period of the phone's time (of 5, a second apart)
 
 
 def test_steps_before_a_fix_are_skipped_with_a_warning(api: Api) -> None:

@@ -28,7 +28,7 @@ def test_a_forgotten_user_leaves_the_positions_history_and_live_view(api: Api) -
     assert [p["user_id"] for p in positions] == ["phone-2"]
     history = api.client.get("/v1/buildings/hq/users/phone-1/positions", headers=as_dashboard)
     assert history.json() == []
-    assert len(api.client.get("/v1/buildings/hq/users/phone-2/positions", headers=as_dashboard).json()) == 3
+    assert len(api.client.get("/v1/buildings/hq/users/phone-2/positions", headers=as_dashboard).json()) == 2
 
     again = api.client.delete("/v1/buildings/hq/users/phone-1", headers=as_operator)
     assert again.status_code == 404

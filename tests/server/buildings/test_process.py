@@ -22,7 +22,7 @@ from server.app import create_app
 from server.engine import warmup
 from server.settings import Settings
 from server.store.db import make_engine, make_session_factory
-from server.store.models import BatchRow, TrackerSnapshotRow
+from server.store.models import BatchLogRow, TrackerSnapshotRow
 from tests.server.api.test_api import _batch
 from tests.server.conftest import Api, migrate_with_operator
 
@@ -39,7 +39,7 @@ def process_api(tmp_path: Path) -> Iterator[Api]:
 def _logged_and_snapshots(url: str) -> tuple[int, int]:
     engine = make_engine(url)
     with make_session_factory(engine)() as session:
-        logged = session.execute(select(func.count()).where(BatchRow.body.is_not(None))).scalar_one()
+        logged = session.execute(select(func.count()).select_from(BatchLogRow)).scalar_one()
         snapshots = session.execute(select(func.count()).select_from(TrackerSnapshotRow)).scalar_one()
     engine.dispose()
     return int(logged), int(snapshots)

@@ -4,6 +4,7 @@ and the building falls back to its SQL anchor map."""
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 from dataclasses import replace
@@ -21,7 +22,7 @@ from server.settings import Settings
 from server.simulation.phones import KnownAnchor, known_anchors, simulated_batches
 from server.store.db import make_engine, make_session_factory
 from server.store.migrate import upgrade
-from server.store.models import BatchRow, BuildingRow, TrackerSnapshotRow
+from server.store.models import BatchLogRow, BatchRow, BuildingRow, TrackerSnapshotRow
 from slam_core.sim.simulation import Scenario, simulate
 from tests.conftest import TESTBED
 
@@ -81,7 +82,7 @@ def _estimates(session: BuildingHost) -> dict[str, object]:
 
 def _logged(engine: Engine) -> int:
     with make_session_factory(engine)() as s:
-        return int(s.execute(select(func.count()).where(BatchRow.body.is_not(None))).scalar_one())
+        return int(s.execute(select(func.count()).select_from(BatchLogRow)).scalar_one())
 
 
 def _logged_after(engine: Engine, applied_round: int) -> int:
@@ -260,7 +261,13 @@ def test_the_batch_path_prunes_history_but_keeps_every_users_latest_position(sql
 
     engine = _fresh_building(sqlite_url)
     session = _building(
-        engine, retention=Retention(position_history_days=1e-12, batch_ids_days=None, prune_period_s=0.0)
+        engine,
+        retention=Retention(
+            position_history_days=1e-12,
+            position_history_period_s=0.0,
+            batch_ids_hours=None,
+            prune_period_s=0.0,
+        ),
     )
     groups = _groups(CROWD)[:12]
     for group in groups:
@@ -274,6 +281,30 @@ def test_the_batch_path_prunes_history_but_keeps_every_users_latest_position(sql
     assert set(latest) == set(session.tracker.users)
     assert all(latest[u] == session.latest_estimate(u).t_ms for u in latest)  # type: ignore[union-attr]
     assert batches == sum(len(g) for g in groups)  # batch ids kept: None keeps them all
+    engine.dispose()
+
+
+def test_the_history_keeps_one_estimate_a_period_and_the_latest_position_every_batch(sqlite_url: str) -> None:
+    """``position_history_period_s``: a user's history rows are at least the period apart in the phone's time
+    (the first estimate of each period kept), while its latest position follows every batch."""
+    from server.store import repositories as repo
+    from server.store.models import PositionSnapshotRow
+
+    engine = _fresh_building(sqlite_url)
+    building = _building(engine, retention=Retention(position_history_period_s=3.0))
+    for group in _groups(CROWD)[:16]:
+        building.process(group)
+    with make_session_factory(engine)() as s:
+        rows = s.execute(select(PositionSnapshotRow.user_id, PositionSnapshotRow.t_ms)).all()
+        latest = {r.user_id: r.t_ms for r in repo.latest_positions(s, "hq")}
+    by_user: dict[str, list[int]] = {}
+    for user, t in rows:
+        by_user.setdefault(user, []).append(t)
+    assert 0 < len(rows) < building.counters.estimates / 2  # a batch a second, a row every 3 s
+    for user, times in by_user.items():
+        times.sort()
+        assert all(b - a >= 3_000 for a, b in itertools.pairwise(times)), user
+        assert latest[user] == building.latest_estimate(user).t_ms >= times[-1]  # type: ignore[union-attr]
     engine.dispose()
 
 

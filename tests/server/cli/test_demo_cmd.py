@@ -153,9 +153,7 @@ def test_the_demo_stops_cleanly_on_sigint_and_sigterm_even_in_the_background(
     engine = make_engine(f"sqlite:///{tmp_path / 'data' / 'crowdslam.sqlite3'}")
     try:
         with engine.connect() as connection:
-            logged = connection.exec_driver_sql(
-                "SELECT COUNT(*) FROM batches WHERE body IS NOT NULL"
-            ).scalar()
+            logged = connection.exec_driver_sql("SELECT COUNT(*) FROM batch_log").scalar()
             accepted = connection.exec_driver_sql("SELECT COUNT(*) FROM batches").scalar()
             snapshots = connection.exec_driver_sql("SELECT COUNT(*) FROM tracker_snapshots").scalar()
     finally:

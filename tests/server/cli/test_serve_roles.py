@@ -1,4 +1,5 @@
-"""``crowdslam serve --role``: a cluster role without what it needs stops at once and says what is missing."""
+"""``crowdslam serve``: a cluster role without what it needs, or a setting this version no longer reads,
+stops it at once and says what is missing or what replaced it."""
 
 from __future__ import annotations
 
@@ -29,3 +30,11 @@ def test_a_cluster_role_without_nats_or_postgresql_says_what_it_needs(tmp_path: 
     )
     assert done.returncode == 1
     assert "needs PostgreSQL" in done.stderr  # SQLite is one process's database
+
+
+def test_a_retired_setting_stops_the_server_and_names_its_successor(tmp_path: Path) -> None:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("CROWDSLAM_")}
+    env |= {"CROWDSLAM_DATA_DIR": str(tmp_path), "CROWDSLAM_BATCH_IDS_DAYS": "2"}
+    done = subprocess.run([*CLI, "serve"], env=env, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 1
+    assert "CROWDSLAM_BATCH_IDS_DAYS is no longer read: set CROWDSLAM_BATCH_IDS_HOURS" in done.stderr

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import math
+import os
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -11,7 +13,15 @@ import pytest
 from mcap.reader import make_reader
 
 from schemas.estimates import Estimate
-from server.recordings.recorder import BATCH_TOPIC, ESTIMATE_TOPIC, POSE_TOPIC, read_batches
+from server.recordings.recorder import (
+    BATCH_TOPIC,
+    ESTIMATE_TOPIC,
+    POSE_TOPIC,
+    BuildingRecorder,
+    Pruned,
+    prune_recordings,
+    read_batches,
+)
 from server.replay import replay_offline
 from server.settings import Settings
 from server.simulation.phones import simulated_batches
@@ -76,13 +86,59 @@ def test_accepted_batches_are_recorded_and_replay_to_the_same_estimates(
     for user, estimate in report.latest.items():
         assert estimate.position.x_m == pytest.approx(live_latest[user]["position"]["x_m"], abs=1e-9)
         assert estimate.position.y_m == pytest.approx(live_latest[user]["position"]["y_m"], abs=1e-9)
-    # a file cut short by a crash still yields every whole record before the cut
-    cut = files[0].parent / "cut.mcap"
-    data = files[0].read_bytes()
+
+
+def test_a_recording_is_compressed_in_chunks_and_a_file_cut_short_reads_to_its_last_whole_chunk(
+    tmp_path: Path,
+) -> None:
+    """Records go in zstd chunks: a file cut short by a crash still yields every batch of its whole chunks
+    before the cut, in order; the recording is several times smaller than the batches it holds."""
+    recorder = BuildingRecorder(tmp_path, "b", chunk_bytes=16_384, flush_s=3600.0)
+    bodies = [
+        json.dumps({"batch_id": f"phone-{k}", "seq": k, "steps": [k] * 40}).encode() for k in range(2_000)
+    ]
+    for k, body in enumerate(bodies):
+        recorder.record_batch(body, 1_800_000_000_000_000_000 + k)
+        recorder.flush()  # within the hour's flush period: chunks are written as they fill
+    recorder.close()
+    (path,) = (tmp_path / "b").glob("*.mcap")
+    assert [r.raw for r in read_batches(path)] == bodies
+    assert path.stat().st_size < sum(len(b) for b in bodies) / 4
+    data = path.read_bytes()
+    cut = tmp_path / "cut.mcap"
     cut.write_bytes(data[: len(data) * 2 // 3])
-    partial = list(read_batches(cut))
-    assert 0 < len(partial) < len(recorded)
-    assert [p.raw for p in partial] == [r.raw for r in recorded[: len(partial)]]
+    partial = [r.raw for r in read_batches(cut)]
+    assert 0 < len(partial) < len(bodies)
+    assert partial == bodies[: len(partial)]
+
+
+def test_old_and_surplus_recordings_are_deleted_whole_oldest_first(tmp_path: Path) -> None:
+    now = datetime(2026, 12, 6, 12, 30, tzinfo=UTC).timestamp()
+
+    def recording(building: str, hours_ago: float, size: int, name: str) -> Path:
+        path = tmp_path / building / f"{name}.mcap"
+        path.parent.mkdir(exist_ok=True)
+        path.write_bytes(b"x" * size)
+        os.utime(path, (now - 3600 * hours_ago, now - 3600 * hours_ago))  # age is the last write
+        return path
+
+    # a replay writes old hours now: the name's hour does not count
+    current = recording("a", 0.2, 500, "20200101T00")  # being written: never deleted
+    old = [recording("a", 60, 100, "20261204T00"), recording("b", 55, 100, "20261204T05-1")]
+    mid = [recording("b", 10, 100, "20261206T02"), recording("a", 5, 100, "20261206T07")]
+    recent = recording("b", 1.5, 100, "20261206T11")
+    (tmp_path / "a" / "notes.txt").write_text("not a recording")
+    assert prune_recordings(tmp_path, 3 * 86_400, None, now) == Pruned(0, 0)  # none is three days old
+    assert prune_recordings(tmp_path, 48 * 3600, None, now) == Pruned(2, 200)
+    assert not any(p.exists() for p in old)
+    assert prune_recordings(tmp_path, None, 150, now) == Pruned(2, 200)  # oldest first, to fit
+    assert not any(p.exists() for p in mid)
+    assert recent.exists()
+    assert current.exists()
+    assert (tmp_path / "a" / "notes.txt").exists()
+    assert prune_recordings(tmp_path, None, 0, now) == Pruned(1, 100)
+    assert current.exists()
+    assert prune_recordings(tmp_path, 60.0, 0, now) == Pruned(0, 0)  # the last hour stays whatever the limits
 
 
 def test_golden_recording_replays_to_its_stored_estimates() -> None:

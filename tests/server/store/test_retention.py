@@ -6,12 +6,13 @@ the latest positions of a database that has history."""
 from __future__ import annotations
 
 from datetime import UTC, datetime, timedelta
+from pathlib import Path
 
 from sqlalchemy import Engine, func, insert, select
 
 from server.store import repositories as repo
 from server.store.batches import AcceptedBatch, insert_batches_once
-from server.store.db import make_session_factory
+from server.store.db import make_session_factory, reclaim_free_pages
 from server.store.migrate import downgrade, upgrade
 from server.store.models import BatchRow, BuildingRow, LatestPositionRow, PositionSnapshotRow
 
@@ -57,7 +58,17 @@ def test_old_history_and_batch_ids_are_pruned_in_chunks_but_never_the_log(migrat
         repo.add_positions(session, [_position("a", T0 - 10**10, T0 - 1 - k) for k in range(5)])
         repo.add_positions(session, [_position("a", T0 - 10**10, T0 + 5)])
         stored = [
-            AcceptedBatch("hq", "p", f"b{k}", k, None, None, 10, body=b"{}" if k == 4 else None)
+            AcceptedBatch(
+                "hq",
+                "p",
+                f"b{k}",
+                k,
+                None,
+                None,
+                10,
+                body=b"{}" if k == 4 else None,
+                applied_round=k if k == 4 else None,
+            )
             for k in range(5)
         ]
         insert_batches_once(session, stored)
@@ -92,3 +103,33 @@ def test_migration_0003_fills_the_latest_positions_from_history(migrated_engine:
         stored = session.execute(select(PositionSnapshotRow.stored_at_ms)).scalars().all()
     assert sorted(latest) == [("a", T0 + 5), ("b", T0 + 1)]
     assert sorted(stored) == [T0, T0 + 1, T0 + 5]
+
+
+def test_a_new_sqlite_database_hands_freed_pages_back_beyond_a_slack(migrated_engine: Engine) -> None:
+    sessions = make_session_factory(migrated_engine)
+    with sessions.begin() as session:
+        session.add(BuildingRow(id="hq", name="HQ", rotation_rad=0.0))
+        session.flush()
+        repo.add_positions(session, [_position(f"u{k}", T0 + k, T0) for k in range(20_000)])
+    if migrated_engine.dialect.name != "sqlite":
+        with sessions.begin() as session:
+            assert reclaim_free_pages(session, 10**6) == 0  # PostgreSQL's autovacuum's business
+        return
+    path = Path(str(migrated_engine.url.database))
+    with sessions.begin() as session:
+        assert session.connection().exec_driver_sql("PRAGMA auto_vacuum").scalar() == 2
+        assert reclaim_free_pages(session, 10**6) == 0  # nothing freed yet
+        repo.prune_history(session, "hq", T0 + 1, None, limit=10**6)  # stored before: all of the history
+        session.execute(LatestPositionRow.__table__.delete())  # type: ignore[attr-defined]
+    full = path.stat().st_size
+    with sessions.begin() as session:
+        free = int(session.connection().exec_driver_sql("PRAGMA freelist_count").scalar() or 0)
+        assert free > 100
+        assert reclaim_free_pages(session, 50) == 50  # bounded per call
+        reclaimed = reclaim_free_pages(session, 10**6, keep_fraction=0.1)
+        pages = int(session.connection().exec_driver_sql("PRAGMA page_count").scalar() or 0)
+        left = int(session.connection().exec_driver_sql("PRAGMA freelist_count").scalar() or 0)
+    assert reclaimed > 0
+    assert left <= 0.1 * (pages - left) + 1
+    migrated_engine.dispose()  # the checkpoint that truncates the file comes with the last connection
+    assert path.stat().st_size < full / 2
