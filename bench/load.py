@@ -597,6 +597,7 @@ def run_one(
                 )
             )
             elapsed = time.perf_counter() - started
+            tables = None if soak_every_s is None else _table_sizes(engine)
         finally:
             server.terminate()
             server.wait(timeout=60)
@@ -616,6 +617,7 @@ def run_one(
         row["postgresql_cores"] = round(cpu["postgresql"] / wall, 2)
     if soak_every_s is not None:
         row["soak"] = soak_summary(results.soak, soak_warmup_s, soak_every_s, server_env or {})
+        row["soak"]["tables_at_end"] = tables
     return row
 
 
@@ -655,6 +657,41 @@ def _soak_sampler(server_pid: int, data_dir: Path, engine: Any) -> Sampler:
         }
 
     return sample
+
+
+def _table_sizes(engine: Any) -> dict[str, dict[str, float]]:
+    """Each table's rows and its bytes with its indexes (SQLite's ``dbstat``, PostgreSQL's
+    ``pg_total_relation_size``), and the bytes a row: the disk budget's figures."""
+    from sqlalchemy import inspect, text
+
+    out: dict[str, dict[str, float]] = {}
+    with engine.connect() as connection:
+        names = inspect(connection).get_table_names()
+        if engine.dialect.name == "sqlite":
+            pages = dict(connection.execute(text("SELECT name, SUM(pgsize) FROM dbstat GROUP BY name")).all())
+            index_of = dict(connection.execute(text("SELECT name, tbl_name FROM sqlite_master")).all())
+            sizes = dict.fromkeys(names, 0)
+            for name, size in pages.items():
+                table = index_of.get(name, name)
+                if table in sizes:
+                    sizes[table] += int(size)
+            free = connection.execute(text("PRAGMA freelist_count")).scalar_one()
+            page = connection.execute(text("PRAGMA page_size")).scalar_one()
+            out["(free pages)"] = {"rows": 0, "mb": round(free * page / 1e6, 2), "bytes_per_row": 0.0}
+        else:
+            sizes = {
+                n: int(connection.execute(text(f"SELECT pg_total_relation_size('{n}')")).scalar_one())
+                for n in names
+            }
+        for name in names:
+            rows = int(connection.execute(text(f'SELECT COUNT(*) FROM "{name}"')).scalar_one())
+            if rows or sizes[name] > 1e6:
+                out[name] = {
+                    "rows": rows,
+                    "mb": round(sizes[name] / 1e6, 2),
+                    "bytes_per_row": round(sizes[name] / max(rows, 1), 1),
+                }
+    return out
 
 
 def soak_summary(

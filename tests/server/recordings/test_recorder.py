@@ -106,7 +106,7 @@ def test_a_recording_is_compressed_in_chunks_and_a_file_cut_short_reads_to_its_l
     assert path.stat().st_size < sum(len(b) for b in bodies) / 4
     data = path.read_bytes()
     cut = tmp_path / "cut.mcap"
-    cut.write_bytes(data[: len(data) * 2 // 3])
+    cut.write_bytes(data[: len(data) // 3])  # amid the chunks (the summary after them is a good part)
     partial = [r.raw for r in read_batches(cut)]
     assert 0 < len(partial) < len(bodies)
     assert partial == bodies[: len(partial)]
@@ -161,31 +161,74 @@ def test_golden_recording_replays_to_its_stored_estimates() -> None:
 
 
 def _pose_in_frame(estimate: Estimate) -> dict[str, Any]:
-    """Foxglove PoseInFrame in the building frame, written out as a dict: the formatter's oracle."""
+    """Foxglove PoseInFrame in the building frame, to the millimetre, written out as a dict: the formatter's
+    oracle."""
     half = estimate.heading_rad / 2.0
     return {
         "timestamp": {"sec": estimate.t_ms // 1000, "nsec": (estimate.t_ms % 1000) * 1_000_000},
         "frame_id": f"{estimate.building_id}/{estimate.user_id}",
         "pose": {
-            "position": {"x": estimate.position.x_m, "y": estimate.position.y_m, "z": 0.0},
-            "orientation": {"x": 0.0, "y": 0.0, "z": math.sin(half), "w": math.cos(half)},
+            "position": {
+                "x": round(estimate.position.x_m, 3),
+                "y": round(estimate.position.y_m, 3),
+                "z": 0.0,
+            },
+            "orientation": {"x": 0.0, "y": 0.0, "z": round(math.sin(half), 5), "w": round(math.cos(half), 5)},
         },
     }
 
 
-def test_the_formatted_pose_is_the_pose_in_frame_as_json() -> None:
+def _rounded(value: Any, key: str = "") -> Any:
+    """The estimate's JSON as recorded, rounded by its fields' units: the formatter's oracle."""
+    if isinstance(value, dict):
+        return {k: _rounded(v, k) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_rounded(v, key) for v in value]
+    if isinstance(value, float):
+        digits = {"covariance_m2": 6, "heading_rad": 4, "lat_deg": 8, "lon_deg": 8}.get(key, 3)
+        return round(value, digits)
+    return value
+
+
+def _estimates(n: int) -> list[Estimate]:
     import numpy as np
 
     from schemas.estimates import EstimateSource
     from server.ingestion.convert import estimate
-    from server.recordings.recorder import pose_in_frame_json
     from slam_core.tracking.tracker import EstimateRow
 
     rng = np.random.default_rng(1)
-    for k in range(100):
-        row = EstimateRow(1_700_000_000_123 + k, *rng.normal(0, 50, 2), (1.0, 0.0, 1.0), (0.0, 0.0), k * 0.37)
+    out = []
+    for k in range(n):
+        xx, yy = float(rng.uniform(1e-4, 9.0)), float(rng.uniform(1e-4, 4.0))
+        cov = (xx, float(rng.uniform(-0.9, 0.9)) * math.sqrt(xx * yy), yy)
+        best = (float(rng.normal(0, 50)), float(rng.normal(0, 50)))
+        row = EstimateRow(1_700_000_000_123 + k, *rng.normal(0, 50, 2), cov, best, k * 0.37)
         e = estimate(row, "hq", f"user-{k}", "phone", None, EstimateSource.DYNAMICSLAM)
+        if k % 2:
+            e = e.model_copy(
+                update={"lat_deg": float(rng.uniform(-90, 90)), "lon_deg": float(rng.uniform(-180, 180))}
+            )
+        if k % 3 == 0:
+            e = e.model_copy(update={"best_particle": None})
+        out.append(e)
+    return out
+
+
+def test_the_formatted_pose_is_the_pose_in_frame_as_json() -> None:
+    from server.recordings.recorder import pose_in_frame_json
+
+    for e in _estimates(100):
         assert json.loads(pose_in_frame_json(e)) == _pose_in_frame(e)
-    assert math.isclose(
-        json.loads(pose_in_frame_json(e))["pose"]["orientation"]["w"], math.cos(e.heading_rad / 2)
-    )
+
+
+def test_a_recorded_estimate_is_the_estimate_to_the_millimetre() -> None:
+    from server.recordings.recorder import estimate_json
+
+    for e in _estimates(100):
+        recorded = estimate_json(e)
+        assert json.loads(recorded) == _rounded(e.model_dump(mode="json"))
+        back = Estimate.model_validate_json(recorded)  # valid against the channel's schema
+        assert abs(back.position.x_m - e.position.x_m) <= 5e-4
+        assert back.best_particle is None if e.best_particle is None else back.best_particle is not None
+        assert len(recorded) < len(e.model_dump_json())
