@@ -641,14 +641,25 @@ def _children(pid: int) -> list[int]:
     return sorted(found)
 
 
+def _child_label(pid: int) -> str:
+    """A child of the server by what it runs: multiprocessing's resource tracker, or (spawned) a building's
+    process."""
+    try:
+        command = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+    except OSError:
+        command = ""
+    kind = "resource tracker" if "resource_tracker" in command else "building process"
+    return f"{kind} {pid}"
+
+
 def _soak_sampler(server_pid: int, data_dir: Path, engine: Any) -> Sampler:
-    """Every process's resident memory (the server's front and its building processes, this generator,
-    the dashboards) and the disk the server takes: its data directory, its recordings, its database."""
+    """Every process's resident memory (the server's front and each of its children, this generator, the
+    dashboards) and the disk the server takes: its data directory, its recordings, its database."""
 
     def sample(dashboards_pid: int) -> dict[str, Any]:
         return {
             "front_rss_mb": round(_rss_mb(server_pid), 1),
-            "building_rss_mb": [round(_rss_mb(p), 1) for p in _children(server_pid)],
+            "children_rss_mb": {_child_label(p): round(_rss_mb(p), 1) for p in _children(server_pid)},
             "generator_rss_mb": round(_rss_mb(os.getpid()), 1),
             "dashboards_rss_mb": round(_rss_mb(dashboards_pid), 1),
             "data_dir_mb": round(tree_bytes(data_dir) / 1e6, 2),
@@ -661,7 +672,8 @@ def _soak_sampler(server_pid: int, data_dir: Path, engine: Any) -> Sampler:
 
 def _table_sizes(engine: Any) -> dict[str, dict[str, float]]:
     """Each table's rows and its bytes with its indexes (SQLite's ``dbstat``, PostgreSQL's
-    ``pg_total_relation_size``), and the bytes a row: the disk budget's figures."""
+    ``pg_total_relation_size``), and the bytes a row: the disk budget's figures. On PostgreSQL also each
+    table's dead rows and autovacuum runs."""
     from sqlalchemy import inspect, text
 
     out: dict[str, dict[str, float]] = {}
@@ -683,6 +695,12 @@ def _table_sizes(engine: Any) -> dict[str, dict[str, float]]:
                 n: int(connection.execute(text(f"SELECT pg_total_relation_size('{n}')")).scalar_one())
                 for n in names
             }
+            vacuums = {
+                name: {"dead_rows": dead, "autovacuums": count}
+                for name, dead, count in connection.execute(
+                    text("SELECT relname, n_dead_tup, autovacuum_count FROM pg_stat_user_tables")
+                )
+            }
         for name in names:
             rows = int(connection.execute(text(f'SELECT COUNT(*) FROM "{name}"')).scalar_one())
             if rows or sizes[name] > 1e6:
@@ -691,6 +709,8 @@ def _table_sizes(engine: Any) -> dict[str, dict[str, float]]:
                     "mb": round(sizes[name] / 1e6, 2),
                     "bytes_per_row": round(sizes[name] / max(rows, 1), 1),
                 }
+                if engine.dialect.name != "sqlite":
+                    out[name] |= vacuums.get(name, {})  # autovacuum keeping up: few dead rows
     return out
 
 
@@ -712,10 +732,11 @@ def soak_summary(
         for key in ("front_rss_mb", "generator_rss_mb", "dashboards_rss_mb", "data_dir_mb", "recordings_mb",
                     "database_mb"):  # fmt: skip
             slopes[key] = slope([s[key] for s in after])
-        n_buildings = min(len(s["building_rss_mb"]) for s in after)
-        slopes["building_rss_mb"] = [
-            slope([s["building_rss_mb"][k] for s in after]) for k in range(n_buildings)
-        ]
+        # a child's slope over the samples after the warm-up that all hold it (one restarted is two)
+        children = set.intersection(*(set(s["children_rss_mb"]) for s in after))
+        slopes["children_rss_mb"] = {
+            child: slope([s["children_rss_mb"][child] for s in after]) for child in sorted(children)
+        }
         batches_per_min = float(np.polyfit(minutes, batches, 1)[0])
         for key in ("data_dir_mb", "recordings_mb", "database_mb"):
             per_batch[key.replace("_mb", "")] = round(slopes[key] * 1e6 / max(batches_per_min, 1.0), 1)
@@ -986,8 +1007,8 @@ def plot_soak(row: dict[str, Any], path: Path) -> None:
     for key, label in (("front_rss_mb", "front"), ("generator_rss_mb", "load generator"),
                        ("dashboards_rss_mb", "dashboards")):  # fmt: skip
         memory.plot(minutes, [s[key] for s in samples], label=label)
-    for k in range(min(len(s["building_rss_mb"]) for s in samples)):
-        memory.plot(minutes, [s["building_rss_mb"][k] for s in samples], label=f"building {k}")
+    for child in sorted({c for s in samples for c in s["children_rss_mb"]}):
+        memory.plot(minutes, [s["children_rss_mb"].get(child, math.nan) for s in samples], label=child)
     for key, label in (("data_dir_mb", "data directory"), ("recordings_mb", "recordings"),
                        ("database_mb", "database")):  # fmt: skip
         disk.plot(minutes, [s[key] for s in samples], label=label)

@@ -44,6 +44,7 @@ from server.state import AppState
 from server.storage import StorageWatch
 from server.store.db import make_engine, make_session_factory
 from server.store.migrate import current_revision, head_revision
+from server.store.vacuum import vacuum_in_background
 from server.store.wal_checkpoints import checkpoint_in_background
 
 logger = logging.getLogger(__name__)
@@ -77,6 +78,7 @@ def create_app(settings: Settings, tune_gc: bool = False, warming: Progress | No
             raise DatabaseNotMigratedError(
                 f"the database is at revision {current!r}, the server needs {head!r}: run `crowdslam migrate`"
             )
+        vacuum_in_background(engine)  # PostgreSQL without autovacuum; stops with engine.dispose()
         sessions = make_session_factory(engine)
         broadcaster = Broadcaster()
         foxglove_live = None

@@ -61,6 +61,7 @@ from server.settings import Settings
 from server.store import repositories as repo
 from server.store.db import make_engine, make_session_factory
 from server.store.migrate import current_revision, head_revision
+from server.store.vacuum import vacuum_in_background
 
 logger = logging.getLogger(__name__)
 
@@ -395,6 +396,7 @@ async def serve(settings: Settings) -> None:
             raise SystemExit(
                 f"the database is at revision {current!r}, the worker needs {head!r}: run `crowdslam migrate`"
             )
+        vacuum_in_background(engine)  # PostgreSQL without autovacuum; stops with engine.dispose()
         warm_kernels(tracker_params(settings), load_calibration(settings.encounter_calibration))
         worker_id = f"{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:6]}"
         connection = await connect(settings.nats_url, f"crowdslam-worker-{worker_id}")
