@@ -25,6 +25,10 @@ logger = logging.getLogger(__name__)
 THRESHOLD = 50
 SCALE = 0.2
 """PostgreSQL's defaults for ``autovacuum_vacuum_threshold`` and ``autovacuum_vacuum_scale_factor``."""
+COST_DELAY_MS = 2
+COST_LIMIT = 200
+"""Autovacuum's throttle (``autovacuum_vacuum_cost_delay``, ``vacuum_cost_limit``): a manual VACUUM runs
+unthrottled, and its reads and writes then compete with the building's commits."""
 
 
 @dataclass
@@ -51,13 +55,18 @@ class BackgroundVacuum:
         self._thread.start()
 
     def due(self) -> list[str]:
-        """The server's tables whose dead rows pass autovacuum's rule."""
+        """The server's tables whose dead rows, or their TOAST table's, pass autovacuum's rule (autovacuum
+        weighs a TOAST table on its own: the tracker's snapshot is one row of megabytes, whose every rewrite
+        leaves thousands of dead TOAST chunks and one dead row)."""
         tables = [t.name for t in Base.metadata.sorted_tables]
         with self.engine.connect() as conn:
             rows = conn.execute(
                 text(
-                    "SELECT relname FROM pg_stat_user_tables WHERE schemaname = current_schema() "
-                    "AND relname = ANY(:tables) AND n_dead_tup > :threshold + :scale * n_live_tup"
+                    "SELECT s.relname FROM pg_stat_user_tables s JOIN pg_class c ON c.oid = s.relid "
+                    "LEFT JOIN pg_stat_all_tables t ON t.relid = c.reltoastrelid "
+                    "WHERE s.schemaname = current_schema() AND s.relname = ANY(:tables) "
+                    "AND (s.n_dead_tup > :threshold + :scale * s.n_live_tup "
+                    "OR coalesce(t.n_dead_tup, 0) > :threshold + :scale * coalesce(t.n_live_tup, 0))"
                 ),
                 {"tables": tables, "threshold": THRESHOLD, "scale": SCALE},
             )
@@ -69,6 +78,9 @@ class BackgroundVacuum:
         due = self.due()
         if due:
             with self.engine.connect().execution_options(isolation_level="AUTOCOMMIT") as conn:
+                # throttled as autovacuum is: a manual VACUUM runs at full speed by default
+                conn.exec_driver_sql(f"SET vacuum_cost_delay = {COST_DELAY_MS}")
+                conn.exec_driver_sql(f"SET vacuum_cost_limit = {COST_LIMIT}")
                 # VACUUM runs outside a transaction; names come from the models, quoted all the same
                 quoted = ", ".join(conn.dialect.identifier_preparer.quote(name) for name in due)
                 conn.exec_driver_sql(f"VACUUM (ANALYZE, SKIP_LOCKED) {quoted}")

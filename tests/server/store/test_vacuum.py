@@ -4,6 +4,7 @@ its row behind for good."""
 
 from __future__ import annotations
 
+import random
 import time
 
 import pytest
@@ -82,3 +83,25 @@ def test_the_servers_vacuum_runs_only_where_autovacuum_does_not(postgres_url: st
         engine.dispose()
     with pytest.raises(ValueError, match="PostgreSQL"):
         BackgroundVacuum(make_engine(sqlite_url))
+
+
+def test_a_snapshot_rewritten_in_place_is_vacuumed_by_its_toast(postgres_url: str) -> None:
+    """The tracker's snapshot is one row whose every rewrite leaves its megabytes as dead TOAST chunks: the
+    table is due by its TOAST table's dead rows, long before its own one dead row a rewrite counts."""
+    from server.store import repositories as repo
+    from server.store.db import make_session_factory
+
+    engine = make_engine(postgres_url)
+    upgrade(engine)
+    with engine.begin() as conn:
+        conn.execute(insert(BuildingRow).values(id="hq", name="HQ", rotation_rad=0.0))
+    sessions = make_session_factory(engine)
+    vacuum = BackgroundVacuum(engine, period_s=3600.0)
+    try:
+        for k in range(3):  # three rewrites of an incompressible 400 kB state
+            with sessions.begin() as session:
+                repo.save_tracker_snapshot(session, "hq", 14, k, random.Random(k).randbytes(400_000))
+        assert "tracker_snapshots" in _wait_due(vacuum, "tracker_snapshots")
+        assert "tracker_snapshots" in vacuum.vacuum_due()
+    finally:
+        engine.dispose()
