@@ -96,7 +96,7 @@ def bench_motion_plan(n_users: int, params: FilterParams, plan: PlanIndex) -> tu
     for k in range(16):
         lengths = 0.7 + 0.05 * rng.standard_normal(users.size)
         headings = rng.uniform(-3, 3, users.size)
-        engine.floor_plan = plan if k % 2 else None
+        engine.set_floor_plan(0, plan if k % 2 else None)
         t0 = time.perf_counter()
         engine.step(users, offsets, lengths, headings)
         (planned if k % 2 else plain).append((time.perf_counter() - t0) * 1e3)
@@ -143,7 +143,7 @@ def bench_motion_plan_walks(
         index = [(a + k) % len(walks[w][1]) for w, a in zip(walk_of, at, strict=True)]
         lengths = scale * np.array([walks[w][1][i] for w, i in zip(walk_of, index, strict=True)])
         headings = bias + np.array([walks[w][2][i] for w, i in zip(walk_of, index, strict=True)])
-        engine.floor_plan = plan if k % 2 else None
+        engine.set_floor_plan(0, plan if k % 2 else None)
         before = engine.state.n_resamples[users].copy() if k % 2 else None
         t0 = time.perf_counter()
         engine.step(users, offsets, lengths, headings)

@@ -30,6 +30,7 @@ ESTIMATE_EXAMPLE: dict[str, Any] = {
     "best_particle": {"x_m": 12.6, "y_m": 29.9},
     "heading_rad": 1.52,
     "floor": 0,
+    "floor_probability": 1.0,
     "source": "dynamicslam",
     "lat_deg": 40.6845,
     "lon_deg": -74.4013,
@@ -54,7 +55,13 @@ class Estimate(WireModel):
     heading_rad: float = Field(
         ge=-7.0, le=7.0, description="Direction of travel, counter-clockwise from east."
     )
-    floor: int = Field(default=0, ge=-20, le=200)
+    floor: int = Field(default=0, ge=-20, le=200, description="The floor the filter believes the user is on.")
+    floor_probability: float = Field(
+        default=1.0,
+        ge=0.0,
+        le=1.0,
+        description="How sure the filter is of that floor: below ~0.9 it hesitates between floors.",
+    )
     source: EstimateSource
     lat_deg: float | None = Field(default=None, ge=-90.0, le=90.0)
     lon_deg: float | None = Field(default=None, ge=-180.0, le=180.0)

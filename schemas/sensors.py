@@ -272,6 +272,15 @@ class AnchorDetection(WireModel):
 
     t_ms: TimeMs
     type: AnchorType
+    rise_m: float | None = Field(
+        default=None,
+        ge=-500.0,
+        le=500.0,
+        description=(
+            "For a change of floor (elevator, stairs, escalator): the height gained, up positive, as the "
+            "phone's barometer measured it; the server then moves the user to the floor that rise reaches."
+        ),
+    )
 
 
 class LteMeasurement(WireModel):

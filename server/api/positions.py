@@ -27,6 +27,7 @@ def estimate_from_row(row: PositionSnapshotRow | LatestPositionRow) -> Estimate:
         covariance_m2=[[row.cov_xx, row.cov_xy], [row.cov_xy, row.cov_yy]],
         heading_rad=row.heading_rad,
         floor=row.floor,
+        floor_probability=row.floor_probability,
         source=EstimateSource(row.source),
     )
 

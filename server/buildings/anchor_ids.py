@@ -30,6 +30,14 @@ class AnchorIds:
             self.link(index, f"a-{self._next}", None)
         return self.public[index]
 
+    def known_levels(self, crowd: CrowdMapBuilder) -> dict[str, int]:
+        """The floors of the live pinned anchors not on floor 0, by public id."""
+        levels = {}
+        for public_id, index in self.index.items():
+            if crowd.is_live(index) and crowd.anchor(index)[3] and crowd.level(index) != 0:
+                levels[public_id] = crowd.level(index)
+        return levels
+
     def known_positions(self, crowd: CrowdMapBuilder) -> dict[str, tuple[float, float]]:
         """The live anchors operators pinned, by public id: where converting a batch finds an anchor reading's
         position."""

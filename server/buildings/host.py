@@ -28,7 +28,7 @@ from schemas.live import AnchorMessage, EncounterMessage, LiveMessage, PositionM
 from server.buildings import snapshot as tracker_snapshot
 from server.buildings.config import Retention, TrackingConfig
 from server.buildings.counters import Counters
-from server.buildings.recovery import TRACKED_LEVEL, Recovery, load_radio_map
+from server.buildings.recovery import Recovery, load_radio_map
 from server.buildings.rows import anchor_row, position_row
 from server.buildings.submissions import BatchHeader, GroupResult, Submission
 from server.engine.config import load_calibration, tracker_params
@@ -133,9 +133,16 @@ class BuildingHost:
         return load_radio_map(self.tracker, self._config.signal_maps_dir, self.building_id)
 
     def context(self) -> convert.BuildingContext:
-        """What converting a batch needs of the building: its geo frame and its known anchors by id."""
+        """What converting a batch needs of the building: its geo frame, its floors and its known anchors by
+        id."""
+        crowd = self.tracker.crowd
         return convert.BuildingContext(
-            self.building_id, self.geo, self.ids.known_positions(self.tracker.crowd), extent=self.extent
+            self.building_id,
+            self.geo,
+            self.ids.known_positions(crowd),
+            extent=self.extent,
+            levels=frozenset(self.tracker.levels),
+            known_anchor_levels=self.ids.known_levels(crowd),
         )
 
     def building_state(self) -> tracker_snapshot.BuildingState:
@@ -216,6 +223,7 @@ class BuildingHost:
             count,
             int(last) if math.isfinite(last) and last > 0 else None,
             self.ids.labels.get(index),
+            floor=self.tracker.crowd.level(index),
             signature=self.tracker.crowd.signature(index) or None,
         )
 
@@ -242,9 +250,14 @@ class BuildingHost:
             refusal = self.extent.refusal("the anchor", body.position.x_m, body.position.y_m)
             if refusal is not None:
                 raise InvalidInputError(refusal)
+        if body.floor not in self.tracker.levels:
+            raise InvalidInputError(
+                f"building {self.building_id!r} has no floor {body.floor}; its floors: "
+                f"{', '.join(map(str, self.tracker.levels))}"
+            )
         xy = np.array([body.position.x_m, body.position.y_m])
         type_index = convert.anchor_type_index(body.type)
-        index = self.tracker.pin_anchor(xy, type_index, index)
+        index = self.tracker.pin_anchor(xy, type_index, index, level=body.floor)
         self.ids.link(index, public_id, body.label)
         anchor = self.anchor(index)
         with self._sessions.begin() as session:
@@ -288,8 +301,8 @@ class BuildingHost:
 
     # ------------------------------------------------------------------ floor plans
     def put_floor_plan(self, level: int, body: FloorPlan) -> FloorPlan:
-        """Store a floor's plan, in the local frame and within the building's extent; the tracked floor's
-        plan weighs every user's steps from the next batch on. Returns the plan as stored."""
+        """Store a floor's plan, in the local frame and within the building's extent; it weighs the steps of
+        the users on that floor from the next batch on. Returns the plan as stored."""
         with self._sessions() as session:
             levels = [f.level for f in repo.list_floors(session, self.building_id)]
         if level not in levels:
@@ -304,8 +317,7 @@ class BuildingHost:
             raise InvalidInputError(f"the floor plan cannot be used: {exc}") from None
         with self._writer_turns, self._sessions.begin() as session:
             repo.save_floor_plan(session, self.building_id, level, local.model_dump_json())
-        if level == TRACKED_LEVEL:
-            self.tracker.set_floor_plan(index)
+        self.tracker.set_floor_plan(index, level)
         return local
 
     # ------------------------------------------------------------------ users

@@ -34,16 +34,12 @@ from server.ingestion.floor_plans import engine_plan
 from server.ingestion.radio_maps import latest_radio_map
 from server.store import repositories as repo
 from server.store.batches import LoggedBatch, clear_covered_bodies, logged_batches
-from server.store.models import BuildingRow
+from server.store.models import BuildingRow, FloorRow
 from slam_core.encounters.models import Calibration
 from slam_core.geo import GeoFrame
 from slam_core.tracking.tracker import BuildingTracker, TrackerParams
 
 logger = logging.getLogger(__name__)
-
-TRACKED_LEVEL = 0
-"""The floor users are tracked on (estimates say floor 0): its plan weighs their steps. Plans of other floors
-are kept and served, and constrain no one until users are tracked across floors."""
 
 
 @dataclass
@@ -93,10 +89,8 @@ class Recovery:
             if building is None:
                 raise NotFoundError(f"no building {self.building_id!r}")
             geo = building_geo(building)
-            extent = Extent.of_floors(
-                ((f.width_m, f.height_m) for f in repo.list_floors(session, self.building_id)),
-                self._config.extent_margin_m,
-            )
+            floors = repo.list_floors(session, self.building_id)
+            extent = Extent.of_floors(((f.width_m, f.height_m) for f in floors), self._config.extent_margin_m)
             devices = DeviceLedger(self.building_id, repo.devices(session, self.building_id))
             state = self._restore(session, params, calibration)
             if state is not None:
@@ -126,11 +120,16 @@ class Recovery:
                         row.observation_count,
                         row.last_seen_ms or 0,
                         row.signature.decode() if row.signature else "",
+                        row.floor,
                     )
                     ids.link(index, row.public_id, row.label)
-            plan = repo.floor_plan(session, self.building_id, TRACKED_LEVEL)
-        # the plan is not in the snapshot: set before the log replays, as it was when the batches applied
-        tracker.set_floor_plan(None if plan is None else engine_plan(FloorPlan.model_validate_json(plan)))
+            plans = {f.level: repo.floor_plan(session, self.building_id, f.level) for f in floors}
+        # floors and plans are not in the snapshot: set before the log replays, as when the batches applied
+        tracker.set_levels(*building_levels(floors))
+        for level, plan in plans.items():
+            tracker.set_floor_plan(
+                None if plan is None else engine_plan(FloorPlan.model_validate_json(plan)), level
+            )
         load_radio_map(tracker, self._config.signal_maps_dir, self.building_id)
         loaded = Loaded(
             tracker, ids, device_of_user, applied_round, devices, geo, extent, len(logged), state is not None
@@ -257,6 +256,17 @@ def load_radio_map(tracker: BuildingTracker, signal_maps: Path | None, building_
     added = tracker.load_radio_map(radio.map_id, radio.xy, radio.bssids, radio.rss, radio.t_ms)
     logger.info("building %s: %d scans of build %s joined its fingerprints", building_id, added, radio.map_id)
     return added
+
+
+def building_levels(floors: list[FloorRow]) -> tuple[tuple[int, ...], tuple[float, ...]]:
+    """The building's floors and their elevations (NaN where the operator gave none); a building created
+    without floors is one floor, level 0."""
+    if not floors:
+        return (0,), (math.nan,)
+    return (
+        tuple(f.level for f in floors),
+        tuple(math.nan if f.elevation_m is None else f.elevation_m for f in floors),
+    )
 
 
 def building_geo(building: BuildingRow) -> GeoFrame | None:

@@ -41,5 +41,6 @@ def position_row(building_id: str, e: Estimate, stored_at_ms: int) -> dict[str, 
         "cov_yy": e.covariance_m2[1][1],
         "heading_rad": e.heading_rad,
         "floor": e.floor,
+        "floor_probability": e.floor_probability,
         "source": e.source.value,
     }

@@ -33,13 +33,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=floor_folder,
         metavar="FLOOR_DIR",
         help="a floor of Indoor Location 2.0 walks (crowdslam datasets fetch msindoor20 puts them in "
-        "crowdslam-data/datasets/msindoor20/SITE/FLOOR), replayed as a crowd",
+        "crowdslam-data/datasets/msindoor20/SITE/FLOOR), or a building (SITE: its floors B1, F1, F2, ... as "
+        "levels -1, 0, 1, ...), replayed as a crowd",
     )
     parser.add_argument(
         "--warm-split",
         type=float,
         metavar="F",
-        help="with --msindoor: the earliest fraction F of the walks first builds the map; the rest is scored",
+        help="with --msindoor: the earliest fraction F of each floor's walks first builds the map; the rest "
+        "is scored",
     )
     parser.add_argument(
         "--calibration",
@@ -157,7 +159,7 @@ def _msindoor(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from server.datasets.msindoor import TraceFormatError
-    from server.datasets.msindoor_replay import replay_floor
+    from server.datasets.msindoor_replay import replay_msindoor
     from server.engine.config import load_calibration, tracker_params
     from server.settings import Settings
     from server.signal_maps.tagged_walks import radio_map_of_walks
@@ -187,7 +189,7 @@ def _msindoor(args: argparse.Namespace) -> int:
 
             try:
                 params = tracker_params(Settings())
-                result, errors = replay_floor(
+                result, errors = replay_msindoor(
                     args.msindoor,
                     run_options,
                     params,
@@ -199,13 +201,17 @@ def _msindoor(args: argparse.Namespace) -> int:
                 print(f"crowdslam evaluate: {error}")
                 return 2
         results[name] = result
-        on_plan = (result["floor_plan_reading"] or {}).get("waypoints_walkable")
-        if name == runs[0][0] and on_plan is not None and on_plan < PLAN_ALIGNED_SHARE:
-            print(
-                f"crowdslam evaluate: warning: only {on_plan:.0%} of the floor's surveyed waypoints lie in "
-                "its plan's walkable area; the plan may not line up with the floor (compare with "
-                "--no-floor-plan)"
-            )
+        readings = result["floor_plan_reading"] or {}
+        per_floor = readings.items() if result["per_floor"] is not None else [("", readings)]
+        for level, reading in per_floor if name == runs[0][0] else []:
+            on_plan = reading.get("waypoints_walkable")
+            if on_plan is not None and on_plan < PLAN_ALIGNED_SHARE:
+                which = f"floor {level}" if level else "floor"
+                print(
+                    f"crowdslam evaluate: warning: only {on_plan:.0%} of the {which}'s "
+                    "surveyed waypoints lie in its plan's walkable area; the plan may not line up with the "
+                    "floor (compare with --no-floor-plan)"
+                )
         x, p = empirical_cdf(errors)
         lines.append((x, p, f"{name} (median {result['median_m']:.2f} m, p90 {result['p90_m']:.2f} m)"))
     plot = args.plot or args.json.with_suffix(".png")

@@ -33,27 +33,43 @@ FETCH_HINT = (
 
 
 def floor_folder(text: str) -> Path:
-    """``--msindoor``: a floor of Indoor Location 2.0 walks (``floor_info.json`` and ``path_data_files/``)."""
+    """``--msindoor``: a floor of Indoor Location 2.0 walks (``floor_info.json`` and ``path_data_files/``), or
+    a building whose subfolders are such floors (``B1``, ``F1``, ``F2``, ...)."""
+    from server.datasets.msindoor import building_floors  # deferred: `crowdslam --help` loads no numpy
+
     path = Path(text)
     if not path.is_dir():
         raise argparse.ArgumentTypeError(f"{text}: no such folder ({FETCH_HINT})")
-    if not (path / "floor_info.json").is_file() or not (path / "path_data_files").is_dir():
+    try:
+        floors = building_floors(path)
+    except ValueError:
+        floors = []
+    if not floors or not all((floor / "floor_info.json").is_file() for _, floor in floors):
         raise argparse.ArgumentTypeError(
-            f"{text} is not a floor of Indoor Location 2.0 walks: a floor holds floor_info.json and "
-            f"path_data_files/ ({FETCH_HINT})"
+            f"{text} is neither a floor of Indoor Location 2.0 walks (floor_info.json and path_data_files/) "
+            f"nor a building of such floors named B1, F1, F2, ... ({FETCH_HINT})"
         )
     return path
 
 
 def walks_folder(text: str) -> Path:
-    """A floor, or a folder of Indoor Location 2.0 walks (``.txt``, each opening with its start time)."""
+    """A floor, a building (its floors as subfolders ``B1``, ``F1``, ``F2``, ...), or a folder of Indoor
+    Location 2.0 walks (``.txt``, each opening with its start time)."""
+    from server.datasets.msindoor import building_floors  # deferred: `crowdslam --help` loads no numpy
+
     path = Path(text)
     if not path.is_dir():
         raise argparse.ArgumentTypeError(f"{text}: no such folder ({FETCH_HINT})")
-    folder = path / "path_data_files" if (path / "path_data_files").is_dir() else path
-    walks = sorted(folder.glob("*.txt"))
+    if (path / "path_data_files").is_dir() or any(path.glob("*.txt")):
+        folders = [path / "path_data_files" if (path / "path_data_files").is_dir() else path]
+    else:
+        try:
+            folders = [floor / "path_data_files" for _, floor in building_floors(path)]
+        except ValueError:
+            folders = [path]
+    walks = sorted(w for folder in folders for w in folder.glob("*.txt"))
     if not walks:
-        raise argparse.ArgumentTypeError(f"{text}: no .txt walks in {folder}")
+        raise argparse.ArgumentTypeError(f"{text}: no .txt walks in {folders[0]}")
     for walk in walks:
         with walk.open("rb") as source:
             if not source.read(64).startswith(b"#\tstartTime"):

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -325,6 +326,34 @@ def _ring_positions(raw: Any) -> tuple[np.ndarray | None, bool]:
     if was_open:
         points.append(points[0])
     return np.array(points, dtype=np.float64), was_open
+
+
+def floor_level(name: str) -> int | None:
+    """The level the data set's floor folder name stands for: ``B1`` is -1, ``F1`` 0, ``F2`` 1, ... (None: not
+    a floor's name)."""
+    match = re.fullmatch(r"([BF])(\d+)", name)
+    if match is None or int(match[2]) == 0:
+        return None
+    return -int(match[2]) if match[1] == "B" else int(match[2]) - 1
+
+
+def building_floors(path: Path) -> list[tuple[int, Path]]:
+    """The floors of a building folder (its subfolders named as ``floor_level`` reads them, each with its
+    walks), lowest first; a floor's own folder is one floor, level 0. ValueError when it is neither."""
+    path = Path(path)
+    if (path / "path_data_files").is_dir():
+        return [(0, path)]
+    found = []
+    for sub in sorted(p for p in path.iterdir() if p.is_dir()) if path.is_dir() else []:
+        level = floor_level(sub.name)
+        if level is not None and (sub / "path_data_files").is_dir():
+            found.append((level, sub))
+    if not found:
+        raise ValueError(
+            f"{path}: neither a floor (a folder with path_data_files/) nor a building whose subfolders are "
+            "floors named B1, F1, F2, ... each with path_data_files/"
+        )
+    return sorted(found)
 
 
 def iter_windows(trace: Trace, window_ms: int = 1000, cuts: Sequence[int] = ()) -> Iterator[tuple[int, int]]:

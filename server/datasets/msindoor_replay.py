@@ -1,4 +1,5 @@
-"""Crowd replay of a floor of Indoor Location 2.0 walks through the server's own batch path.
+"""Crowd replay of a floor, or a whole building, of Indoor Location 2.0 walks through the server's own batch
+path.
 
 Every walk becomes a concurrent user (all start at the same replay time): its trace is cut into the
 one-second sensor batches a phone would post (``msindoor_batches``), converted by
@@ -10,6 +11,12 @@ by later sensor data.
 
 With ``warm_split`` the earlier walks (by recorded start time) are replayed first as a crowd of their own
 and build the building's shared map; only the later walks, replayed afterwards, are scored.
+
+A building's folder (its floors as subfolders, ``msindoor.building_floors``) is replayed as one crowd in one
+building, each floor with its plan and each walk's fix naming its floor; the warm split takes each floor's
+earliest walks (the data set's floors were walked on different days: a split over the building by time would
+leave some floors without a crowd), so the building scores the walks its floors score one by one. Each scored
+waypoint also scores the floor the server believed the user on.
 """
 
 from __future__ import annotations
@@ -28,6 +35,7 @@ from schemas.sensors import PositionFix
 from server.datasets.msindoor import (
     PlanReading,
     Trace,
+    building_floors,
     iter_windows,
     read_floor,
     read_floor_plan,
@@ -50,6 +58,10 @@ PHASE_GAP_MS = 60_000
 """Between the warm-up crowd's last sample and the scored crowd's first."""
 START_SIGMA_M = 1.0
 """A surveyed waypoint is a surveyor's click: about a metre (a walk's start fix, a tagged walk's ends)."""
+FLOOR_PENALTY_M = 15.0
+"""The competition's score: mean metres of error plus this many per floor of error."""
+FLOOR_BY_MS = 10_000
+"""Without a start fix: is a walk on the right floor by its 10th second, and after."""
 
 
 @dataclass
@@ -57,8 +69,14 @@ class _Walk:
     name: str
     trace: Trace
     waypoints: np.ndarray  # (K, 3) t, x, y in replay time
+    level: int = 0  # the floor it was walked on
+    start_ms: int = 0  # its first sample, in replay time
     pending: int = 1  # the next waypoint to score (the first is the start fix; without one, it is scored)
     errors: list[float] = field(default_factory=list)
+    floor_errors: list[int] = field(default_factory=list)
+    """Per entry of ``errors``: how many floors off the server's floor was."""
+    floor_seen: list[tuple[float, bool]] = field(default_factory=list)
+    """(time since the walk's first sample in ms, right floor) after every call that estimated it."""
     scored: list[tuple[float, float]] = field(default_factory=list)
     """(time, error) of every scored waypoint, inf while the user had no reported position."""
 
@@ -113,7 +131,7 @@ class _Audit:
         }
 
 
-def replay_floor(
+def replay_msindoor(
     floor_dir: Path,
     options: ReplayOptions,
     base_params: TrackerParams,
@@ -121,26 +139,39 @@ def replay_floor(
     progress: Callable[[int, int], None] | None = None,
     radio_map_of: Callable[[list[Trace]], RadioMap | None] | None = None,
 ) -> tuple[dict[str, Any], np.ndarray]:
-    """Replay the floor's walks with the server's tracker (``base_params``, in the options' mode); returns
-    the metrics (the simulated evaluation's fields plus ``n_waypoints``) and every scored waypoint's error
-    in metres. With a warm split and ``radio_map_of`` (``server.signal_maps.tagged_walks``), the warm walks
-    are built into a radio map, as a server's signal-map build, which the tracker loads before the scored
-    walks."""
+    """Replay the floor's (or the building's) walks with the server's tracker (``base_params``, in the
+    options' mode); returns the metrics (the simulated evaluation's fields plus ``n_waypoints``, and for a
+    building also per floor) and every scored waypoint's error in metres. With a warm split and
+    ``radio_map_of`` (``server.signal_maps.tagged_walks``), the warm walks are built into a radio map, as a
+    server's signal-map build, which the tracker loads before the scored walks (a floor only)."""
     started = time.perf_counter()
-    floor = read_floor(floor_dir)
-    traces = [read_trace(p) for p in floor.traces]
-    traces = [t for t in traces if len(t.waypoints) >= 2 and len(t.streams.get("accelerometer", ()))]
+    floors = building_floors(floor_dir)
+    tracker = BuildingTracker(replay_params(base_params, options), calibration, seed=options.tracker_seed)
+    tracker.set_levels(tuple(level for level, _ in floors))
+    warm: list[tuple[int, Trace]] = []
+    later: list[tuple[int, Trace]] = []
+    readings: dict[int, tuple[PlanReading, PlanIndex | None, list[Trace]]] = {}
+    for level, folder in floors:
+        floor = read_floor(folder)
+        found = [read_trace(p) for p in floor.traces]
+        found = [t for t in found if len(t.waypoints) >= 2 and len(t.streams.get("accelerometer", ()))]
+        found.sort(key=lambda t: (t.start_ms, t.path.name))
+        n_warm = 0 if options.warm_split is None else int(len(found) * options.warm_split)
+        warm += [(level, t) for t in found[:n_warm]]
+        later += [(level, t) for t in found[n_warm:]]
+        if options.floor_plan:
+            reading = read_floor_plan(floor)
+            index = None if reading.plan is None else engine_plan(reading.plan)
+            tracker.set_floor_plan(index, level)
+            readings[level] = (reading, index, found)
+    traces = [t for _, t in warm + later]
     if not traces:
         raise ValueError(f"{floor_dir}: no walk has an accelerometer stream and two waypoints")
-    traces.sort(key=lambda t: (t.start_ms, t.path.name))
-    n_warm = 0 if options.warm_split is None else int(len(traces) * options.warm_split)
-    phases = [traces[:n_warm], traces[n_warm:]] if n_warm else [traces]
-    tracker = BuildingTracker(replay_params(base_params, options), calibration, seed=options.tracker_seed)
-    reading = read_floor_plan(floor) if options.floor_plan else None
-    plan = None if reading is None else reading.plan
-    index = None if plan is None else engine_plan(plan)
-    tracker.set_floor_plan(index)
-    ctx = BuildingContext(building_id=floor_dir.name, geo=None, known_anchors={})
+    phases = [warm, later] if warm else [later]
+    single = len(floors) == 1
+    ctx = BuildingContext(
+        building_id=floor_dir.name, geo=None, known_anchors={}, levels=frozenset(tracker.levels)
+    )
     base = REPLAY_BASE_MS
     scored: list[_Walk] = []
     counts = dict.fromkeys(
@@ -165,39 +196,69 @@ def replay_floor(
     for phase, phase_traces in enumerate(phases):
         last = phase == len(phases) - 1
         start_fix = options.start_fix or not last  # the warm crowd always starts at its first waypoint
-        walks = [_prepare(t, base, start_fix) for t in phase_traces]
+        walks = [_prepare(t, base, start_fix, level) for level, t in phase_traces]
         audited = audit if last else _Audit()  # the scored walks only
         end = _replay_phase(tracker, walks, ctx, options, counts, advance, audited, start_fix)
         if last:
             scored = walks
-        elif radio_map_of is not None:
-            radio = radio_map_of(phase_traces)
+        elif radio_map_of is not None and single:
+            radio = radio_map_of([t for _, t in phase_traces])
             if radio is not None:
                 radio_scans = tracker.load_radio_map(
                     radio.map_id, radio.xy, radio.bssids, radio.rss, radio.t_ms
                 )
         base = end + PHASE_GAP_MS
     errors = np.array([e for w in scored for e in w.errors])
-    reach = _start_reach(phases[0], phases[-1]) if len(phases) == 2 else None
+    reach = (
+        np.concatenate(
+            [
+                _start_reach([t for lv, t in warm if lv == level], [t for lv, t in later if lv == level])
+                for level, _ in floors
+                if any(lv == level for lv, _ in warm) and any(lv == level for lv, _ in later)
+            ]
+            or [np.zeros(0)]
+        )
+        if len(phases) == 2
+        else None
+    )
+    plan_readings = {
+        level: _plan_reading(reading, index, found) for level, (reading, index, found) in readings.items()
+    }
     result: dict[str, Any] = {
         "mode": options.mode,
         "floor": str(floor_dir),
+        "levels": [level for level, _ in floors],
         "seed": options.seed,
         "sampling": options.sampling,
         "particles": options.particles,
         "motion_model": options.motion_model,
         "crowd_solver": options.crowd_solver,
         "warm_split": options.warm_split,
-        "floor_plan": plan is not None,
-        "floor_plan_reading": None if reading is None else _plan_reading(reading, index, traces),
-        "heading_axes": plan is not None and options.heading_axes,
+        "floor_plan": any(index is not None for _, index, _ in readings.values()),
+        "floor_plan_reading": (plan_readings.get(floors[0][0]) if single else plan_readings) or None,
+        "heading_axes": any(index is not None for _, index, _ in readings.values()) and options.heading_axes,
         "start_fix": options.start_fix,
         "unplaced_waypoints": sum(1 for w in scored for _, e in w.scored if not math.isfinite(e)),
         "seconds_to_5m": _median_or_none([w.seconds_to(5.0) for w in scored]),
         "walks_within_5m": sum(math.isfinite(w.seconds_to(5.0)) for w in scored) / max(1, len(scored)),
-        "start_to_warm_track_m": None if reach is None else error_summary(reach),
-        "starts_within_5m_of_warm_track": None if reach is None else float(np.mean(reach <= 5.0)),
+        "start_to_warm_track_m": None if reach is None or not reach.size else error_summary(reach),
+        "starts_within_5m_of_warm_track": None
+        if reach is None or not reach.size
+        else float(np.mean(reach <= 5.0)),
         **error_summary(errors),
+        **_floor_scores(scored),
+        "per_floor": None
+        if single
+        else {
+            str(level): {
+                **_summary_or_none(np.array([e for w in scored if w.level == level for e in w.errors])),
+                **_floor_scores([w for w in scored if w.level == level]),
+                "n_scored_walks": sum(w.level == level for w in scored),
+                "n_waypoints": sum(len(w.errors) for w in scored if w.level == level),
+            }
+            for level, _ in floors
+            if any(w.level == level for w in scored)
+        },
         "n_waypoints": int(errors.size),
         "n_walks": len(traces),
         "n_scored_walks": len(scored),
@@ -217,6 +278,35 @@ def replay_floor(
         "seconds": time.perf_counter() - started,
     }
     return result, errors
+
+
+def _summary_or_none(errors: np.ndarray) -> dict[str, Any]:
+    """``error_summary``, or its keys with None when a floor had no scored waypoint with a position."""
+    if errors.size:
+        return dict(error_summary(errors))
+    return dict.fromkeys(error_summary(np.zeros(1)), None)
+
+
+def _floor_scores(walks: list[_Walk]) -> dict[str, Any]:
+    """The floor figures of these scored walks: the share of scored estimates on the right floor, the
+    competition's score (mean metres + 15 x mean floors off), and the share of walks on the right floor by
+    their 10th second and of their estimates after it."""
+    errors = [e for w in walks for e in w.errors]
+    floors_off = [f for w in walks for f in w.floor_errors]
+    by_10 = [
+        next((right for t, right in reversed(w.floor_seen) if t <= FLOOR_BY_MS), False)
+        for w in walks
+        if w.floor_seen
+    ]
+    after = [right for w in walks for t, right in w.floor_seen if t > FLOOR_BY_MS]
+    return {
+        "right_floor": float(np.mean([f == 0 for f in floors_off])) if floors_off else None,
+        "competition_score": float(np.mean(errors) + FLOOR_PENALTY_M * np.mean(floors_off))
+        if errors
+        else None,
+        "walks_right_floor_by_10s": float(np.mean(by_10)) if by_10 else None,
+        "right_floor_after_10s": float(np.mean(after)) if after else None,
+    }
 
 
 def _plan_reading(reading: PlanReading, index: PlanIndex | None, traces: list[Trace]) -> dict[str, Any]:
@@ -256,10 +346,10 @@ def _tick(progress: Callable[[int, int], None] | None, n: int, total: int) -> No
         progress(n, total)
 
 
-def _prepare(trace: Trace, base_ms: int, start_fix: bool) -> _Walk:
+def _prepare(trace: Trace, base_ms: int, start_fix: bool, level: int = 0) -> _Walk:
     first = min(float(s[0, 0]) for s in trace.streams.values() if len(s))
     moved = shifted(trace, base_ms - int(first))
-    return _Walk(trace.path.stem, moved, moved.waypoints, pending=1 if start_fix else 0)
+    return _Walk(trace.path.stem, moved, moved.waypoints, level, base_ms, pending=1 if start_fix else 0)
 
 
 def _replay_phase(
@@ -285,6 +375,7 @@ def _replay_phase(
                     t_ms=start_t,
                     position=Position(x_m=float(walk.waypoints[0, 1]), y_m=float(walk.waypoints[0, 2])),
                     sigma_m=START_SIGMA_M,
+                    floor=walk.level,
                 )
                 batch = batch.model_copy(update={"landmarks": [*batch.landmarks, fix]})
                 fixed = True
@@ -331,6 +422,9 @@ def _apply(
     for end, index, batch in call:
         walk = walks[index]
         _score(tracker, walk, end, options.mode)
+        if tracker.is_placed(batch.user):
+            level, _ = tracker.floor_of(batch.user)
+            walk.floor_seen.append((end - walk.start_ms, level == walk.level))
         report = outcome.reports[batch.user]
         truth = walk.truth(end)
         if report.fingerprint_fix is not None and truth is not None:
@@ -378,5 +472,8 @@ def _score(tracker: BuildingTracker, walk: _Walk, until_ms: float, mode: str) ->
         if position is not None:
             error = float(np.linalg.norm(position - walk.waypoints[walk.pending, 1:]))
             walk.errors.append(error)
+            # dead reckoning keeps the floor it started on; the filter says which it believes
+            level = walk.level if mode == "pdr" else tracker.floor_of(walk.name)[0]
+            walk.floor_errors.append(abs(level - walk.level))
         walk.scored.append((float(walk.waypoints[walk.pending, 0]), error))
         walk.pending += 1

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -51,6 +51,10 @@ class BuildingContext:
     extent: Extent | None = None
     """Where positions may be (None: anywhere the schema allows); a fix, GPS fix or tag outside it refuses
     the batch."""
+    levels: frozenset[int] | None = None
+    """The building's floors (None: any): a landmark on another floor refuses the batch."""
+    known_anchor_levels: Mapping[str, int] = field(default_factory=dict)
+    """The floor of each known anchor not on floor 0."""
 
 
 _NO_CONTEXT = BuildingContext("", None, {})
@@ -82,18 +86,25 @@ def to_user_batch(batch: SensorBatch, ctx: BuildingContext) -> Converted:
     fix_xy: list[tuple[float, float]] = []
     fix_sigma: list[float] = []
     fix_azimuth: list[float] = []
+    fix_level: list[int] = []
     for i, mark in enumerate(batch.landmarks):
         placed = _place(mark, ctx)
         if isinstance(placed, str):
             warnings.append(f"landmarks.{i}: {placed}")
             continue
-        (x, y), sigma, azimuth = placed
+        (x, y), sigma, azimuth, level = placed
         if ctx.extent is not None and (refusal := ctx.extent.refusal(f"landmarks.{i}", x, y)) is not None:
             raise ValueError(refusal)
+        if ctx.levels is not None and level not in ctx.levels:
+            raise ValueError(
+                f"landmarks.{i}: building {ctx.building_id!r} has no floor {level}; its floors: "
+                f"{', '.join(map(str, sorted(ctx.levels)))}"
+            )
         fix_t.append(mark.t_ms)
         fix_xy.append((x, y))
         fix_sigma.append(sigma)
         fix_azimuth.append(azimuth)
+        fix_level.append(level)
     ints, floats, strings = _sensor_columns(batch)
     fields: dict[str, Any] = {
         "user": batch.effective_user_id,
@@ -102,6 +113,7 @@ def to_user_batch(batch: SensorBatch, ctx: BuildingContext) -> Converted:
         "fix_xy": np.array(fix_xy, dtype=np.float64).reshape(-1, 2) if fix_xy else _NO_XY,
         "fix_sigma": _floats(fix_sigma),
         "fix_azimuth": _floats(fix_azimuth),
+        "fix_level": _ints(fix_level) if any(fix_level) else _NO_INTS,
         **{name: _ints(values) for name, values in ints.items()},
         **{name: _floats(values) for name, values in floats.items()},
         **strings,
@@ -154,6 +166,12 @@ def _sensor_columns(
         "scan_rss": [ap.rssi_dbm for ap in aps],
         "peer_rss": [p.rssi_dbm for p in peers],
         "beacon_rss": [s.rssi_dbm for s in beacons],
+        # only when a detection carries a rise (a change of floor): most batches have none
+        "detect_rise": (
+            [_nan_if_none(d.rise_m) for d in detections]
+            if any(d.rise_m is not None for d in detections)
+            else []
+        ),
     }
     strings = {
         "scan_bssid": tuple(ap.bssid.lower() for ap in aps),  # one AP whatever case a phone writes
@@ -235,27 +253,28 @@ def _imu(batch: SensorBatch) -> ImuSamples | None:
 
 def _place(
     mark: GpsFix | TagReading | AnchorReading | PositionFix, ctx: BuildingContext
-) -> tuple[tuple[float, float], float, float] | str:
-    """((x, y), sigma, azimuth or NaN) of a landmark in local metres, or why it cannot be placed."""
+) -> tuple[tuple[float, float], float, float, int] | str:
+    """((x, y), sigma, azimuth or NaN, floor) of a landmark in local metres, or why it cannot be placed. A GPS
+    fix is taken on floor 0 (where GPS reaches: the entrances); a tag without a floor, too."""
     if isinstance(mark, PositionFix):
         azimuth = math.nan if mark.azimuth_rad is None else mark.azimuth_rad
-        return (mark.position.x_m, mark.position.y_m), mark.sigma_m, azimuth
+        return (mark.position.x_m, mark.position.y_m), mark.sigma_m, azimuth, mark.floor
     if isinstance(mark, AnchorReading):
         xy = ctx.known_anchors.get(mark.anchor_id)
         if xy is None:
             return f"anchor {mark.anchor_id!r} is not a known anchor of building {ctx.building_id!r}"
-        return xy, ctx.detection_sigma_m, math.nan
+        return xy, ctx.detection_sigma_m, math.nan, ctx.known_anchor_levels.get(mark.anchor_id, 0)
     if isinstance(mark, GpsFix):
         if ctx.geo is None:
             return f"building {ctx.building_id!r} has no geo-reference, so a GPS fix cannot be placed"
-        return ctx.geo.to_local(mark.lat_deg, mark.lon_deg), mark.accuracy_m, math.nan
+        return ctx.geo.to_local(mark.lat_deg, mark.lon_deg), mark.accuracy_m, math.nan, 0
     encoded = mark.encoded_position()
     if encoded is None:
         return "the tag encodes no position (tags without one are kept for SignalSLAM loop closures)"
     if ctx.geo is None:
         return f"building {ctx.building_id!r} has no geo-reference, so the tag's position cannot be placed"
-    lat, lon, _floor = encoded
-    return ctx.geo.to_local(lat, lon), TAG_SIGMA_M, math.nan
+    lat, lon, level = encoded
+    return ctx.geo.to_local(lat, lon), TAG_SIGMA_M, math.nan, level
 
 
 def estimate(
@@ -285,7 +304,8 @@ def estimate(
                 "covariance_m2": [[xx, xy], [xy, yy]],
                 "best_particle": {"x_m": row.best[0], "y_m": row.best[1]},
                 "heading_rad": (row.heading + math.pi) % (2 * math.pi) - math.pi,
-                "floor": 0,
+                "floor": row.floor,
+                "floor_probability": row.floor_probability,
                 "source": source,
                 "lat_deg": lat,
                 "lon_deg": lon,

@@ -22,11 +22,11 @@ from slam_core.tracking.tracker import UserBatch
 
 _INTS = (
     "fix_t", "step_t", "detect_t", "detect_type", "scan_t", "scan_offsets", "scan_last_seen", "peer_t",
-    "beacon_t", "detect_observed_t",
+    "beacon_t", "detect_observed_t", "fix_level",
 )  # fmt: skip
 _FLOATS = (
     "fix_xy", "fix_sigma", "fix_azimuth", "step_length", "step_azimuth", "step_turn", "step_heading_offset",
-    "scan_rss", "peer_rss", "beacon_rss",
+    "scan_rss", "peer_rss", "beacon_rss", "detect_rise",
 )  # fmt: skip
 _STRINGS = ("scan_bssid", "peer_id", "beacon_mac", "detect_signature")
 _IMU = ("acc", "gyr", "mag", "rv", "grv", "pressure")

@@ -103,7 +103,8 @@ def estimate_json(estimate: Estimate) -> bytes:
         f'"position":{{"x_m":{_mm(p.x_m)},"y_m":{_mm(p.y_m)}}},'
         f'"covariance_m2":[[{_mm2(c[0][0])},{_mm2(c[0][1])}],[{_mm2(c[1][0])},{_mm2(c[1][1])}]],'
         f'"best_particle":{best_json},"heading_rad":{round(estimate.heading_rad, 4)!r},'
-        f'"floor":{estimate.floor},"source":"{estimate.source.value}","lat_deg":{lat},"lon_deg":{lon}}}'
+        f'"floor":{estimate.floor},"floor_probability":{round(estimate.floor_probability, 4)!r},'
+        f'"source":"{estimate.source.value}","lat_deg":{lat},"lon_deg":{lon}}}'
     ).encode()
 
 

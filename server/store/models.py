@@ -20,6 +20,7 @@ from sqlalchemy import (
     Text,
     UniqueConstraint,
     func,
+    text,
 )
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 
@@ -225,6 +226,7 @@ class _EstimateColumns:
     cov_yy: Mapped[float] = mapped_column(Float)
     heading_rad: Mapped[float] = mapped_column(Float)
     floor: Mapped[int] = mapped_column(Integer, default=0)
+    floor_probability: Mapped[float] = mapped_column(Float, server_default=text("1.0"))
     source: Mapped[str] = mapped_column(String(16))
 
 

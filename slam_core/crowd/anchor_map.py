@@ -12,7 +12,9 @@ anchor's estimate is the information-weighted fusion of its contributors, each u
 contribution), because one user's repeated passes share that user's drift and are not independent.
 Operator-known anchors never move.
 
-Beyond the paper: *signature anchors* (a fixed beacon or WiFi AP heard strongly,
+Beyond the paper: every anchor lies on one floor (``level``), and a contribution is associated only with the
+anchors of its user's floor: a staircase's landing upstairs is a place of its own, one storey above the one
+downstairs. *Signature anchors* (a fixed beacon or WiFi AP heard strongly,
 ``slam_core.sensing.detectors``) carry an identity, so a contribution joins the anchor with its signature
 whatever its position, and these anchors stay out of the particles' maps (the tracker observes them as
 position measurements instead).
@@ -41,6 +43,7 @@ class _CrowdAnchor:
     last_seen: float = -math.inf
     removed: bool = False
     signature: str = ""
+    level: int = 0
 
 
 def _contribution(mean: np.ndarray, cov: np.ndarray, extra_variance: float) -> tuple[np.ndarray, np.ndarray]:
@@ -70,15 +73,17 @@ class CrowdMapBuilder:
         self._r = detection_sigma_m**2
         self._log_p0 = math.log(new_anchor_likelihood)
         self._anchors: list[_CrowdAnchor] = []
-        self._by_signature: dict[str, int] = {}
+        self._by_signature: dict[tuple[int, str], int] = {}  # (level, signature): one transmitter per floor
 
     def __len__(self) -> int:
         """Anchors ever created (removed ones keep their index so ids stay stable)."""
         return len(self._anchors)
 
-    def add_known(self, mean: np.ndarray, anchor_type: int) -> int:
+    def add_known(self, mean: np.ndarray, anchor_type: int, level: int = 0) -> int:
         self._anchors.append(
-            _CrowdAnchor(np.asarray(mean, float).copy(), np.eye(2) * 1e-4, int(anchor_type), True)
+            _CrowdAnchor(
+                np.asarray(mean, float).copy(), np.eye(2) * 1e-4, int(anchor_type), True, level=level
+            )
         )
         return len(self._anchors) - 1
 
@@ -91,6 +96,7 @@ class CrowdMapBuilder:
         observations: int,
         t: float,
         signature: str = "",
+        level: int = 0,
     ) -> int:
         """Re-create a stored anchor (after a restart): its estimate stands until new detections arrive."""
         mean = np.asarray(mean, dtype=float)
@@ -101,14 +107,21 @@ class CrowdMapBuilder:
         anchor.observations = int(observations)
         anchor.last_seen = t
         anchor.signature = signature
+        anchor.level = level
         self._anchors.append(anchor)
         if signature:
-            self._by_signature[signature] = len(self._anchors) - 1
+            self._by_signature[(level, signature)] = len(self._anchors) - 1
         return len(self._anchors) - 1
 
-    def pin(self, index: int, mean: np.ndarray, anchor_type: int) -> None:
-        """An operator fixes an anchor's exact position (it becomes known and never moves again)."""
+    def pin(self, index: int, mean: np.ndarray, anchor_type: int, level: int | None = None) -> None:
+        """An operator fixes an anchor's exact position, and its floor when given (it becomes known and never
+        moves again)."""
         anchor = self._live(index)
+        if level is not None and level != anchor.level:
+            if anchor.signature:
+                self._by_signature.pop((anchor.level, anchor.signature), None)
+                self._by_signature[(level, anchor.signature)] = index
+            anchor.level = level
         anchor.mean = np.asarray(mean, dtype=float).copy()
         anchor.cov = np.eye(2) * 1e-4
         anchor.type = int(anchor_type)
@@ -119,13 +132,17 @@ class CrowdMapBuilder:
         """Drop an anchor from association and from snapshots; its index is never reused."""
         anchor = self._live(index)
         anchor.removed = True
-        self._by_signature.pop(anchor.signature, None)
+        self._by_signature.pop((anchor.level, anchor.signature), None)
 
     def merge(self, keep: int, drop: int) -> None:
         """The crowd learned one anchor twice: ``drop``'s contributions join ``keep``, ``drop`` goes."""
         if keep == drop:
             raise ValueError("cannot merge an anchor into itself")
         target, source = self._live(keep), self._live(drop)
+        if target.level != source.level:
+            raise ValueError(
+                f"anchors {keep} and {drop} lie on different floors ({target.level}, {source.level})"
+            )
         target.observations += source.observations
         target.last_seen = max(target.last_seen, source.last_seen)
         if not target.known:
@@ -135,10 +152,10 @@ class CrowdMapBuilder:
                 self._refuse(target)
         source.removed = True
         if source.signature:
-            self._by_signature.pop(source.signature, None)
+            self._by_signature.pop((source.level, source.signature), None)
             if not target.signature:
                 target.signature = source.signature
-                self._by_signature[target.signature] = keep
+                self._by_signature[(target.level, target.signature)] = keep
 
     def is_live(self, index: int) -> bool:
         return 0 <= index < len(self._anchors) and not self._anchors[index].removed
@@ -153,13 +170,19 @@ class CrowdMapBuilder:
         a = self._live(index)
         return a.mean.copy(), a.cov.copy(), a.type, a.known, a.observations, a.last_seen
 
-    def contribute(self, user: int, mean: np.ndarray, cov: np.ndarray, detected_type: int, t: float) -> int:
-        """Fuse one detection; returns the crowd anchor's index."""
+    def level(self, index: int) -> int:
+        """The floor a live anchor lies on."""
+        return self._live(index).level
+
+    def contribute(
+        self, user: int, mean: np.ndarray, cov: np.ndarray, detected_type: int, t: float, level: int = 0
+    ) -> int:
+        """Fuse one detection on floor ``level``; returns the crowd anchor's index."""
         mean, cov = _contribution(mean, cov, self._r)
         # Eq. 16: a new anchor; Eq. 15: each existing one (log likelihoods, eta cancels)
         best, best_score = -1, self._log_p0 + math.log(self._posterior[detected_type, detected_type])
         for k, anchor in enumerate(self._anchors):
-            if anchor.removed or anchor.signature:
+            if anchor.removed or anchor.signature or anchor.level != level:
                 continue
             type_p = self._posterior[anchor.type, detected_type]
             if type_p <= 0.0:
@@ -173,12 +196,12 @@ class CrowdMapBuilder:
             if score > best_score:
                 best, best_score = k, score
         if best < 0:
-            best = self._new_anchor(mean, cov, detected_type)
+            best = self._new_anchor(mean, cov, detected_type, level)
         self._record(best, user, mean, cov, t)
         return best
 
-    def find_signature(self, signature: str) -> int | None:
-        return self._by_signature.get(signature)
+    def find_signature(self, signature: str, level: int = 0) -> int | None:
+        return self._by_signature.get((level, signature))
 
     def signature(self, index: int) -> str:
         return self._live(index).signature
@@ -197,22 +220,25 @@ class CrowdMapBuilder:
         signature: str,
         t: float,
         range_sigma_m: float,
+        level: int = 0,
     ) -> int:
-        """Fuse one detection of an identified transmitter (``range_sigma_m``: how far from it a strong
-        reading may be); returns its anchor's index, creating it on first sight."""
+        """Fuse one detection of an identified transmitter on floor ``level`` (``range_sigma_m``: how far from
+        it a strong reading may be); returns its anchor's index, creating it on first sight. A transmitter
+        heard strongly on two floors is an anchor on each: where it peaks on the floor above is not where it
+        hangs."""
         if not signature:
             raise ValueError("a signed contribution needs a signature")
         mean, cov = _contribution(mean, cov, range_sigma_m**2)
-        index = self._by_signature.get(signature)
+        index = self._by_signature.get((level, signature))
         if index is None:
-            index = self._new_anchor(mean, cov, detected_type)
+            index = self._new_anchor(mean, cov, detected_type, level)
             self._anchors[index].signature = signature
-            self._by_signature[signature] = index
+            self._by_signature[(level, signature)] = index
         self._record(index, user, mean, cov, t)
         return index
 
-    def _new_anchor(self, mean: np.ndarray, cov: np.ndarray, anchor_type: int) -> int:
-        self._anchors.append(_CrowdAnchor(mean.copy(), cov.copy(), int(anchor_type), False))
+    def _new_anchor(self, mean: np.ndarray, cov: np.ndarray, anchor_type: int, level: int = 0) -> int:
+        self._anchors.append(_CrowdAnchor(mean.copy(), cov.copy(), int(anchor_type), False, level=level))
         return len(self._anchors) - 1
 
     def _record(self, index: int, user: int, mean: np.ndarray, cov: np.ndarray, t: float) -> None:
@@ -249,9 +275,12 @@ class CrowdMapBuilder:
         anchor.cov = 0.5 * (anchor.cov + anchor.cov.T)
         anchor.mean = anchor.cov @ vec
 
-    def snapshot(self) -> CrowdMap:
-        """The anchors the particles' own maps may hold (signature anchors are observed by identity)."""
-        live = [k for k, a in enumerate(self._anchors) if not a.removed and not a.signature]
+    def snapshot(self, level: int = 0) -> CrowdMap:
+        """The anchors of floor ``level`` that the particles' own maps of its users may hold (signature
+        anchors are observed by identity)."""
+        live = [
+            k for k, a in enumerate(self._anchors) if not a.removed and not a.signature and a.level == level
+        ]
         if not live:
             return CrowdMap.empty()
         anchors = [self._anchors[k] for k in live]

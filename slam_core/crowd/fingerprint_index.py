@@ -129,10 +129,15 @@ def union_nearest(
     dot: np.ndarray,
     shared: np.ndarray,
     k: int,
+    row_xy: np.ndarray,
+    centre_x: float = 0.0,
+    centre_y: float = 0.0,
+    radius_m: float = math.inf,
 ) -> tuple[np.ndarray, np.ndarray, int]:
     """The ``k`` live references of other owners nearest to the query by union-fingerprint distance
     (``slam_core.wifi.similarity.union_rms``, from the gains above the floor), among
-    those that share an AP with it: their rows and distances, nearest first, and how many shared one.
+    those that share an AP with it and lie within ``radius_m`` of the centre (everywhere by default): their
+    rows and distances, nearest first, and how many were candidates.
     ``cols`` and ``gains`` are the query's APs known to the index; ``query_norm`` and ``query_count`` are over
     all of its APs. ``dot`` and ``shared`` are per-row scratch, zero on entry and left zero."""
     # The walk is branch-free: whether a posting is live, and whether it is its row's first, are as good as
@@ -162,6 +167,8 @@ def union_nearest(
         dot[r] = 0.0
         shared[r] = 0
         if row_owner[r] == owner:
+            continue
+        if (row_xy[r, 0] - centre_x) ** 2 + (row_xy[r, 1] - centre_y) ** 2 > radius_m * radius_m:
             continue
         candidates += 1
         d = union_rms(row_norm[r], query_norm, product, int(row_count[r]), query_count, n_shared)

@@ -361,11 +361,35 @@ class CrowdFingerprints:
         rows, d, candidates = index.union_nearest(
             all_cols[known], gains[known], query_norm, len(heard), owner, self._start, self._length,
             self._post_row, self._post_serial, self._post_gain, self._serial, self._owner, self._norm,
-            self._count, self._dot, self._shared, p.k,
+            self._count, self._dot, self._shared, p.k, self._xy,
         )  # fmt: skip
         if candidates < p.k:  # fewer than k references share an AP with the scan
             return None
         return rows, d
+
+    def nearby(
+        self, owner: int, bssids: list[str], rss: np.ndarray, centre: np.ndarray, radius_m: float, k: int
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The ``k`` other users' references within ``radius_m`` of ``centre`` nearest to the scan in signal
+        space: their positions (n, 2) and union-fingerprint distances (dB), nearest first; none when the scan
+        has fewer than ``min_aps`` or no reference there shares an AP with it. How well this map explains
+        the scan there (``slam_core.tracking.floors`` compares it across the floors' maps)."""
+        none = (np.zeros((0, 2)), np.zeros(0))
+        if len(bssids) < self.params.min_aps or self._size == 0:
+            return none
+        heard, gains = self._gains(bssids, rss)
+        if len(heard) < self.params.min_aps:
+            return none
+        columns = self._columns
+        all_cols = np.fromiter((columns.get(b, -1) for b in heard), np.int64, len(heard))
+        known = all_cols >= 0
+        query_norm = float(gains.astype(float) @ gains.astype(float))
+        rows, d, _ = index.union_nearest(
+            all_cols[known], gains[known], query_norm, len(heard), owner, self._start, self._length,
+            self._post_row, self._post_serial, self._post_gain, self._serial, self._owner, self._norm,
+            self._count, self._dot, self._shared, k, self._xy, float(centre[0]), float(centre[1]), radius_m,
+        )  # fmt: skip
+        return self._xy[rows].copy(), d
 
     def fix_and_places(
         self, owner: int, xy: np.ndarray, cov: np.ndarray, scans: list[Scan]

@@ -82,8 +82,9 @@ class EncounterOutcome:
 
 
 class DynamicSlam:
-    floor_plan: PlanIndex | None = None
-    """The floor plan that weighs each step (beyond the papers), set by the tracker; None: no plan."""
+    """Every user's particle filter in one struct-of-arrays state. Each user is on one floor (``levels``,
+    set by the tracker, which keeps the belief over floors: ``slam_core.tracking.floors``); each floor's plan
+    weighs the steps of the users on it (beyond the papers)."""
 
     def __init__(
         self,
@@ -105,12 +106,52 @@ class DynamicSlam:
         # ``means``' kept rows (capacity x 2) and which slots hold a current one; None until first asked.
         self._mean: np.ndarray | None = None
         self._mean_known: np.ndarray | None = None
+        self._level = np.zeros(initial_capacity, dtype=np.int64)  # each slot's floor
+        self.floor_plans: dict[int, PlanIndex] = {}
 
     def __getstate__(self) -> dict[str, object]:
-        """Pickled without its floor plan: the plan lives in the building's store and is set again on load."""
+        """Pickled without its floor plans: the plans live in the building's store and are set again on
+        load."""
         state = self.__dict__.copy()
-        state.pop("floor_plan", None)
+        state.pop("floor_plans", None)
         return state
+
+    def __setstate__(self, state: dict[str, object]) -> None:
+        self.__dict__.update(state)
+        self.floor_plans = {}
+
+    # ----------------------------------------------------------------- floors
+    def set_floor_plan(self, level: int, plan: PlanIndex | None) -> None:
+        """The plan that weighs the steps of the users on ``level`` from now on; None: that floor has none."""
+        if plan is None:
+            self.floor_plans.pop(int(level), None)
+        else:
+            self.floor_plans[int(level)] = plan
+
+    def plan_of(self, level: int) -> PlanIndex | None:
+        """The floor's plan when it has walls or a walkable area to weigh steps by; else None."""
+        plan = self.floor_plans.get(int(level))
+        return plan if plan is not None and not plan.is_empty else None
+
+    @property
+    def levels(self) -> np.ndarray:
+        """Each slot's floor (a slot not in use keeps its last user's)."""
+        return self._level[: self.state.capacity]
+
+    def set_levels(self, users: np.ndarray, levels: np.ndarray) -> None:
+        """These users are on these floors from now on: their particles keep their places (stairs and lifts
+        rise straight up), and the new floor's plan weighs their next steps."""
+        users = np.ascontiguousarray(users, dtype=np.int64)
+        self._check_users(users, allow_repeats=True)
+        self._level_room()
+        self._level[users] = np.asarray(levels, dtype=np.int64)
+
+    def _level_room(self) -> None:
+        capacity = self.state.capacity
+        if self._level.size < capacity:
+            longer = np.zeros(capacity, dtype=np.int64)
+            longer[: self._level.size] = self._level
+            self._level = longer
 
     # ----------------------------------------------------------------- users
     def add_user(
@@ -120,8 +161,10 @@ class DynamicSlam:
         heading: float = 0.0,
         position_sigma: float = 0.5,
         crowd_map: CrowdMap | None = None,
+        level: int = 0,
     ) -> int:
-        """Admit a user at a start fix; returns its slot. ``heading`` is used by the paper motion model."""
+        """Admit a user at a start fix on floor ``level``; returns its slot. ``heading`` is used by the paper
+        motion model."""
         if not all(np.isfinite([x, y, heading, position_sigma])) or position_sigma < 0:
             raise ValueError("start fix must be finite with a non-negative sigma")
         if crowd_map is not None:
@@ -130,6 +173,8 @@ class DynamicSlam:
         if grow_to is not None:
             self.state = self.state.grown(grow_to)
         s = self.state
+        self._level_room()
+        self._level[slot] = level
         self._moved(np.array([slot]))
         s.rng_key[slot] = user_key(self.seed, self._admitted)
         s.rng_ctr[slot] = 0
@@ -137,7 +182,7 @@ class DynamicSlam:
         motion = self.params.motion
         scale_sigma = (
             motion.step_scale_sigma
-            if self._weighing_plan is None
+            if self.plan_of(level) is None
             else self.params.floor_plan.step_scale_sigma
         )
         initialise_user(
@@ -169,6 +214,7 @@ class DynamicSlam:
         sigma: float,
         heading: float = 0.0,
         crowd_map: CrowdMap | None = None,
+        level: int = 0,
     ) -> int:
         """Admit a user with no start fix, its particles spread over candidate places (beyond both papers,
         which start every user at a known position): each particle is drawn at one candidate, chosen by
@@ -185,13 +231,13 @@ class DynamicSlam:
         p = weights / weights.sum()
         mean = p @ candidates
         admission = self._admitted
-        slot = self.add_user(float(mean[0]), float(mean[1]), heading, 0.0, crowd_map)
+        slot = self.add_user(float(mean[0]), float(mean[1]), heading, 0.0, crowd_map, level)
         rng = np.random.default_rng([self.seed, admission, 1])
         n = self.params.n_particles
         xy = candidates[rng.choice(candidates.shape[0], size=n, p=p)] + sigma * rng.standard_normal((n, 2))
         s = self.state
         s.x[slot], s.y[slot] = xy[:, 0], xy[:, 1]
-        plan = self._weighing_plan
+        plan = self.plan_of(level)
         if plan is not None:
             _, log_outside = self.params.floor_plan.log_weights
             logw = np.where(plan.walkable(xy), 0.0, log_outside)
@@ -275,12 +321,6 @@ class DynamicSlam:
     # for bit.
     MAP_START = 4
 
-    @property
-    def _weighing_plan(self) -> PlanIndex | None:
-        """The floor plan, when it has walls or a walkable area to weigh steps by; else None."""
-        plan = self.floor_plan
-        return plan if plan is not None and not plan.is_empty else None
-
     def _map_room(self, users: np.ndarray, new_anchors: int) -> None:
         """Room in the particle maps of ``users`` for ``new_anchors`` more anchors (up to the capacity)."""
         s = self.state
@@ -320,11 +360,32 @@ class DynamicSlam:
         finite = np.all(np.isfinite(lengths)) and np.all(np.isfinite(headings))
         if not finite or np.any(lengths < 0):
             raise ValueError("step lengths must be finite and >= 0, headings finite")
-        s = self.state
         self._moved(users)
+        self._level_room()
+        levels = self._level[users]
+        if users.size == 0 or levels.min() == levels.max():  # one floor: one kernel call
+            self._step_on(users, offsets, lengths, headings, int(levels[0]) if users.size else 0)
+            return
+        counts = np.diff(offsets)
+        for level in np.unique(levels).tolist():  # each floor's users under that floor's plan
+            on = levels == level
+            picked = np.repeat(on, counts)
+            self._step_on(
+                users[on],
+                np.concatenate([[0], np.cumsum(counts[on])]).astype(np.int64),
+                np.ascontiguousarray(lengths[picked]),
+                np.ascontiguousarray(headings[picked]),
+                int(level),
+            )
+
+    def _step_on(
+        self, users: np.ndarray, offsets: np.ndarray, lengths: np.ndarray, headings: np.ndarray, level: int
+    ) -> None:
+        """The motion update of users all on ``level``, weighed by its plan."""
+        s = self.state
         motion = self.params.motion
         model = MODEL_PAPER if motion.model == "paper" else MODEL_BIAS_SCALE
-        plan = self._weighing_plan
+        plan = self.plan_of(level)
         use_plan = plan is not None
         resample = np.zeros(users.shape[0], dtype=np.bool_)
         pick(motion_update, motion_update_serial, users.shape[0], self.parallel_min_users)(
@@ -472,19 +533,30 @@ class DynamicSlam:
         self._check_users(users)
         if stretch_heading.shape != users.shape or not np.all(np.isfinite(stretch_heading)):
             raise ValueError("one finite stretch heading per user")
-        plan, fp = self.floor_plan, self.params.floor_plan
-        if plan is None or plan.axis_strength < fp.axis_min_strength or users.size == 0:
+        fp = self.params.floor_plan
+        if users.size == 0 or not self.floor_plans:
             return
+        self._level_room()
+        axis = np.full(users.size, math.nan)  # each user's floor's grid direction (NaN: no grid to weigh by)
+        for level, plan in self.floor_plans.items():
+            if plan.axis_strength >= fp.axis_min_strength:
+                axis[self._level[users] == level] = plan.axis_rad
         s = self.state
         measured = s.last_obs_heading[users]
-        stepped = np.isfinite(measured)  # a user without a step yet has no heading error to weigh
-        users, stretch_heading, measured = users[stepped], stretch_heading[stepped], measured[stepped]
+        # a user without a step yet has no heading error to weigh
+        keep = np.isfinite(measured) & np.isfinite(axis)
+        users, stretch_heading, measured, axis = (
+            users[keep],
+            stretch_heading[keep],
+            measured[keep],
+            axis[keep],
+        )
         if users.size == 0:
             return
         self._moved(users)
         quarter = 0.5 * math.pi
         error = s.heading[users] - measured[:, None]  # each particle's heading error
-        delta = (stretch_heading[:, None] + error - plan.axis_rad + 0.5 * quarter) % quarter - 0.5 * quarter
+        delta = (stretch_heading[:, None] + error - axis[:, None] + 0.5 * quarter) % quarter - 0.5 * quarter
         var = fp.axis_sigma_rad**2
         log_on = math.log(fp.axis_share) - 0.5 * math.log(2 * math.pi * var)
         log_off = math.log((1.0 - fp.axis_share) / quarter)
@@ -528,6 +600,13 @@ class DynamicSlam:
         r = row[ui, mi, ki]
         s.map_mu[users[ui], mi, ki] = crowd.mean[r]
         s.map_cov[users[ui], mi, ki] = crowd.cov[r]
+
+    def clear_maps(self, users: np.ndarray) -> None:
+        """Empty these users' particle maps (a user who changed floor: the anchors of the floor it left are
+        no places of the new one; the tracker merges the new floor's crowd map next)."""
+        users = np.ascontiguousarray(users, dtype=np.int64)
+        self._check_users(users)
+        self.state.map_n[users] = 0
 
     def merge_crowd_map(self, users: np.ndarray, crowd: CrowdMap) -> None:
         """Add the shared map's anchors that a particle does not hold yet (by crowd id) to its map, so a user

@@ -89,10 +89,13 @@ class AnchorEvents:
     type_index: np.ndarray  # int64
     signature: tuple[str, ...]  # "" for none
     observed_t_ms: np.ndarray  # int64: when the user was at the anchor (<= t_ms)
+    rise_m: np.ndarray  # float: a change of floor's signed rise (up positive); NaN for the others
 
     @staticmethod
     def empty() -> AnchorEvents:
-        return AnchorEvents(np.zeros(0, np.int64), np.zeros(0, np.int64), (), np.zeros(0, np.int64))
+        return AnchorEvents(
+            np.zeros(0, np.int64), np.zeros(0, np.int64), (), np.zeros(0, np.int64), np.zeros(0)
+        )
 
 
 def detect_turns(
@@ -247,10 +250,15 @@ def merge_events(
     turns: list[int],
     radio: list[tuple[int, int, str, int]],
     turn_type: int,
-    floors: list[tuple[int, int, str, int]] | None = None,
+    floors: list[tuple[int, int, str, int, float]] | None = None,
 ) -> AnchorEvents:
-    """One batch's detections in report order: (report time, type, signature, observed time) rows."""
-    rows = sorted([(t, turn_type, "", t) for t in turns] + radio + (floors or []))
+    """One batch's detections in report order: (report time, type, signature, observed time) rows, and for
+    ``floors`` (changes of floor and other events at a place) also the rise (NaN: none)."""
+    nan = math.nan
+    rows = sorted(
+        [(t, turn_type, "", t, nan) for t in turns] + [(*r, nan) for r in radio] + (floors or []),
+        key=lambda r: r[:4],
+    )
     if not rows:
         return AnchorEvents.empty()
     return AnchorEvents(
@@ -258,4 +266,5 @@ def merge_events(
         np.array([r[1] for r in rows], dtype=np.int64),
         tuple(r[2] for r in rows),
         np.array([r[3] for r in rows], dtype=np.int64),
+        np.array([r[4] for r in rows], dtype=float),
     )

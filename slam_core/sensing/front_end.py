@@ -8,6 +8,7 @@ Phones that count their own steps are expected to run their own detectors too (t
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -75,7 +76,7 @@ class FrontEnd:
             detect, p, radio.scan_t, radio.scan_offsets, radio.scan_bssid, radio.scan_rss,
             radio.scan_last_seen, radio.beacon_t, radio.beacon_mac, radio.beacon_rss,
         )  # fmt: skip
-        floors: list[tuple[int, int, str, int]] = []
+        floors: list[tuple[int, int, str, int, float]] = []
         pressure = imu.pressure
         last = detect.vertical.last_t
         if pressure.size and not np.isnan(last) and pressure[0, 0] <= last:  # a late or re-sent batch
@@ -85,17 +86,19 @@ class FrontEnd:
         if p.vertical.enabled and pressure.size:
             v = p.vertical
             changes = detect_floor_changes(detect.vertical, v, pressure, steps.t_ms)
-            floors = [(c.t_ms, c.type_index, "", c.observed_t_ms) for c in changes]
+            floors = [(c.t_ms, c.type_index, "", c.observed_t_ms, c.change_m) for c in changes]
             for c in changes:
                 kind = {v.elevator_type: "elevator", v.stairs_type: "stairs"}.get(c.type_index, "escalator")
                 self.fired[kind] += 1
         elif p.lift.enabled and np.isnan(detect.vertical.last_t) and imu.acc.size:  # no barometer
-            ride_t, _ = detect_lift_rides(detect.lift, p.lift, imu.acc, steps.t_ms)
-            floors = [(int(t), p.lift.type_index, "", int(t)) for t in ride_t]
+            ride_t, rise = detect_lift_rides(detect.lift, p.lift, imu.acc, steps.t_ms)
+            floors = [
+                (int(t), p.lift.type_index, "", int(t), float(r)) for t, r in zip(ride_t, rise, strict=True)
+            ]
             self.fired["elevator"] += len(floors)
         if p.magnetic.enabled and imu.mag.size:
             anomalies = detect_magnetic_anomalies(detect.magnetic, p.magnetic, imu.mag)
-            floors += [(t, p.magnetic.type_index, "", peak) for t, peak in anomalies]
+            floors += [(t, p.magnetic.type_index, "", peak, math.nan) for t, peak in anomalies]
             self.fired["magnetic"] += len(anomalies)
         self.fired["turn"] += len(turns)
         self.fired["beacon"] += sum(e[1] == p.beacon_type for e in radio_events)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -66,6 +67,11 @@ class UserBatch:
     beacon_rss: np.ndarray = field(default_factory=_f64)
     detect_signature: tuple[str, ...] = ()  # per detection: the transmitter's identity, "" for none
     detect_observed_t: np.ndarray = field(default_factory=_i64)  # per detection: when at the anchor
+    detect_rise: np.ndarray = field(default_factory=_f64)
+    """Per detection (or empty: none): a change of floor's signed rise in metres (NaN: not one, or not
+    known)."""
+    fix_level: np.ndarray = field(default_factory=_i64)
+    """Per fix (or empty: all on level 0): the floor the fix names."""
     imu: ImuSamples | None = None
     """Raw IMU for the PDR front-end; ignored when the phone sent its own steps."""
 
@@ -94,6 +100,8 @@ class UserBatch:
             and len(self.beacon_mac) == self.beacon_rss.size == self.beacon_t.size
             and len(self.detect_signature) in (0, d)
             and self.detect_observed_t.size in (0, d)
+            and self.detect_rise.size in (0, d)
+            and self.fix_level.size in (0, f)
         )
         if not shapes_ok:
             raise ValueError(f"user batch of {self.user!r}: inconsistent array shapes")
@@ -103,6 +111,14 @@ class UserBatch:
             self.fix_sigma,
             self.step_length,
         )
+
+    def fix_floor(self, i: int) -> int:
+        """The floor fix ``i`` names."""
+        return int(self.fix_level[i]) if self.fix_level.size else 0
+
+    def rise(self, i: int) -> float:
+        """Detection ``i``'s rise (NaN: none)."""
+        return float(self.detect_rise[i]) if self.detect_rise.size else math.nan
 
     def fresh_scan(self, c: int, stale_ms: int) -> tuple[int, list[str], np.ndarray]:
         """Scan ``c``'s time and its fresh entries (``slam_core.wifi.pairs.fresh_mask``): BSSIDs and RSS."""
@@ -145,6 +161,9 @@ class EstimateRow:
     cov: tuple[float, float, float]  # xx, xy, yy
     best: tuple[float, float]
     heading: float  # counter-clockwise from east
+    floor: int = 0
+    floor_probability: float = 1.0
+    """How sure the filter is of ``floor`` (``slam_core.tracking.floors``)."""
 
 
 @dataclass(frozen=True)

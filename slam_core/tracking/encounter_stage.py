@@ -1,5 +1,5 @@
 """The tracker's encounter stage: WiFi scans and Bluetooth sightings matched across the building's users
-(Eq. 3, the RSS cut-off), the detections the selector chooses on the filters' estimates
+(Eq. 3, the RSS cut-off) on one floor, the detections the selector chooses on the filters' estimates
 (``slam_core.encounters.selection.choose_readings``), applied as human anchors (Algorithm 1).
 
 ``EncounterStage`` owns what the stage keeps between calls: the detector (its scans and sightings), the
@@ -117,7 +117,11 @@ class EncounterStage:
         found = DetectionArrays.concatenate([scans.result(), sightings])
         slots = self.slots.of(detector, users, np.concatenate([found.user_a, found.user_b]))  # both at once
         slot_a, slot_b = slots[: len(found)], slots[len(found) :]
-        usable = np.flatnonzero((slot_a >= 0) & (slot_b >= 0))
+        tracked = (slot_a >= 0) & (slot_b >= 0)
+        if tracked.any():  # a pair heard through a ceiling is no encounter: both on one floor, as believed
+            levels = engine.levels
+            tracked &= levels[np.maximum(slot_a, 0)] == levels[np.maximum(slot_b, 0)]
+        usable = np.flatnonzero(tracked)
         if usable.size == 0:
             return [], len(found)
         mask, offset, carry_var = choose_readings(

@@ -10,6 +10,7 @@ from slam_core.encounters.selection import SelectionParams
 from slam_core.filter.params import FilterParams
 from slam_core.sensing.detectors import DetectorParams
 from slam_core.sensing.pdr.online import PdrParams
+from slam_core.tracking.floors import FloorParams
 
 MODES = ("pdr", "semanticslam", "dynamicslam")
 """How a user is tracked: ``pdr`` its own dead reckoning, ``semanticslam`` with the crowd's building anchors,
@@ -67,6 +68,8 @@ class TrackerParams:
     (``slam_core.crowd.fingerprints``). Off here, so that the core's defaults are the paper's DynamicSLAM;
     the server and ``evaluate --msindoor`` turn it on in dynamicslam mode."""
     cold_start: ColdStartParams = field(default_factory=ColdStartParams)
+    floors: FloorParams = field(default_factory=FloorParams)
+    """Each user's belief over the building's floors (``slam_core.tracking.floors``)."""
     revise_headings: bool = True
     """When the PDR front-end's north offset estimate moves, translate the user's particles by the revision
     of the path dead-reckoned since its last absolute observation (``BuildingTracker._revise_headings``)."""

@@ -20,9 +20,11 @@ class Round:
     det_types: list[int] = field(default_factory=list)
     det_t: list[int] = field(default_factory=list)
     det_signature: list[str] = field(default_factory=list)
+    det_rise: list[float] = field(default_factory=list)  # a change of floor's rise, NaN for the others
     fix_users: list[str] = field(default_factory=list)
     fix_xy: list[np.ndarray] = field(default_factory=list)
     fix_sigma: list[float] = field(default_factory=list)
+    fix_level: list[int] = field(default_factory=list)
 
     step_t: list[np.ndarray] = field(default_factory=list)
     step_offset: list[np.ndarray] = field(default_factory=list)

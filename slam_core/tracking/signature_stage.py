@@ -62,7 +62,8 @@ class SignatureStage:
             shift = u.displacement - then
             drift = float(carry_variance(u.walked - walked_then))
             cov = np.array([[row[2], row[3]], [row[3], row[4]]]) + drift * np.eye(2)
-            existing = crowd.find_signature(rnd.det_signature[k])
+            level = int(engine.levels[u.slot])  # the transmitter's anchor on the user's floor
+            existing = crowd.find_signature(rnd.det_signature[k], level)
             if existing is not None and crowd.informed_by_others(existing, u.number):
                 anchor_mean, anchor_cov, *_ = crowd.anchor(existing)
                 mean = anchor_mean + shift  # where the anchor says the user is now
@@ -84,6 +85,7 @@ class SignatureStage:
                 rnd.det_signature[k],
                 float(rnd.det_observed_t[k]),
                 self.sigma_m,
+                level,
             )
             ids.append(index)
             if self.into_graph:

@@ -20,6 +20,11 @@ by the server) and advances everything they imply, in this order:
    (``slam_core.encounters.selection``) become human anchors (Algorithm 1), both users updated from their
    pre-encounter states, each reading placed at its time (the users' dead reckoning since, or a guess for a
    peer whose phone has not reported up to it yet);
+Every user is on one floor at a time: the tracker keeps a belief over the building's floors per user
+(``slam_core.tracking.floors``), started by the floor a fix names, moved by changes of height (a detection
+that carries a rise), and weighed by each floor's fingerprint map; the believed floor decides the plan, the
+anchors, the fingerprints and the encounters a user has.
+
 4. the estimate of every user whose batch was applied. A peer that an encounter moved is not estimated
    here: its estimate comes with its own next batch (within a sighting period), so that every batch yields
    one estimate, however many encounters it makes.
@@ -56,6 +61,7 @@ from slam_core.tracking.batches import (
 )
 from slam_core.tracking.encounter_stage import EncounterStage
 from slam_core.tracking.fingerprint_stage import FingerprintStage
+from slam_core.tracking.floors import Floors
 from slam_core.tracking.params import CROWD_SOLVERS, TrackerParams
 from slam_core.tracking.rounds import Round, lay_steps, round_at
 from slam_core.tracking.signature_stage import SignatureStage
@@ -91,7 +97,8 @@ class BuildingTracker:
         )
         self.graph = CrowdGraph(CrowdGraphParams(detection_sigma_m=fp.anchors.detection_sigma_m))
         self.signatures = SignatureStage(params, self.crowd, self.graph)
-        self.fingerprints = FingerprintStage(params.fingerprints, params.detection.stale_ap_ms)
+        self.fingerprints = FingerprintStage(params.fingerprints, params.detection.stale_ap_ms, params.floors)
+        self.floors = Floors(params.floors)
         self.encounters = EncounterStage(params, calibration)
         self._users: dict[str, UserTrack] = {}
         self.front_end = FrontEnd(params.pdr, params.detectors)
@@ -109,14 +116,48 @@ class BuildingTracker:
         return self.fingerprints.radio_map_id
 
     def load_radio_map(
-        self, map_id: str, xy: np.ndarray, bssids: list[list[str]], rss: list[np.ndarray], t_ms: np.ndarray
+        self,
+        map_id: str,
+        xy: np.ndarray,
+        bssids: list[list[str]],
+        rss: list[np.ndarray],
+        t_ms: np.ndarray,
+        level: int = 0,
     ) -> int:
-        """``FingerprintStage.load_radio_map``: a signal-map build's scans join the crowd's fingerprints."""
-        return self.fingerprints.load_radio_map(map_id, xy, bssids, rss, t_ms)
+        """``FingerprintStage.load_radio_map``: a signal-map build's scans join the floor's fingerprints."""
+        self.floors.index(level)
+        return self.fingerprints.load_radio_map(map_id, xy, bssids, rss, t_ms, level)
 
-    def set_floor_plan(self, plan: PlanIndex | None) -> None:
-        """The floor plan that weighs every user's steps from now on (beyond the papers); None: none."""
-        self.engine.floor_plan = plan
+    def set_floor_plan(self, plan: PlanIndex | None, level: int = 0) -> None:
+        """The plan that weighs the steps of the users on floor ``level`` from now on (beyond the papers);
+        None: that floor has none."""
+        self.floors.index(level)
+        self.engine.set_floor_plan(level, plan)
+
+    @property
+    def levels(self) -> tuple[int, ...]:
+        """The building's floors, lowest first."""
+        return self.floors.levels
+
+    def set_levels(self, levels: tuple[int, ...], elevations_m: tuple[float, ...] | None = None) -> None:
+        """The building's floors (and their heights where known; NaN: from the storey height). A user's belief
+        keeps its share on the floors that stay; a floor taken away takes its users' share with it (a user
+        left with nothing starts over, unsure among all floors)."""
+        old = self.floors
+        new = Floors(self.params.floors, tuple(levels), elevations_m)
+        if new.levels != old.levels:
+            for u in self._users.values():
+                p = np.zeros(len(new.levels))
+                for level, q in zip(old.levels, u.floor, strict=True):
+                    if level in new.levels:
+                        p[new.index(level)] = q
+                u.floor = array("d", (p / p.sum() if p.sum() > 0 else new.uniform()).tolist())
+        self.floors = new
+        self._follow_floors([n for n, u in self._users.items() if u.slot >= 0])
+
+    def floor_of(self, user: str) -> tuple[int, float]:
+        """The floor the user is believed on and the belief's probability."""
+        return self.floors.believed(np.asarray(self._users[user].floor))
 
     # ------------------------------------------------------------------ users and anchors
     @property
@@ -157,13 +198,15 @@ class BuildingTracker:
         gone = set(users)
         self._by_ble = {k: v for k, v in self._by_ble.items() if v not in gone}
 
-    def pin_anchor(self, xy: np.ndarray, anchor_type: int, index: int | None = None) -> int:
-        """Add an operator-known anchor (or pin an existing one); returns its crowd index."""
+    def pin_anchor(self, xy: np.ndarray, anchor_type: int, index: int | None = None, level: int = 0) -> int:
+        """Add an operator-known anchor on floor ``level`` (or pin an existing one there); returns its crowd
+        index."""
         self._check_type(anchor_type)
+        self.floors.index(level)
         if index is None:
-            index = self.crowd.add_known(xy, anchor_type)
+            index = self.crowd.add_known(xy, anchor_type, level)
         else:
-            self.crowd.pin(index, xy, anchor_type)
+            self.crowd.pin(index, xy, anchor_type, level)
         self.graph.set_known(index, np.asarray(xy, dtype=float))
         self._offer_crowd_map()
         return index
@@ -177,9 +220,10 @@ class BuildingTracker:
         observations: int,
         t_ms: int,
         signature: str = "",
+        level: int = 0,
     ) -> int:
         self._check_type(anchor_type)
-        index = self.crowd.restore(xy, cov, anchor_type, known, observations, float(t_ms), signature)
+        index = self.crowd.restore(xy, cov, anchor_type, known, observations, float(t_ms), signature, level)
         if known:
             self.graph.set_known(index, np.asarray(xy, dtype=float))
         return index
@@ -235,6 +279,8 @@ class BuildingTracker:
         for b in batches:
             if b.detect_type.size and np.any((b.detect_type < 0) | (b.detect_type >= self.n_types)):
                 raise ValueError(f"user batch of {b.user!r}: anchor type outside [0, {self.n_types})")
+            for level in set(b.fix_level.tolist()):
+                self.floors.index(level)  # a floor the building does not have: ValueError naming its floors
         reports = {b.user: UserReport() for b in batches}
         for b in batches:
             u = self._users.get(b.user)
@@ -244,8 +290,8 @@ class BuildingTracker:
                 reports[b.user].clock_restarted = True
         batches = [self._dead_reckon(b, reports[b.user]) for b in batches]
         for b in batches:
-            if b.user not in self._users:
-                self._users[b.user] = UserTrack()
+            if b.user not in self._users:  # unsure of its floor until a fix names it or the radio tells
+                self._users[b.user] = UserTrack(floor=array("d", self.floors.uniform().tolist()))
             if b.ble_id is not None:
                 self._by_ble[b.ble_id] = b.user
         callers = [self._users[b.user] for b in batches]
@@ -316,15 +362,66 @@ class BuildingTracker:
                 if self.crowd.is_live(c):
                     self.crowd.set_estimate(c, mean, covs[c])
                     changed.add(c)
-            active = self.engine.active_users
-            if active.size:
-                self.engine.refresh_crowd_anchors(active, self.crowd.snapshot())
+            for users, level in self._by_level(self.engine.active_users):
+                self.engine.refresh_crowd_anchors(users, self.crowd.snapshot(level))
         if len(self.crowd) != crowd_size:
             self._offer_crowd_map()
         if self.params.fingerprints.enabled:
             names = [b.user for b in batches if self.is_tracking(b.user) and b.scan_t.size]
-            self.fingerprints.fix(self.engine, batches, self._users, self._rows(names), reports)
+            rows = self._rows(names)
+            if not self.floors.single:
+                self._weigh_floors(batches, rows)
+                rows = self._rows(names)
+            self.fingerprints.fix(self.engine, batches, self._users, rows, reports)
         return changed
+
+    def _by_level(self, slots: np.ndarray) -> list[tuple[np.ndarray, int]]:
+        """The slots grouped by the floor they are on (one group in a one-floor building)."""
+        if not slots.size:
+            return []
+        levels = self.engine.levels[slots]
+        if levels.min() == levels.max():
+            return [(slots, int(levels[0]))]
+        return [(slots[levels == lv], int(lv)) for lv in np.unique(levels).tolist()]
+
+    def _weigh_floors(self, batches: list[UserBatch], rows: dict[str, EstimateRow]) -> None:
+        """Each tracked user's latest scan weighs its floor belief by the floors' fingerprint maps near its
+        estimate (``FingerprintStage.floor_evidence``); users whose believed floor changes follow it."""
+        stale = self.params.detection.stale_ap_ms
+        moved = []
+        for b in batches:
+            row = rows.get(b.user)
+            if row is None:
+                continue
+            u = self._users[b.user]
+            _, bssids, rss = b.fresh_scan(int(np.argmax(b.scan_t)), stale)
+            ll = self.fingerprints.floor_evidence(
+                self.floors.levels, u.number, bssids, rss, np.array([row.x, row.y])
+            )
+            if not math.isfinite(ll[self.floors.index(row.floor)]):
+                continue  # the believed floor's crowd never walked here: no evidence either way
+            u.floor = array("d", self.floors.weigh(np.asarray(u.floor), ll).tolist())
+            moved.append(b.user)
+        self._follow_floors(moved)
+
+    def _follow_floors(self, names: list[str]) -> None:
+        """Users whose believed floor is not the one their filter is on move to it: their particles keep their
+        places, their maps take the new floor's anchors."""
+        changing = []
+        for name in names:
+            u = self._users[name]
+            if u.slot < 0:
+                continue
+            level, _ = self.floors.believed(np.asarray(u.floor))
+            if int(self.engine.levels[u.slot]) != level:
+                changing.append((u.slot, level))
+        if not changing:
+            return
+        slots = np.array([c[0] for c in changing], dtype=np.int64)
+        self.engine.set_levels(slots, np.array([c[1] for c in changing], dtype=np.int64))
+        self.engine.clear_maps(slots)
+        for users, level in self._by_level(slots):
+            self.engine.merge_crowd_map(users, self.crowd.snapshot(level))
 
     def _dead_reckon(self, b: UserBatch, report: UserReport) -> UserBatch:
         """The batch with the steps the PDR front-end finds in its raw IMU (phones counting their own steps
@@ -341,6 +438,7 @@ class BuildingTracker:
         report.anchors_detected = out.anchors.t_ms.size
         signatures = b.detect_signature or ("",) * b.detect_t.size
         observed = b.detect_observed_t if b.detect_observed_t.size else b.detect_t
+        rises = b.detect_rise if b.detect_rise.size else np.full(b.detect_t.size, math.nan)
         return replace(
             b,
             step_t=out.steps.t_ms,
@@ -352,6 +450,7 @@ class BuildingTracker:
             detect_type=np.concatenate([b.detect_type, out.anchors.type_index]),
             detect_signature=signatures + out.anchors.signature,
             detect_observed_t=np.concatenate([observed, out.anchors.observed_t_ms]),
+            detect_rise=np.concatenate([rises, out.anchors.rise_m]),
             imu=None,
         )
 
@@ -401,21 +500,29 @@ class BuildingTracker:
                     lengths, headings, times, offsets = [], [], [], []
                 if kind == 0 and i < 0:
                     assert placing is not None
-                    self._start_among(b.user, placing[1], placing[2])
+                    self._start_among(b.user, placing[1], placing[2], placing[3])
                     started = True
                     report.cold_started = True
                 elif kind == 0:
                     if not started:
-                        self._start(b.user, b.fix_xy[i], float(b.fix_sigma[i]), float(b.fix_azimuth[i]))
+                        self._start(
+                            b.user,
+                            b.fix_xy[i],
+                            float(b.fix_sigma[i]),
+                            float(b.fix_azimuth[i]),
+                            b.fix_floor(i),
+                        )
                         started = True
                     else:
                         rnd.fix_users.append(b.user)
                         rnd.fix_xy.append(b.fix_xy[i])
                         rnd.fix_sigma.append(float(b.fix_sigma[i]))
+                        rnd.fix_level.append(b.fix_floor(i))
                     report.fixes_applied += 1
                 elif started:
                     rnd.det_users.append(b.user)
                     rnd.det_types.append(int(b.detect_type[i]))
+                    rnd.det_rise.append(b.rise(i))
                     rnd.det_t.append(t)
                     rnd.det_signature.append(b.detect_signature[i] if b.detect_signature else "")
                     rnd.det_observed_t.append(int(b.detect_observed_t[i]) if b.detect_observed_t.size else t)
@@ -449,7 +556,7 @@ class BuildingTracker:
                 continue
             found = self._candidates(b, latest=True)
             if found is not None:
-                _, centres, weights = found
+                _, centres, weights, _ = found
                 self.engine.observe_places(
                     u.slot,
                     centres,
@@ -460,45 +567,64 @@ class BuildingTracker:
                     cold.inject,
                 )
 
-    def _cold_start_at(self, b: UserBatch) -> tuple[int, np.ndarray, np.ndarray] | None:
-        """The first of the batch's scans the crowd's fingerprint map can place: (its time, the candidate
-        places, their weights); None when cold starts are off or no scan can be placed."""
+    def _cold_start_at(self, b: UserBatch) -> tuple[int, np.ndarray, np.ndarray, int] | None:
+        """The first of the batch's scans the crowd's fingerprint maps can place: (its time, the candidate
+        places, their weights, their floor); None when cold starts are off or no scan can be placed. The
+        floor comes first: the user's belief, weighed by the floors' maps (each floor's nearest reference,
+        anywhere on it), picks the floor whose map then places the scan."""
         if not (self.params.cold_start.enabled and self.params.fingerprints.enabled):
             return None
+        u = self._users[b.user]
+        if not self.floors.single and b.scan_t.size:
+            stale = self.params.detection.stale_ap_ms
+            belief = np.asarray(u.floor)
+            for c in np.argsort(b.scan_t, kind="stable").tolist():
+                _, bssids, rss = b.fresh_scan(int(c), stale)
+                ll = self.fingerprints.floor_evidence(self.floors.levels, NOBODY, bssids, rss, None)
+                belief = self.floors.weigh(belief, ll)
+            u.floor = array("d", belief.tolist())
         return self._candidates(b, latest=False)
 
-    def _candidates(self, b: UserBatch, latest: bool) -> tuple[int, np.ndarray, np.ndarray] | None:
-        """The first (or latest) of the batch's scans the fingerprint map can place: its time, candidate
-        places and their weights. A cold start waits for a scan whose candidates agree (within the
-        fingerprint fixes' ``max_spread_m``): where the map does not know the place, its nearest places in
-        signal space are anywhere; a user being placed is weighed by every scan's."""
+    def _candidates(self, b: UserBatch, latest: bool) -> tuple[int, np.ndarray, np.ndarray, int] | None:
+        """The first (or latest) of the batch's scans the fingerprint map of the user's floor can place: its
+        time, candidate places, their weights and the floor. A cold start waits for a scan whose candidates
+        agree (within the fingerprint fixes' ``max_spread_m``): where the map does not know the place, its
+        nearest places in signal space are anywhere; a user being placed is weighed by every scan's."""
         if not b.scan_t.size:
             return None
+        u = self._users[b.user]
+        level = self.floors.believed(np.asarray(u.floor))[0]
         spread = math.inf if latest else self.params.fingerprints.max_spread_m
         stale = self.params.detection.stale_ap_ms
         order = np.argsort(b.scan_t, kind="stable")
         for c in order[::-1] if latest else order:
             t, bssids, rss = b.fresh_scan(int(c), stale)
-            found = self.fingerprints.map.candidates(NOBODY, bssids, rss, spread)
+            found = self.fingerprints.candidates(level, bssids, rss, spread)
             if found is not None:
-                return t, found[0], found[1]
+                return t, found[0], found[1], level
         return None
 
-    def _start_among(self, user: str, candidates: np.ndarray, weights: np.ndarray) -> None:
-        """Start a user with no fix over the crowd's candidate places; it is placed once confident."""
+    def _start_among(self, user: str, candidates: np.ndarray, weights: np.ndarray, level: int) -> None:
+        """Start a user with no fix over the crowd's candidate places on a floor; it is placed once
+        confident."""
         u = self._users[user]
         sigma = self.params.cold_start.candidate_sigma_m
-        slot = self.engine.add_user_among(candidates, weights, sigma, 0.0, self.crowd.snapshot())
+        slot = self.engine.add_user_among(
+            candidates, weights, sigma, 0.0, self.crowd.snapshot(level), level=level
+        )
         u.placed = False
         self._admit(user, slot, (weights / weights.sum()) @ candidates)
 
-    def _start(self, user: str, xy: np.ndarray, sigma: float, azimuth: float) -> None:
+    def _start(self, user: str, xy: np.ndarray, sigma: float, azimuth: float, level: int = 0) -> None:
         u = self._users[user]
         heading = math.pi / 2 - azimuth if math.isfinite(azimuth) else 0.0
         if math.isfinite(azimuth):
             u.heading = heading
         sigma = max(sigma, self.params.start_sigma_floor_m)
-        slot = self.engine.add_user(float(xy[0]), float(xy[1]), heading, sigma, self.crowd.snapshot())
+        u.floor = array("d", self.floors.start(level).tolist())
+        slot = self.engine.add_user(
+            float(xy[0]), float(xy[1]), heading, sigma, self.crowd.snapshot(level), level=level
+        )
         u.placed = True
         self._admit(user, slot, xy)
 
@@ -525,20 +651,33 @@ class BuildingTracker:
             lay_steps(users, rnd, lengths, headings)
             if self.params.revise_headings:
                 self._revise_headings(users)
-            if self.params.filter.floor_plan.heading_axes and self.engine.floor_plan is not None:
+            if self.params.filter.floor_plan.heading_axes and self.engine.floor_plans:
                 self._observe_stretches(rnd)
         plain = [k for k, s in enumerate(rnd.det_signature) if not s]
         signed = [k for k, s in enumerate(rnd.det_signature) if s]
         if plain:
             names = [rnd.det_users[k] for k in plain]
             types = [rnd.det_types[k] for k in plain]
+            rising = [
+                (n, rnd.det_rise[k])
+                for n, k in zip(names, plain, strict=True)
+                if math.isfinite(rnd.det_rise[k])
+            ]
+            if rising:  # a change of floor: the anchor is the landing, on the floor arrived at
+                for name, rise in rising:
+                    u = self._users[name]
+                    u.floor = array("d", self.floors.rise(np.asarray(u.floor), rise).tolist())
+                self._follow_floors([n for n, _ in rising])
             slots = np.array([self._users[n].slot for n in names], dtype=np.int64)
             before = self.engine.summaries(slots)
+            levels = self.engine.levels[slots].tolist()
             ids = []
-            for name, row, f, k in zip(names, before, types, plain, strict=True):
+            for name, row, f, k, level in zip(names, before, types, plain, levels, strict=True):
                 cov = np.array([[row[2], row[3]], [row[3], row[4]]])
                 ids.append(
-                    self.crowd.contribute(self._users[name].number, row[0:2], cov, f, float(rnd.det_t[k]))
+                    self.crowd.contribute(
+                        self._users[name].number, row[0:2], cov, f, float(rnd.det_t[k]), level
+                    )
                 )
                 reports[name].anchor_joins.append((rnd.det_t[k], ids[-1]))
             self.engine.observe_building_anchors(slots, np.array(types), np.array(ids))
@@ -550,9 +689,11 @@ class BuildingTracker:
         if rnd.fix_users:
             slots = np.array([self._users[n].slot for n in rnd.fix_users], dtype=np.int64)
             recentred = self.engine.observe_position(slots, np.array(rnd.fix_xy), np.array(rnd.fix_sigma))
-            for name, flag in zip(rnd.fix_users, recentred, strict=True):
+            for name, flag, level in zip(rnd.fix_users, recentred, rnd.fix_level, strict=True):
                 reports[name].recentred += int(flag)
                 self._users[name].pin()
+                self._users[name].floor = array("d", self.floors.start(level).tolist())
+            self._follow_floors(rnd.fix_users)
 
     def _observe_stretches(self, rnd: Round) -> None:
         """The straight stretches this round's steps completed, each weighed against the floor plan's grid
@@ -591,17 +732,24 @@ class BuildingTracker:
                 self.graph.add_detection(u.number, int(c), u.displacement, u.walked)
 
     def _offer_crowd_map(self) -> None:
-        active = self.engine.active_users
-        if active.size:
-            self.engine.merge_crowd_map(active, self.crowd.snapshot())
+        for users, level in self._by_level(self.engine.active_users):
+            self.engine.merge_crowd_map(users, self.crowd.snapshot(level))
 
     def _rows(self, users: list[str]) -> dict[str, EstimateRow]:
         if not users:
             return {}
         summary = self.engine.summaries(np.array([self._users[n].slot for n in users], dtype=np.int64))
-        return {  # rows as Python floats at once: indexing each numpy row cost more than the row
-            n: EstimateRow(self._users[n].last_t_ms, x, y, (xx, xy, yy), (bx, by), heading)
-            for n, (x, y, xx, xy, yy, bx, by, heading) in zip(users, summary.tolist(), strict=True)
+        if self.floors.single:
+            return {  # rows as Python floats at once: indexing each numpy row cost more than the row
+                n: EstimateRow(self._users[n].last_t_ms, x, y, (xx, xy, yy), (bx, by), heading)
+                for n, (x, y, xx, xy, yy, bx, by, heading) in zip(users, summary.tolist(), strict=True)
+            }
+        floors = [self.floors.believed(np.asarray(self._users[n].floor)) for n in users]
+        return {
+            n: EstimateRow(self._users[n].last_t_ms, x, y, (xx, xy, yy), (bx, by), heading, level, p)
+            for n, (x, y, xx, xy, yy, bx, by, heading), (level, p) in zip(
+                users, summary.tolist(), floors, strict=True
+            )
         }
 
 

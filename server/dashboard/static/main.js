@@ -2,7 +2,7 @@
 // edit it. Every action goes through the public REST API; its refusals are shown as the server wrote them.
 
 import { Api, ProblemError } from "./api.js";
-import { fmtTime } from "./format.js";
+import { fmtFloor, fmtTime } from "./format.js";
 import { LiveSocket } from "./live.js";
 import { MapView, ellipse, viridis, ANCHOR_STYLE } from "./map.js";
 import { History } from "./history.js";
@@ -520,7 +520,7 @@ class Dashboard {
         ["person", u.id], ["device", u.est.device_id],
         ["position", `${u.est.position.x_m.toFixed(1)}, ${u.est.position.y_m.toFixed(1)} m`],
         ["sigma", `${u.ellipse.sigma.toFixed(1)} m (95 % within ${(2 * u.ellipse.sigma).toFixed(1)} m)`],
-        ["estimated by", u.est.source], ["floor", String(u.est.floor)], ["last update", fmtTime(u.est.t_ms)],
+        ["estimated by", u.est.source], ["floor", fmtFloor(u.est)], ["last update", fmtTime(u.est.t_ms)],
       ]), heading, list);
       return;
     }

@@ -105,7 +105,7 @@ def test_a_folder_that_is_not_a_floor_answers_before_any_work(tmp_path: Path) ->
         assert "nowhere: no such folder" in line
         assert "crowdslam datasets fetch msindoor20" in line
     code, _, err = _run("evaluate", "--msindoor", str(tmp_path), "--json", out, cwd=tmp_path)
-    assert "is not a floor of Indoor Location 2.0 walks" in _one_line(code, err)
+    assert "is neither a floor of Indoor Location 2.0 walks" in _one_line(code, err)
     (tmp_path / "notes.txt").write_text("a shopping list\n")
     code, _, err = _run("import-msindoor", str(tmp_path), "--out", str(tmp_path / "x.mcap"), cwd=tmp_path)
     assert "notes.txt is not an Indoor Location 2.0 walk" in _one_line(code, err)

@@ -28,3 +28,17 @@ def small_floor(tmp_path_factory: pytest.TempPathFactory) -> Path:
     for name in WALKS:
         (floor / "path_data_files" / f"{name}.txt").symlink_to(FLOOR / "path_data_files" / f"{name}.txt")
     return floor
+
+
+@pytest.fixture(scope="module")
+def small_building(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Two floors, F1 and F2 (levels 0 and 1), of three of the sample's walks each: a building's folder as the
+    data set lays one out."""
+    building = tmp_path_factory.mktemp("building")
+    for floor_name, names in (("F1", WALKS[:3]), ("F2", WALKS[3:])):
+        floor = building / floor_name
+        (floor / "path_data_files").mkdir(parents=True)
+        shutil.copy(FLOOR / "floor_info.json", floor / "floor_info.json")
+        for name in names:
+            (floor / "path_data_files" / f"{name}.txt").symlink_to(FLOOR / "path_data_files" / f"{name}.txt")
+    return building

@@ -131,7 +131,9 @@ def test_a_build_from_recordings_serves_maps(sqlite_api: Api) -> None:
     while tracker.radio_map_id != job["id"] and time.monotonic() < deadline:
         time.sleep(0.05)
     assert tracker.radio_map_id == job["id"]
-    assert tracker.fingerprints.map._per_owner[SURVEY_OWNER] >= 5  # at most 4 a 4 m cell: the 28 m corridor
+    assert (
+        tracker.fingerprints.map_of(0)._per_owner[SURVEY_OWNER] >= 5
+    )  # at most 4 a 4 m cell: the 28 m corridor
 
 
 def test_build_errors(sqlite_api: Api) -> None:

@@ -232,7 +232,7 @@ def test_the_kernel_weighs_steps_as_the_reference_does() -> None:
     params = FilterParams(n_particles=16, resampling=ResamplingParams(ess_threshold=1e-9))
     engine = DynamicSlam(params, seed=5)
     plan = _corridor()
-    engine.floor_plan = plan
+    engine.set_floor_plan(0, plan)
     u = engine.add_user(2.0, 1.5, heading=0.0, position_sigma=0.8)
     ref = to_reference(engine, u)
     for _ in range(20):
@@ -250,7 +250,7 @@ def test_users_the_walls_thin_out_are_resampled_as_the_reference_does() -> None:
     params = FilterParams(n_particles=32)
     engine = DynamicSlam(params, seed=6)
     plan = _corridor()
-    engine.floor_plan = plan
+    engine.set_floor_plan(0, plan)
     u = engine.add_user(2.0, 1.5, heading=0.0, position_sigma=0.8)
     ref = to_reference(engine, u)
     resampled = 0
@@ -267,7 +267,7 @@ def test_users_the_walls_thin_out_are_resampled_as_the_reference_does() -> None:
 def _drift(plan: PlanIndex | None, seed: int) -> np.ndarray:
     """A walker going east along the corridor's middle while its phone's heading reads 8 degrees left."""
     engine = DynamicSlam(FilterParams(), seed=seed)
-    engine.floor_plan = plan
+    engine.set_floor_plan(0, plan)
     u = engine.add_user(1.0, 1.5, heading=0.0, position_sigma=0.3)
     track = []
     for _ in range(70):
@@ -294,16 +294,16 @@ def test_a_user_admitted_under_a_plan_draws_its_step_scale_from_the_plans_prior(
     model's stays (the anchors learn the scale there)."""
     params = FilterParams(floor_plan=FloorPlanParams(step_scale_sigma=0.0))
     with_plan, without = DynamicSlam(params, seed=3), DynamicSlam(params, seed=3)
-    with_plan.floor_plan = _corridor()
+    with_plan.set_floor_plan(0, _corridor())
     empty = DynamicSlam(params, seed=3)
-    empty.floor_plan = PlanIndex.empty()
+    empty.set_floor_plan(0, PlanIndex.empty())
     held = with_plan.add_user(2.0, 1.5)
     assert np.all(with_plan.state.scale[held] == 1.0)
     for engine in (without, empty):
         spread = float(np.std(engine.state.scale[engine.add_user(2.0, 1.5)]))
         assert 0.08 < spread < 0.16  # MotionParams.step_scale_sigma, 0.12
     default = DynamicSlam(FilterParams(), seed=3)
-    default.floor_plan = _corridor()
+    default.set_floor_plan(0, _corridor())
     spread = float(np.std(default.state.scale[default.add_user(2.0, 1.5)]))
     assert 0.03 < spread < 0.07  # FloorPlanParams.step_scale_sigma, 0.05
     with pytest.raises(ValueError, match="step_scale_sigma"):
@@ -312,7 +312,7 @@ def test_a_user_admitted_under_a_plan_draws_its_step_scale_from_the_plans_prior(
 
 def test_without_a_plan_the_update_is_the_plain_motion_update() -> None:
     a, b = DynamicSlam(FilterParams(), seed=2), DynamicSlam(FilterParams(), seed=2)
-    b.floor_plan = PlanIndex.empty()
+    b.set_floor_plan(0, PlanIndex.empty())
     ua, ub = a.add_user(0.0, 0.0), b.add_user(0.0, 0.0)
     for engine, u in ((a, ua), (b, ub)):
         engine.step(np.array([u]), np.array([0, 3]), np.array([0.7, 0.7, 0.6]), np.array([0.1, 0.2, 0.1]))
@@ -324,6 +324,38 @@ def test_the_plan_is_not_pickled_with_the_filter() -> None:
     import pickle
 
     engine = DynamicSlam(replace(FilterParams(), n_particles=8), seed=1)
-    engine.floor_plan = _corridor()
+    engine.set_floor_plan(0, _corridor())
     restored = pickle.loads(pickle.dumps(engine))
-    assert restored.floor_plan is None
+    assert restored.floor_plans == {}
+
+
+def test_each_floor_s_plan_weighs_the_steps_of_the_users_on_it() -> None:
+    """Users on two floors in one step call: each moves as it would alone under its own floor's plan (and a
+    floor with no plan moves its users as a building with none does)."""
+    params = FilterParams(n_particles=16, resampling=ResamplingParams(ess_threshold=1e-9))
+    both = DynamicSlam(params, seed=5)
+    both.set_floor_plan(1, _corridor())
+    lone_plan, lone_free = DynamicSlam(params, seed=5), DynamicSlam(params, seed=5)
+    lone_plan.set_floor_plan(0, _corridor())
+    up = both.add_user(2.0, 1.5, position_sigma=0.8, level=1)
+    down = both.add_user(2.0, 1.5, position_sigma=0.8, level=0)
+    assert both.levels[[up, down]].tolist() == [1, 0]
+    a = lone_plan.add_user(2.0, 1.5, position_sigma=0.8)
+    lone_free.add_user(0.0, 0.0)  # the second admission draws as the second user of ``both`` does
+    b = lone_free.add_user(2.0, 1.5, position_sigma=0.8)
+    lengths, headings = np.array([0.7, 0.7, 0.6, 0.7]), np.array([1.5, 1.5, 1.6, 1.5])
+    for _ in range(5):
+        both.step(np.array([down, up]), np.array([0, 2, 4]), lengths, headings)
+        lone_plan.step(np.array([a]), np.array([0, 2]), lengths[2:], headings[2:])
+        lone_free.step(np.array([b]), np.array([0, 2]), lengths[:2], headings[:2])
+    np.testing.assert_array_equal(both.state.y[up], lone_plan.state.y[a])
+    np.testing.assert_array_equal(both.state.logw[up], lone_plan.state.logw[a])
+    np.testing.assert_array_equal(both.state.y[down], lone_free.state.y[b])
+    np.testing.assert_array_equal(both.state.logw[down], lone_free.state.logw[b])
+    assert np.ptp(both.state.logw[up]) > 1.0  # the corridor's walls weigh the walk north down upstairs
+    assert np.ptp(both.state.logw[down]) < 1e-9  # and nothing does so downstairs
+    # a change of floor: the particles stay, the new floor's plan weighs the next steps
+    both.set_levels(np.array([down]), np.array([1]))
+    assert both.levels[down] == 1
+    with pytest.raises(ValueError, match="unknown user slot"):
+        both.set_levels(np.array([99]), np.array([1]))

@@ -75,7 +75,7 @@ def test_stretches_are_cut_at_turns_and_every_stretch_length() -> None:
 def _engine(plan: PlanIndex | None, ess_threshold: float = 0.5, seed: int = 0) -> tuple[DynamicSlam, int]:
     params = FilterParams(resampling=ResamplingParams(ess_threshold=ess_threshold))
     engine = DynamicSlam(params, seed=seed)
-    engine.floor_plan = plan
+    engine.set_floor_plan(0, plan)
     u = engine.add_user(0.0, 0.0, heading=0.0, position_sigma=0.3)
     return engine, u
 

@@ -116,7 +116,13 @@ def test_merge_events_orders_by_report_time() -> None:
     assert events.type_index.tolist() == [6, 3]
     assert events.signature == ("beacon:x", "")
     assert events.observed_t_ms.tolist() == [1000, 5000]
+    assert np.isnan(events.rise_m).all()
     assert merge_events([], [], 3).t_ms.size == 0
+    # a change of floor carries its rise; the others none
+    up = merge_events([5000], [], 3, [(4000, 1, "", 2500, 4.4)])
+    assert up.type_index.tolist() == [1, 3]
+    assert up.rise_m[0] == 4.4
+    assert np.isnan(up.rise_m[1])
 
 
 @pytest.mark.parametrize(

@@ -104,8 +104,8 @@ def test_without_cold_starts_or_a_map_a_phone_waits_for_a_fix() -> None:
 
 def test_particles_start_among_the_candidates_and_off_the_plan_weigh_less() -> None:
     engine = DynamicSlam(FilterParams(n_particles=200), seed=2)
-    engine.floor_plan = PlanIndex.build(
-        np.zeros((0, 4)), [np.array([[0, -5], [100, -5], [100, 5], [0, 5.0]])]
+    engine.set_floor_plan(
+        0, PlanIndex.build(np.zeros((0, 4)), [np.array([[0, -5], [100, -5], [100, 5], [0, 5.0]])])
     )
     centres = np.array([[10.0, 0.0], [60.0, 0.0], [60.0, 30.0]])  # the last off the walkable corridor
     slot = engine.add_user_among(centres, np.array([1.0, 1.0, 2.0]), 2.0)
@@ -116,12 +116,12 @@ def test_particles_start_among_the_candidates_and_off_the_plan_weigh_less() -> N
     assert abs(np.mean(nearest == 2) - 0.5) < 0.12  # drawn by weight
     w = np.exp(s.logw[slot])
     assert math.isclose(w.sum(), 1.0)
-    off = ~engine.floor_plan.walkable(xy)
+    off = ~engine.floor_plans[0].walkable(xy)
     assert off[nearest == 2].all()
     assert w[off].max() < w[~off].min()  # off the plan: weighed down
     # the same admission draws the same particles (randomness from the filter's seed)
     again = DynamicSlam(FilterParams(n_particles=200), seed=2)
-    again.floor_plan = engine.floor_plan
+    again.set_floor_plan(0, engine.floor_plans[0])
     twin = again.add_user_among(centres, np.array([1.0, 1.0, 2.0]), 2.0)
     np.testing.assert_array_equal(again.state.x[twin], s.x[slot])
     # a scan that matches one place takes the cloud there

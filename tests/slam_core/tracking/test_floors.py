@@ -1,0 +1,269 @@
+"""Every user on a floor: the belief over the building's floors, and what the believed floor decides (the
+anchors a detection joins, the users an encounter pairs, the fingerprints a scan is placed on)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from slam_core.crowd.fingerprints import FingerprintParams
+from slam_core.encounters.models import Calibration, RangeModel
+from slam_core.tracking.fingerprint_stage import FingerprintStage
+from slam_core.tracking.floors import FloorParams, Floors
+from slam_core.tracking.params import ColdStartParams
+from slam_core.tracking.tracker import BuildingTracker, TrackerParams, UserBatch
+
+T0 = 1_700_000_000_000
+BT = RangeModel("bt-quadratic", (-60.0, -22.0 / math.log(10.0), 0.0), 2.8)
+CAL = Calibration(RangeModel("wifi-log", (0.0, 2.0), 3.0), BT)
+STAIRS = 1
+
+
+# ---------------------------------------------------------------------- the belief
+def test_a_start_names_its_floor_and_a_rise_of_a_storey_moves_one_up() -> None:
+    floors = Floors(FloorParams(), (2, 0, 1))  # any order: kept lowest first
+    assert floors.levels == (0, 1, 2)
+    p = floors.start(1)
+    assert floors.believed(p) == (1, pytest.approx(0.999))
+    up = floors.rise(p, 4.4)  # one storey of the default 4.5 m
+    assert floors.believed(up)[0] == 2
+    assert floors.believed(up)[1] > 0.95
+    down_two = floors.rise(floors.start(2), -9.1)
+    assert floors.believed(down_two)[0] == 0
+    # the top floor going up: no floor that rise reaches, so it was no change of floor
+    top = floors.believed(floors.rise(floors.start(2), 4.5))
+    assert top == (2, pytest.approx(0.999, abs=1e-3))
+    # an unknown rise (NaN) changes nothing
+    np.testing.assert_array_equal(floors.rise(p, math.nan), p)
+
+
+def test_the_operator_s_elevations_decide_how_far_a_rise_goes() -> None:
+    floors = Floors(FloorParams(), (0, 1, 2), (0.0, 6.0, 9.5))  # a tall ground floor
+    assert floors.believed(floors.rise(floors.start(0), 6.1))[0] == 1
+    assert floors.believed(floors.rise(floors.start(1), 3.4))[0] == 2
+    # a level without an elevation is a storey from the nearest one given
+    partly = Floors(FloorParams(storey_m=4.0), (0, 1, 2), (0.0, math.nan, 10.0))
+    np.testing.assert_allclose(partly.heights_m, [0.0, 4.0, 10.0])
+
+
+def test_radio_evidence_moves_a_belief_slowly_and_unknown_floors_keep_their_share() -> None:
+    floors = Floors(FloorParams(), (0, 1, 2))
+    p = floors.start(0)
+    evidence = np.array([-8.0, 0.0, math.nan])  # floor 1 explains the scan much better; floor 2 knows nothing
+    steps = 0
+    while floors.believed(p)[0] != 1:
+        p = floors.weigh(p, evidence)
+        steps += 1
+        assert steps < 20
+    assert steps > 1  # a start is not overturned by one scan
+    assert floors.weigh(p, np.full(3, math.nan)) is p  # no evidence: no change
+    assert floors.weigh(p, np.array([math.nan, -1.0, math.nan])) is p  # one floor alone compares nothing
+    with pytest.raises(ValueError, match="one log-likelihood per level"):
+        floors.weigh(p, np.zeros(2))
+
+
+def test_a_level_the_building_does_not_have_is_named_with_the_ones_it_has() -> None:
+    with pytest.raises(ValueError, match=r"no floor 7; the building's floors: -1, 0, 1"):
+        Floors(FloorParams(), (-1, 0, 1)).start(7)
+    with pytest.raises(ValueError, match="each once"):
+        Floors(FloorParams(), (0, 0))
+    with pytest.raises(ValueError, match="floor parameters"):
+        FloorParams(storey_m=0.0)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.lists(
+        st.one_of(
+            st.floats(-20.0, 20.0).map(lambda r: ("rise", r)),
+            st.lists(st.one_of(st.floats(-50.0, 0.0), st.just(math.nan)), min_size=4, max_size=4).map(
+                lambda ll: ("weigh", ll)
+            ),
+        ),
+        max_size=30,
+    )
+)
+def test_a_belief_stays_a_distribution(updates: list[tuple[str, object]]) -> None:
+    floors = Floors(FloorParams(), (-1, 0, 1, 2))
+    p = floors.start(0)
+    for kind, value in updates:
+        p = floors.rise(p, value) if kind == "rise" else floors.weigh(p, np.array(value))  # type: ignore[arg-type]
+        assert np.all(p >= 0.0)
+        assert math.isclose(float(p.sum()), 1.0, rel_tol=1e-9)
+
+
+# ---------------------------------------------------------------------- the tracker on floors
+def _fix(user: str, xy: tuple[float, float], t_ms: int, level: int) -> UserBatch:
+    return UserBatch(
+        user=user,
+        ble_id=f"ble-{user}",
+        fix_t=np.array([t_ms], dtype=np.int64),
+        fix_xy=np.array([xy], dtype=float),
+        fix_sigma=np.array([0.5]),
+        fix_azimuth=np.array([0.0]),
+        fix_level=np.array([level], dtype=np.int64),
+    )
+
+
+def _sighting(user: str, peer: str, t_ms: int, distance_m: float) -> UserBatch:
+    rss = float(BT.feature_at(np.array([distance_m]))[0])
+    return UserBatch(
+        user=user,
+        ble_id=f"ble-{user}",
+        peer_t=np.array([t_ms], dtype=np.int64),
+        peer_id=(f"ble-{peer}",),
+        peer_rss=np.array([rss]),
+    )
+
+
+def _stairs(user: str, t_ms: int, rise_m: float) -> UserBatch:
+    return UserBatch(
+        user=user,
+        detect_t=np.array([t_ms], dtype=np.int64),
+        detect_type=np.array([STAIRS], dtype=np.int64),
+        detect_rise=np.array([rise_m]),
+    )
+
+
+def _building(levels: tuple[int, ...] = (0, 1)) -> BuildingTracker:
+    tracker = BuildingTracker(TrackerParams(), CAL, seed=0)
+    tracker.set_levels(levels)
+    return tracker
+
+
+def test_estimates_say_the_floor_a_fix_named_and_a_fix_on_a_missing_floor_is_refused() -> None:
+    tracker = _building()
+    outcome = tracker.apply([_fix("up", (5.0, 5.0), T0, 1), _fix("down", (5.0, 5.0), T0, 0)])
+    assert (outcome.estimates["up"].floor, outcome.estimates["down"].floor) == (1, 0)
+    assert outcome.estimates["up"].floor_probability > 0.99
+    assert tracker.engine.levels[tracker._users["up"].slot] == 1
+    with pytest.raises(ValueError, match=r"no floor 3; the building's floors: 0, 1"):
+        tracker.apply([_fix("lost", (5.0, 5.0), T0, 3)])
+    assert "lost" not in tracker.users or not tracker.is_tracking("lost")
+
+
+def test_a_one_floor_building_reports_floor_zero_as_before() -> None:
+    tracker = BuildingTracker(TrackerParams(), CAL, seed=0)
+    row = tracker.apply([_fix("a", (0.0, 0.0), T0, 0)]).estimates["a"]
+    assert (row.floor, row.floor_probability) == (0, 1.0)
+
+
+def test_two_phones_a_storey_apart_are_no_encounter() -> None:
+    tracker = _building()
+    tracker.apply([_fix("a", (0.0, 0.0), T0, 0), _fix("b", (1.0, 0.0), T0, 1), _fix("c", (1.0, 0.0), T0, 0)])
+    through_ceiling = tracker.apply([_sighting("a", "b", T0 + 1_000, 1.0)])
+    assert through_ceiling.encounters == []
+    assert through_ceiling.detections == 1  # heard, and set aside
+    same_floor = tracker.apply([_sighting("a", "c", T0 + 2_000, 1.0)])
+    assert [(e.detection.user_a, e.detection.user_b) for e in same_floor.encounters] == [("a", "c")]
+
+
+def test_stairs_with_a_rise_move_the_user_up_and_their_landing_is_an_anchor_of_the_floor_above() -> None:
+    tracker = _building((0, 1, 2))
+    tracker.apply([_fix("climber", (10.0, 0.0), T0, 0), _fix("resident", (10.0, 0.0), T0, 0)])
+    outcome = tracker.apply([_stairs("climber", T0 + 5_000, 4.6)])
+    assert outcome.estimates["climber"].floor == 1
+    (landing,) = outcome.anchors_changed
+    assert tracker.crowd.level(landing) == 1
+    # stairs found downstairs at the same place are another anchor: floor 0's
+    downstairs = tracker.apply([_stairs("resident", T0 + 6_000, math.nan)])
+    (other,) = downstairs.anchors_changed
+    assert other != landing
+    assert tracker.crowd.level(other) == 0
+    assert downstairs.estimates["resident"].floor == 0  # a detection without a rise is no change of floor
+
+
+def test_a_user_s_floor_survives_a_snapshot_and_levels_that_go_take_their_share() -> None:
+    import pickle
+
+    tracker = _building((0, 1, 2))
+    tracker.apply([_fix("a", (0.0, 0.0), T0, 2)])
+    again = pickle.loads(pickle.dumps(tracker))
+    again.set_levels((0, 1, 2))
+    assert again.floor_of("a")[0] == 2
+    again.set_levels((0, 1))  # floor 2 taken away: the user starts over, unsure
+    level, p = again.floor_of("a")
+    assert p == pytest.approx(0.5)
+    assert again.engine.levels[again._users["a"].slot] == level
+
+
+# ---------------------------------------------------------------------- the floors' fingerprints
+def _scan(floor: int, x: float, rng: np.random.Generator) -> tuple[list[str], np.ndarray]:
+    """A scan at (x, 0) on a floor: its own APs strong along a 60 m corridor, the other floor's 15 dB weaker
+    through the ceiling."""
+    names, rss = [], []
+    for level in (0, 1):
+        for i, ax in enumerate(np.linspace(0.0, 60.0, 7)):
+            loss = 0.0 if level == floor else 15.0
+            names.append(f"0a:00:00:00:{level:02x}:{i:02x}")
+            rss.append(-40.0 - 25.0 * math.log10(max(abs(ax - x), 1.0)) - loss + rng.normal(0.0, 2.0))
+    return names, np.array(rss)
+
+
+def _floor_maps(tracker: BuildingTracker, rng: np.random.Generator, xs: np.ndarray) -> None:
+    for level in (0, 1):
+        scans = [_scan(level, x, rng) for x in xs]
+        tracker.load_radio_map(
+            f"survey-{level}",
+            np.column_stack([xs, np.zeros_like(xs)]),
+            [s[0] for s in scans],
+            [s[1] for s in scans],
+            np.full(xs.size, T0 - 3_600_000, dtype=np.int64),
+            level=level,
+        )
+
+
+def test_each_floor_s_map_says_how_well_it_explains_a_scan_near_the_user() -> None:
+    rng = np.random.default_rng(5)
+    stage = FingerprintStage(FingerprintParams(enabled=True, min_references=10), 3_000)
+    tracker = BuildingTracker(TrackerParams(), CAL, seed=0)
+    tracker.set_levels((0, 1))
+    tracker.fingerprints = stage
+    _floor_maps(tracker, rng, np.arange(0.0, 30.0, 2.0))  # the crowd walked the corridor's west half
+    names, rss = _scan(1, 12.0, rng)
+    ll = stage.floor_evidence((0, 1), -3, names, rss, np.array([12.0, 0.0]))
+    assert ll[1] > ll[0]
+    anywhere = stage.floor_evidence((0, 1), -3, names, rss, None)
+    assert anywhere[1] > anywhere[0]
+    # where no one walked, no floor says anything
+    assert np.isnan(stage.floor_evidence((0, 1), -3, names, rss, np.array([55.0, 0.0]))).all()
+
+
+def test_a_phone_without_a_fix_finds_its_floor_first() -> None:
+    rng = np.random.default_rng(6)
+    params = TrackerParams(
+        fingerprints=FingerprintParams(enabled=True, min_references=10),
+        cold_start=ColdStartParams(enabled=True, confident_sigma_m=5.0),
+    )
+    tracker = BuildingTracker(params, CAL, seed=1)
+    tracker.set_levels((0, 1))
+    _floor_maps(tracker, rng, np.arange(0.0, 60.0, 2.0))
+    x = 10.0
+    for k in range(20):
+        t = T0 + 1000 * k
+        x += 1.4
+        names, rss = _scan(1, x, rng)
+        tracker.apply(
+            [
+                UserBatch(
+                    user="upstairs",
+                    step_t=np.array([t + 250, t + 750], dtype=np.int64),
+                    step_length=np.array([0.7, 0.7]),
+                    step_azimuth=np.array([math.pi / 2, math.pi / 2]),
+                    step_turn=np.full(2, np.nan),
+                    scan_t=np.array([t + 500], dtype=np.int64),
+                    scan_offsets=np.array([0, len(names)], dtype=np.int64),
+                    scan_bssid=tuple(names),
+                    scan_rss=rss,
+                    scan_last_seen=np.full(len(names), -1, dtype=np.int64),
+                )
+            ]
+        )
+    level, p = tracker.floor_of("upstairs")
+    assert level == 1
+    assert p > 0.9
+    assert tracker.engine.levels[tracker._users["upstairs"].slot] == 1
