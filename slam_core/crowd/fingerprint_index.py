@@ -160,6 +160,8 @@ def union_nearest(
     best_row = np.full(k, -1, dtype=np.int64)
     best = np.full(k, math.inf)
     candidates = 0
+    limit = radius_m * radius_m
+    bounded = limit < math.inf  # without a radius no row's position is read: the fixes' queries stay as cheap
     for i in range(n_touched):
         r = touched[i]
         n_shared = shared[r]
@@ -168,7 +170,7 @@ def union_nearest(
         shared[r] = 0
         if row_owner[r] == owner:
             continue
-        if (row_xy[r, 0] - centre_x) ** 2 + (row_xy[r, 1] - centre_y) ** 2 > radius_m * radius_m:
+        if bounded and (row_xy[r, 0] - centre_x) ** 2 + (row_xy[r, 1] - centre_y) ** 2 > limit:
             continue
         candidates += 1
         d = union_rms(row_norm[r], query_norm, product, int(row_count[r]), query_count, n_shared)

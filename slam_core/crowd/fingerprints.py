@@ -358,10 +358,11 @@ class CrowdFingerprints:
         known = all_cols >= 0
         # the query's norm and AP count include the APs no reference heard (at the floor in every reference)
         query_norm = float(gains.astype(float) @ gains.astype(float))
+        # every argument given: numba dispatches omitted defaults by its slow path (+25 % on a batch)
         rows, d, candidates = index.union_nearest(
             all_cols[known], gains[known], query_norm, len(heard), owner, self._start, self._length,
             self._post_row, self._post_serial, self._post_gain, self._serial, self._owner, self._norm,
-            self._count, self._dot, self._shared, p.k, self._xy,
+            self._count, self._dot, self._shared, p.k, self._xy, 0.0, 0.0, math.inf,
         )  # fmt: skip
         if candidates < p.k:  # fewer than k references share an AP with the scan
             return None
