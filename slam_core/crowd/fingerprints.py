@@ -353,17 +353,7 @@ class CrowdFingerprints:
         heard, gains = self._gains(bssids, rss)
         if len(heard) < p.min_aps or self._size - self._per_owner.get(owner, 0) < p.min_references:
             return None
-        columns = self._columns
-        all_cols = np.fromiter((columns.get(b, -1) for b in heard), np.int64, len(heard))
-        known = all_cols >= 0
-        # the query's norm and AP count include the APs no reference heard (at the floor in every reference)
-        query_norm = float(gains.astype(float) @ gains.astype(float))
-        # every argument given: numba dispatches omitted defaults by its slow path (+25 % on a batch)
-        rows, d, candidates = index.union_nearest(
-            all_cols[known], gains[known], query_norm, len(heard), owner, self._start, self._length,
-            self._post_row, self._post_serial, self._post_gain, self._serial, self._owner, self._norm,
-            self._count, self._dot, self._shared, p.k, self._xy, 0.0, 0.0, math.inf,
-        )  # fmt: skip
+        rows, d, candidates = self._search(owner, heard, gains, p.k, 0.0, 0.0, math.inf)
         if candidates < p.k:  # fewer than k references share an AP with the scan
             return None
         return rows, d
@@ -381,16 +371,24 @@ class CrowdFingerprints:
         heard, gains = self._gains(bssids, rss)
         if len(heard) < self.params.min_aps:
             return none
+        rows, d, _ = self._search(owner, heard, gains, k, float(centre[0]), float(centre[1]), radius_m)
+        return self._xy[rows].copy(), d
+
+    def _search(
+        self, owner: int, heard: list[str], gains: np.ndarray, k: int, cx: float, cy: float, radius_m: float
+    ) -> tuple[np.ndarray, np.ndarray, int]:
+        """``fingerprint_index.union_nearest`` of a scan's entries (``_gains``) over the index."""
         columns = self._columns
         all_cols = np.fromiter((columns.get(b, -1) for b in heard), np.int64, len(heard))
         known = all_cols >= 0
+        # the query's norm and AP count include the APs no reference heard (at the floor in every reference)
         query_norm = float(gains.astype(float) @ gains.astype(float))
-        rows, d, _ = index.union_nearest(
+        # every argument given: numba dispatches omitted defaults by its slow path (+25 % on a batch)
+        return index.union_nearest(
             all_cols[known], gains[known], query_norm, len(heard), owner, self._start, self._length,
             self._post_row, self._post_serial, self._post_gain, self._serial, self._owner, self._norm,
-            self._count, self._dot, self._shared, k, self._xy, float(centre[0]), float(centre[1]), radius_m,
+            self._count, self._dot, self._shared, k, self._xy, cx, cy, radius_m,
         )  # fmt: skip
-        return self._xy[rows].copy(), d
 
     def fix_and_places(
         self, owner: int, xy: np.ndarray, cov: np.ndarray, scans: list[Scan]

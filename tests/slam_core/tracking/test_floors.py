@@ -11,15 +11,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from slam_core.crowd.fingerprints import FingerprintParams
-from slam_core.encounters.models import Calibration, RangeModel
 from slam_core.tracking.fingerprint_stage import FingerprintStage
 from slam_core.tracking.floors import FloorParams, Floors
 from slam_core.tracking.params import ColdStartParams
 from slam_core.tracking.tracker import BuildingTracker, TrackerParams, UserBatch
+from tests.slam_core.tracking.test_encounters import CAL, _sighting
 
 T0 = 1_700_000_000_000
-BT = RangeModel("bt-quadratic", (-60.0, -22.0 / math.log(10.0), 0.0), 2.8)
-CAL = Calibration(RangeModel("wifi-log", (0.0, 2.0), 3.0), BT)
 STAIRS = 1
 
 
@@ -106,17 +104,6 @@ def _fix(user: str, xy: tuple[float, float], t_ms: int, level: int) -> UserBatch
         fix_sigma=np.array([0.5]),
         fix_azimuth=np.array([0.0]),
         fix_level=np.array([level], dtype=np.int64),
-    )
-
-
-def _sighting(user: str, peer: str, t_ms: int, distance_m: float) -> UserBatch:
-    rss = float(BT.feature_at(np.array([distance_m]))[0])
-    return UserBatch(
-        user=user,
-        ble_id=f"ble-{user}",
-        peer_t=np.array([t_ms], dtype=np.int64),
-        peer_id=(f"ble-{peer}",),
-        peer_rss=np.array([rss]),
     )
 
 
