@@ -7,8 +7,9 @@ import argparse
 from importlib import resources
 from pathlib import Path
 
-SCENARIOS = ("paper-testbed",)
-"""Scenarios the package ships, by name: ``--scenario paper-testbed`` on a clone with nothing beside it."""
+SCENARIOS = ("paper-testbed", "three-floors")
+"""Scenarios the package ships, by name: ``--scenario paper-testbed`` (or ``three-floors``) on a clone with
+nothing beside it."""
 
 
 def shipped_scenario(name: str) -> Path:

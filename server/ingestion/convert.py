@@ -125,12 +125,12 @@ def to_user_batch(batch: SensorBatch, ctx: BuildingContext) -> Converted:
 
 def packed_without_context(batch: SensorBatch) -> PackedBatch | None:
     """``transport.pack(without_context(batch).user_batch)``, built straight from the batch's values
-    without the arrays in between, for the batches phones send most (no landmarks, no raw IMU: the phone
-    counts its own steps), else None. Raises ``ValueError`` where ``UserBatch``'s checks would.
+    without the arrays in between, for the batches phones send most (no landmarks, no raw IMU or barometer:
+    the phone counts its own steps), else None. Raises ``ValueError`` where ``UserBatch``'s checks would.
 
     The front of a building process sends every batch packed, so this is on the front's path of every
     batch: no ~25 small arrays made only to be joined again."""
-    if batch.landmarks or _has_raw_imu(batch):
+    if batch.landmarks or batch.pressure is not None or _has_raw_imu(batch):
         return None
     ints, floats, strings = _sensor_columns(batch)
     lengths = floats["step_length"]
@@ -233,21 +233,23 @@ def _has_raw_imu(batch: SensorBatch) -> bool:
 
 
 def _imu(batch: SensorBatch) -> ImuSamples | None:
-    """Raw IMU for the PDR front-end; None when the phone counts its own steps or sent no accelerometer
-    (orientation streams alone are still kept so the next batch's samples have a held orientation)."""
+    """Raw IMU for the PDR front-end (orientation streams alone are still kept so the next batch's samples
+    have a held orientation), or only the barometer when the phone counts its own steps (the server finds
+    the changes of floor in it); None when there is neither."""
+    pressure = (
+        np.zeros((0, 2))
+        if batch.pressure is None
+        else np.column_stack([batch.pressure.t_ms, batch.pressure.value]).astype(np.float64)
+    )
     if not _has_raw_imu(batch):
-        return None
+        return ImuSamples(acc=np.zeros((0, 4)), pressure=pressure) if pressure.size else None
     return ImuSamples(
         acc=_vector(batch.accelerometer),
         gyr=_vector(batch.gyroscope),
         mag=_vector(batch.magnetometer),
         rv=_rotation(batch.rotation_vector),
         grv=_rotation(batch.game_rotation_vector),
-        pressure=(
-            np.zeros((0, 2))
-            if batch.pressure is None
-            else np.column_stack([batch.pressure.t_ms, batch.pressure.value]).astype(np.float64)
-        ),
+        pressure=pressure,
     )
 
 

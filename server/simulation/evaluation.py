@@ -15,6 +15,7 @@ is reproduced by its command and the filters' own noise can be measured apart fr
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from typing import Any
@@ -47,11 +48,18 @@ def evaluate_scenario(
     sim = simulate(scenario, options.seed)
     params = replay_params(base_params, options)
     tracker = BuildingTracker(params, calibration, seed=options.tracker_seed)
+    levels = tuple(range(sim.world.levels))
+    if len(levels) > 1:  # as an operator creates the building: its floors, not their heights
+        tracker.set_levels(levels)
     known: dict[str, tuple[float, float]] = {}
+    known_levels: dict[str, int] = {}
     for k, anchor in enumerate(known_anchors(sim)):
-        tracker.pin_anchor(np.array(anchor.position), anchor_type_index(anchor.type))
+        tracker.pin_anchor(np.array(anchor.position), anchor_type_index(anchor.type), level=anchor.level)
         known[f"known-{k}"] = (float(anchor.position[0]), float(anchor.position[1]))
-    ctx = BuildingContext("simulated", None, known)
+        known_levels[f"known-{k}"] = anchor.level
+    ctx = BuildingContext(
+        "simulated", None, known, levels=frozenset(levels), known_anchor_levels=known_levels
+    )
     users = {device_id(u): u for u in range(len(sim.users))}
     liars = liar_devices(len(sim.users), options.liars) if options.liars else set()
     score = _Score(sim, users)
@@ -65,11 +73,12 @@ def evaluate_scenario(
             continue
         if options.mode == "pdr":
             xy, t_ms = tracker.dead_reckoning(user_batch.user), tracker.last_time_ms(user_batch.user)
+            floor = tracker.floor_of(user_batch.user)[0]
         else:
             row = outcome.estimates[user_batch.user]
-            xy, t_ms = np.array([row.x, row.y]), row.t_ms
+            xy, t_ms, floor = np.array([row.x, row.y]), row.t_ms, row.floor
         assert xy is not None
-        score.estimate(users[user_batch.user], xy, t_ms)
+        score.estimate(users[user_batch.user], xy, t_ms, floor)
     errors = np.array(score.errors)
     n_users = len(sim.users)
     expected = scenario.raw.get("expected_statistics", {})
@@ -107,11 +116,17 @@ def evaluate_scenario(
                 sim.world.anchor_xy,
             )
         )
+    if len(levels) > 1:
+        result.update(score.floors())
     if score.range_error:
         result["encounter_true_distance_median_m"] = float(np.median(score.true_distance))
         result["encounter_range_bias_median_m"] = float(np.median(score.range_error))
     result["seconds"] = time.perf_counter() - started
     return result, errors
+
+
+def _share(count: int, total: int) -> float | None:
+    return count / total if total else None
 
 
 class _Score:
@@ -133,6 +148,9 @@ class _Score:
         # the true anchor of each building-anchor detection, by (user, phone time): the phones send a
         # detection at the time of the step that passed the anchor
         self._true_anchor: dict[tuple[int, int], int] = {}
+        self.floor_t: list[list[float]] = [[] for _ in sim.users]
+        self.floor_estimated: list[list[int]] = [[] for _ in sim.users]
+        self.floor_true: list[list[int]] = [[] for _ in sim.users]
         for u, tr in enumerate(sim.users):
             for step, anchor in zip(tr.anchor_step.tolist(), tr.anchor_true.tolist(), strict=True):
                 self._true_anchor[(u, EPOCH_MS + round(float(tr.t[step]) * 1000.0))] = int(anchor)
@@ -140,9 +158,48 @@ class _Score:
     def _seconds(self, t_ms: int) -> float:
         return (t_ms - EPOCH_MS) / 1000.0
 
-    def estimate(self, user: int, xy: np.ndarray, t_ms: int) -> None:
-        truth = self.sim.true_position(user, self._seconds(t_ms))
+    def estimate(self, user: int, xy: np.ndarray, t_ms: int, floor: int = 0) -> None:
+        t = self._seconds(t_ms)
+        truth = self.sim.true_position(user, t)
         self.errors.append(float(np.linalg.norm(xy - truth)))
+        self.floor_t[user].append(t)
+        self.floor_estimated[user].append(floor)
+        self.floor_true[user].append(self.sim.true_level(user, t))
+
+    def floors(self) -> dict[str, Any]:
+        """The floor figures: the share of scored estimates on the right floor (all, with and without a
+        barometer), and each change of floor's delay from the user's arrival to the first estimate on the new
+        floor (unrecognised when none comes before the next change or the walk's end)."""
+        right = {True: [0, 0], False: [0, 0]}
+        delays: dict[str, list[float]] = {}
+        for u, trace in enumerate(self.sim.users):
+            t = np.array(self.floor_t[u])
+            est = np.array(self.floor_estimated[u], dtype=np.int64)
+            ok = est == np.array(self.floor_true[u], dtype=np.int64)
+            tally = right[bool(trace.pressure.size)]
+            tally[0] += int(ok.sum())
+            tally[1] += int(ok.size)
+            arrivals = [a for a, *_ in trace.transitions] + [math.inf]
+            for k, (arrival, _, to, way) in enumerate(trace.transitions):
+                seen = np.flatnonzero((t >= arrival) & (t < arrivals[k + 1]) & (est == to))
+                delay = float(t[seen[0]] - arrival) if seen.size else math.inf
+                delays.setdefault(way, []).append(delay)
+                delays.setdefault("barometer" if trace.pressure.size else "no barometer", []).append(delay)
+        every = [d for way in ("stairs", "lift", "escalator") for d in delays.get(way, [])]
+        out: dict[str, Any] = {
+            "right_floor": _share(right[True][0] + right[False][0], right[True][1] + right[False][1]),
+            "right_floor_barometer": _share(*right[True]),
+            "right_floor_no_barometer": _share(*right[False]),
+            "floor_changes": len(every),
+            "floor_changes_within_5s": _share(sum(d <= 5.0 for d in every), len(every)),
+        }
+        for name, values in sorted(delays.items()):
+            key = name.replace(" ", "_")
+            found = [d for d in values if math.isfinite(d)]
+            out[f"floor_changes_{key}"] = len(values)
+            out[f"floor_changes_{key}_within_5s"] = _share(sum(d <= 5.0 for d in values), len(values))
+            out[f"floor_change_{key}_delay_p50_s"] = float(np.median(found)) if found else None
+        return out
 
     def outcome(self, outcome: TrackerOutcome) -> None:
         self.detections += outcome.detections

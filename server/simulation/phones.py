@@ -1,8 +1,11 @@
 """A simulated crowd as the phones would post it: one-second sensor batches per user, in time order.
 
-Each user's first batch carries its start fix (the scenario's noisy start position and heading); steps carry
-the phone's azimuth; building-anchor detections are sent as the phone's own detections; WiFi scans list one
-synthetic BSSID per simulated access point; Bluetooth sightings name the heard phone's advertised id.
+Each user's first batch carries its start fix (the scenario's noisy start position and heading, on the floor
+the user starts on); steps carry the phone's azimuth (none while the user stands in a lift or on an
+escalator); phones with a barometer send its samples; building-anchor detections (and, from phones without
+a barometer, the ways between floors their accelerometer finds) are sent as the phone's own detections; WiFi
+scans list one synthetic BSSID per simulated access point; Bluetooth sightings name the heard phone's
+advertised id.
 """
 
 from __future__ import annotations
@@ -15,7 +18,16 @@ import numpy as np
 
 from schemas.anchors import AnchorType
 from schemas.common import Position
-from schemas.sensors import AnchorDetection, PeerSighting, PositionFix, SensorBatch, Step, WifiAp, WifiScan
+from schemas.sensors import (
+    AnchorDetection,
+    PeerSighting,
+    PositionFix,
+    ScalarStream,
+    SensorBatch,
+    Step,
+    WifiAp,
+    WifiScan,
+)
 from slam_core.filter.params import ANCHOR_TYPES
 from slam_core.sim.simulation import Simulation
 
@@ -28,6 +40,7 @@ WINDOW_MS = 1_000
 class KnownAnchor:
     position: tuple[float, float]
     type: AnchorType
+    level: int = 0
 
 
 def device_id(user: int) -> str:
@@ -45,10 +58,12 @@ def bssid(ap: int) -> str:
 def known_anchors(sim: Simulation) -> list[KnownAnchor]:
     """The operator-known anchors of the simulated world (entered by the operator before the crowd walks)."""
     w = sim.world
+    levels = w.anchor_levels()
     return [
         KnownAnchor(
             (float(w.anchor_xy[k, 0]), float(w.anchor_xy[k, 1])),
             AnchorType(ANCHOR_TYPES[int(w.anchor_type[k])]),
+            int(levels[k]),
         )
         for k in np.flatnonzero(w.anchor_known)
     ]
@@ -71,11 +86,17 @@ def _user_batches(
 
     tr = sim.users[user]
     step_ms = np.array([_ms(t) for t in tr.t[1:]], dtype=np.int64)
+    stepped = np.ones(step_ms.size, dtype=bool) if tr.is_step is None else tr.is_step
+    pressure_ms = np.array([_ms(t) for t in tr.pressure[:, 0]], dtype=np.int64)
     scan_ms = np.array([_ms(t) for t in tr.scan_t], dtype=np.int64)
     receive = np.flatnonzero(sim.bt_pair[:, 0] == user) if sim.bt_t.size else np.zeros(0, dtype=np.int64)
     bt_ms = np.array([_ms(sim.bt_t[i]) for i in receive], dtype=np.int64)
     bt_heard = (sim.bt_rss[receive] >= -120.0) & (sim.bt_rss[receive] <= 0.0)
-    detections = dict(zip(tr.anchor_step.tolist(), tr.anchor_detected_type.tolist(), strict=True))
+    detections: dict[int, tuple[int, float | None]] = {
+        k: (a, None) for k, a in zip(tr.anchor_step.tolist(), tr.anchor_detected_type.tolist(), strict=True)
+    }
+    for k, a, rise in tr.way_detections:  # the phone's own: a way between floors wins a shared moment
+        detections[k] = (a, None if math.isnan(rise) else rise)
     start_ms = _ms(tr.t[0])
     last_ms = max(int(step_ms[-1]) if step_ms.size else start_ms, int(scan_ms.max(initial=start_ms)))
     for seq, window_start in enumerate(range(start_ms, last_ms + 1, WINDOW_MS)):
@@ -88,9 +109,10 @@ def _user_batches(
                     position=Position(x_m=float(tr.start_fix[0]), y_m=float(tr.start_fix[1])),
                     sigma_m=float(sim.scenario["users"]["start_fix_sigma_m"]),
                     azimuth_rad=_wrap(math.pi / 2 - tr.start_heading_fix),
+                    floor=tr.level_at(tr.t[0]),
                 )
             )
-        in_window = np.flatnonzero((step_ms >= window_start) & (step_ms < window_end))
+        in_window = np.flatnonzero(stepped & (step_ms >= window_start) & (step_ms < window_end))
         steps = [
             Step(
                 t_ms=int(step_ms[k]),
@@ -99,9 +121,14 @@ def _user_batches(
             )
             for k in in_window
         ]
+        moved = np.flatnonzero((step_ms >= window_start) & (step_ms < window_end))  # with a step or not
         anchor_detections = [
-            AnchorDetection(t_ms=int(step_ms[k]), type=AnchorType(ANCHOR_TYPES[detections[k + 1]]))
-            for k in in_window
+            AnchorDetection(
+                t_ms=int(step_ms[k]),
+                type=AnchorType(ANCHOR_TYPES[detections[k + 1][0]]),
+                rise_m=detections[k + 1][1],
+            )
+            for k in moved.tolist()
             if k + 1 in detections
         ]
         scans = []
@@ -124,6 +151,15 @@ def _user_batches(
             )
             for t_ms, i in zip(bt_ms[in_bt], receive[in_bt], strict=True)
         ]
+        in_pressure = np.flatnonzero((pressure_ms >= window_start) & (pressure_ms < window_end))
+        pressure = (
+            ScalarStream(
+                t_ms=pressure_ms[in_pressure].tolist(),
+                value=[round(float(v), 3) for v in tr.pressure[in_pressure, 1]],
+            )
+            if in_pressure.size
+            else None
+        )
         yield (
             window_end,
             SensorBatch(
@@ -137,6 +173,7 @@ def _user_batches(
                 bluetooth=list(sightings),
                 landmarks=list(landmarks),
                 anchor_detections=anchor_detections,
+                pressure=pressure,
             ),
         )
 

@@ -62,6 +62,42 @@ class FrontEnd:
         self._pdr.pop(user, None)
         self._detect.pop(user, None)
 
+    def has_barometer(self, user: str) -> bool:
+        """Whether the user's phone has sent pressure (since the server last forgot its sensors)."""
+        detect = self._detect.get(user)
+        return detect is not None and not math.isnan(detect.vertical.last_t)
+
+    def floor_changes(self, user: str, pressure: np.ndarray, step_t: np.ndarray) -> tuple[AnchorEvents, int]:
+        """The changes of floor in the barometer of a phone that counts its own steps (and so sends no raw
+        IMU), with the steps it sent; and how many samples were dropped as already consumed."""
+        if self.detectors is None:
+            return AnchorEvents.empty(), 0
+        detect = self._detect.setdefault(user, DetectorState())
+        floors, dropped = self._floor_changes(detect, pressure, step_t)
+        return anchor_detectors.merge_events([], [], self.detectors.turn_type, floors), dropped
+
+    def _floor_changes(
+        self, detect: DetectorState, pressure: np.ndarray, step_t: np.ndarray
+    ) -> tuple[list[tuple[int, int, str, int, float]], int]:
+        """``slam_core.sensing.vertical`` on one batch's pressure (samples already consumed are dropped: a
+        late or re-sent batch) as (report time, type, "", arrival, rise) rows, and the count dropped."""
+        assert self.detectors is not None
+        v = self.detectors.vertical
+        dropped = 0
+        last = detect.vertical.last_t
+        if pressure.size and not np.isnan(last) and pressure[0, 0] <= last:
+            fresh = pressure[pressure[:, 0] > last]
+            dropped = pressure.shape[0] - fresh.shape[0]
+            pressure = fresh
+        if not (v.enabled and pressure.size):
+            return [], dropped
+        changes = detect_floor_changes(detect.vertical, v, pressure, step_t)
+        for c in changes:
+            self.fired[
+                {v.elevator_type: "elevator", v.stairs_type: "stairs"}.get(c.type_index, "escalator")
+            ] += 1
+        return [(c.t_ms, c.type_index, "", c.observed_t_ms, c.change_m) for c in changes], dropped
+
     def process(self, user: str, imu: ImuSamples, radio: RadioArrays) -> FrontEndOutput:
         state = self._pdr.setdefault(user, PdrState())
         imu, dropped = drop_stale(state, imu)
@@ -76,21 +112,11 @@ class FrontEnd:
             detect, p, radio.scan_t, radio.scan_offsets, radio.scan_bssid, radio.scan_rss,
             radio.scan_last_seen, radio.beacon_t, radio.beacon_mac, radio.beacon_rss,
         )  # fmt: skip
-        floors: list[tuple[int, int, str, int, float]] = []
-        pressure = imu.pressure
-        last = detect.vertical.last_t
-        if pressure.size and not np.isnan(last) and pressure[0, 0] <= last:  # a late or re-sent batch
-            fresh = pressure[pressure[:, 0] > last]
-            dropped += pressure.shape[0] - fresh.shape[0]
-            pressure = fresh
-        if p.vertical.enabled and pressure.size:
-            v = p.vertical
-            changes = detect_floor_changes(detect.vertical, v, pressure, steps.t_ms)
-            floors = [(c.t_ms, c.type_index, "", c.observed_t_ms, c.change_m) for c in changes]
-            for c in changes:
-                kind = {v.elevator_type: "elevator", v.stairs_type: "stairs"}.get(c.type_index, "escalator")
-                self.fired[kind] += 1
-        elif p.lift.enabled and np.isnan(detect.vertical.last_t) and imu.acc.size:  # no barometer
+        floors, stale = self._floor_changes(detect, imu.pressure, steps.t_ms)
+        dropped += stale
+        if not (p.vertical.enabled and imu.pressure.size) and (
+            p.lift.enabled and np.isnan(detect.vertical.last_t) and imu.acc.size
+        ):  # no barometer: lift rides from the accelerometer
             ride_t, rise = detect_lift_rides(detect.lift, p.lift, imu.acc, steps.t_ms)
             floors = [
                 (int(t), p.lift.type_index, "", int(t), float(r)) for t, r in zip(ride_t, rise, strict=True)

@@ -9,13 +9,14 @@ scenario dict; the seed picks the world and the walks. The caller loads the JSON
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
 from slam_core.filter.params import ANCHOR_TYPES
+from slam_core.sim.storeys import Links, StoreyWalk, barometer, place_links, storey_walk
 
 
 @dataclass(frozen=True)
@@ -35,6 +36,16 @@ class Scenario:
         confusion = np.asarray(raw["building_anchors"]["type_confusion"], dtype=float)
         if confusion.shape != (len(types), len(types)) or not np.allclose(confusion.sum(axis=1), 1.0):
             raise ValueError("type_confusion must be square over the types with rows summing to 1")
+        storeys = raw.get("storeys")
+        if storeys is not None:
+            elevations = np.asarray(storeys.get("elevations_m", []), dtype=float)
+            if elevations.size < 2 or np.any(np.diff(elevations) <= 0):
+                raise ValueError("storeys.elevations_m: at least two floors, each above the one below")
+            if (
+                not 0.0 <= storeys["take_probability"] <= 1.0
+                or not 0.0 <= storeys["barometer"]["share"] <= 1.0
+            ):
+                raise ValueError("storeys: take_probability and barometer.share must be in [0, 1]")
         return cls(raw)
 
     def __getitem__(self, key: str) -> Any:
@@ -59,7 +70,22 @@ class World:
     anchor_type: np.ndarray  # (A,)
     anchor_known: np.ndarray  # (A,) bool
     ap_xy: np.ndarray  # (P, 2)
-    shadow: np.ndarray  # (P, H, W) dB on a 1 m grid
+    shadow: np.ndarray  # (L x P, H, W) dB on a 1 m grid: AP p seen from floor l at [l * P + p]
+    elevations: np.ndarray = field(default_factory=lambda: np.zeros(1))  # (L,) floor heights (m)
+    anchor_level: np.ndarray | None = None  # (A,) floor index; None: all on the one floor
+    ap_level: np.ndarray | None = None  # (P,)
+    links: Links | None = None  # the ways between floors (``slam_core.sim.storeys``)
+    weather_hpa_per_s: float = 0.0
+    floor_loss_db: float = 0.0  # per floor between a transmitter and a receiver
+    phone_height_m: float = 0.0  # above the floor the user stands on
+
+    @property
+    def levels(self) -> int:
+        return int(self.elevations.size)
+
+    def anchor_levels(self) -> np.ndarray:
+        n = self.anchor_xy.shape[0]
+        return np.zeros(n, dtype=np.int64) if self.anchor_level is None else self.anchor_level
 
 
 @dataclass(frozen=True)
@@ -77,6 +103,20 @@ class UserTrace:
     scan_t: np.ndarray  # (C,)
     scan_rss: np.ndarray  # (C, P) dBm, NaN where not heard
     anchor_passes: int  # passes within the detection radius, detected or not
+    is_step: np.ndarray | None = None  # (S,) whether each displacement was a step (None: all were)
+    level: np.ndarray | None = None  # (S+1,) floor index at each position (None: all on the one floor)
+    transitions: tuple[tuple[float, int, int, str], ...] = ()  # (arrival t, from, to, way)
+    pressure: np.ndarray = field(
+        default_factory=lambda: np.zeros((0, 2))
+    )  # (K, 2) t_s, hPa; none: no barometer
+    way_detections: tuple[tuple[int, int, float], ...] = ()
+    """A phone without a barometer: (position index, type, rise or NaN) of the ways its detectors found."""
+
+    def level_at(self, t: float) -> int:
+        """The floor index at time ``t`` (the origin's until the moment of arrival)."""
+        if self.level is None:
+            return 0
+        return int(self.level[max(int(np.searchsorted(self.t, t, side="right")) - 1, 0)])
 
 
 @dataclass(frozen=True)
@@ -88,6 +128,9 @@ class Simulation:
     bt_pair: np.ndarray  # (B, 2) user indices (receiver, sender)
     bt_rss: np.ndarray  # (B,)
     anchors_passed_per_user: float
+
+    def true_level(self, user: int, t: float) -> int:
+        return self.users[user].level_at(t)
 
     def true_position(self, user: int, t: float) -> np.ndarray:
         trace = self.users[user]
@@ -109,6 +152,8 @@ def _point_on_corridors(rng: np.random.Generator, width: float, height: float, s
 
 
 def build_world(scenario: Scenario, rng: np.random.Generator) -> World:
+    if "storeys" in scenario.raw:
+        return _storey_world(scenario, rng)
     floor, anchors, wifi = scenario["floor"], scenario["building_anchors"], scenario["wifi"]
     width, height, spacing = floor["width_m"], floor["height_m"], floor["corridor_spacing_m"]
     min_gap = 5.0  # "on corridors, at least 5 m apart"
@@ -142,6 +187,61 @@ def build_world(scenario: Scenario, rng: np.random.Generator) -> World:
     )
 
 
+def _storey_world(scenario: Scenario, rng: np.random.Generator) -> World:
+    """Every floor the scenario's floor, with its own anchors (``count`` each, the first ``known_positions``
+    of each known) and access points, the ways between floors, and the weather's drift."""
+    floor, anchors, wifi, storeys = (
+        scenario["floor"],
+        scenario["building_anchors"],
+        scenario["wifi"],
+        scenario["storeys"],
+    )
+    width, height, spacing = floor["width_m"], floor["height_m"], floor["corridor_spacing_m"]
+    elevations = np.asarray(storeys["elevations_m"], dtype=float)
+    n_levels, n_ap = elevations.size, wifi["access_points"]
+    points: list[np.ndarray] = []
+    levels: list[int] = []
+    known: list[bool] = []
+    for level in range(n_levels):
+        mine: list[np.ndarray] = []
+        while len(mine) < anchors["count"]:
+            p = _point_on_corridors(rng, width, height, spacing)
+            if all(np.linalg.norm(p - q) >= 5.0 for q in mine):
+                mine.append(p)
+        points += mine
+        levels += [level] * len(mine)
+        known += [k < anchors["known_positions"] for k in range(len(mine))]
+    anchor_type = rng.integers(0, len(anchors["types"]), len(points))
+    ap_xy = np.column_stack([rng.uniform(0, width, n_ap * n_levels), rng.uniform(0, height, n_ap * n_levels)])
+    ap_level = np.repeat(np.arange(n_levels), n_ap)
+    gw, gh = math.ceil(width) + 1, math.ceil(height) + 1
+    shadow = np.empty((n_levels * ap_xy.shape[0], gh, gw))
+    for k in range(shadow.shape[0]):
+        grid = gaussian_filter(rng.standard_normal((gh, gw)), sigma=wifi["shadowing_correlation_m"] / 2.0)
+        shadow[k] = grid / grid.std() * wifi["shadowing_sigma_db"]
+    nx, ny = round(width / spacing) + 1, round(height / spacing) + 1
+    links = place_links(rng, nx, ny)
+    weather = float(rng.choice([-1.0, 1.0])) * storeys["barometer"]["weather_drift_hpa_per_hour"] / 3600.0
+    return World(
+        width,
+        height,
+        spacing,
+        floor["corridor_width_m"] / 2.0,
+        np.array(points),
+        anchor_type,
+        np.array(known),
+        ap_xy,
+        shadow,
+        elevations,
+        np.array(levels, dtype=np.int64),
+        ap_level,
+        links,
+        weather,
+        storeys["floor_loss_db"],
+        storeys["phone_height_m"],
+    )
+
+
 def count_walls(world: World, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Walls crossed on segments a[i] -> b[i]: room walls run along every corridor edge, open where another
     corridor crosses it."""
@@ -165,16 +265,31 @@ def count_walls(world: World, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return total
 
 
-def wifi_rss(world: World, wifi: dict[str, Any], xy: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """One scan's RSS per AP at ``xy`` (NaN below the sensitivity)."""
+def wifi_rss(
+    world: World, wifi: dict[str, Any], xy: np.ndarray, rng: np.random.Generator, level: int = 0
+) -> np.ndarray:
+    """One scan's RSS per AP at ``xy`` on floor index ``level`` (NaN below the sensitivity). Across floors,
+    the distance is the 3D one and each floor between costs the scenario's ``storeys.floor_loss_db``."""
     d_floor = np.linalg.norm(world.ap_xy - xy, axis=1)
-    d = np.sqrt(d_floor**2 + 9.0)  # APs 3 m above the floor
+    if world.ap_level is None:
+        d = np.sqrt(d_floor**2 + 9.0)  # APs 3 m above the floor
+        floors_between = np.zeros(d.size)
+        floor_loss = 0.0
+        shadows = world.shadow
+    else:
+        phone = world.elevations[level] + world.phone_height_m
+        dz = world.elevations[world.ap_level] + 3.0 - phone
+        d = np.sqrt(d_floor**2 + dz**2)
+        floors_between = np.abs(world.ap_level - level).astype(float)
+        floor_loss = world.floor_loss_db
+        n_ap = world.ap_xy.shape[0]
+        shadows = world.shadow[level * n_ap : (level + 1) * n_ap]
     walls = count_walls(world, world.ap_xy, np.broadcast_to(xy, world.ap_xy.shape))
-    gx = min(max(xy[0], 0.0), world.shadow.shape[2] - 1.001)
-    gy = min(max(xy[1], 0.0), world.shadow.shape[1] - 1.001)
+    gx = min(max(xy[0], 0.0), shadows.shape[2] - 1.001)
+    gy = min(max(xy[1], 0.0), shadows.shape[1] - 1.001)
     ix, iy = int(gx), int(gy)
     fx, fy = gx - ix, gy - iy
-    s = world.shadow
+    s = shadows
     shadow = (
         s[:, iy, ix] * (1 - fx) * (1 - fy)
         + s[:, iy, ix + 1] * fx * (1 - fy)
@@ -185,6 +300,7 @@ def wifi_rss(world: World, wifi: dict[str, Any], xy: np.ndarray, rng: np.random.
         wifi["tx_power_dbm_at_1m"]
         - 10.0 * wifi["path_loss_exponent"] * np.log10(d)
         - wifi["wall_loss_db_per_wall"] * walls
+        - floor_loss * floors_between
         + shadow
         + rng.normal(0.0, wifi["scan_noise_sigma_db"], len(d))
     )
@@ -225,10 +341,19 @@ def _user_trace(scenario: Scenario, world: World, rng: np.random.Generator) -> U
         scenario["wifi"],
     )
     step = users["step_length_m"]
-    period = step / users["speed_mps"]
-    xy = _corridor_walk(world, rng, users["walk_length_m"], step)
-    start_t = float(rng.uniform(0.0, 30.0))  # "all users start within the first 30 s"
-    t = start_t + period * np.arange(len(xy))
+    storeys: StoreyWalk | None = None
+    if world.links is None:
+        period = step / users["speed_mps"]
+        xy = _corridor_walk(world, rng, users["walk_length_m"], step)
+        start_t = float(rng.uniform(0.0, 30.0))  # "all users start within the first 30 s"
+        t = start_t + period * np.arange(len(xy))
+    else:
+        nx, ny = round(world.width / world.spacing) + 1, round(world.height / world.spacing) + 1
+        storeys = storey_walk(
+            world.links, nx, ny, world.spacing, world.elevations, scenario["storeys"], users, rng
+        )
+        start_t = float(rng.uniform(0.0, 30.0))
+        xy, t = storeys.xy, start_t + storeys.t
     d = np.diff(xy, axis=0)
     true_len = np.linalg.norm(d, axis=1)
     true_heading = np.arctan2(d[:, 1], d[:, 0])
@@ -242,13 +367,18 @@ def _user_trace(scenario: Scenario, world: World, rng: np.random.Generator) -> U
     white = rng.normal(0.0, math.radians(noise["heading_change_sigma_deg"]), n)
     heading_obs = (true_heading + bias + walk + white + math.pi) % (2 * math.pi) - math.pi
     start_fix = xy[0] + rng.normal(0.0, users["start_fix_sigma_m"], 2)
-    start_heading = float(true_heading[0] + math.radians(rng.normal(0.0, users["start_heading_sigma_deg"])))
+    first = int(np.argmax(true_len > 0))  # the first move (a lift may come before it)
+    start_heading = float(
+        true_heading[first] + math.radians(rng.normal(0.0, users["start_heading_sigma_deg"]))
+    )
     # building anchors: one detection per pass within the radius, at the closest step, with probability p
     radius, p_detect = anchors["detection_radius_m"], anchors["detection_probability"]
     confusion = np.asarray(anchors["type_confusion"])
     det_step, det_true, det_type = [], [], []
     passes = 0
     dist = np.linalg.norm(xy[:, None, :] - world.anchor_xy[None, :, :], axis=2)  # (S+1, A)
+    if storeys is not None:  # an anchor is passed on its own floor only
+        dist[storeys.level[:, None] != world.anchor_levels()[None, :]] = np.inf
     for a in range(world.anchor_xy.shape[0]):
         inside = dist[:, a] <= radius
         k = 0
@@ -269,12 +399,46 @@ def _user_trace(scenario: Scenario, world: World, rng: np.random.Generator) -> U
     order = np.argsort(det_step, kind="stable")
     # WiFi scans every scan_period with a random phase
     scan_t = np.arange(start_t + rng.uniform(0, wifi["scan_period_s"]), t[-1], wifi["scan_period_s"])
+    level = storeys.level if storeys is not None else None
+
+    def level_at(ts: float) -> int:
+        return 0 if level is None else int(level[max(int(np.searchsorted(t, ts, side="right")) - 1, 0)])
+
     scan_rss = np.array(
         [
-            wifi_rss(world, wifi, np.array([np.interp(ts, t, xy[:, 0]), np.interp(ts, t, xy[:, 1])]), rng)
+            wifi_rss(
+                world,
+                wifi,
+                np.array([np.interp(ts, t, xy[:, 0]), np.interp(ts, t, xy[:, 1])]),
+                rng,
+                level_at(ts),
+            )
             for ts in scan_t
         ]
     ).reshape(len(scan_t), world.ap_xy.shape[0])
+    pressure = np.zeros((0, 2))
+    ways: list[tuple[int, int, float]] = []
+    if storeys is not None and rng.uniform() < scenario["storeys"]["barometer"]["share"]:
+        pressure = barometer(
+            storeys,
+            start_t,
+            world.phone_height_m,
+            world.weather_hpa_per_s,
+            scenario["storeys"]["barometer"],
+            rng,
+        )
+    elif storeys is not None:  # the phone's own detectors, from its accelerometer
+        share = scenario["storeys"]["accelerometer"]["lift_rise_sigma_share"]
+        for arrival, was, now, way in storeys.transitions:
+            if way == "escalator" or rng.uniform() >= p_detect:
+                continue
+            k = int(np.searchsorted(storeys.t, arrival))
+            rise = world.elevations[now] - world.elevations[was]
+            if way == "lift":
+                ways.append((k, ANCHOR_TYPES.index("elevator"), float(rise * (1.0 + rng.normal(0.0, share)))))
+            else:
+                stairs = ANCHOR_TYPES.index("stairs")
+                ways.append((k, int(rng.choice(len(confusion), p=confusion[stairs])), math.nan))
     return UserTrace(
         start_t,
         t,
@@ -289,12 +453,18 @@ def _user_trace(scenario: Scenario, world: World, rng: np.random.Generator) -> U
         scan_t,
         scan_rss,
         passes,
+        None if storeys is None else storeys.is_step,
+        level,
+        () if storeys is None else tuple((start_t + a, f, to, w) for a, f, to, w in storeys.transitions),
+        pressure,
+        tuple(ways),
     )
 
 
 def _bluetooth(
-    scenario: Scenario, traces: list[UserTrace], rng: np.random.Generator
+    scenario: Scenario, world: World, traces: list[UserTrace], rng: np.random.Generator
 ) -> tuple[np.ndarray, ...]:
+    """Every pair's sightings each period; across floors, the 3D distance and the floors' loss."""
     bt = scenario["bluetooth"]
     t_end = max(tr.t[-1] for tr in traces)
     times, pairs, rss = [], [], []
@@ -312,10 +482,16 @@ def _bluetooth(
         for ii, i in enumerate(active):
             for j in active[ii + 1 :]:
                 d = max(float(np.linalg.norm(pos[i] - pos[j])), 0.1)
+                loss = 0.0
+                if world.links is not None:
+                    li, lj = traces[i].level_at(ts), traces[j].level_at(ts)
+                    d = math.hypot(d, world.elevations[li] - world.elevations[lj])
+                    loss = world.floor_loss_db * abs(li - lj)
                 for rx, tx in ((i, j), (j, i)):
                     r = (
                         bt["rss_at_1m_dbm"]
                         - 10 * bt["path_loss_exponent"] * math.log10(d)
+                        - loss
                         + rng.normal(0, bt["noise_sigma_db"])
                     )
                     if r >= bt["sensitivity_dbm"]:
@@ -331,6 +507,6 @@ def simulate(scenario: Scenario, seed: int, world_seed: int | None = None) -> Si
     rng = np.random.default_rng(seed)
     world = build_world(scenario, rng if world_seed is None else np.random.default_rng(world_seed))
     traces = [_user_trace(scenario, world, rng) for _ in range(scenario["users"]["count"])]
-    bt_t, bt_pair, bt_rss = _bluetooth(scenario, traces, rng)
+    bt_t, bt_pair, bt_rss = _bluetooth(scenario, world, traces, rng)
     passed = float(np.mean([tr.anchor_passes for tr in traces]))
     return Simulation(scenario, world, traces, bt_t, bt_pair, bt_rss, passed)

@@ -12,6 +12,8 @@ updated as a hidden Markov model:
 - **a change of height** (the barometer's settled change, or a lift ride's rise from the accelerometer): the
   belief moves by the storeys whose height difference explains the rise, each level pair weighed by
   N(rise; elevation_j - elevation_i, sigma^2), plus ``false_change`` for a change that was not one;
+- **a way between floors without its rise** (stairs, a lift or an escalator from a phone without a
+  barometer): ``unmeasured_change`` of the belief moves to the adjacent floors, for the radio to settle;
 - **radio evidence**: the per-floor likelihoods of a scan (``FingerprintStage.floor_evidence``), after a
   ``switch_rate`` transition to the neighbouring floors, so that a belief that was wrong (a missed ride, a
   wrong fix) is drawn back by the radio within a few scans rather than never.
@@ -53,6 +55,13 @@ class FloorParams:
     """A tracked user's scan is compared with each floor's references within this of its estimate."""
     radio_place_sigma_m: float = 4.0
     """... each weighed by its distance from the estimate with this sigma (a fingerprint cell)."""
+    unmeasured_change: float = 0.3
+    """Stairs, a lift or an escalator detected by a phone without a barometer (no rise): the share of the
+    belief moved to the adjacent floors, for the radio to confirm or take back (the user may only have
+    passed it)."""
+    escalator_incline_deg: float = 30.0
+    """An escalator ride carries the user ``rise / tan(incline)`` without a step (EN 115: 30 deg, 35 deg for
+    rises under 6 m)."""
     join_confidence: float = 0.95
     """A user's scans join its floor's fingerprint map only when the belief in that floor is this high."""
 
@@ -69,11 +78,13 @@ class FloorParams:
             and self.radio_radius_m > 0
             and self.radio_place_sigma_m > 0
             and 0 < self.join_confidence <= 1
+            and 0 <= self.unmeasured_change < 1
+            and 0 < self.escalator_incline_deg < 90
         ):
             raise ValueError(
                 "floor parameters: storey_m, rise_sigma_m, radio_sigma_db, radio_radius_m must be positive, "
-                "radio_weight and join_confidence in (0, 1], false_change and start_doubt in [0, 1), "
-                "switch_rate in [0, 0.25]"
+                "radio_weight and join_confidence in (0, 1], false_change, start_doubt and unmeasured_change "
+                "in [0, 1), switch_rate in [0, 0.25], escalator_incline_deg in (0, 90)"
             )
 
 
@@ -161,6 +172,18 @@ class Floors:
         like /= math.sqrt(2.0 * math.pi) * sigma
         np.fill_diagonal(like, prm.false_change / (2.0 * NO_CHANGE_SPAN_M))
         trans = like / like.sum(axis=1, keepdims=True)
+        return _normalised(p @ trans)
+
+    def maybe_changed(self, p: np.ndarray) -> np.ndarray:
+        """The belief after a way between floors was detected without its rise: ``unmeasured_change`` of each
+        level's share moves to its neighbours (split between them), the rest stays."""
+        n = len(self.levels)
+        if n == 1:
+            return p
+        adj = np.eye(n, k=1) + np.eye(n, k=-1)
+        trans = (1.0 - self.params.unmeasured_change) * np.eye(n) + self.params.unmeasured_change * (
+            adj / adj.sum(axis=1, keepdims=True)
+        )
         return _normalised(p @ trans)
 
     def weigh(self, p: np.ndarray, log_likelihood: np.ndarray) -> np.ndarray:

@@ -41,6 +41,7 @@ from __future__ import annotations
 import math
 from array import array
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 
@@ -51,6 +52,7 @@ from slam_core.encounters.models import Calibration
 from slam_core.filter.dynamic_slam import DynamicSlam
 from slam_core.filter.floor_plan import PlanIndex
 from slam_core.filter.kernels.linalg2 import largest_eigenvalue2
+from slam_core.sensing.detectors import AnchorEvents, DetectorParams
 from slam_core.sensing.front_end import FrontEnd, RadioArrays
 from slam_core.tracking.batches import (
     EncounterResult,
@@ -102,6 +104,11 @@ class BuildingTracker:
         self.encounters = EncounterStage(params, calibration)
         self._users: dict[str, UserTrack] = {}
         self.front_end = FrontEnd(params.pdr, params.detectors)
+        vertical = (params.detectors or DetectorParams()).vertical
+        self._escalator_type = vertical.escalator_type
+        self._vertical_types = frozenset(
+            (vertical.elevator_type, vertical.stairs_type, vertical.escalator_type)
+        )
         self._by_ble: dict[str, str] = {}
         self._last_solve_ms = -(2**62)
         self._graph_users: list[int] = []
@@ -426,8 +433,17 @@ class BuildingTracker:
     def _dead_reckon(self, b: UserBatch, report: UserReport) -> UserBatch:
         """The batch with the steps the PDR front-end finds in its raw IMU (phones counting their own steps
         and batches without IMU pass through)."""
-        if b.imu is None or b.step_t.size:
+        if b.imu is None:
             return b
+        imu = b.imu
+        if b.step_t.size or not (imu.acc.size or imu.gyr.size or imu.rv.size or imu.grv.size):
+            # a phone that counts its own steps: its barometer, if it sent one, still finds floor changes
+            if not b.imu.pressure.size:
+                return replace(b, imu=None)
+            events, dropped = self.front_end.floor_changes(b.user, b.imu.pressure, b.step_t)
+            report.imu_samples_dropped = dropped
+            report.anchors_detected = events.t_ms.size
+            return replace(b, imu=None, **_with_detections(b, events))
         heard = RadioArrays(
             b.scan_t, b.scan_offsets, b.scan_bssid, b.scan_rss, b.scan_last_seen,
             b.beacon_t, b.beacon_mac, b.beacon_rss,
@@ -436,9 +452,6 @@ class BuildingTracker:
         report.imu_samples_dropped = out.imu_samples_dropped
         report.steps_detected = out.steps.t_ms.size
         report.anchors_detected = out.anchors.t_ms.size
-        signatures = b.detect_signature or ("",) * b.detect_t.size
-        observed = b.detect_observed_t if b.detect_observed_t.size else b.detect_t
-        rises = b.detect_rise if b.detect_rise.size else np.full(b.detect_t.size, math.nan)
         return replace(
             b,
             step_t=out.steps.t_ms,
@@ -446,12 +459,8 @@ class BuildingTracker:
             step_azimuth=out.steps.azimuth_rad,
             step_turn=out.steps.turn_rad,
             step_heading_offset=out.steps.heading_offset_rad,
-            detect_t=np.concatenate([b.detect_t, out.anchors.t_ms]),
-            detect_type=np.concatenate([b.detect_type, out.anchors.type_index]),
-            detect_signature=signatures + out.anchors.signature,
-            detect_observed_t=np.concatenate([observed, out.anchors.observed_t_ms]),
-            detect_rise=np.concatenate([rises, out.anchors.rise_m]),
             imu=None,
+            **_with_detections(b, out.anchors),
         )
 
     def _plan(self, batches: list[UserBatch], reports: dict[str, UserReport]) -> list[Round]:
@@ -659,15 +668,27 @@ class BuildingTracker:
             names = [rnd.det_users[k] for k in plain]
             types = [rnd.det_types[k] for k in plain]
             rising = [
-                (n, rnd.det_rise[k])
+                (n, rnd.det_rise[k], rnd.det_types[k])
                 for n, k in zip(names, plain, strict=True)
                 if math.isfinite(rnd.det_rise[k])
             ]
             if rising:  # a change of floor: the anchor is the landing, on the floor arrived at
-                for name, rise in rising:
+                for name, rise, _ in rising:
                     u = self._users[name]
                     u.floor = array("d", self.floors.rise(np.asarray(u.floor), rise).tolist())
-                self._follow_floors([n for n, _ in rising])
+                self._follow_floors([n for n, _, _ in rising])
+                self._carry([(n, r) for n, r, t in rising if t == self._escalator_type])
+            unmeasured = [
+                n
+                for n, k in zip(names, plain, strict=True)
+                if not math.isfinite(rnd.det_rise[k])
+                and rnd.det_types[k] in self._vertical_types
+                and not self.front_end.has_barometer(n)
+            ]
+            if unmeasured:  # a phone without a barometer at stairs, a lift or an escalator: maybe a new floor
+                for name in unmeasured:
+                    u = self._users[name]
+                    u.floor = array("d", self.floors.maybe_changed(np.asarray(u.floor)).tolist())
             slots = np.array([self._users[n].slot for n in names], dtype=np.int64)
             before = self.engine.summaries(slots)
             levels = self.engine.levels[slots].tolist()
@@ -694,6 +715,18 @@ class BuildingTracker:
                 self._users[name].pin()
                 self._users[name].floor = array("d", self.floors.start(level).tolist())
             self._follow_floors(rnd.fix_users)
+
+    def _carry(self, rides: list[tuple[str, float]]) -> None:
+        """Escalator rides: the escalator carried each user, standing, ``rise / tan(incline)`` along the way
+        they faced (the last step's heading); the phone counted no step for it (beyond both papers)."""
+        rides = [(n, r) for n, r in rides if math.isfinite(self._users[n].heading)]
+        if not rides:
+            return
+        slots = np.array([self._users[n].slot for n, _ in rides], dtype=np.int64)
+        incline = math.tan(math.radians(self.params.floors.escalator_incline_deg))
+        lengths = np.array([abs(r) / incline for _, r in rides])
+        headings = np.array([self._users[n].heading for n, _ in rides])
+        self.engine.step(slots, np.arange(len(rides) + 1, dtype=np.int64), lengths, headings)
 
     def _observe_stretches(self, rnd: Round) -> None:
         """The straight stretches this round's steps completed, each weighed against the floor plan's grid
@@ -751,6 +784,22 @@ class BuildingTracker:
                 users, summary.tolist(), floors, strict=True
             )
         }
+
+
+def _with_detections(b: UserBatch, events: AnchorEvents) -> dict[str, Any]:
+    """The batch's detection fields with the front-end's ``events`` after the phone's own."""
+    if not events.t_ms.size:
+        return {}
+    signatures = b.detect_signature or ("",) * b.detect_t.size
+    observed = b.detect_observed_t if b.detect_observed_t.size else b.detect_t
+    rises = b.detect_rise if b.detect_rise.size else np.full(b.detect_t.size, math.nan)
+    return {
+        "detect_t": np.concatenate([b.detect_t, events.t_ms]),
+        "detect_type": np.concatenate([b.detect_type, events.type_index]),
+        "detect_signature": signatures + events.signature,
+        "detect_observed_t": np.concatenate([observed, events.observed_t_ms]),
+        "detect_rise": np.concatenate([rises, events.rise_m]),
+    }
 
 
 def _latest_time(b: UserBatch) -> int:

@@ -260,6 +260,22 @@ def test_batches_with_landmarks_or_raw_imu_are_not_packed_straight() -> None:
     assert convert.packed_without_context(_walking_batch()) == batch_transport.pack(_walking())
 
 
+def test_a_phone_that_counts_its_steps_still_sends_its_barometer() -> None:
+    body = _walking_batch().model_dump() | {"pressure": {"t_ms": [T0, T0 + 200], "value": [1000.0, 999.9]}}
+    batch = SensorBatch.model_validate(body)
+    assert convert.packed_without_context(batch) is None  # the straight path carries no IMU
+    converted = convert.without_context(batch)
+    assert converted is not None
+    ub = converted.user_batch
+    assert ub.step_t.size == 2
+    assert ub.imu is not None
+    np.testing.assert_array_equal(ub.imu.pressure, [[T0, 1000.0], [T0 + 200, 999.9]])
+    assert ub.imu.acc.shape == (0, 4)
+    back = batch_transport.unpack(batch_transport.pack(ub))
+    assert back.imu is not None
+    np.testing.assert_array_equal(back.imu.pressure, ub.imu.pressure)
+
+
 def test_values_the_engine_refuses_are_refused_when_packed_straight() -> None:
     """The wire model's bounds keep these out; were one to slip in, the front answers as ``UserBatch``."""
     for field, value in (("length_m", math.nan), ("length_m", -0.5)):

@@ -78,6 +78,7 @@ def test_a_level_the_building_does_not_have_is_named_with_the_ones_it_has() -> N
     st.lists(
         st.one_of(
             st.floats(-20.0, 20.0).map(lambda r: ("rise", r)),
+            st.just(("maybe", None)),
             st.lists(st.one_of(st.floats(-50.0, 0.0), st.just(math.nan)), min_size=4, max_size=4).map(
                 lambda ll: ("weigh", ll)
             ),
@@ -89,7 +90,10 @@ def test_a_belief_stays_a_distribution(updates: list[tuple[str, object]]) -> Non
     floors = Floors(FloorParams(), (-1, 0, 1, 2))
     p = floors.start(0)
     for kind, value in updates:
-        p = floors.rise(p, value) if kind == "rise" else floors.weigh(p, np.array(value))  # type: ignore[arg-type]
+        if kind == "maybe":
+            p = floors.maybe_changed(p)
+        else:
+            p = floors.rise(p, value) if kind == "rise" else floors.weigh(p, np.array(value))  # type: ignore[arg-type]
         assert np.all(p >= 0.0)
         assert math.isclose(float(p.sum()), 1.0, rel_tol=1e-9)
 
@@ -254,3 +258,104 @@ def test_a_phone_without_a_fix_finds_its_floor_first() -> None:
     assert level == 1
     assert p > 0.9
     assert tracker.engine.levels[tracker._users["upstairs"].slot] == 1
+
+
+# ---------------------------------------------------------------------- ways between floors
+def test_a_way_seen_without_its_rise_spreads_the_belief_to_the_adjacent_floors() -> None:
+    floors = Floors(FloorParams(unmeasured_change=0.3), (0, 1, 2))
+    middle = floors.maybe_changed(np.array([0.0, 1.0, 0.0]))
+    np.testing.assert_allclose(middle, [0.15, 0.7, 0.15])
+    bottom = floors.maybe_changed(np.array([1.0, 0.0, 0.0]))  # the only neighbour takes it all
+    np.testing.assert_allclose(bottom, [0.7, 0.3, 0.0])
+    assert floors.believed(middle)[0] == 1  # the radio, not the detection, moves the believed floor
+    single = Floors(FloorParams(), (0,))
+    np.testing.assert_array_equal(single.maybe_changed(np.ones(1)), np.ones(1))
+
+
+def _walking_with_barometer(
+    user: str, t0: int, seconds: int, height: np.ndarray, azimuth: float = math.pi / 2
+) -> list[UserBatch]:
+    """One-second batches of a phone that counts its own steps (two a second) and sends its barometer at
+    5 Hz; ``height`` (m) per 0.2 s sample."""
+    from slam_core.sensing.pdr.online import ImuSamples
+    from slam_core.sim.storeys import pressure_at
+
+    out = []
+    for s in range(seconds):
+        t = t0 + s * 1_000 + np.arange(5) * 200
+        hpa = pressure_at(height[s * 5 : s * 5 + 5], np.full(5, 1010.0))
+        out.append(
+            UserBatch(
+                user=user,
+                step_t=np.array([t[0] + 100, t[0] + 600], dtype=np.int64),
+                step_length=np.full(2, 0.3),
+                step_azimuth=np.full(2, azimuth),
+                step_turn=np.full(2, math.nan),
+                imu=ImuSamples(acc=np.zeros((0, 4)), pressure=np.column_stack([t, hpa])),
+            )
+        )
+    return out
+
+
+def test_a_phone_that_counts_its_own_steps_climbs_by_its_barometer() -> None:
+    tracker = _building((0, 1, 2))
+    tracker.apply([_fix("climber", (0.0, 0.0), T0, 0)])
+    assert not tracker.front_end.has_barometer("climber")
+    # 5 s on the landing, 15 s up a flight of 4.5 m, 8 s on the floor above
+    height = np.concatenate([np.zeros(25), np.linspace(0.0, 4.5, 75), np.full(40, 4.5)])
+    floors = []
+    for batch in _walking_with_barometer("climber", T0 + 1_000, 28, height):
+        outcome = tracker.apply([batch])
+        floors.append(outcome.estimates["climber"].floor)
+    assert floors[:19] == [0] * 19  # not before it arrived (t = 20 s)
+    assert floors[-1] == 1
+    arrived = floors.index(1)
+    assert arrived <= 19 + 5  # within 5 s of arriving
+    assert tracker.front_end.has_barometer("climber")
+    assert tracker.front_end.fired["stairs"] == 1
+    # a phone with a barometer passing stairs with no change of height stays where it is, sure of it
+    outcome = tracker.apply([_stairs("climber", T0 + 40_000, math.nan)])
+    assert (outcome.estimates["climber"].floor, outcome.estimates["climber"].floor_probability > 0.9) == (
+        1,
+        True,
+    )
+
+
+def test_an_escalator_carries_its_rider_along_the_way_they_faced() -> None:
+    from slam_core.filter.params import BuildingAnchorParams, FilterParams, extended_confusion
+
+    n_types = len(extended_confusion(10))
+    params = TrackerParams(
+        filter=FilterParams(anchors=BuildingAnchorParams(confusion=extended_confusion(n_types)))
+    )
+    tracker = BuildingTracker(params, CAL, seed=0)
+    tracker.set_levels((0, 1))
+    tracker.apply([_fix("rider", (0.0, 0.0), T0, 0)])
+    tracker.apply(
+        [
+            UserBatch(
+                user="rider",
+                step_t=np.array([T0 + 500, T0 + 1_000], dtype=np.int64),
+                step_length=np.full(2, 0.7),
+                step_azimuth=np.full(2, math.pi / 2),  # east
+                step_turn=np.full(2, math.nan),
+            )
+        ]
+    )
+    before = tracker.estimate("rider")
+    assert before is not None
+    escalator = tracker._escalator_type
+    outcome = tracker.apply(
+        [
+            UserBatch(
+                user="rider",
+                detect_t=np.array([T0 + 20_000], dtype=np.int64),
+                detect_type=np.array([escalator], dtype=np.int64),
+                detect_rise=np.array([4.5]),
+            )
+        ]
+    )
+    after = outcome.estimates["rider"]
+    assert after.floor == 1
+    assert after.x - before.x == pytest.approx(4.5 / math.tan(math.radians(30.0)), abs=1.5)
+    assert abs(after.y - before.y) < 1.0
