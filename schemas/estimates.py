@@ -88,3 +88,9 @@ class EncounterEvent(WireModel):
         gt=0.0, le=200.0, description="Standard deviation of that distance (sqrt R)."
     )
     applied: bool = Field(description="False when the Mahalanobis gate rejected it as an outlier.")
+    floor: int = Field(default=0, ge=-20, le=200, description="The floor the two met on.")
+    position_a: Position | None = Field(
+        default=None,
+        description="Where ``user_a`` was at ``t_ms``, as its filter believed before the encounter.",
+    )
+    position_b: Position | None = Field(default=None, description="Where ``user_b`` was at ``t_ms``.")

@@ -11,7 +11,7 @@ import numpy as np
 from pydantic import ValidationError
 
 from schemas.anchors import AnchorType, BuildingAnchor
-from schemas.common import Position
+from schemas.common import MAX_COORDINATE_M, Position
 from schemas.estimates import EncounterEvent, EncounterModelName, Estimate, EstimateSource
 from schemas.sensors import (
     AnchorReading,
@@ -327,6 +327,15 @@ _ENCOUNTER_MODELS = {
 }
 
 
+def _places(places: tuple[float, ...] | None) -> dict[str, dict[str, float]]:
+    """The two users' positions at the encounter, where known and on the map (a carried estimate far off the
+    map is left out rather than refusing the event)."""
+    if places is None or not all(math.isfinite(v) and abs(v) <= MAX_COORDINATE_M for v in places):
+        return {}
+    xa, ya, xb, yb = places
+    return {"position_a": {"x_m": xa, "y_m": ya}, "position_b": {"x_m": xb, "y_m": yb}}
+
+
 def encounter_event(result: EncounterResult, building_id: str) -> EncounterEvent:
     """The wire event of a chosen detection, its range and sigma clamped to the schema's 200 m and validated
     by it (as ``estimate``)."""
@@ -342,6 +351,8 @@ def encounter_event(result: EncounterResult, building_id: str) -> EncounterEvent
                 "distance_m": min(float(d.distance_m), 200.0),
                 "distance_sigma_m": min(math.sqrt(d.variance_m2), 200.0) if d.variance_m2 > 0.0 else math.nan,
                 "applied": bool(result.applied),
+                "floor": int(result.level),
+                **_places(result.places),
             }
         )
     except ValidationError as exc:

@@ -9,7 +9,7 @@ Per building ``B`` (its frame is ``B``, metres in the building's local frame):
 - ``/buildings/B/anchors`` (``foxglove.SceneUpdate``): a cube per crowd anchor (known anchors green), removed
   when an operator deletes it;
 - ``/buildings/B/encounters`` (``foxglove.SceneUpdate``): a line between the two users of each encounter,
-  shown for a few seconds.
+  where they met, shown for a few seconds.
 
 The server has no authentication: it listens on loopback unless told otherwise (``CROWDSLAM_FOXGLOVE_HOST``).
 """
@@ -185,10 +185,14 @@ def _anchor_entity(building_id: str, m: AnchorMessage) -> SceneEntity:
 
 
 def _encounter_entity(building_id: str, e: EncounterEvent, latest: dict[str, Estimate]) -> SceneEntity | None:
-    a, b = latest.get(e.user_a), latest.get(e.user_b)
-    if a is None or b is None:
-        return None
-    points = [Point3(x=p.position.x_m, y=p.position.y_m, z=0.1) for p in (a, b)]
+    if e.position_a is not None and e.position_b is not None:  # where they met
+        places = [e.position_a, e.position_b]
+    else:
+        a, b = latest.get(e.user_a), latest.get(e.user_b)
+        if a is None or b is None:
+            return None
+        places = [a.position, b.position]
+    points = [Point3(x=p.x_m, y=p.y_m, z=0.1) for p in places]
     return SceneEntity(
         timestamp=_stamp(e.t_ms),
         frame_id=building_id,

@@ -172,10 +172,12 @@ def choose_readings(
     slot_a: np.ndarray,
     slot_b: np.ndarray,
     carrier: ReadingCarrier,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The selector's choice among detections of tracked users (indices into ``found``), from the filters'
     current estimates placed at the detections' times, with each chosen one's offset and carry variance for
-    ``DynamicSlam.observe_encounters``. ``means_of(slots)``: the filters' weighted means of these slots.
+    ``DynamicSlam.observe_encounters``, and where the two were then (x_a, y_a, x_b, y_b: the filters'
+    estimates before the encounter, at its time). ``means_of(slots)``: the filters' weighted means of these
+    slots.
 
     Beyond the paper, which applies an encounter as it happens: a batch may span up to a minute and its
     encounters are applied after its steps, so each is carried from its time to now through both users'
@@ -221,6 +223,8 @@ def choose_readings(
     candidates = latest[near[ok]]
     # a user's position then is where it is now minus its walk since, or plus its guessed walk beyond
     offset = (shift[:c] - shift[c:])[ok] - (ahead_a - ahead_b)[near[ok]]
+    then_a = means[index[:n]][candidates] - shift[:c][ok] + ahead_a[near[ok]]
+    then_b = means[index[n:]][candidates] - shift[c:][ok] + ahead_b[near[ok]]
     carry_var = (carrier.carry_variance(walked[:c]) + carrier.carry_variance(walked[c:]))[ok]
     carry_var += (guess_a + guess_b)[near[ok]]
     delta = delta_now[candidates] - offset
@@ -233,4 +237,4 @@ def choose_readings(
     chosen = selector.choose(found.t_ms[candidates], keys[candidates], predicted, sigma)
     if len(selector) > 100_000:
         selector.forget_before(int(found.t_ms.max()))
-    return candidates[chosen], offset[chosen], carry_var[chosen]
+    return candidates[chosen], offset[chosen], carry_var[chosen], np.hstack([then_a, then_b])[chosen]

@@ -170,6 +170,10 @@ class EstimateRow:
 class EncounterResult:
     detection: RangedDetection
     applied: bool
+    places: tuple[float, ...] | None = None
+    """Where the two were at the encounter's time (x_a, y_a, x_b, y_b), as their filters believed then."""
+    level: int = 0
+    """The floor they met on."""
 
 
 @dataclass

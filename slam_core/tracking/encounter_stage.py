@@ -124,7 +124,7 @@ class EncounterStage:
         usable = np.flatnonzero(tracked)
         if usable.size == 0:
             return [], len(found)
-        mask, offset, carry_var = choose_readings(
+        mask, offset, carry_var, places = choose_readings(
             engine.means,
             detector,
             self.selector,
@@ -135,8 +135,12 @@ class EncounterStage:
         )
         keep = usable[mask]
         chosen = detector.ranged(detector.to_detections(found.subset(keep)))
+        levels = engine.levels[slot_a[keep]].tolist()
         if not chosen or not self.apply_human_anchors:
-            return [EncounterResult(d, False) for d in chosen], len(found)
+            return [
+                EncounterResult(d, False, tuple(p), lv)
+                for d, p, lv in zip(chosen, places.tolist(), levels, strict=True)
+            ], len(found)
         outcome = engine.observe_encounters(
             slot_a[keep],
             slot_b[keep],
@@ -144,7 +148,10 @@ class EncounterStage:
             np.array([d.variance_m2 for d in chosen]) + carry_var,
             offset,
         )
-        results = [EncounterResult(d, bool(a)) for d, a in zip(chosen, outcome.applied, strict=True)]
+        results = [
+            EncounterResult(d, bool(a), tuple(p), lv)
+            for d, a, p, lv in zip(chosen, outcome.applied, places.tolist(), levels, strict=True)
+        ]
         return results, len(found)
 
 

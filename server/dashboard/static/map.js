@@ -222,11 +222,18 @@ export class MapView {
     let fading = false;
     scene.encounters = scene.encounters.filter((e) => nowMs - e.seenMs < ENCOUNTER_FADE_MS);
     for (const e of scene.encounters) {
-      const a = scene.users.get(e.user_a), b = scene.users.get(e.user_b);
-      if (!a || !b) continue;
+      // where the two met, on the floor they met on (a server that sends no places: where they are now)
+      if ((e.floor ?? 0) !== scene.floor) continue;
+      let pa = e.position_a, pb = e.position_b;
+      if (!pa || !pb) {
+        const a = scene.users.get(e.user_a), b = scene.users.get(e.user_b);
+        if (!a || !b) continue;
+        pa = a.est.position;
+        pb = b.est.position;
+      }
       fading = true;
-      const [ax, ay] = this.toScreen(a.est.position.x_m, a.est.position.y_m);
-      const [bx, by] = this.toScreen(b.est.position.x_m, b.est.position.y_m);
+      const [ax, ay] = this.toScreen(pa.x_m, pa.y_m);
+      const [bx, by] = this.toScreen(pb.x_m, pb.y_m);
       ctx.globalAlpha = Math.max(0, 1 - (nowMs - e.seenMs) / ENCOUNTER_FADE_MS);
       ctx.strokeStyle = e.applied ? "#2a9d5b" : "#9aa6b2";
       ctx.setLineDash(e.applied ? [] : [4, 4]);

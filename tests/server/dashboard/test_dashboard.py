@@ -66,6 +66,20 @@ def test_the_link_logs_in_and_the_crowd_moves_as_the_api_says(browser: Browser, 
         " document.getElementById('app').dataset.users]"
     )
     assert label.endswith(f" {users} people")
+    # an encounter is drawn where the two met, on its own floor only (these two ids are nobody on the map)
+    drawn = page.evaluate(
+        """() => {
+          const d = window.crowdslamDashboard, now = performance.now();
+          const met = (floor) => ({ user_a: "gone-a", user_b: "gone-b", floor, applied: true, seenMs: now,
+            position_a: { x_m: 1, y_m: 1 }, position_b: { x_m: 3, y_m: 2 } });
+          const scene = { floor: d.scene.floor, users: new Map() };
+          scene.encounters = [met(d.scene.floor + 1)];
+          const above = d.view.drawEncounters(scene, now);
+          scene.encounters = [met(d.scene.floor)];
+          return [above, d.view.drawEncounters(scene, now)];
+        }"""
+    )
+    assert drawn == [False, True]
     # a person's details: id, sigma, last update
     page.evaluate(
         "() => { const d = window.crowdslamDashboard;"

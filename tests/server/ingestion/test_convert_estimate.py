@@ -101,3 +101,22 @@ def test_constructed_encounters_equal_validated_ones() -> None:
 def test_an_encounter_breaking_the_schema_is_refused(change: dict[str, Any]) -> None:
     with pytest.raises(ValueError, match="has no valid range"):
         encounter_event(_encounter(np.random.default_rng(0), **change), "hq")
+
+
+def test_an_encounter_says_where_and_on_which_floor_the_two_met() -> None:
+    base = _encounter(np.random.default_rng(1))
+    met = encounter_event(replace(base, places=(1.0, 2.0, 3.5, -4.0), level=2), "hq")
+    assert met.floor == 2
+    assert met.position_a is not None
+    assert met.position_b is not None
+    assert (met.position_a.x_m, met.position_a.y_m, met.position_b.x_m, met.position_b.y_m) == (
+        1.0,
+        2.0,
+        3.5,
+        -4.0,
+    )
+    # an estimate carried off the map, or none: the event still goes, without places
+    for places in ((1.0, math.nan, 0.0, 0.0), (1e9, 0.0, 0.0, 0.0), None):
+        bare = encounter_event(replace(base, places=places), "hq")
+        assert bare.position_a is None
+        assert bare.position_b is None

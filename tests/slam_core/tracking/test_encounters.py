@@ -301,7 +301,9 @@ def test_narrowing_the_readings_before_carrying_them_chooses_as_carrying_all(
 
     def checked(means_of, detector, selector, found, slot_a, slot_b, carrier):  # type: ignore[no-untyped-def]
         reference = copy.deepcopy(selector)
-        got, offset, carry_var = narrowed(means_of, detector, selector, found, slot_a, slot_b, carrier)
+        got, offset, carry_var, places = narrowed(
+            means_of, detector, selector, found, slot_a, slot_b, carrier
+        )
         users, columns = carrier.users, carrier.columns
         n = len(found)
         ids, who = unique_ints_inverse(np.concatenate([found.user_a, found.user_b]))
@@ -327,13 +329,15 @@ def test_narrowing_the_readings_before_carrying_them_chooses_as_carrying_all(
         want = ok[reference.choose(found.t_ms[ok], keys[ok], predicted, sigma)]
         assert got.tolist() == want.tolist()
         np.testing.assert_allclose(offset, placed[want], atol=1e-12)
+        then = means[index] - (shift - ahead)  # each user where it was at the reading
+        np.testing.assert_allclose(places, np.hstack([then[:n], then[n:]])[want], atol=1e-9)
         variance = 0.01 * (walked[:n] ** 2 + walked[n:] ** 2) + guess_var[:n] + guess_var[n:]
         np.testing.assert_allclose(carry_var, variance[want], atol=1e-12)
         calls.append(int(got.size))
         far.append(int(np.sum(predicted > selector.params.select_range_m)))
         carried.append(float(np.abs(shift[:n][want]).sum() + np.abs(shift[n:][want]).sum()))
         guessed.append(float(np.abs(ahead[:n][want]).sum() + np.abs(ahead[n:][want]).sum()))
-        return got, offset, carry_var
+        return got, offset, carry_var, places
 
     far: list[int] = []
     carried: list[float] = []

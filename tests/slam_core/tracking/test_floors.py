@@ -151,6 +151,10 @@ def test_two_phones_a_storey_apart_are_no_encounter() -> None:
     assert through_ceiling.detections == 1  # heard, and set aside
     same_floor = tracker.apply([_sighting("a", "c", T0 + 2_000, 1.0)])
     assert [(e.detection.user_a, e.detection.user_b) for e in same_floor.encounters] == [("a", "c")]
+    (met,) = same_floor.encounters
+    assert met.level == 0
+    assert met.places is not None
+    np.testing.assert_allclose(met.places, [0.0, 0.0, 1.0, 0.0], atol=0.5)  # where each was when they met
 
 
 def test_stairs_with_a_rise_move_the_user_up_and_their_landing_is_an_anchor_of_the_floor_above() -> None:
