@@ -46,6 +46,13 @@ class SignalMapJob(WireModel):
     segments: int | None = Field(
         default=None, ge=0, description="Walks between two landmarks that were solved."
     )
+    segments_across_floors: int | None = Field(
+        default=None, ge=0, description="Walks whose two landmarks are on different floors: left out."
+    )
+    floors: list[int] = Field(
+        default_factory=list,
+        description="The floors mapped; in a build of several, each floor's files start 'floor<level>_'.",
+    )
     devices: int | None = Field(default=None, ge=0)
     scans: int | None = Field(default=None, ge=0)
     access_points: int | None = Field(default=None, ge=0)

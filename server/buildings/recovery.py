@@ -253,7 +253,22 @@ def load_radio_map(tracker: BuildingTracker, signal_maps: Path | None, building_
         return 0
     if radio is None:
         return 0
-    added = tracker.load_radio_map(radio.map_id, radio.xy, radio.bssids, radio.rss, radio.t_ms)
+    on = np.flatnonzero(np.isin(radio.levels, tracker.levels))  # each scan joins its floor's fingerprints
+    if on.size < len(radio):
+        logger.warning(
+            "building %s: %d scans of build %s skipped: on floors the building does not have",
+            building_id,
+            len(radio) - on.size,
+            radio.map_id,
+        )
+    added = tracker.load_radio_map(
+        radio.map_id,
+        radio.xy[on],
+        [radio.bssids[i] for i in on],
+        [radio.rss[i] for i in on],
+        radio.t_ms[on],
+        radio.levels[on],
+    )
     logger.info("building %s: %d scans of build %s joined its fingerprints", building_id, added, radio.map_id)
     return added
 

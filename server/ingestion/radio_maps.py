@@ -27,17 +27,27 @@ class RadioMap:
     bssids: list[list[str]]
     rss: list[np.ndarray]
     t_ms: np.ndarray
+    levels: np.ndarray
+    """The floor of each scan."""
 
     def __len__(self) -> int:
         return len(self.bssids)
 
 
-def write_radio_map(folder: Path, xy: np.ndarray, scans: list[dict[str, float]], t_ms: np.ndarray) -> Path:
-    """Write the placed scans (fresh APs only, BSSIDs lower case) as ``radio_map.json``."""
+def write_radio_map(
+    folder: Path, xy: np.ndarray, scans: list[dict[str, float]], t_ms: np.ndarray, levels: np.ndarray
+) -> Path:
+    """Write the placed scans (fresh APs only, BSSIDs lower case) and their floors as ``radio_map.json``."""
     path = folder / RADIO_MAP
     rows = [
-        {"t_ms": int(t), "x_m": round(float(p[0]), 3), "y_m": round(float(p[1]), 3), "aps": scan}
-        for p, scan, t in zip(xy, scans, t_ms, strict=True)
+        {
+            "t_ms": int(t),
+            "floor": int(lv),
+            "x_m": round(float(p[0]), 3),
+            "y_m": round(float(p[1]), 3),
+            "aps": scan,
+        }
+        for p, scan, t, lv in zip(xy, scans, t_ms, levels, strict=True)
     ]
     path.write_text(json.dumps({"scans": rows}))
     return path
@@ -51,11 +61,12 @@ def read_radio_map(path: Path, map_id: str) -> RadioMap:
         bssids = [[str(b).lower() for b in r["aps"]] for r in rows]
         rss = [np.array(list(r["aps"].values()), dtype=np.float64) for r in rows]
         t_ms = np.array([int(r["t_ms"]) for r in rows], dtype=np.int64)
+        levels = np.array([int(r.get("floor", 0)) for r in rows], dtype=np.int64)  # older maps: floor 0
     except (OSError, ValueError, KeyError, TypeError, AttributeError) as error:
         raise ValueError(f"{path} is not a radio map: {error}") from error
     if not (np.all(np.isfinite(xy)) and all(np.all(np.isfinite(r)) for r in rss)):
         raise ValueError(f"{path} holds non-finite positions or signal strengths")
-    return RadioMap(map_id, xy, bssids, rss, t_ms)
+    return RadioMap(map_id, xy, bssids, rss, t_ms, levels)
 
 
 def latest_radio_map(root: Path, building_id: str, unless: str | None = None) -> RadioMap | None:

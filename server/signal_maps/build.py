@@ -4,8 +4,10 @@ Every recorded batch is read back and converted as ingestion converts it. Per de
 phone, or dead-reckoned from raw IMU by the same front-end as live tracking), its landmarks (position fixes,
 readings of operator-known anchors, tags with an encoded position) and its WiFi scans are put in time order;
 each stretch between two consecutive landmarks with at least two steps becomes one walk of the SignalSLAM
-graph (the paper's segments between NFC tags). All walks of the building are solved jointly; the scans placed
-on the optimised trajectories give the signal maps and the 5 m fingerprint database.
+graph (the paper's segments between NFC tags). The walks of each floor (both landmarks on it; a stretch
+between landmarks of two floors is left out, as the paper keeps to one floor) are solved jointly; the scans
+placed on the optimised trajectories give each floor's signal maps and 5 m fingerprint database, whose file
+names start ``floor<level>_`` in a building of several floors, and one radio map of every floor's scans.
 
 gtsam holds the GIL while it optimises, so this runs in a child process; the function takes and returns plain
 data only.
@@ -54,6 +56,7 @@ class _Device:
     step_offset: list[float] = field(default_factory=list)  # the PDR front-end's north offset, NaN: none
     fix_t: list[int] = field(default_factory=list)
     fix_xy: list[np.ndarray] = field(default_factory=list)
+    fix_level: list[int] = field(default_factory=list)
     scan_t: list[int] = field(default_factory=list)
     scans: list[dict[int, float]] = field(default_factory=list)
     beacon_t: list[int] = field(default_factory=list)
@@ -110,6 +113,7 @@ def _collect(files: list[str], ctx: BuildingContext, columns: _Columns) -> tuple
             d.step_offset += steps.heading_offset_rad.tolist()
         d.fix_t += user.fix_t.tolist()
         d.fix_xy += list(user.fix_xy)
+        d.fix_level += [user.fix_floor(i) for i in range(user.fix_t.size)]
         for k in range(user.scan_t.size):
             lo, hi = int(user.scan_offsets[k]), int(user.scan_offsets[k + 1])
             t = int(user.scan_t[k])
@@ -139,6 +143,7 @@ def _collect(files: list[str], ctx: BuildingContext, columns: _Columns) -> tuple
 @dataclass(frozen=True)
 class _Segment:
     device: str
+    level: int
     walk: Walk
     scan_t: np.ndarray
     scans: list[dict[int, float]]
@@ -154,15 +159,18 @@ def _offline_headings(headings: np.ndarray, azimuths: np.ndarray, offsets: np.nd
     return turned
 
 
-def _segments(devices: dict[str, _Device], columns: _Columns) -> list[_Segment]:
+def _segments(devices: dict[str, _Device], columns: _Columns) -> tuple[list[_Segment], int]:
+    """Every device's walks between consecutive landmarks on one floor, and how many were left out as
+    crossing floors."""
     out = []
+    across = 0
     for name, d in sorted(devices.items()):
         order = np.argsort(d.step_t, kind="stable")
         step_t = np.asarray(d.step_t, dtype=np.int64)[order]
         lengths = np.asarray(d.step_len)[order]
         headings = integrate_headings(np.asarray(d.step_azimuth), np.asarray(d.step_turn))[order]
         azimuths, offsets = np.asarray(d.step_azimuth)[order], np.asarray(d.step_offset)[order]
-        fixes = sorted(zip(d.fix_t, d.fix_xy, strict=True), key=lambda f: f[0])
+        fixes = sorted(zip(d.fix_t, d.fix_xy, d.fix_level, strict=True), key=lambda f: f[0])
         scan_t = np.asarray(d.scan_t, dtype=np.int64)
         lte_t = np.asarray(d.lte_t, dtype=np.int64)
         beacon_t, beacon_col = (
@@ -171,9 +179,12 @@ def _segments(devices: dict[str, _Device], columns: _Columns) -> list[_Segment]:
         )
         magnetic = np.vstack([np.zeros((0, 2)), *d.magnetic])
         magnetic = magnetic[np.argsort(magnetic[:, 0], kind="stable")]
-        for (t0, xy0), (t1, xy1) in itertools.pairwise(fixes):
+        for (t0, xy0, level0), (t1, xy1, level1) in itertools.pairwise(fixes):
             inside = (step_t > t0) & (step_t <= t1)
             if inside.sum() < 2:
+                continue
+            if level0 != level1:
+                across += 1
                 continue
             in_scan = np.flatnonzero((scan_t >= t0) & (scan_t <= t1))
             in_lte = np.flatnonzero((lte_t >= t0) & (lte_t <= t1))
@@ -194,31 +205,25 @@ def _segments(devices: dict[str, _Device], columns: _Columns) -> list[_Segment]:
                 window_lte=window_means(centres, lte_t[in_lte], lte, len(columns.cells))[keep],
             )
             out.append(
-                _Segment(name, walk, scan_t[in_scan], [d.scans[i] for i in in_scan], lte_t[in_lte], lte)
+                _Segment(
+                    name, level0, walk, scan_t[in_scan], [d.scans[i] for i in in_scan], lte_t[in_lte], lte
+                )
             )
-    return out
+    return out, across
 
 
-def build_signal_maps(
-    files: list[str], out_dir: str, ctx: BuildingContext, modalities: tuple[str, ...] = ("wifi",)
-) -> dict[str, Any]:
-    """Build and write the maps; returns the job's summary (segments, devices, files written). The
-    signal edges use ``modalities`` (``SignalGraphParams.modalities``); the maps cover the most-heard WiFi
-    APs and LTE cells and the magnetic magnitude, whatever the recordings hold."""
-
-    columns = _Columns()
-    devices, skipped = _collect(files, ctx, columns)
-    segments = _segments(devices, columns)
-    if not segments:
-        raise ValueError(
-            "no stretch of any device's steps lies between two landmarks (position fixes, known-anchor "
-            "readings or tags with a position): SignalSLAM needs a landmark at each end of a walk"
-        )
-    trajectories = solve([s.walk for s in segments], SignalGraphParams(modalities=modalities))
-    folder = Path(out_dir)
-    folder.mkdir(parents=True, exist_ok=True)
+def _write_maps(
+    folder: Path,
+    prefix: str,
+    segments: list[_Segment],
+    trajectories: list[np.ndarray],
+    columns: _Columns,
+    ctx: BuildingContext,
+) -> list[Path]:
+    """One floor's signal maps (WiFi, LTE, magnetic) and 5 m fingerprint database, their names after
+    ``prefix``."""
     placed, rows, lte_xy, lte_rows, mag_xy, mag_values = [], [], [], [], [], []
-    for segment, xy in zip(segments, trajectories.signalslam, strict=True):
+    for segment, xy in zip(segments, trajectories, strict=True):
         t_ms = segment.walk.t_ms
         if segment.scan_t.size:
             placed.append(position_at(t_ms, xy, segment.scan_t.astype(float)))
@@ -231,33 +236,91 @@ def build_signal_maps(
             has = np.isfinite(magnitude)
             mag_xy.append(position_at(t_ms, xy, segment.walk.window_t[has].astype(float)))
             mag_values.append(magnitude[has, None])
+    out = folder / (prefix or ".")
+    if prefix:  # written apart, then named after their floor beside the others
+        out = folder / f".{prefix}"
+        out.mkdir(exist_ok=True)
     written: list[Path] = []
     to_wgs84 = None if ctx.geo is None else ctx.geo.to_wgs84
     if rows:
         names = _Columns.names(columns.aps)
-        written += write_scan_maps(folder, np.vstack(placed), np.vstack(rows), names, to_wgs84=to_wgs84)
+        written += write_scan_maps(out, np.vstack(placed), np.vstack(rows), names, to_wgs84=to_wgs84)
     if lte_rows:
         cells = _Columns.names(columns.cells)
         written += write_column_maps(
-            folder, np.vstack(lte_xy), np.vstack(lte_rows), cells, LTE_CELL, to_wgs84=to_wgs84
+            out, np.vstack(lte_xy), np.vstack(lte_rows), cells, LTE_CELL, to_wgs84=to_wgs84
         )
     if mag_values:
         written += write_column_maps(
-            folder, np.vstack(mag_xy), np.vstack(mag_values), ["magnetic magnitude"], MAGNETIC, 1, to_wgs84
+            out, np.vstack(mag_xy), np.vstack(mag_values), ["magnetic magnitude"], MAGNETIC, 1, to_wgs84
         )
-    if rows:  # every scan at its SignalSLAM position: the radio map the building's tracker loads
+    if not prefix:
+        return written
+    named = [p.rename(folder / f"{prefix}{p.name}") for p in written]
+    out.rmdir()
+    return named
+
+
+def build_signal_maps(
+    files: list[str], out_dir: str, ctx: BuildingContext, modalities: tuple[str, ...] = ("wifi",)
+) -> dict[str, Any]:
+    """Build and write the maps; returns the job's summary (segments, devices, files written). The
+    signal edges use ``modalities`` (``SignalGraphParams.modalities``); the maps cover the most-heard WiFi
+    APs and LTE cells and the magnetic magnitude, whatever the recordings hold."""
+
+    columns = _Columns()
+    devices, skipped = _collect(files, ctx, columns)
+    segments, across = _segments(devices, columns)
+    if not segments:
+        raise ValueError(
+            "no stretch of any device's steps lies between two landmarks (position fixes, known-anchor "
+            "readings or tags with a position) on one floor: SignalSLAM needs a landmark at each end of a "
+            "walk"
+        )
+    folder = Path(out_dir)
+    folder.mkdir(parents=True, exist_ok=True)
+    levels = sorted({s.level for s in segments})
+    several = len(levels) > 1 or levels != [0]
+    written: list[Path] = []
+    placed: list[tuple[_Segment, np.ndarray]] = []
+    tracks = []
+    for level in levels:
+        mine = [s for s in segments if s.level == level]
+        trajectories = solve([s.walk for s in mine], SignalGraphParams(modalities=modalities))
+        prefix = f"floor{level}_" if several else ""
+        written += _write_maps(folder, prefix, mine, trajectories.signalslam, columns, ctx)
+        for segment, xy in zip(mine, trajectories.signalslam, strict=True):
+            if segment.scan_t.size:
+                placed.append((segment, position_at(segment.walk.t_ms, xy, segment.scan_t.astype(float))))
+            tracks.append(
+                {
+                    "device_id": segment.device,
+                    "floor": level,
+                    "t_ms": segment.walk.t_ms.tolist(),
+                    "xy_m": np.round(xy, 3).tolist(),
+                }
+            )
+    if (
+        placed
+    ):  # every scan at its SignalSLAM position, on its floor: the radio map the building's tracker loads
         names = _Columns.names(columns.aps)
-        scans = [{names[c]: rss for c, rss in scan.items()} for s in segments for scan in s.scans]
-        scan_t = np.concatenate([s.scan_t for s in segments if s.scan_t.size])
-        written.append(write_radio_map(folder, np.vstack(placed), scans, scan_t))
-    tracks = folder / "trajectories.json"
-    tracks.write_text(json.dumps([
-        {"device_id": s.device, "t_ms": s.walk.t_ms.tolist(), "xy_m": np.round(xy, 3).tolist()}
-        for s, xy in zip(segments, trajectories.signalslam, strict=True)
-    ]))  # fmt: skip
-    written.append(tracks)
+        scans = [{names[c]: rss for c, rss in scan.items()} for s, _ in placed for scan in s.scans]
+        written.append(
+            write_radio_map(
+                folder,
+                np.vstack([xy for _, xy in placed]),
+                scans,
+                np.concatenate([s.scan_t for s, _ in placed]),
+                np.concatenate([np.full(s.scan_t.size, s.level, dtype=np.int64) for s, _ in placed]),
+            )
+        )
+    path = folder / "trajectories.json"
+    path.write_text(json.dumps(tracks))
+    written.append(path)
     return {
         "segments": len(segments),
+        "segments_across_floors": across,
+        "floors": levels,
         "devices": len({s.device for s in segments}),
         "scans": int(sum(s.scan_t.size for s in segments)),
         "access_points": len(columns.aps),

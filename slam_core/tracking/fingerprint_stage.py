@@ -55,19 +55,23 @@ class FingerprintStage:
         bssids: list[list[str]],
         rss: list[np.ndarray],
         t_ms: np.ndarray,
-        level: int = 0,
+        levels: np.ndarray | None = None,
     ) -> int:
-        """Add the scans of a signal-map build (SignalSLAM's positions) to the floor's map, owned by no user;
-        returns how many joined (the map's per-cell bound applies). A map already loaded (by ``map_id``, which
-        snapshots keep) is not loaded again."""
+        """Add the scans of a signal-map build (SignalSLAM's positions) to their floors' maps (``levels``, one
+        per scan; None: all on floor 0), owned by no user; returns how many joined (the map's per-cell bound
+        applies). A map already loaded (by ``map_id``, which snapshots keep) is not loaded again."""
         if map_id == self.radio_map_id:
             return 0
         xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-        if not (len(bssids) == len(rss) == xy.shape[0] == len(t_ms)) or not np.all(np.isfinite(xy)):
-            raise ValueError("radio map: one finite position, BSSID list, RSS array and time per scan")
-        target = self.map_of(level)
+        levels = np.zeros(xy.shape[0], dtype=np.int64) if levels is None else np.asarray(levels)
+        if not (len(bssids) == len(rss) == xy.shape[0] == len(t_ms) == levels.size) or not np.all(
+            np.isfinite(xy)
+        ):
+            raise ValueError("radio map: one finite position, BSSID list, RSS array, time and floor per scan")
         added = sum(
-            target.add(SURVEY_OWNER, xy[i], bssids[i], np.asarray(rss[i], dtype=np.float64), int(t_ms[i]))
+            self.map_of(int(levels[i])).add(
+                SURVEY_OWNER, xy[i], bssids[i], np.asarray(rss[i], dtype=np.float64), int(t_ms[i])
+            )
             for i in range(xy.shape[0])
         )
         self.radio_map_id = map_id

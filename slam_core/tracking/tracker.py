@@ -129,11 +129,14 @@ class BuildingTracker:
         bssids: list[list[str]],
         rss: list[np.ndarray],
         t_ms: np.ndarray,
-        level: int = 0,
+        levels: np.ndarray | None = None,
     ) -> int:
-        """``FingerprintStage.load_radio_map``: a signal-map build's scans join the floor's fingerprints."""
-        self.floors.index(level)
-        return self.fingerprints.load_radio_map(map_id, xy, bssids, rss, t_ms, level)
+        """``FingerprintStage.load_radio_map``: a signal-map build's scans join their floors' fingerprints
+        (``levels`` per scan, None: floor 0; a floor the building does not have: ValueError naming its
+        floors)."""
+        for level in set(() if levels is None else np.asarray(levels).tolist()):
+            self.floors.index(level)
+        return self.fingerprints.load_radio_map(map_id, xy, bssids, rss, t_ms, levels)
 
     def set_floor_plan(self, plan: PlanIndex | None, level: int = 0) -> None:
         """The plan that weighs the steps of the users on floor ``level`` from now on (beyond the papers);

@@ -263,8 +263,9 @@ class Dashboard {
 
   async changeFloor(level) {
     this.scene.floor = level;
+    this.scene.overlay = null; // another floor's signals: choose again among this floor's
     this.view.userMoved = false;
-    await this.loadFloor();
+    await Promise.all([this.loadFloor(), this.loadOverlays()]);
     this.fitFloor();
     this.published();
   }
@@ -409,11 +410,18 @@ class Dashboard {
     }
     const job = done[0];
     this.overlayJob = job;
-    for (const name of job.files.filter((f) => /^signal_map_.*\.json$/.test(f))) {
+    // a build of several floors names each floor's maps "floor<level>_signal_map_..."; of one, "signal_map_..."
+    const several = job.files.some((f) => /^floor-?\d+_/.test(f));
+    const mapped = job.floors && job.floors.length ? job.floors : [0]; // builds before floors mapped floor 0
+    const prefix = several ? `floor${this.scene.floor}_signal_map_` : mapped.includes(this.scene.floor) ? "signal_map_" : null;
+    const names = prefix === null ? [] : job.files.filter((f) => f.startsWith(prefix) && f.endsWith(".json"));
+    for (const name of names) {
       const kind = name.includes("_ap") ? "WiFi AP" : name.includes("_cell") ? "LTE cell" : "magnetic";
-      select.append(new Option(`${kind} ${name.replace(/^signal_map_|\.json$/g, "")}`, name));
+      select.append(new Option(`${kind} ${name.slice(prefix.length).replace(/\.json$/, "")}`, name));
     }
-    $("overlay-note").textContent = `Build ${job.id}, finished ${fmtTime(Date.parse(job.finished_at))}.`;
+    $("overlay-note").textContent = names.length
+      ? `Build ${job.id}, finished ${fmtTime(Date.parse(job.finished_at))}.`
+      : `Build ${job.id} mapped no signal on this floor.`;
   }
 
   async chooseOverlay(name) {

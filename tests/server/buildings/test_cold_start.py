@@ -45,6 +45,7 @@ def cold_api(tmp_path: Path) -> Iterator[Api]:
         np.column_stack([xs, 0 * xs]),
         [_aps(np.array([x, 0.0]), rng) for x in xs],
         T0 - 3_600_000 + 0 * xs,
+        np.zeros(xs.size, dtype=np.int64),
     )
     job = SignalMapJob(
         id="build1", building_id="hq", status=SignalMapStatus.DONE, created_at=datetime.now(UTC), recordings=1

@@ -8,7 +8,7 @@ import json
 import os
 import subprocess
 import time
-from datetime import UTC, datetime
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 import httpx
@@ -304,6 +304,24 @@ def test_a_finished_signal_map_is_an_overlay_chosen_by_access_point(browser: Bro
     page.select_option("#overlay", "")
     assert pixel_at_floor_centre()[:3] != coloured[:3]
     assert page.evaluate("() => window.crowdslamDashboard.scene.overlay") is None
+    # a later build of two floors: the page offers the maps of the floor it shows, not the other's
+    later = demo.data_dir / "signal_maps" / demo.building / "0a1b2c3d4e60"
+    named = []
+    for level, ap in ((0, "aa:bb:cc:00:00:01"), (1, "aa:bb:cc:00:00:02")):
+        for path in write_scan_maps(later, xy, rss[:, [0]] if level == 0 else rss[:, [1]], [ap], aps=1):
+            named.append(path.rename(later / f"floor{level}_{path.name}").name)
+    job = job.model_copy(
+        update={
+            "id": "0a1b2c3d4e60",
+            "files": named,
+            "floors": [0, 1],
+            "finished_at": now + timedelta(seconds=1),
+        }
+    )
+    (later / RECORD).write_text(job.model_dump_json())
+    page.evaluate("() => window.crowdslamDashboard.loadOverlays()")
+    expect(page.locator("#overlay option")).to_have_count(2, timeout=10_000)  # none, floor 0's AP
+    assert page.locator("#overlay option").nth(1).get_attribute("value") == "floor0_signal_map_ap1.json"
     watch.assert_clean()
     page.context.close()
 

@@ -14,9 +14,17 @@ T0 = 1_767_225_600_000
 APS = [f"0a:00:00:00:00:{i:02x}" for i in range(8)]
 
 
-def _walk(device: str, x0: float, x1: float, seconds: int, with_end_fix: bool = True) -> list[dict[str, Any]]:
+def _walk(
+    device: str,
+    x0: float,
+    x1: float,
+    seconds: int,
+    with_end_fix: bool = True,
+    floors: tuple[int, int] = (0, 0),
+) -> list[dict[str, Any]]:
     """A phone walking along y = 0 from x0 to x1, posting one batch a second: steps with azimuths, a WiFi
-    scan every 2 s whose RSS falls with the distance to 8 APs along the corridor, fixes at both ends."""
+    scan every 2 s whose RSS falls with the distance to 8 APs along the corridor, fixes at both ends (on
+    ``floors``)."""
     azimuth = math.pi / 2 if x1 > x0 else -math.pi / 2
     step = (x1 - x0) / (2 * seconds)
     batches = []
@@ -45,10 +53,24 @@ def _walk(device: str, x0: float, x1: float, seconds: int, with_end_fix: bool = 
             body["wifi_scans"] = [{"t_ms": t + 100, "aps": aps}]
         marks = []
         if s == 0:
-            marks.append({"kind": "fix", "t_ms": t, "position": {"x_m": x0, "y_m": 0.0}, "sigma_m": 0.5})
+            marks.append(
+                {
+                    "kind": "fix",
+                    "t_ms": t,
+                    "position": {"x_m": x0, "y_m": 0.0},
+                    "sigma_m": 0.5,
+                    "floor": floors[0],
+                }
+            )
         if s == seconds - 1 and with_end_fix:
             marks.append(
-                {"kind": "fix", "t_ms": t + 999, "position": {"x_m": x1, "y_m": 0.0}, "sigma_m": 0.5}
+                {
+                    "kind": "fix",
+                    "t_ms": t + 999,
+                    "position": {"x_m": x1, "y_m": 0.0},
+                    "sigma_m": 0.5,
+                    "floor": floors[1],
+                }
             )
         if marks:
             body["landmarks"] = marks
@@ -134,6 +156,36 @@ def test_a_build_from_recordings_serves_maps(sqlite_api: Api) -> None:
     assert (
         tracker.fingerprints.map_of(0)._per_owner[SURVEY_OWNER] >= 5
     )  # at most 4 a 4 m cell: the 28 m corridor
+
+
+def test_each_floor_gets_its_own_maps_and_its_scans_join_its_fingerprints(sqlite_api: Api) -> None:
+    api = sqlite_api
+    op = api.auth(api.operator)
+    floors = [{"level": 0, "name": "Ground"}, {"level": 1, "name": "First"}]
+    created = api.client.post("/v1/buildings", json={"id": "hq", "name": "HQ", "floors": floors}, headers=op)
+    assert created.status_code == 201, created.text
+    _post(api, _walk("phone-a", 0.0, 28.0, 20), "phone-a")
+    _post(api, _walk("phone-b", 28.0, 0.0, 20, floors=(1, 1)), "phone-b")
+    _post(api, _walk("phone-c", 0.0, 28.0, 20, floors=(0, 1)), "phone-c")  # fixes on two floors: left out
+    job = _wait(api, api.client.post("/v1/buildings/hq/signal-maps", headers=op).json()["id"])
+    assert job["status"] == "done", job
+    assert (job["floors"], job["segments"], job["segments_across_floors"]) == ([0, 1], 2, 1)
+    for level in (0, 1):
+        assert {f"floor{level}_signal_map_ap1.json", f"floor{level}_fingerprints_5m.json"} <= set(
+            job["files"]
+        )
+    assert "signal_map_ap1.json" not in job["files"]
+    base = f"/v1/buildings/hq/signal-maps/{job['id']}/files"
+    tracks = api.client.get(f"{base}/trajectories.json", headers=op).json()
+    assert sorted((t["device_id"], t["floor"]) for t in tracks) == [("phone-a", 0), ("phone-b", 1)]
+    radio = json.loads(api.client.get(f"{base}/radio_map.json", headers=op).content)["scans"]
+    assert sorted({s["floor"] for s in radio}) == [0, 1]
+    tracker: Any = api.client.app.state.crowdslam.tracking.handles["hq"].building.tracker  # type: ignore[attr-defined]
+    deadline = time.monotonic() + 10
+    while tracker.radio_map_id != job["id"] and time.monotonic() < deadline:
+        time.sleep(0.05)
+    for level in (0, 1):
+        assert tracker.fingerprints.map_of(level)._per_owner[SURVEY_OWNER] >= 5
 
 
 def test_build_errors(sqlite_api: Api) -> None:

@@ -200,16 +200,15 @@ def _scan(floor: int, x: float, rng: np.random.Generator) -> tuple[list[str], np
 
 
 def _floor_maps(tracker: BuildingTracker, rng: np.random.Generator, xs: np.ndarray) -> None:
-    for level in (0, 1):
-        scans = [_scan(level, x, rng) for x in xs]
-        tracker.load_radio_map(
-            f"survey-{level}",
-            np.column_stack([xs, np.zeros_like(xs)]),
-            [s[0] for s in scans],
-            [s[1] for s in scans],
-            np.full(xs.size, T0 - 3_600_000, dtype=np.int64),
-            level=level,
-        )
+    scans = [_scan(level, x, rng) for level in (0, 1) for x in xs]  # one survey of both floors
+    tracker.load_radio_map(
+        "survey",
+        np.tile(np.column_stack([xs, np.zeros_like(xs)]), (2, 1)),
+        [s[0] for s in scans],
+        [s[1] for s in scans],
+        np.full(2 * xs.size, T0 - 3_600_000, dtype=np.int64),
+        np.repeat([0, 1], xs.size),
+    )
 
 
 def test_each_floor_s_map_says_how_well_it_explains_a_scan_near_the_user() -> None:
