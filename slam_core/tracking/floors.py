@@ -11,7 +11,8 @@ updated as a hidden Markov model:
 - **a start** from a fix, tag or known anchor that names the floor: all but ``start_doubt`` on it;
 - **a change of height** (the barometer's settled change, or a lift ride's rise from the accelerometer): the
   belief moves by the storeys whose height difference explains the rise, each level pair weighed by
-  N(rise; elevation_j - elevation_i, sigma^2), plus ``false_change`` for a change that was not one;
+  N(rise; elevation_j - elevation_i, sigma^2), plus ``false_change`` for a change that was not one; the
+  heights are the operator's, else the ones the crowd's confident one-storey changes measured;
 - **a way between floors without its rise** (stairs, a lift or an escalator from a phone without a
   barometer): ``unmeasured_change`` of the belief moves to the adjacent floors, for the radio to settle;
 - **radio evidence**: the per-floor likelihoods of a scan (``FingerprintStage.floor_evidence``), after a
@@ -24,6 +25,7 @@ confidence. Pure numerics.
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
 
@@ -62,6 +64,11 @@ class FloorParams:
     escalator_incline_deg: float = 30.0
     """An escalator ride carries the user ``rise / tan(incline)`` without a step (EN 115: 30 deg, 35 deg for
     rises under 6 m)."""
+    storey_learning_min: int = 3
+    """A gap between two levels is the crowd's measured one once this many confident one-storey changes
+    measured it (``Floors.learn``); until then, the storey height (from other gaps, or the default)."""
+    storey_memory: int = 100
+    """... a running mean over about this many of the latest."""
     join_confidence: float = 0.95
     """A user's scans join its floor's fingerprint map only when the belief in that floor is this high."""
 
@@ -80,11 +87,14 @@ class FloorParams:
             and 0 < self.join_confidence <= 1
             and 0 <= self.unmeasured_change < 1
             and 0 < self.escalator_incline_deg < 90
+            and self.storey_learning_min >= 1
+            and self.storey_memory >= self.storey_learning_min
         ):
             raise ValueError(
                 "floor parameters: storey_m, rise_sigma_m, radio_sigma_db, radio_radius_m must be positive, "
                 "radio_weight and join_confidence in (0, 1], false_change, start_doubt and unmeasured_change "
-                "in [0, 1), switch_rate in [0, 0.25], escalator_incline_deg in (0, 90)"
+                "in [0, 1), switch_rate in [0, 0.25], escalator_incline_deg in (0, 90), "
+                "1 <= storey_learning_min <= storey_memory"
             )
 
 
@@ -114,18 +124,11 @@ class Floors:
         )
         if given.shape != (len(levels),):
             raise ValueError("one elevation (or NaN) per level")
-        # Levels with no elevation get one from the storey height, counted from the nearest given level (or
-        # from level 0 at 0 m): only differences matter.
-        heights = np.array([lv * params.storey_m for lv in self.levels], dtype=float)
-        known = np.isfinite(given)
-        if known.any():
-            for i in range(len(self.levels)):
-                if not known[i]:
-                    j = int(np.flatnonzero(known)[np.argmin(np.abs(np.flatnonzero(known) - i))])
-                    heights[i] = given[j] + (self.levels[i] - self.levels[j]) * params.storey_m
-                else:
-                    heights[i] = given[i]
-        self.heights_m = heights
+        self._given = given
+        n = len(self.levels)
+        self._gap_sum = np.zeros(max(n - 1, 0))  # learned: the crowd's measured rises between adjacent levels
+        self._gap_n = np.zeros(max(n - 1, 0))
+        self.heights_m = self._heights()
         self._index = {lv: i for i, lv in enumerate(self.levels)}
         n = len(self.levels)
         # undetected changes: ``switch_rate`` to each floor just above and below, the rest stays. Symmetric,
@@ -133,6 +136,62 @@ class Floors:
         # never towards the middle floors
         adj = np.eye(n, k=1) + np.eye(n, k=-1)
         self._switch = np.eye(n) - params.switch_rate * (np.diag(adj.sum(axis=1)) - adj)
+
+    def _heights(self) -> np.ndarray:
+        """Each level's height: the operator's where given; else from the nearest given level (or from level
+        0 at 0 m: only differences matter) by the gaps between, each the crowd's learned gap where it has
+        ``storey_learning_min`` measurements, else the storeys it spans times the storey height (the crowd's
+        mean per storey where it measured any gap, else ``storey_m``)."""
+        prm = self.params
+        levels = np.asarray(self.levels, dtype=float)
+        spans = np.diff(levels)
+        learned = self._gap_n >= prm.storey_learning_min
+        storey = prm.storey_m
+        if learned.any():
+            storey = float(np.sum(self._gap_sum[learned]) / np.sum(self._gap_n[learned] * spans[learned]))
+        gaps = np.where(learned, self._gap_sum / np.maximum(self._gap_n, 1.0), spans * storey)
+        heights = np.concatenate([[levels[0] * storey], levels[0] * storey + np.cumsum(gaps)])
+        known = np.flatnonzero(np.isfinite(self._given))
+        if known.size:
+            for i in range(len(self.levels)):
+                j = int(known[np.argmin(np.abs(known - i))])
+                heights[i] = self._given[j] + heights[i] - heights[j]
+        return heights
+
+    def learn(self, before: np.ndarray, after: np.ndarray, rise_m: float) -> bool:
+        """A change of height that took a user, sure of its floor before and after, one level up or down
+        measures the gap between those two levels (beyond both papers: storeys differ, and operators seldom
+        enter elevations). A rise far from the gap as known (under half or over twice: a missed or extra
+        storey) is not taken. Returns whether it was."""
+        prm = self.params
+        if self.single or not math.isfinite(rise_m):
+            return False
+        i, p_before = int(np.argmax(before)), float(np.max(before))
+        j, p_after = int(np.argmax(after)), float(np.max(after))
+        if min(p_before, p_after) < prm.join_confidence or abs(i - j) != 1 or (j > i) != (rise_m > 0):
+            return False
+        k = min(i, j)
+        if np.isfinite(self._given[k]) and np.isfinite(self._given[k + 1]):
+            return False  # the operator gave both: nothing to learn
+        known = abs(self.heights_m[k + 1] - self.heights_m[k])
+        if not 0.5 * known <= abs(rise_m) <= 2.0 * known:
+            return False
+        if self._gap_n[k] >= prm.storey_memory:  # a running mean over the latest measurements
+            self._gap_sum[k] *= (prm.storey_memory - 1) / prm.storey_memory
+            self._gap_n[k] = prm.storey_memory - 1
+        self._gap_sum[k] += abs(rise_m)
+        self._gap_n[k] += 1
+        self.heights_m = self._heights()
+        return True
+
+    def adopt(self, old: Floors) -> None:
+        """Keep what ``old`` learned of the gaps between the pairs of adjacent levels both have."""
+        pairs = {(a, b): k for k, (a, b) in enumerate(itertools.pairwise(old.levels))}
+        for k, pair in enumerate(itertools.pairwise(self.levels)):
+            if pair in pairs:
+                self._gap_sum[k] = old._gap_sum[pairs[pair]]
+                self._gap_n[k] = old._gap_n[pairs[pair]]
+        self.heights_m = self._heights()
 
     @property
     def single(self) -> bool:

@@ -155,6 +155,7 @@ class BuildingTracker:
         left with nothing starts over, unsure among all floors)."""
         old = self.floors
         new = Floors(self.params.floors, tuple(levels), elevations_m)
+        new.adopt(old)
         if new.levels != old.levels:
             for u in self._users.values():
                 p = np.zeros(len(new.levels))
@@ -678,7 +679,10 @@ class BuildingTracker:
             if rising:  # a change of floor: the anchor is the landing, on the floor arrived at
                 for name, rise, _ in rising:
                     u = self._users[name]
-                    u.floor = array("d", self.floors.rise(np.asarray(u.floor), rise).tolist())
+                    before = np.asarray(u.floor)
+                    after = self.floors.rise(before, rise)
+                    self.floors.learn(before, after, rise)  # the crowd measures the storeys
+                    u.floor = array("d", after.tolist())
                 self._follow_floors([n for n, _, _ in rising])
                 self._carry([(n, r) for n, r, t in rising if t == self._escalator_type])
             unmeasured = [

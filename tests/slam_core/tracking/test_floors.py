@@ -362,3 +362,35 @@ def test_an_escalator_carries_its_rider_along_the_way_they_faced() -> None:
     assert after.floor == 1
     assert after.x - before.x == pytest.approx(4.5 / math.tan(math.radians(30.0)), abs=1.5)
     assert abs(after.y - before.y) < 1.0
+
+
+def test_the_crowd_measures_the_storeys_and_two_low_storeys_are_then_two() -> None:
+    floors = Floors(FloorParams(), (0, 1, 2))  # no elevations given: 4.5 m storeys until measured
+    assert floors.believed(floors.rise(floors.start(0), 6.2))[0] == 1  # two 3.1 m storeys look like one
+    learned = 0
+    for k in range(5):
+        before = floors.start(k % 2)  # up from 0 to 1, then from 1 to 2, ...
+        after = floors.rise(before, 3.1)
+        learned += floors.learn(before, after, 3.1)
+    assert learned == 5
+    np.testing.assert_allclose(floors.heights_m, [0.0, 3.1, 6.2], atol=1e-9)
+    assert floors.believed(floors.rise(floors.start(0), 6.2))[0] == 2
+    # not learned: unsure before, two levels at once, the wrong way, or far from the gap as known
+    unsure = np.array([0.5, 0.5, 0.0])
+    assert not floors.learn(unsure, floors.rise(unsure, 3.1), 3.1)
+    assert not floors.learn(floors.start(0), floors.start(2), 6.2)
+    assert not floors.learn(floors.start(0), floors.start(1), -3.1)
+    assert not floors.learn(floors.start(0), floors.start(1), 9.0)
+    # the operator's elevations are not learned over; what was learned survives new floors
+    given = Floors(FloorParams(), (0, 1), (0.0, 5.0))
+    assert not given.learn(given.start(0), given.start(1), 3.0)
+    more = Floors(FloorParams(), (0, 1, 2, 3))
+    more.adopt(floors)
+    np.testing.assert_allclose(more.heights_m, [0.0, 3.1, 6.2, 9.3], atol=1e-9)  # the learned storey above
+
+
+def test_one_measured_gap_sets_the_storey_for_the_others() -> None:
+    floors = Floors(FloorParams(storey_learning_min=2), (0, 1, 3))  # level 2 is not in the building
+    for _ in range(2):
+        floors.learn(floors.start(0), floors.start(1), 4.0)
+    np.testing.assert_allclose(floors.heights_m, [0.0, 4.0, 12.0])  # 1 -> 3 spans two storeys of 4 m
