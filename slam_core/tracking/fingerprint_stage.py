@@ -88,8 +88,8 @@ class FingerprintStage:
         """Per level, the log-likelihood that the scan was taken on it; NaN where the floor's map knows
         nothing there. Anywhere on the floor (``centre`` None: a phone not yet placed): -d^2 / (2 s^2), d the
         union distance (dB) to the floor map's nearest reference of another user, s
-        ``FloorParams.radio_sigma_db``. Near a tracked user's estimate ``centre``: the floor's references within
-        ``FloorParams.radio_radius_m`` as a kernel estimate of the scan's likelihood there,
+        ``FloorParams.radio_sigma_db``. Near a tracked user's estimate ``centre``: the floor's references
+        within ``FloorParams.radio_radius_m`` as a kernel estimate of the scan's likelihood there,
         log(sum_r w_r exp(-d_r^2 / (2 s^2)) / sum_r w_r), w_r = exp(-r^2 / (2 rho^2)) by the reference's
         distance r from the estimate, rho ``FloorParams.radio_place_sigma_m``: a floor whose crowd never
         walked where the user is says nothing, and how close its crowd came does not count for or against
