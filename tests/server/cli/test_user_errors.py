@@ -126,6 +126,6 @@ def test_an_unknown_key_prefix_and_scenario(tmp_path: Path) -> None:
     )
     assert "no live key '0a1b2c3d'" in _one_line(done.returncode, done.stderr)
     code, _, err = _run("evaluate", "--scenario", "paper-testbd", "--json", "x.json", cwd=tmp_path)
-    assert "nor a shipped scenario (paper-testbed)" in _one_line(code, err)
+    assert "nor a shipped scenario (paper-testbed, three-floors)" in _one_line(code, err)
     code, _, err = _run("datasets", "fetch", "msindoor20", "--floors", "site9/F1", cwd=tmp_path)
     assert "has no floor site9/F1; its floors: site1/F1" in _one_line(code, err)
