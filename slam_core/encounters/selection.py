@@ -15,7 +15,12 @@ keep the measurement's own, unbiased, noise:
 2. the model's range standard deviation *at that predicted distance* is at most ``max_sigma_m`` (an
    encounter that cannot say much is not worth the risk of double counting);
 3. the pair (per model) has not had an encounter applied in the last ``pair_cooldown_ms``: successive
-   updates against the same peer reuse the peer's error, so they are spaced out.
+   updates against the same peer reuse the peer's error, so they are spaced out;
+4. neither user has used up its allowance: ``user_rate_per_s`` encounters a second on average, up to
+   ``user_burst`` at once (a token bucket), the most informative readings (smallest range sigma at the
+   predicted distance) first. In a crowd a user within range of dozens of peers would take several a
+   second, each pulling it towards peers whose errors it already shares once they have met, which counts
+   the same information again; passing a group, a user still takes a few at once.
 
 Within one call, a pair's latest reading is the one considered (its pair average is over both directions).
 A wrong or far encounter that is chosen anyway is caught by the filter's Mahalanobis gate and outlier term.
@@ -40,12 +45,18 @@ class SelectionParams:
     below 2 m (Figure 2's fit on the testbed: 4 dB per reading, 22 dB per decade of distance)."""
     max_sigma_m: float = 5.0
     pair_cooldown_ms: int = 5_000
+    user_rate_per_s: float = 1.0
+    """Encounters a user takes a second on average (the simulated testbed's users take ~0.3 a second; in the
+    load benchmark's dense crowd they were offered 2-4)."""
+    user_burst: float = 3.0
 
     def __post_init__(self) -> None:
         if self.select_range_m <= 0 or self.max_sigma_m <= 0:
             raise ValueError("select_range_m and max_sigma_m must be > 0")
         if self.pair_cooldown_ms < 0:
             raise ValueError("pair_cooldown_ms must be >= 0")
+        if not (self.user_rate_per_s > 0 and self.user_burst >= 1):
+            raise ValueError("user_rate_per_s must be > 0 and user_burst >= 1")
 
 
 class EncounterSelector:
@@ -54,6 +65,7 @@ class EncounterSelector:
     def __init__(self, params: SelectionParams) -> None:
         self.params = params
         self._last_applied: dict[Hashable, int] = {}
+        self._tokens: dict[Hashable, tuple[float, int]] = {}  # user -> (allowance left, at time)
         self.n_considered = 0
         self.n_chosen = 0
 
@@ -63,12 +75,14 @@ class EncounterSelector:
         pair_keys: Sequence[Hashable] | np.ndarray,
         predicted_m: np.ndarray,
         sigma_at_prediction_m: np.ndarray,
+        users: tuple[Sequence[Hashable] | np.ndarray, Sequence[Hashable] | np.ndarray] | None = None,
     ) -> np.ndarray:
         """Boolean mask of the readings to apply. ``pair_keys[i]`` identifies reading i's unordered pair and
         model (``pair_key``, or an int64 array from ``pair_keys``); ``predicted_m`` is the filters' distance
         between the two users; ``sigma_at_prediction_m`` is the model's range standard deviation at that
-        distance. The chosen pairs start their cooldown. Vectorised but for the cooldowns of the readings
-        that pass both gates: a busy building has thousands of readings per call."""
+        distance; ``users`` the two users of each reading (None: no user's cooldown applies). The chosen
+        pairs and users start their cooldowns. Vectorised but for the cooldowns of the readings that pass
+        both gates: a busy building has thousands of readings per call."""
         t_ms = np.asarray(t_ms, dtype=np.int64)
         predicted_m = np.asarray(predicted_m, dtype=np.float64)
         sigma_at_prediction_m = np.asarray(sigma_at_prediction_m, dtype=np.float64)
@@ -87,15 +101,34 @@ class EncounterSelector:
         gated = latest[
             (predicted_m[latest] <= p.select_range_m) & (sigma_at_prediction_m[latest] <= p.max_sigma_m)
         ]
+        if users is not None:  # the most informative first: a user's cooldown keeps the first it takes
+            gated = gated[np.argsort(sigma_at_prediction_m[gated], kind="stable")]
         for i in gated.tolist():
             key = pair_keys[i] if not isinstance(pair_keys, np.ndarray) else int(pair_keys[i])
             last = self._last_applied.get(key)
-            if last is not None and t_ms[i] - last < p.pair_cooldown_ms:
+            t = int(t_ms[i])
+            if last is not None and t - last < p.pair_cooldown_ms:
                 continue
-            self._last_applied[key] = int(t_ms[i])
+            if users is not None:
+                a, b = _item(users[0], i), _item(users[1], i)
+                left = (self._allowance(a, t), self._allowance(b, t))
+                if min(left) < 1.0:
+                    continue
+                self._tokens[a], self._tokens[b] = (left[0] - 1.0, t), (left[1] - 1.0, t)
+            self._last_applied[key] = t
             chosen[i] = True
             self.n_chosen += 1
         return chosen
+
+    def _allowance(self, user: Hashable, t_ms: int) -> float:
+        """The encounters ``user`` may still take at ``t_ms`` (its bucket refilled since it last took one;
+        a reading older than that refills nothing)."""
+        p = self.params
+        held = self._tokens.get(user)
+        if held is None:
+            return p.user_burst
+        left, since = held
+        return min(p.user_burst, left + max(t_ms - since, 0) * p.user_rate_per_s / 1e3)
 
     def __len__(self) -> int:
         """Pairs with a remembered cooldown."""
@@ -105,6 +138,10 @@ class EncounterSelector:
         """Drop cooldowns that ended before ``t_ms`` (bounded memory in a long-running building)."""
         horizon = t_ms - self.params.pair_cooldown_ms
         self._last_applied = {k: v for k, v in self._last_applied.items() if v >= horizon}
+        full = (
+            t_ms - self.params.user_burst / self.params.user_rate_per_s * 1e3
+        )  # buckets full again: forgotten
+        self._tokens = {k: v for k, v in self._tokens.items() if v[1] >= full}
 
 
 def latest_per_pair(t_ms: np.ndarray, keys: np.ndarray) -> np.ndarray:
@@ -114,6 +151,10 @@ def latest_per_pair(t_ms: np.ndarray, keys: np.ndarray) -> np.ndarray:
     _, first = np.unique(np.asarray(keys)[backwards], return_index=True)
     latest: np.ndarray = np.sort(backwards[first])
     return latest
+
+
+def _item(values: Sequence[Hashable] | np.ndarray, i: int) -> Hashable:
+    return int(values[i]) if isinstance(values, np.ndarray) else values[i]
 
 
 def _codes(keys: Sequence[Hashable]) -> np.ndarray:
@@ -234,7 +275,13 @@ def choose_readings(
     for model in unique_ints(models):
         at = models == model
         sigma[at] = np.sqrt(detector.range_model(int(model)).variance_at_distance(predicted[at]))
-    chosen = selector.choose(found.t_ms[candidates], keys[candidates], predicted, sigma)
+    chosen = selector.choose(
+        found.t_ms[candidates],
+        keys[candidates],
+        predicted,
+        sigma,
+        (found.user_a[candidates], found.user_b[candidates]),
+    )
     if len(selector) > 100_000:
         selector.forget_before(int(found.t_ms.max()))
     return candidates[chosen], offset[chosen], carry_var[chosen], np.hstack([then_a, then_b])[chosen]

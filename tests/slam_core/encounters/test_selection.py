@@ -134,3 +134,30 @@ def test_each_pairs_latest_reading_is_found_and_the_last_of_equal_times() -> Non
         t[latest], keys[latest], predicted[latest], sigma[latest]
     )
     assert np.flatnonzero(whole).tolist() == latest[narrowed].tolist() == [3, 4]
+
+
+def test_a_user_in_a_crowd_takes_its_nearest_peers_and_then_one_a_second() -> None:
+    """A user within range of many peers takes at most ``user_burst`` at once, the most informative
+    (nearest predicted) first, then ``user_rate_per_s`` a second; its peers' allowances are their own."""
+    selector = EncounterSelector(SelectionParams(user_rate_per_s=1.0, user_burst=3.0))
+    peers = [f"p{k}" for k in range(8)]
+    distances = [7.0, 1.0, 6.0, 2.0, 5.0, 3.0, 4.0, 7.5]
+    keys = [pair_key("me", p, 1) for p in peers]
+    predicted = np.array(distances)
+    sigma = np.sqrt(PHYSICAL_BT.variance_at_distance(predicted))
+    users = (["me"] * 8, peers)
+    first = selector.choose(np.zeros(8, dtype=np.int64), keys, predicted, sigma, users)
+    assert [p for p, c in zip(peers, first, strict=True) if c] == ["p1", "p3", "p5"]  # 1, 2 and 3 m away
+    # a second later the allowance holds one more: the nearest of those not in their pair's cooldown
+    again = selector.choose(np.full(8, 1_000, dtype=np.int64), keys, predicted, sigma, users)
+    assert [p for p, c in zip(peers, again, strict=True) if c] == ["p6"]
+    # two strangers are not held back by this user's allowance
+    other = selector.choose(
+        np.array([1_000]), [pair_key("x", "y", 1)], np.array([2.0]), sigma[:1], (["x"], ["y"])
+    )
+    assert other.tolist() == [True]
+    # without users (a caller that names none) only the pair cooldown applies
+    free = EncounterSelector(SelectionParams(user_rate_per_s=1.0, user_burst=1.0))
+    assert free.choose(np.zeros(8, dtype=np.int64), keys, predicted, sigma).sum() == 8
+    with pytest.raises(ValueError, match="user_rate_per_s"):
+        SelectionParams(user_rate_per_s=0.0)

@@ -326,7 +326,9 @@ def test_narrowing_the_readings_before_carrying_them_chooses_as_carrying_all(
         sigma = np.sqrt(np.array([detector.range_model(int(m)).variance_at_distance(np.array([d]))[0]
                                   for m, d in zip(found.model[ok], predicted, strict=True)]))  # fmt: skip
         keys = pair_keys(found.user_a, found.user_b, found.model)
-        want = ok[reference.choose(found.t_ms[ok], keys[ok], predicted, sigma)]
+        want = ok[
+            reference.choose(found.t_ms[ok], keys[ok], predicted, sigma, (found.user_a[ok], found.user_b[ok]))
+        ]
         assert got.tolist() == want.tolist()
         np.testing.assert_allclose(offset, placed[want], atol=1e-12)
         then = means[index] - (shift - ahead)  # each user where it was at the reading
