@@ -114,9 +114,14 @@ class UserTrace:
 
     def level_at(self, t: float) -> int:
         """The floor index at time ``t`` (the origin's until the moment of arrival)."""
-        if self.level is None:
-            return 0
-        return int(self.level[max(int(np.searchsorted(self.t, t, side="right")) - 1, 0)])
+        return _level_at(self.t, self.level, t)
+
+
+def _level_at(t: np.ndarray, level: np.ndarray | None, at: float) -> int:
+    """The floor index at time ``at`` of positions at times ``t`` on floors ``level`` (None: floor 0)."""
+    if level is None:
+        return 0
+    return int(level[max(int(np.searchsorted(t, at, side="right")) - 1, 0)])
 
 
 @dataclass(frozen=True)
@@ -400,10 +405,6 @@ def _user_trace(scenario: Scenario, world: World, rng: np.random.Generator) -> U
     # WiFi scans every scan_period with a random phase
     scan_t = np.arange(start_t + rng.uniform(0, wifi["scan_period_s"]), t[-1], wifi["scan_period_s"])
     level = storeys.level if storeys is not None else None
-
-    def level_at(ts: float) -> int:
-        return 0 if level is None else int(level[max(int(np.searchsorted(t, ts, side="right")) - 1, 0)])
-
     scan_rss = np.array(
         [
             wifi_rss(
@@ -411,7 +412,7 @@ def _user_trace(scenario: Scenario, world: World, rng: np.random.Generator) -> U
                 wifi,
                 np.array([np.interp(ts, t, xy[:, 0]), np.interp(ts, t, xy[:, 1])]),
                 rng,
-                level_at(ts),
+                _level_at(t, level, ts),
             )
             for ts in scan_t
         ]
