@@ -81,6 +81,9 @@ class DetectorState:
     vertical: VerticalState = field(default_factory=VerticalState)
     lift: np.ndarray = field(default_factory=new_lift_state)
     magnetic: MagneticState = field(default_factory=MagneticState)
+    phone_finds_floors: bool = False
+    """The phone has sent changes of floor of its own (a detection with a rise): the server's detector on
+    its barometer keeps its state but reports nothing, or each change would count twice."""
 
 
 @dataclass(frozen=True)

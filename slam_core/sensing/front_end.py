@@ -67,13 +67,20 @@ class FrontEnd:
         detect = self._detect.get(user)
         return detect is not None and not math.isnan(detect.vertical.last_t)
 
-    def floor_changes(self, user: str, pressure: np.ndarray, step_t: np.ndarray) -> tuple[AnchorEvents, int]:
+    def floor_changes(
+        self, user: str, pressure: np.ndarray, step_t: np.ndarray, phone_found: bool = False
+    ) -> tuple[AnchorEvents, int]:
         """The changes of floor in the barometer of a phone that counts its own steps (and so sends no raw
-        IMU), with the steps it sent; and how many samples were dropped as already consumed."""
+        IMU), with the steps it sent; and how many samples were dropped as already consumed. Once the phone
+        has sent a change of floor of its own (``phone_found``, in this batch or before), none is reported
+        from here: the phone's detector has them."""
         if self.detectors is None:
             return AnchorEvents.empty(), 0
         detect = self._detect.setdefault(user, DetectorState())
+        detect.phone_finds_floors |= phone_found
         floors, dropped = self._floor_changes(detect, pressure, step_t)
+        if detect.phone_finds_floors:
+            return AnchorEvents.empty(), dropped
         return anchor_detectors.merge_events([], [], self.detectors.turn_type, floors), dropped
 
     def _floor_changes(

@@ -444,7 +444,10 @@ class BuildingTracker:
             # a phone that counts its own steps: its barometer, if it sent one, still finds floor changes
             if not b.imu.pressure.size:
                 return replace(b, imu=None)
-            events, dropped = self.front_end.floor_changes(b.user, b.imu.pressure, b.step_t)
+            own = bool(
+                b.detect_rise.size and np.isfinite(b.detect_rise).any()
+            )  # the phone finds floors itself
+            events, dropped = self.front_end.floor_changes(b.user, b.imu.pressure, b.step_t, own)
             report.imu_samples_dropped = dropped
             report.anchors_detected = events.t_ms.size
             return replace(b, imu=None, **_with_detections(b, events))

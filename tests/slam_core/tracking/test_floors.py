@@ -4,6 +4,7 @@ anchors a detection joins, the users an encounter pairs, the fingerprints a scan
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -394,3 +395,22 @@ def test_one_measured_gap_sets_the_storey_for_the_others() -> None:
     for _ in range(2):
         floors.learn(floors.start(0), floors.start(1), 4.0)
     np.testing.assert_allclose(floors.heights_m, [0.0, 4.0, 12.0])  # 1 -> 3 spans two storeys of 4 m
+
+
+def test_a_phone_that_finds_its_own_floor_changes_is_not_moved_twice_by_its_barometer() -> None:
+    tracker = _building((0, 1, 2))
+    tracker.apply([_fix("sdk", (0.0, 0.0), T0, 0)])
+    height = np.concatenate([np.zeros(25), np.linspace(0.0, 4.5, 75), np.full(40, 4.5)])
+    batches = _walking_with_barometer("sdk", T0 + 1_000, 28, height)
+    # the phone's own detector reports the flight as stairs with its rise, in the batch where it ends
+    landing = batches[20]
+    batches[20] = replace(
+        landing,
+        detect_t=np.array([int(landing.step_t[-1])], dtype=np.int64),
+        detect_type=np.array([STAIRS], dtype=np.int64),
+        detect_rise=np.array([4.5]),
+    )
+    for batch in batches:
+        outcome = tracker.apply([batch])
+    assert outcome.estimates["sdk"].floor == 1  # one storey, not two
+    assert tracker.front_end.fired["stairs"] == 1  # the server's detector saw it and kept it to itself
