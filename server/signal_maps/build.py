@@ -236,10 +236,8 @@ def _write_maps(
             has = np.isfinite(magnitude)
             mag_xy.append(position_at(t_ms, xy, segment.walk.window_t[has].astype(float)))
             mag_values.append(magnitude[has, None])
-    out = folder / (prefix or ".")
-    if prefix:  # written apart, then named after their floor beside the others
-        out = folder / f".{prefix}"
-        out.mkdir(exist_ok=True)
+    out = folder / f".{prefix}" if prefix else folder  # a floor's written apart, then named after it
+    out.mkdir(exist_ok=True)
     written: list[Path] = []
     to_wgs84 = None if ctx.geo is None else ctx.geo.to_wgs84
     if rows:

@@ -112,7 +112,8 @@ def _user_batches(
                     floor=tr.level_at(tr.t[0]),
                 )
             )
-        in_window = np.flatnonzero(stepped & (step_ms >= window_start) & (step_ms < window_end))
+        inside = (step_ms >= window_start) & (step_ms < window_end)
+        in_window = np.flatnonzero(stepped & inside)
         steps = [
             Step(
                 t_ms=int(step_ms[k]),
@@ -121,7 +122,7 @@ def _user_batches(
             )
             for k in in_window
         ]
-        moved = np.flatnonzero((step_ms >= window_start) & (step_ms < window_end))  # with a step or not
+        moved = np.flatnonzero(inside)  # with a step or not
         anchor_detections = [
             AnchorDetection(
                 t_ms=int(step_ms[k]),

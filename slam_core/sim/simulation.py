@@ -173,12 +173,7 @@ def build_world(scenario: Scenario, rng: np.random.Generator) -> World:
     known[: anchors["known_positions"]] = True
     n_ap = wifi["access_points"]
     ap_xy = np.column_stack([rng.uniform(0, width, n_ap), rng.uniform(0, height, n_ap)])
-    # correlated shadowing: white noise on a 1 m grid smoothed to the correlation length, rescaled to sigma
-    gw, gh = math.ceil(width) + 1, math.ceil(height) + 1
-    shadow = np.empty((n_ap, gh, gw))
-    for k in range(n_ap):
-        field = gaussian_filter(rng.standard_normal((gh, gw)), sigma=wifi["shadowing_correlation_m"] / 2.0)
-        shadow[k] = field / field.std() * wifi["shadowing_sigma_db"]
+    shadow = _shadowing(rng, n_ap, width, height, wifi)
     return World(
         width,
         height,
@@ -190,6 +185,19 @@ def build_world(scenario: Scenario, rng: np.random.Generator) -> World:
         ap_xy,
         shadow,
     )
+
+
+def _shadowing(
+    rng: np.random.Generator, n: int, width: float, height: float, wifi: dict[str, Any]
+) -> np.ndarray:
+    """``n`` correlated shadowing fields (dB) on a 1 m grid: white noise smoothed to the correlation length,
+    rescaled to sigma."""
+    gw, gh = math.ceil(width) + 1, math.ceil(height) + 1
+    shadow = np.empty((n, gh, gw))
+    for k in range(n):
+        grid = gaussian_filter(rng.standard_normal((gh, gw)), sigma=wifi["shadowing_correlation_m"] / 2.0)
+        shadow[k] = grid / grid.std() * wifi["shadowing_sigma_db"]
+    return shadow
 
 
 def _storey_world(scenario: Scenario, rng: np.random.Generator) -> World:
@@ -219,11 +227,7 @@ def _storey_world(scenario: Scenario, rng: np.random.Generator) -> World:
     anchor_type = rng.integers(0, len(anchors["types"]), len(points))
     ap_xy = np.column_stack([rng.uniform(0, width, n_ap * n_levels), rng.uniform(0, height, n_ap * n_levels)])
     ap_level = np.repeat(np.arange(n_levels), n_ap)
-    gw, gh = math.ceil(width) + 1, math.ceil(height) + 1
-    shadow = np.empty((n_levels * ap_xy.shape[0], gh, gw))
-    for k in range(shadow.shape[0]):
-        grid = gaussian_filter(rng.standard_normal((gh, gw)), sigma=wifi["shadowing_correlation_m"] / 2.0)
-        shadow[k] = grid / grid.std() * wifi["shadowing_sigma_db"]
+    shadow = _shadowing(rng, n_levels * ap_xy.shape[0], width, height, wifi)
     nx, ny = round(width / spacing) + 1, round(height / spacing) + 1
     links = place_links(rng, nx, ny)
     weather = float(rng.choice([-1.0, 1.0])) * storeys["barometer"]["weather_drift_hpa_per_hour"] / 3600.0

@@ -130,12 +130,16 @@ class Floors:
         self._gap_n = np.zeros(max(n - 1, 0))
         self.heights_m = self._heights()
         self._index = {lv: i for i, lv in enumerate(self.levels)}
-        n = len(self.levels)
         # undetected changes: ``switch_rate`` to each floor just above and below, the rest stays. Symmetric,
         # so evidence that tells no floor apart spreads a belief towards uniform (the filter hesitates) and
         # never towards the middle floors
         adj = np.eye(n, k=1) + np.eye(n, k=-1)
         self._switch = np.eye(n) - params.switch_rate * (np.diag(adj.sum(axis=1)) - adj)
+        # a way between floors seen without its rise: ``unmeasured_change`` to the neighbours, split
+        neighbours = adj / np.maximum(adj.sum(axis=1, keepdims=True), 1.0)
+        self._unmeasured = (1.0 - params.unmeasured_change) * np.eye(
+            n
+        ) + params.unmeasured_change * neighbours
 
     def _heights(self) -> np.ndarray:
         """Each level's height: the operator's where given; else from the nearest given level (or from level
@@ -236,14 +240,9 @@ class Floors:
     def maybe_changed(self, p: np.ndarray) -> np.ndarray:
         """The belief after a way between floors was detected without its rise: ``unmeasured_change`` of each
         level's share moves to its neighbours (split between them), the rest stays."""
-        n = len(self.levels)
-        if n == 1:
+        if self.single:
             return p
-        adj = np.eye(n, k=1) + np.eye(n, k=-1)
-        trans = (1.0 - self.params.unmeasured_change) * np.eye(n) + self.params.unmeasured_change * (
-            adj / adj.sum(axis=1, keepdims=True)
-        )
-        return _normalised(p @ trans)
+        return _normalised(p @ self._unmeasured)
 
     def weigh(self, p: np.ndarray, log_likelihood: np.ndarray) -> np.ndarray:
         """The belief after radio evidence: ``log_likelihood`` per level (NaN where a floor knows nothing: it

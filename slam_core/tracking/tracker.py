@@ -442,12 +442,12 @@ class BuildingTracker:
         imu = b.imu
         if b.step_t.size or not (imu.acc.size or imu.gyr.size or imu.rv.size or imu.grv.size):
             # a phone that counts its own steps: its barometer, if it sent one, still finds floor changes
-            if not b.imu.pressure.size:
+            if not imu.pressure.size:
                 return replace(b, imu=None)
             own = bool(
                 b.detect_rise.size and np.isfinite(b.detect_rise).any()
             )  # the phone finds floors itself
-            events, dropped = self.front_end.floor_changes(b.user, b.imu.pressure, b.step_t, own)
+            events, dropped = self.front_end.floor_changes(b.user, imu.pressure, b.step_t, own)
             report.imu_samples_dropped = dropped
             report.anchors_detected = events.t_ms.size
             return replace(b, imu=None, **_with_detections(b, events))

@@ -45,8 +45,12 @@ def _surveyed(tracker: BuildingTracker, rng: np.random.Generator) -> None:
 
 def _second(user: str, k: int, x: float, rng: np.random.Generator) -> UserBatch:
     """One second of a walk east at 1.4 m/s: two steps and a scan where the user is."""
+    return walking_second(user, k, *_rss(np.array([x, 0.0]), rng))
+
+
+def walking_second(user: str, k: int, names: list[str], rss: np.ndarray) -> UserBatch:
+    """Second ``k`` of a walk east: two steps of 0.7 m and the scan ``names``, ``rss``."""
     t = T0 + 1000 * k
-    names, rss = _rss(np.array([x, 0.0]), rng)
     return UserBatch(
         user=user,
         step_t=np.array([t + 250, t + 750], dtype=np.int64),

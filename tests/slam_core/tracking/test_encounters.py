@@ -19,7 +19,7 @@ BT = RangeModel("bt-quadratic", (-60.0, -22.0 / math.log(10.0), 0.0), 2.8)
 CAL = Calibration(RangeModel("wifi-log", (0.0, 2.0), 3.0), BT)
 
 
-def _fix(user: str, xy: tuple[float, float], t_ms: int) -> UserBatch:
+def _fix(user: str, xy: tuple[float, float], t_ms: int, level: int = 0) -> UserBatch:
     return UserBatch(
         user=user,
         ble_id=f"ble-{user}",
@@ -27,6 +27,7 @@ def _fix(user: str, xy: tuple[float, float], t_ms: int) -> UserBatch:
         fix_xy=np.array([xy], dtype=float),
         fix_sigma=np.array([0.5]),
         fix_azimuth=np.array([0.0]),
+        fix_level=np.array([level], dtype=np.int64),
     )
 
 

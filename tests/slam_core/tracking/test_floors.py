@@ -16,7 +16,8 @@ from slam_core.tracking.fingerprint_stage import FingerprintStage
 from slam_core.tracking.floors import FloorParams, Floors
 from slam_core.tracking.params import ColdStartParams
 from slam_core.tracking.tracker import BuildingTracker, TrackerParams, UserBatch
-from tests.slam_core.tracking.test_encounters import CAL, _sighting
+from tests.slam_core.tracking.test_cold_start import walking_second
+from tests.slam_core.tracking.test_encounters import CAL, _fix, _sighting
 
 T0 = 1_700_000_000_000
 STAIRS = 1
@@ -100,18 +101,6 @@ def test_a_belief_stays_a_distribution(updates: list[tuple[str, object]]) -> Non
 
 
 # ---------------------------------------------------------------------- the tracker on floors
-def _fix(user: str, xy: tuple[float, float], t_ms: int, level: int) -> UserBatch:
-    return UserBatch(
-        user=user,
-        ble_id=f"ble-{user}",
-        fix_t=np.array([t_ms], dtype=np.int64),
-        fix_xy=np.array([xy], dtype=float),
-        fix_sigma=np.array([0.5]),
-        fix_azimuth=np.array([0.0]),
-        fix_level=np.array([level], dtype=np.int64),
-    )
-
-
 def _stairs(user: str, t_ms: int, rise_m: float) -> UserBatch:
     return UserBatch(
         user=user,
@@ -239,25 +228,8 @@ def test_a_phone_without_a_fix_finds_its_floor_first() -> None:
     _floor_maps(tracker, rng, np.arange(0.0, 60.0, 2.0))
     x = 10.0
     for k in range(20):
-        t = T0 + 1000 * k
         x += 1.4
-        names, rss = _scan(1, x, rng)
-        tracker.apply(
-            [
-                UserBatch(
-                    user="upstairs",
-                    step_t=np.array([t + 250, t + 750], dtype=np.int64),
-                    step_length=np.array([0.7, 0.7]),
-                    step_azimuth=np.array([math.pi / 2, math.pi / 2]),
-                    step_turn=np.full(2, np.nan),
-                    scan_t=np.array([t + 500], dtype=np.int64),
-                    scan_offsets=np.array([0, len(names)], dtype=np.int64),
-                    scan_bssid=tuple(names),
-                    scan_rss=rss,
-                    scan_last_seen=np.full(len(names), -1, dtype=np.int64),
-                )
-            ]
-        )
+        tracker.apply([walking_second("upstairs", k, *_scan(1, x, rng))])
     level, p = tracker.floor_of("upstairs")
     assert level == 1
     assert p > 0.9
