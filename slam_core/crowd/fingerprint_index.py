@@ -187,6 +187,54 @@ def union_nearest(
 
 
 @njit(cache=True, nogil=True)
+def locate_many(
+    cols: np.ndarray,
+    gains: np.ndarray,
+    offsets: np.ndarray,
+    query_norm: np.ndarray,
+    query_count: np.ndarray,
+    owner: np.ndarray,
+    start: np.ndarray,
+    length: np.ndarray,
+    post_row: np.ndarray,
+    post_serial: np.ndarray,
+    post_gain: np.ndarray,
+    row_serial: np.ndarray,
+    row_owner: np.ndarray,
+    row_norm: np.ndarray,
+    row_count: np.ndarray,
+    dot: np.ndarray,
+    shared: np.ndarray,
+    k: int,
+    row_xy: np.ndarray,
+    max_spread: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted-kNN positions of many queries in one call (query q's entries are
+    ``cols[offsets[q]:offsets[q + 1]]``, as ``union_nearest`` takes them): (n, 2) positions and whether each
+    was placed (at least ``k`` candidates, neighbours within ``max_spread`` of their position). A call's
+    queries cost one dispatch instead of one each (a busy building locates hundreds a call)."""
+    n = offsets.size - 1
+    xy = np.zeros((n, 2))
+    placed = np.zeros(n, dtype=np.bool_)
+    for q in range(n):
+        lo, hi = offsets[q], offsets[q + 1]
+        rows, d, candidates = union_nearest(
+            cols[lo:hi], gains[lo:hi], query_norm[q], query_count[q], owner[q], start, length, post_row,
+            post_serial, post_gain, row_serial, row_owner, row_norm, row_count, dot, shared, k, row_xy,
+            0.0, 0.0, math.inf,
+        )  # fmt: skip
+        if candidates < k:  # fewer than k references share an AP with the query
+            continue
+        x, y, spread = knn_position(row_xy, rows, d)
+        if spread > max_spread:  # the neighbours disagree: the map does not know this place
+            continue
+        xy[q, 0] = x
+        xy[q, 1] = y
+        placed[q] = True
+    return xy, placed
+
+
+@njit(cache=True, nogil=True)
 def knn_position(row_xy: np.ndarray, rows: np.ndarray, distance: np.ndarray) -> tuple[float, float, float]:
     """Weighted kNN (weights 1/d, d floored at 1e-3 dB) over the neighbours' positions: the position and the
     weighted RMS distance of the neighbours about it."""

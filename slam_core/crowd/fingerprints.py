@@ -320,14 +320,41 @@ class CrowdFingerprints:
     def locate(self, owner: int, bssids: list[str], rss: np.ndarray) -> np.ndarray | None:
         """Weighted-kNN position of a scan over the other users' stored scans, or None when the map cannot
         say (too few references, too few APs in common, neighbours too far apart)."""
-        found = self._neighbours(owner, bssids, rss)
-        if found is None:
-            return None
-        rows, d = found
-        x, y, spread = index.knn_position(self._xy, rows, d)
-        if spread > self.params.max_spread_m:  # the neighbours disagree: the map does not know this place
-            return None
-        return np.array([x, y])
+        return self.locate_many([(owner, bssids, rss)])[0]
+
+    def locate_many(self, queries: list[tuple[int, list[str], np.ndarray]]) -> list[np.ndarray | None]:
+        """``locate`` of each (owner, bssids, rss), the map searched by one compiled call for them all."""
+        p = self.params
+        out: list[np.ndarray | None] = [None] * len(queries)
+        asked, cols, gains, counts, norms, owners = [], [], [], [], [], []
+        for q, (owner, bssids, rss) in enumerate(queries):
+            if len(bssids) < p.min_aps:
+                continue
+            heard, g = self._gains(bssids, rss)
+            if len(heard) < p.min_aps or self._size - self._per_owner.get(owner, 0) < p.min_references:
+                continue
+            c, known, norm = self._query(heard, g)
+            asked.append(q)
+            cols.append(c[known])
+            gains.append(g[known])
+            counts.append(len(heard))
+            norms.append(norm)
+            owners.append(owner)
+        if not asked:
+            return out
+        offsets = np.zeros(len(asked) + 1, dtype=np.int64)
+        np.cumsum([c.size for c in cols], out=offsets[1:])
+        # every argument given: numba dispatches omitted defaults by its slow path
+        xy, placed = index.locate_many(
+            np.concatenate(cols), np.concatenate(gains), offsets, np.array(norms),
+            np.array(counts, dtype=np.int64), np.array(owners, dtype=np.int64), self._start, self._length,
+            self._post_row, self._post_serial, self._post_gain, self._serial, self._owner, self._norm,
+            self._count, self._dot, self._shared, p.k, self._xy, p.max_spread_m,
+        )  # fmt: skip
+        for j, q in enumerate(asked):
+            if placed[j]:
+                out[q] = xy[j].copy()
+        return out
 
     def candidates(
         self, owner: int, bssids: list[str], rss: np.ndarray, max_spread_m: float = math.inf
@@ -374,34 +401,51 @@ class CrowdFingerprints:
         rows, d, _ = self._search(owner, heard, gains, k, float(centre[0]), float(centre[1]), radius_m)
         return self._xy[rows].copy(), d
 
+    def _query(self, heard: list[str], gains: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        """A scan's entries (``_gains``) as the index's columns (-1: an AP no reference heard), which are
+        known, and the query's norm (over all of its APs: those no reference heard sit at the floor in every
+        reference)."""
+        columns = self._columns
+        cols = np.fromiter((columns.get(b, -1) for b in heard), np.int64, len(heard))
+        g = gains.astype(float)
+        return cols, cols >= 0, float(g @ g)
+
     def _search(
         self, owner: int, heard: list[str], gains: np.ndarray, k: int, cx: float, cy: float, radius_m: float
     ) -> tuple[np.ndarray, np.ndarray, int]:
         """``fingerprint_index.union_nearest`` of a scan's entries (``_gains``) over the index."""
-        columns = self._columns
-        all_cols = np.fromiter((columns.get(b, -1) for b in heard), np.int64, len(heard))
-        known = all_cols >= 0
-        # the query's norm and AP count include the APs no reference heard (at the floor in every reference)
-        query_norm = float(gains.astype(float) @ gains.astype(float))
+        cols, known, query_norm = self._query(heard, gains)
         # every argument given: numba dispatches omitted defaults by its slow path (+25 % on a batch)
         return index.union_nearest(
-            all_cols[known], gains[known], query_norm, len(heard), owner, self._start, self._length,
+            cols[known], gains[known], query_norm, len(heard), owner, self._start, self._length,
             self._post_row, self._post_serial, self._post_gain, self._serial, self._owner, self._norm,
             self._count, self._dot, self._shared, k, self._xy, cx, cy, radius_m,
         )  # fmt: skip
 
-    def fix_and_places(
-        self, owner: int, xy: np.ndarray, cov: np.ndarray, scans: list[Scan]
-    ) -> tuple[np.ndarray | None, list[Place]]:
-        """For a user estimated at ``xy`` (covariance ``cov``) now, with this call's scans in time order: the
-        fix (the latest scan the map can place, carried to now by the displacement since it) and, when the
-        estimate is confident, the scans to add at ``xy`` less that displacement. The caller adds them after
-        all of a call's fixes, so users of one call do not locate each other's scans of that call."""
-        fix = None
-        for scan in reversed(scans):
-            if (found := self.locate(owner, scan.bssids, scan.rss)) is not None:
-                fix = found + scan.shift
-                break
-        if largest_eigenvalue2(cov[0, 0], cov[0, 1], cov[1, 1]) > self.params.max_reference_std_m**2:
-            return fix, []
-        return fix, [Place(owner, xy - scan.shift, scan.bssids, scan.rss, scan.t_ms) for scan in scans]
+    def fixes_and_places(
+        self, users: list[tuple[int, np.ndarray, np.ndarray, list[Scan]]]
+    ) -> list[tuple[np.ndarray | None, list[Place]]]:
+        """For each user (owner, estimated at ``xy`` with covariance ``cov`` now, with this call's scans in
+        time order): the fix (the latest scan the map can place, carried to now by the displacement since
+        it) and, when the estimate is confident, the scans to add at ``xy`` less that displacement. Every
+        scan is located by one search of the map (``locate_many``). The caller adds the places after all of
+        a call's fixes, so users of one call do not locate each other's scans of that call."""
+        found = self.locate_many([(owner, s.bssids, s.rss) for owner, _, _, scans in users for s in scans])
+        out: list[tuple[np.ndarray | None, list[Place]]] = []
+        first = 0
+        limit = self.params.max_reference_std_m**2
+        for owner, xy, cov, scans in users:
+            mine, first = found[first : first + len(scans)], first + len(scans)
+            fix = next(
+                (
+                    f + scan.shift
+                    for f, scan in zip(reversed(mine), reversed(scans), strict=True)
+                    if f is not None
+                ),
+                None,
+            )
+            if largest_eigenvalue2(cov[0, 0], cov[0, 1], cov[1, 1]) > limit:
+                out.append((fix, []))
+            else:
+                out.append((fix, [Place(owner, xy - s.shift, s.bssids, s.rss, s.t_ms) for s in scans]))
+        return out

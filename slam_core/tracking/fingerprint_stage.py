@@ -171,13 +171,18 @@ class FingerprintStage:
         its floor, whether the filter is sure of that floor): the latest scan the floor's map can place,
         carried to now, is a robust fix (``DynamicSlam.observe_position_robust``, all of a call's fixes in one
         engine call), then the confident users' scans join their floor's map
-        (``CrowdFingerprints.fix_and_places``). Returns each user's fix, or None."""
+        (``CrowdFingerprints.fixes_and_places``). Returns each user's fix, or None."""
         params = self.params
         slots, fixes = [], []
         got: list[np.ndarray | None] = []
         places: list[tuple[int, Place]] = []
-        for slot, owner, xy, cov, scans, level, sure in located:
-            fix, joining = self.map_of(level).fix_and_places(owner, xy, cov, scans)
+        results: list[tuple[np.ndarray | None, list[Place]]] = [(None, [])] * len(located)
+        for level in dict.fromkeys(item[5] for item in located):  # each floor's map searched once
+            mine = [i for i, item in enumerate(located) if item[5] == level]
+            users = [(located[i][1], located[i][2], located[i][3], located[i][4]) for i in mine]
+            for i, result in zip(mine, self.map_of(level).fixes_and_places(users), strict=True):
+                results[i] = result
+        for (slot, _, _, _, _, level, sure), (fix, joining) in zip(located, results, strict=True):
             if sure:
                 places += [(level, p) for p in joining]
             got.append(fix)

@@ -8,6 +8,7 @@ import pickle
 import numpy as np
 import pytest
 
+from slam_core.crowd.fingerprint_index import knn_position
 from slam_core.crowd.fingerprints import (
     STALE_BOUND,
     SURVEY_OWNER,
@@ -278,7 +279,10 @@ def test_fix_and_places_carries_the_latest_fix_and_keeps_only_confident_scans() 
     latest = db.locate(2, scans[1].bssids, scans[1].rss)
     assert latest is not None
     here = np.array([10.0, 10.0])
-    fix, places = db.fix_and_places(2, here, np.diag([4.0, 1.0]), scans)
+    (fix, places), (none, _) = db.fixes_and_places(
+        [(2, here, np.diag([4.0, 1.0]), scans), (1, here, np.diag([4.0, 1.0]), scans)]
+    )
+    assert none is None  # every reference is user 1's own
     assert fix is not None
     np.testing.assert_allclose(fix, latest + np.array([1.0, -1.0]))  # the latest scan, carried to now
     assert [p.owner for p in places] == [2, 2]
@@ -286,8 +290,38 @@ def test_fix_and_places_carries_the_latest_fix_and_keeps_only_confident_scans() 
     assert [p.t_ms for p in places] == [s.t_ms for s in scans]
     # an estimate whose larger axis' sigma exceeds max_reference_std_m (3 m) adds nothing to the map
     tilted = np.array([[5.0, 4.5], [4.5, 5.0]])  # eigenvalues 0.5 and 9.5
-    assert db.fix_and_places(2, here, tilted, scans)[1] == []
-    assert db.fix_and_places(2, here, np.diag([9.0, 9.0]), scans)[1] != []
+    assert db.fixes_and_places([(2, here, tilted, scans)])[0][1] == []
+    assert db.fixes_and_places([(2, here, np.diag([9.0, 9.0]), scans)])[0][1] != []
+
+
+def test_many_scans_located_in_one_call_are_each_located_alone() -> None:
+    """``locate_many`` against its oracle: each scan's k nearest by ``_neighbours`` (one search each) and
+    their weighted kNN position, None where those say the map cannot place it (a user's own scans, too few
+    APs, neighbours spread too far)."""
+    rng = np.random.default_rng(11)
+    xy, rss = _scans(rng, 200)
+    db = CrowdFingerprints(FingerprintParams(max_spread_m=6.0, per_cell=300))
+    names = _add_all(db, rng.integers(1, 4, 200), xy, rss)
+    queries = []
+    for owner, row in zip(rng.integers(0, 5, 60).tolist(), _scans(rng, 60)[1], strict=True):
+        heard = np.isfinite(row)
+        queries.append((owner, [n for n, h in zip(names, heard, strict=True) if h], row[heard]))
+    queries.append((0, queries[0][1][:2], queries[0][2][:2]))  # fewer than min_aps
+    got = db.locate_many(queries)
+    placed = 0
+    for (owner, bssids, q_rss), found in zip(queries, got, strict=True):
+        near = db._neighbours(owner, bssids, q_rss)
+        expected = None
+        if near is not None:
+            x, y, spread = knn_position(db._xy, *near)
+            expected = None if spread > 6.0 else np.array([x, y])
+        if expected is None:
+            assert found is None
+        else:
+            placed += 1
+            assert found is not None
+            np.testing.assert_allclose(found, expected, rtol=0, atol=1e-12)
+    assert 10 < placed < len(queries) - 1  # both answers are exercised
 
 
 def test_bssids_no_stored_scan_hears_are_forgotten() -> None:
