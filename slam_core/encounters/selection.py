@@ -229,17 +229,18 @@ def choose_readings(
     are first narrowed to those the selector would consider (each pair's latest) and could choose (within
     its range of each other once either user's walk since, or its guessed walk beyond its last report, is
     allowed for), and only the users of those who walked after them are carried back step by step."""
-    n = len(found)
-    slots, index = unique_ints_inverse(np.concatenate([slot_a, slot_b]))
-    means = means_of(slots)
-    delta_now = means[index[:n]] - means[index[n:]]
     keys = pair_keys(found.user_a, found.user_b, found.model)
-    latest = latest_per_pair(found.t_ms, keys)
+    latest = latest_per_pair(found.t_ms, keys)  # a busy call's readings are mostly repeats of their pairs
+    n = latest.size
     t = found.t_ms[latest]
     sa, sb = slot_a[latest], slot_b[latest]
+    slots, index = unique_ints_inverse(np.concatenate([sa, sb]))
+    means = means_of(slots)
+    mean_a, mean_b = means[index[:n]], means[index[n:]]
+    delta_now = mean_a - mean_b  # of each pair's latest reading, as everything below
     ahead_a, guess_a, heard_a = carrier.extrapolated(sa, t)
     ahead_b, guess_b, heard_b = carrier.extrapolated(sb, t)
-    bound = np.hypot(delta_now[latest, 0], delta_now[latest, 1])
+    bound = np.hypot(delta_now[:, 0], delta_now[:, 1])
     bound -= carrier.reach(sa, t) + np.hypot(ahead_a[:, 0], ahead_a[:, 1])
     bound -= carrier.reach(sb, t) + np.hypot(ahead_b[:, 0], ahead_b[:, 1])
     # a reading can be chosen only where its model's range sigma passes the selector's gate: for WiFi that is
@@ -261,14 +262,15 @@ def choose_readings(
     if rows.size:
         shift[rows], walked[rows], placeable[rows] = carrier.carried_since(ids, who, t2[rows])
     ok = np.flatnonzero(placeable[:c] & placeable[c:])
-    candidates = latest[near[ok]]
+    kept = near[ok]  # among the latest readings
+    candidates = latest[kept]
     # a user's position then is where it is now minus its walk since, or plus its guessed walk beyond
-    offset = (shift[:c] - shift[c:])[ok] - (ahead_a - ahead_b)[near[ok]]
-    then_a = means[index[:n]][candidates] - shift[:c][ok] + ahead_a[near[ok]]
-    then_b = means[index[n:]][candidates] - shift[c:][ok] + ahead_b[near[ok]]
+    offset = (shift[:c] - shift[c:])[ok] - (ahead_a - ahead_b)[kept]
+    then_a = mean_a[kept] - shift[:c][ok] + ahead_a[kept]
+    then_b = mean_b[kept] - shift[c:][ok] + ahead_b[kept]
     carry_var = (carrier.carry_variance(walked[:c]) + carrier.carry_variance(walked[c:]))[ok]
-    carry_var += (guess_a + guess_b)[near[ok]]
-    delta = delta_now[candidates] - offset
+    carry_var += (guess_a + guess_b)[kept]
+    delta = delta_now[kept] - offset
     predicted = np.hypot(delta[:, 0], delta[:, 1])
     sigma = np.empty(candidates.size)
     models = found.model[candidates]
