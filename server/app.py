@@ -71,7 +71,10 @@ def create_app(settings: Settings, tune_gc: bool = False, warming: Progress | No
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         url = settings.resolved_database_url
         engine = make_engine(url)
-        checkpoint_in_background(engine, settings.sqlite_checkpoint_period_s)  # stops with engine.dispose()
+        if not settings.resolved_building_processes:
+            # the buildings write through this engine; in processes of their own, each checkpoints the log
+            # its batches fill, and a second thread here copied the same pages again (4 % of the front's CPU)
+            checkpoint_in_background(engine, settings.sqlite_checkpoint_period_s)  # stops with dispose()
         current, head = current_revision(engine), head_revision(engine)
         if current != head:
             engine.dispose()

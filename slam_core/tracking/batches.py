@@ -30,9 +30,17 @@ def check_values(
     """The values a user batch may hold, as arrays or as the lists they are made from: every reading
     finite, fix sigmas > 0, step lengths >= 0; else ValueError. One pass over the non-empty ones: most of a
     batch's fields are empty."""
-    present = [r for r in readings if len(r)]
-    finite = not present or bool(np.isfinite(np.concatenate(present)).all())
-    if not finite or (len(sigmas) and np.min(sigmas) <= 0) or (len(lengths) and np.min(lengths) < 0):
+    if all(isinstance(r, list | tuple) for r in (*readings, sigmas, lengths)):
+        # the front's lists (a batch's few dozen values): Python's own checks, no array made to be dropped
+        finite = all(all(map(math.isfinite, r)) for r in readings)
+        low_sigma = bool(sigmas) and min(sigmas) <= 0
+        negative = bool(lengths) and min(lengths) < 0
+    else:
+        present = [r for r in readings if len(r)]
+        finite = not present or bool(np.isfinite(np.concatenate(present)).all())
+        low_sigma = bool(len(sigmas) and np.min(sigmas) <= 0)
+        negative = bool(len(lengths) and np.min(lengths) < 0)
+    if not finite or low_sigma or negative:
         raise ValueError(f"user batch of {user!r}: non-finite values, sigma <= 0 or negative lengths")
 
 
