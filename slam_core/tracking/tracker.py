@@ -49,7 +49,7 @@ from slam_core.crowd.anchor_map import CrowdMapBuilder
 from slam_core.crowd.fingerprints import NOBODY
 from slam_core.crowd.graph import CrowdGraph, CrowdGraphParams
 from slam_core.encounters.models import Calibration
-from slam_core.filter.dynamic_slam import DynamicSlam
+from slam_core.filter.dynamic_slam import CrowdMap, DynamicSlam
 from slam_core.filter.floor_plan import PlanIndex
 from slam_core.filter.kernels.linalg2 import largest_eigenvalue2
 from slam_core.sensing.detectors import AnchorEvents, DetectorParams
@@ -473,6 +473,7 @@ class BuildingTracker:
     def _plan(self, batches: list[UserBatch], reports: dict[str, UserReport]) -> list[Round]:
         """Each user's events in time order, cut into rounds at every observation (detection or fix)."""
         rounds: list[Round] = []
+        crowd_maps: dict[int, CrowdMap] = {}  # each floor's crowd map for this call's new users: built once
         for b in batches:
             u = self._users[b.user]
             report = reports[b.user]
@@ -516,7 +517,7 @@ class BuildingTracker:
                     lengths, headings, times, offsets = [], [], [], []
                 if kind == 0 and i < 0:
                     assert placing is not None
-                    self._start_among(b.user, placing[1], placing[2], placing[3])
+                    self._start_among(b.user, placing[1], placing[2], placing[3], crowd_maps)
                     started = True
                     report.cold_started = True
                 elif kind == 0:
@@ -527,6 +528,7 @@ class BuildingTracker:
                             float(b.fix_sigma[i]),
                             float(b.fix_azimuth[i]),
                             b.fix_floor(i),
+                            crowd_maps,
                         )
                         started = True
                     else:
@@ -620,18 +622,30 @@ class BuildingTracker:
                 return t, found[0], found[1], level
         return None
 
-    def _start_among(self, user: str, candidates: np.ndarray, weights: np.ndarray, level: int) -> None:
+    def _crowd_map(self, level: int, built: dict[int, CrowdMap]) -> CrowdMap:
+        """The crowd's map of a floor for a new user's particles, built once per floor in ``built`` (the
+        anchors do not change while a call admits its users)."""
+        found = built.get(level)
+        if found is None:
+            found = built[level] = self.crowd.snapshot(level)
+        return found
+
+    def _start_among(
+        self, user: str, candidates: np.ndarray, weights: np.ndarray, level: int, built: dict[int, CrowdMap]
+    ) -> None:
         """Start a user with no fix over the crowd's candidate places on a floor; it is placed once
         confident."""
         u = self._users[user]
         sigma = self.params.cold_start.candidate_sigma_m
         slot = self.engine.add_user_among(
-            candidates, weights, sigma, 0.0, self.crowd.snapshot(level), level=level
+            candidates, weights, sigma, 0.0, self._crowd_map(level, built), level=level
         )
         u.placed = False
         self._admit(user, slot, (weights / weights.sum()) @ candidates)
 
-    def _start(self, user: str, xy: np.ndarray, sigma: float, azimuth: float, level: int = 0) -> None:
+    def _start(
+        self, user: str, xy: np.ndarray, sigma: float, azimuth: float, level: int, built: dict[int, CrowdMap]
+    ) -> None:
         u = self._users[user]
         heading = math.pi / 2 - azimuth if math.isfinite(azimuth) else 0.0
         if math.isfinite(azimuth):
@@ -639,7 +653,7 @@ class BuildingTracker:
         sigma = max(sigma, self.params.start_sigma_floor_m)
         u.floor = array("d", self.floors.start(level).tolist())
         slot = self.engine.add_user(
-            float(xy[0]), float(xy[1]), heading, sigma, self.crowd.snapshot(level), level=level
+            float(xy[0]), float(xy[1]), heading, sigma, self._crowd_map(level, built), level=level
         )
         u.placed = True
         self._admit(user, slot, xy)
