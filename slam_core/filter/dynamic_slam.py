@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import logsumexp
 
-from slam_core.filter.dense_ids import unique_ints
+from slam_core.filter.dense_ids import REPEATED, UNKNOWN, slots_problem, unique_ints
 from slam_core.filter.floor_plan import PlanIndex
 from slam_core.filter.kernels.building import (
     building_anchor_update,
@@ -108,17 +108,25 @@ class DynamicSlam:
         self._mean_known: np.ndarray | None = None
         self._level = np.zeros(initial_capacity, dtype=np.int64)  # each slot's floor
         self.floor_plans: dict[int, PlanIndex] = {}
+        self._scratch()
+
+    def _scratch(self) -> None:
+        """``_check_users``' marks (a stamp per slot), not part of the state."""
+        self._seen = np.zeros(0, dtype=np.int64)
+        self._stamp = 0
 
     def __getstate__(self) -> dict[str, object]:
-        """Pickled without its floor plans: the plans live in the building's store and are set again on
-        load."""
+        """Pickled without its floor plans (they live in the building's store and are set again on load) and
+        its scratch."""
         state = self.__dict__.copy()
-        state.pop("floor_plans", None)
+        for name in ("floor_plans", "_seen", "_stamp"):
+            state.pop(name, None)
         return state
 
     def __setstate__(self, state: dict[str, object]) -> None:
         self.__dict__.update(state)
         self.floor_plans = {}
+        self._scratch()
 
     # ----------------------------------------------------------------- floors
     def set_floor_plan(self, level: int, plan: PlanIndex | None) -> None:
@@ -811,7 +819,12 @@ class DynamicSlam:
             raise ValueError("users must be a 1-D array of slots")
         if users.size == 0:
             return
-        if users.min() < 0 or users.max() >= self.state.capacity or not np.all(self.state.active[users]):
+        active = self.state.active
+        if self._seen.size != active.size:  # the state grew
+            self._seen = np.zeros(active.size, dtype=np.int64)
+        self._stamp += 1
+        problem = slots_problem(users, active, self._seen, self._stamp, allow_repeats)
+        if problem == UNKNOWN:
             raise ValueError(f"unknown user slot in {users.tolist()[:10]}")
-        if not allow_repeats and unique_ints(users).size != users.size:
+        if problem == REPEATED:
             raise ValueError("a user may appear only once per call")
