@@ -60,15 +60,14 @@ import shutil
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Coroutine, Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
 
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-T = TypeVar("T")
 sys.path.insert(0, str(ROOT))
 
 from server.engine.numba_cache import configure_numba_cache
@@ -192,16 +191,6 @@ def _body(crowd: Crowd, phone: int, seq: int, now_ms: int, near: np.ndarray, bui
         parts.append(f',"bluetooth":[{sightings}]')
     parts.append("}")
     return "".join(parts).encode()
-
-
-def _run(main: Coroutine[Any, Any, T]) -> T:
-    """``asyncio.run`` on uvloop (the server's own loop, installed with ``uvicorn[standard]``): the
-    generator shares the two cores with the server, and the stock loop cost it a third more a request."""
-    try:
-        import uvloop
-    except ImportError:  # pragma: no cover - uvicorn[standard] installs it
-        return asyncio.run(main)
-    return uvloop.run(main)
 
 
 def _warmup_s(duration_s: float) -> float:
@@ -401,7 +390,7 @@ def _dashboards(urls: list[str], n: int, since_ms: float, stop: Any, out: Any) -
         outcomes = await asyncio.gather(*tasks, return_exceptions=True)
         return lags.counts, [repr(o) for o in outcomes if isinstance(o, Exception)]
 
-    out.send(_run(run()))
+    out.send(asyncio.run(run()))
 
 
 Sampler = Callable[[int], dict[str, Any]]
@@ -594,7 +583,7 @@ def run_one(
         sampler = None if soak_every_s is None else _soak_sampler(pid, data_dir, engine)
         try:
             started = time.perf_counter()
-            results = _run(
+            results = asyncio.run(
                 _drive(
                     [port],
                     keys,
@@ -815,7 +804,7 @@ def run_cluster(
                 "postgresql": _postgres_cpu_seconds,
             }
             started = time.perf_counter()
-            results = _run(
+            results = asyncio.run(
                 _drive(ports, keys, dashboards, duration_s, n_dashboards, connections, meters, prefix)
             )
             elapsed = time.perf_counter() - started
