@@ -20,8 +20,9 @@ the backlog of that second took 8 s to drain. ``bench/building.py`` reports it a
 Latency runs from the moment a post was due to its answer (a request queued behind a slow one counts its
 wait). ``ws_lag`` runs from a batch's last step to the dashboard receiving that position; the dashboards
 run in a process of their own and count the measured window only. The load generator
-shares the machine with the server: it speaks HTTP/1.1 over a pool of keep-alive sockets with pre-formatted
-bodies so that it costs little next to the server.
+shares the machine with the server: it speaks HTTP/1.1 over a pool of keep-alive sockets, and formats every
+body before the run (each timed at the moment it will be due; a run of more than ``PREFORMAT_MAX`` batches
+formats them as they are due), so that it costs little next to the server.
 
 Prints one JSON object: per-N rows (``phones, batches_per_s, p50_ms, p99_ms, ws_lag_p99_ms, errors``, and
 the server's CPU time per batch and cores used, split into its front's and its building processes' cores,
@@ -51,6 +52,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import copy
 import json
 import math
 import multiprocessing
@@ -191,6 +193,11 @@ def _body(crowd: Crowd, phone: int, seq: int, now_ms: int, near: np.ndarray, bui
         parts.append(f',"bluetooth":[{sightings}]')
     parts.append("}")
     return "".join(parts).encode()
+
+
+PREFORMAT_MAX = 200_000
+"""Bodies formatted before a run (~1 KB each) when the run posts at most this many; a longer run (a soak)
+formats each as it is due."""
 
 
 def _warmup_s(duration_s: float) -> float:
@@ -422,20 +429,50 @@ async def _drive(
         f"?token={key}&batch=true"
         for b, key in enumerate(dashboard_keys)
     ]
-    context = multiprocessing.get_context("spawn")
-    stop, (receive_lags, send_lags) = context.Event(), context.Pipe(duplex=False)
-    since_ms = (time.time() + 0.5 + _warmup_s(duration_s)) * 1000.0
-    dashboards = context.Process(target=_dashboards, args=(lives, n_dashboards, since_ms, stop, send_lags))
-    dashboards.start()
-    await asyncio.sleep(0.5)
     phase = np.linspace(0.0, 1.0, n, endpoint=False)
     building_of = np.arange(n) % buildings
     near: list[np.ndarray] = []
+    joins = _join_second(n, duration_s)
 
     def bodies(phone: int, seq: int, now_ms: int) -> bytes:
         # a phone hears the phones near it in its own building only
         heard = near[phone][building_of[near[phone]] == building_of[phone]]
         return _body(crowd, phone, seq, now_ms, heard, _building(phone, buildings, prefix))
+
+    # Every body formatted before the run when they fit in memory (the generator shares the cores with the
+    # server): each timed at the moment it is due, from a start chosen past the time their formatting takes.
+    seconds = math.ceil(duration_s)
+    ready: list[dict[int, bytes]] | None = None
+    start_epoch = time.time() + 0.5
+    if n * seconds <= PREFORMAT_MAX:
+        sample, probe = min(n, 200), copy.deepcopy(crowd)  # timed on a copy: the crowd's draws stay the run's
+        began = time.perf_counter()
+        for phone in range(sample):
+            _body(probe, phone, 1, 0, np.zeros(0, dtype=int), "load")
+        per_body = (time.perf_counter() - began) / sample
+        start_epoch = time.time() + 1.0 + 2.0 * per_body * n * seconds + 0.05 * seconds
+        ready = []
+        for second in range(seconds):
+            crowd.walk()
+            near = crowd.neighbours()
+            ready.append(
+                {
+                    phone: bodies(
+                        phone, second - int(joins[phone]), int((start_epoch + second + phase[phone]) * 1000)
+                    )
+                    for phone in range(n)
+                    if second >= joins[phone]
+                }
+            )
+        if time.time() > start_epoch:
+            print(f"load: bodies formatted {time.time() - start_epoch:.1f} s late", file=sys.stderr)
+            start_epoch = time.time()
+    context = multiprocessing.get_context("spawn")
+    stop, (receive_lags, send_lags) = context.Event(), context.Pipe(duplex=False)
+    since_ms = (max(start_epoch, time.time() + 0.5) + _warmup_s(duration_s)) * 1000.0
+    dashboards = context.Process(target=_dashboards, args=(lives, n_dashboards, since_ms, stop, send_lags))
+    dashboards.start()
+    await asyncio.sleep(max(0.5, start_epoch - time.time()))
 
     tasks: set[asyncio.Task[None]] = set()
     warmup_s = _warmup_s(duration_s)
@@ -469,13 +506,13 @@ async def _drive(
         finally:
             pool.put_nowait(conn)
 
-    joins = _join_second(n, duration_s)
     start = time.perf_counter()
     sampling = asyncio.create_task(sample_forever()) if sampler is not None else None
     second = 0
     while second < duration_s:
-        crowd.walk()
-        near = crowd.neighbours()  # read by bodies()
+        if ready is None:
+            crowd.walk()
+            near = crowd.neighbours()  # read by bodies()
         base = start + second
         measure = second >= warmup_s
         if second == math.ceil(warmup_s):
@@ -493,8 +530,11 @@ async def _drive(
             delay = due - time.perf_counter()
             if delay > 0:
                 await asyncio.sleep(delay)
-            now_ms = int(time.time() * 1000)
-            task = asyncio.create_task(send(int(phone), seq, due, bodies(int(phone), seq, now_ms), measure))
+            if ready is None:
+                body = bodies(int(phone), seq, int(time.time() * 1000))
+            else:
+                body = ready[second].pop(int(phone))  # dropped once sent
+            task = asyncio.create_task(send(int(phone), seq, due, body, measure))
             tasks.add(task)
             task.add_done_callback(tasks.discard)
             results.sent += measure

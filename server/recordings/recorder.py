@@ -162,9 +162,6 @@ class BuildingRecorder:
             except FileExistsError:
                 n += 1
                 path = self._dir / f"{hour}-{n}.mcap"
-        # no message indexes (16 bytes a message, uncompressed, a third of a compressed batch): readers find
-        # messages through the chunk index, and a chunk is read whole anyway; compression on the building's
-        # own thread (the SDK would start a thread per core)
         # a file's own context: its channels go to this writer only (kept: a context dropped closes them)
         context = self._context = foxglove.Context()
         writer = foxglove.open_mcap(
@@ -173,8 +170,10 @@ class BuildingRecorder:
             writer_options=MCAPWriteOptions(
                 compression=MCAPCompression.Zstd,
                 chunk_size=self._chunk_bytes,
+                # no message indexes (16 bytes a message, uncompressed, a third of a compressed batch):
+                # readers find messages through the chunk index, and a chunk is read whole anyway
                 emit_message_indexes=False,
-                compression_threads=0,
+                compression_threads=0,  # on the building's own thread (the SDK would start one a core)
                 profile="",
             ),
         )
