@@ -328,11 +328,10 @@ class CrowdFingerprints:
         out: list[np.ndarray | None] = [None] * len(queries)
         asked, cols, gains, counts, norms, owners = [], [], [], [], [], []
         for q, (owner, bssids, rss) in enumerate(queries):
-            if len(bssids) < p.min_aps:
+            entries = self._locatable(owner, bssids, rss)
+            if entries is None:
                 continue
-            heard, g = self._gains(bssids, rss)
-            if len(heard) < p.min_aps or self._size - self._per_owner.get(owner, 0) < p.min_references:
-                continue
+            heard, g = entries
             c, known, norm = self._query(heard, g)
             asked.append(q)
             cols.append(c[known])
@@ -375,15 +374,27 @@ class CrowdFingerprints:
     ) -> tuple[np.ndarray, np.ndarray] | None:
         """The rows of the k nearest other users' scans and their union distances, or None."""
         p = self.params
+        entries = self._locatable(owner, bssids, rss)
+        if entries is None:
+            return None
+        heard, gains = entries
+        rows, d, candidates = self._search(owner, heard, gains, p.k, 0.0, 0.0, math.inf)
+        if candidates < p.k:  # fewer than k references share an AP with the scan
+            return None
+        return rows, d
+
+    def _locatable(
+        self, owner: int, bssids: list[str], rss: np.ndarray
+    ) -> tuple[list[str], np.ndarray] | None:
+        """A scan's entries (``_gains``) when the map may locate it for ``owner``: at least ``min_aps`` of
+        them, and at least ``min_references`` references of other users; else None."""
+        p = self.params
         if len(bssids) < p.min_aps:
             return None
         heard, gains = self._gains(bssids, rss)
         if len(heard) < p.min_aps or self._size - self._per_owner.get(owner, 0) < p.min_references:
             return None
-        rows, d, candidates = self._search(owner, heard, gains, p.k, 0.0, 0.0, math.inf)
-        if candidates < p.k:  # fewer than k references share an AP with the scan
-            return None
-        return rows, d
+        return heard, gains
 
     def nearby(
         self, owner: int, bssids: list[str], rss: np.ndarray, centre: np.ndarray, radius_m: float, k: int
