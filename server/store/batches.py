@@ -4,11 +4,23 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import zstandard
 from sqlalchemy import delete, insert, select
 from sqlalchemy.orm import Session
 
 from server.store.db import execute_many, insert_many_once
 from server.store.models import BatchLogRow, BatchRow, TrackerSnapshotRow
+
+
+LOG_ZSTD_LEVEL = 1
+"""The logged bodies are zstd frames at this level: a load-benchmark batch of ~1,050 B of JSON is logged in
+~290 B for ~5 us of CPU (levels 1 and 3 differ by 2 B; zlib's fastest takes twice the time for the same
+size). The log is written with every batch and deleted once a snapshot covers it, so what this saves is the
+bytes every batch writes to the database and its write-ahead log."""
+
+_ZSTD_FRAME = b"\x28\xb5\x2f\xfd"
+"""How a zstd frame starts. A batch's JSON starts with ``{`` or white space, so a logged body says which it
+is: a body logged uncompressed (by a version before compression) is read as it is."""
 
 
 @dataclass(frozen=True)
@@ -50,6 +62,7 @@ def insert_batches_once(session: Session, batches: list[AcceptedBatch]) -> list[
     }
     out: list[int | None] = []
     logged = []
+    compressor = zstandard.ZstdCompressor(level=LOG_ZSTD_LEVEL)  # one a call: a compressor is not shared
     for b in batches:
         row_id = ids.pop((b.device_id, b.batch_id), None)  # a repeat within the group gets None
         out.append(row_id)
@@ -59,7 +72,7 @@ def insert_batches_once(session: Session, batches: list[AcceptedBatch]) -> list[
                     "batch_row_id": row_id,
                     "building_id": b.building_id,
                     "applied_round": b.applied_round,
-                    "body": b.body,
+                    "body": compressor.compress(b.body),
                 }
             )
     execute_many(session, _LOG_INSERT, logged)
@@ -124,7 +137,18 @@ def logged_batches(session: Session, building_id: str, after_round: int | None =
     )
     if after_round is not None:
         stmt = stmt.where(BatchLogRow.applied_round > after_round)
-    return [LoggedBatch(int(i), int(r), bytes(b)) for i, r, b in session.execute(stmt)]
+    decompressor = zstandard.ZstdDecompressor()
+    return [
+        LoggedBatch(int(i), int(r), _logged_body(decompressor, bytes(b))) for i, r, b in session.execute(stmt)
+    ]
+
+
+def _logged_body(decompressor: zstandard.ZstdDecompressor, stored: bytes) -> bytes:
+    """A logged body as posted: decompressed, or as it is when it was logged uncompressed."""
+    if stored.startswith(_ZSTD_FRAME):
+        body: bytes = decompressor.decompress(stored)
+        return body
+    return stored
 
 
 def find_batch(session: Session, building_id: str, device_id: str, batch_id: str) -> BatchRow | None:

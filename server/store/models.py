@@ -154,9 +154,9 @@ class BatchRow(Base):
 
 
 class BatchLogRow(Base):
-    """The write-ahead log: an applied batch's body as posted, from the transaction that acknowledges it until
-    a tracker snapshot covers it (then the row is deleted). With the snapshot it restores tracking after a
-    crash."""
+    """The write-ahead log: an applied batch's body as posted (a zstd frame, ``server.store.batches``), from
+    the transaction that acknowledges it until a tracker snapshot covers it (then the row is deleted). With
+    the snapshot it restores tracking after a crash."""
 
     __tablename__ = "batch_log"
     __table_args__ = (

@@ -6,7 +6,7 @@ import threading
 from dataclasses import replace
 
 import pytest
-from sqlalchemy import Engine, func, select
+from sqlalchemy import Engine, func, insert, select
 from sqlalchemy.exc import IntegrityError
 
 from server.store.batches import (
@@ -18,7 +18,7 @@ from server.store.batches import (
     logged_batches,
 )
 from server.store.db import make_session_factory
-from server.store.models import BatchRow, BuildingRow
+from server.store.models import BatchLogRow, BatchRow, BuildingRow
 from server.store.repositories import save_tracker_snapshot
 
 
@@ -142,6 +142,36 @@ def test_the_log_is_cleared_a_chunk_at_a_time_up_to_the_snapshots_round_only(mig
         save_tracker_snapshot(session, "hq", 1, 5, b"state")
         assert clear_covered_bodies(session, "hq") == 2
     assert _count(migrated_engine) == 5  # the ids stay: retries are still recognised
+
+
+def test_the_log_holds_bodies_compressed_and_reads_back_uncompressed_ones_as_they_are(
+    migrated_engine: Engine,
+) -> None:
+    """A body is logged as a zstd frame (a batch's JSON shrinks to a fraction) and read back byte for byte; a
+    body logged uncompressed, as before compression, is read as it is."""
+    _with_building(migrated_engine)
+    sessions = make_session_factory(migrated_engine)
+    body = (
+        b'{"device_id":"phone-1","batch_id":"b-1","steps":['
+        + b",".join(
+            b'{"t_ms":%d,"length_m":0.7,"heading_rad":1.5}' % (1700000000000 + 500 * k) for k in range(20)
+        )
+        + b"]}"
+    )
+    with sessions.begin() as session:
+        first = insert_batch_once(session, replace(_batch("b-1"), body=body, applied_round=1))
+        old = insert_batch_once(session, replace(_batch("b-2", seq=2), applied_round=2))
+        assert first is not None and old is not None
+        session.execute(
+            insert(BatchLogRow).values(batch_row_id=old, building_id="hq", applied_round=2, body=b"{}")
+        )
+    with sessions() as session:
+        stored = session.execute(
+            select(BatchLogRow.body).where(BatchLogRow.batch_row_id == first)
+        ).scalar_one()
+        assert bytes(stored).startswith(b"\x28\xb5\x2f\xfd")
+        assert len(stored) < len(body) / 3
+        assert [(b.applied_round, b.body) for b in logged_batches(session, "hq")] == [(1, body), (2, b"{}")]
 
 
 def test_batch_for_unknown_building_violates_the_foreign_key(migrated_engine: Engine) -> None:
