@@ -433,11 +433,14 @@ class BuildingHost:
                 )
                 continue
             c = sub.converted
-            if c is None:
-                assert sub.batch is not None  # a Submission holds one or the other
+            if c is None or sub.landmarks:
                 ctx = ctx or self.context()
                 try:
-                    c = convert.to_user_batch(sub.batch, ctx)
+                    if c is None:
+                        assert sub.batch is not None  # a Submission holds one or the other
+                        c = convert.to_user_batch(sub.batch, ctx)
+                    else:  # converted by the front, but for the landmarks: only the building can place them
+                        c = convert.with_landmarks(c, sub.landmarks or [], ctx)
                 except ValueError as exc:
                     results[i] = InvalidInputError(str(exc))
                     continue

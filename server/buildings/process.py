@@ -4,11 +4,12 @@ each. The building process holds the same ``BuildingHost`` as the in-process wor
 (``server.buildings.handles.BuildingThread``); this module is both ends of the socket between them.
 
 Each frame is an 8-byte length and a pickle:
-- front -> building: ``("batch", id, raw body, received_ns, BatchHeader, packed UserBatch or None)`` (the
-  last two as plain tuples),
-  ``("call", id, name, args)``, ``("close", id)``. The front converts the batches it can convert without
-  the building (those without landmarks: nearly all) and sends them packed (``server.ingestion.transport``);
-  the building decodes the others from the raw body again;
+- front -> building: ``("batch", id, raw body, received_ns, BatchHeader, packed UserBatch or None, landmarks'
+  JSON or None)`` (the header and the packed batch as plain tuples),
+  ``("call", id, name, args)``, ``("close", id)``. The front converts every batch as far as it can without
+  the building and sends it packed (``server.ingestion.transport``): a batch's landmarks (a phone's first
+  fix) go apart as their JSON, which the building places in its frame (a building decodes the raw body
+  only of a front that sends no packed batch);
 - building -> front: first ``("ready", geo)`` or ``("failed", error)``; then per group of batches
   ``("group", [(id, receipt JSON | ProblemError)], live messages as JSON, counters, seconds)``, and per call
   ``("result", id, ok, value or error)``.

@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -17,6 +18,7 @@ from schemas.sensors import (
     AnchorReading,
     BeaconSighting,
     GpsFix,
+    Landmark,
     PeerSighting,
     PositionFix,
     RotationVectorStream,
@@ -71,23 +73,54 @@ def anchor_type_index(anchor_type: AnchorType) -> int:
     return _TYPE_INDEX[anchor_type]
 
 
-def without_context(batch: SensorBatch) -> Converted | None:
+def without_context(batch: SensorBatch, landmarks_apart: bool = False) -> Converted | None:
     """The batch as engine arrays when that needs nothing of its building (it has no landmarks to place),
-    else None. Raises ``ValueError`` as ``to_user_batch``."""
-    if batch.landmarks:
+    else None; with ``landmarks_apart``, any batch, without its landmarks (``with_landmarks`` places them).
+    Raises ``ValueError`` as ``to_user_batch``."""
+    if batch.landmarks and not landmarks_apart:
         return None
-    return to_user_batch(batch, _NO_CONTEXT)
+    return _converted(batch, (), _NO_CONTEXT)
 
 
 def to_user_batch(batch: SensorBatch, ctx: BuildingContext) -> Converted:
     """The batch as engine arrays. Landmarks that cannot be placed are skipped with a warning saying why."""
+    return _converted(batch, batch.landmarks, ctx)
+
+
+def _converted(batch: SensorBatch, landmarks: Sequence[Landmark], ctx: BuildingContext) -> Converted:
+    fixes, warnings = landmark_fixes(landmarks, ctx)
+    ints, floats, strings = _sensor_columns(batch)
+    fields: dict[str, Any] = {
+        "user": batch.effective_user_id,
+        "ble_id": batch.ble_advertised_id,
+        **fixes,
+        **{name: _ints(values) for name, values in ints.items()},
+        **{name: _floats(values) for name, values in floats.items()},
+        **strings,
+        "imu": _imu(batch),
+    }
+    user_batch = UserBatch(**fields)
+    return Converted(user_batch, warnings)
+
+
+def with_landmarks(converted: Converted, landmarks: Sequence[Landmark], ctx: BuildingContext) -> Converted:
+    """A batch the front converted without its landmarks (``landmarks_apart``) with them placed by its
+    building: the building's frame, extent, floors and known anchors are the
+    building's to know. The same arrays, warnings and refusals as ``to_user_batch`` of the whole batch."""
+    fixes, warnings = landmark_fixes(landmarks, ctx)
+    return Converted(dataclasses.replace(converted.user_batch, **fixes), converted.warnings + warnings)
+
+
+def landmark_fixes(landmarks: Sequence[Landmark], ctx: BuildingContext) -> tuple[dict[str, Any], list[str]]:
+    """The landmarks as ``UserBatch``'s fix fields, and a warning for each that cannot be placed. Raises
+    ``ValueError`` for a landmark outside the building's extent or on a floor it does not have."""
     warnings: list[str] = []
     fix_t: list[int] = []
     fix_xy: list[tuple[float, float]] = []
     fix_sigma: list[float] = []
     fix_azimuth: list[float] = []
     fix_level: list[int] = []
-    for i, mark in enumerate(batch.landmarks):
+    for i, mark in enumerate(landmarks):
         placed = _place(mark, ctx)
         if isinstance(placed, str):
             warnings.append(f"landmarks.{i}: {placed}")
@@ -105,32 +138,26 @@ def to_user_batch(batch: SensorBatch, ctx: BuildingContext) -> Converted:
         fix_sigma.append(sigma)
         fix_azimuth.append(azimuth)
         fix_level.append(level)
-    ints, floats, strings = _sensor_columns(batch)
-    fields: dict[str, Any] = {
-        "user": batch.effective_user_id,
-        "ble_id": batch.ble_advertised_id,
+    fixes: dict[str, Any] = {
         "fix_t": _ints(fix_t),
         "fix_xy": np.array(fix_xy, dtype=np.float64).reshape(-1, 2) if fix_xy else _NO_XY,
         "fix_sigma": _floats(fix_sigma),
         "fix_azimuth": _floats(fix_azimuth),
         "fix_level": _ints(fix_level) if any(fix_level) else _NO_INTS,
-        **{name: _ints(values) for name, values in ints.items()},
-        **{name: _floats(values) for name, values in floats.items()},
-        **strings,
-        "imu": _imu(batch),
     }
-    user_batch = UserBatch(**fields)
-    return Converted(user_batch, warnings)
+    return fixes, warnings
 
 
-def packed_without_context(batch: SensorBatch) -> PackedBatch | None:
+def packed_without_context(batch: SensorBatch, landmarks_apart: bool = False) -> PackedBatch | None:
     """``transport.pack(without_context(batch).user_batch)``, built straight from the batch's values
     without the arrays in between, for the batches phones send most (no landmarks, no raw IMU or barometer:
     the phone counts its own steps), else None. Raises ``ValueError`` where ``UserBatch``'s checks would.
+    ``landmarks_apart``: a batch with landmarks is packed too, without them, for its building to place
+    (``with_landmarks``).
 
     The front of a building process sends every batch packed, so this is on the front's path of every
     batch: no ~25 small arrays made only to be joined again."""
-    if batch.landmarks or batch.pressure is not None or _has_raw_imu(batch):
+    if (batch.landmarks and not landmarks_apart) or batch.pressure is not None or _has_raw_imu(batch):
         return None
     ints, floats, strings = _sensor_columns(batch)
     lengths = floats["step_length"]

@@ -11,7 +11,6 @@ from sqlalchemy.orm import Session
 from server.store.db import execute_many, insert_many_once
 from server.store.models import BatchLogRow, BatchRow, TrackerSnapshotRow
 
-
 LOG_ZSTD_LEVEL = 1
 """The logged bodies are zstd frames at this level: a load-benchmark batch of ~1,050 B of JSON is logged in
 ~290 B for ~5 us of CPU (levels 1 and 3 differ by 2 B; zlib's fastest takes twice the time for the same

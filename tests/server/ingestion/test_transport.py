@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import pickle
+import re
 from typing import Any
 
 import numba
@@ -20,6 +21,8 @@ from server.buildings.submissions import BatchHeader, Submission, batch_fields, 
 from server.errors import InvalidInputError
 from server.ingestion import convert
 from server.ingestion import transport as batch_transport
+from server.ingestion.extent import Extent
+from slam_core.geo import GeoFrame
 from slam_core.sensing.pdr.online import ImuSamples
 from slam_core.tracking.tracker import UserBatch
 
@@ -167,34 +170,99 @@ def test_a_submission_holds_the_batch_or_its_conversion() -> None:
     assert Submission.of(batch, b"{}", 0).header == header
 
 
-def test_a_batch_crosses_to_its_building_process_converted_or_raw() -> None:
-    """``batch_fields`` (the front) and ``received_batch`` (the building), through pickle as on the socket."""
+def test_a_batch_crosses_to_its_building_process_converted_its_landmarks_apart() -> None:
+    """``batch_fields`` (the front) and ``received_batch`` (the building), through pickle as on the socket:
+    every batch arrives converted; a fix travels apart, for the building to place."""
     steps = [{"t_ms": T0, "length_m": 0.7, "azimuth_rad": 0.0}]
     fix = {"kind": "fix", "t_ms": T0, "position": {"x_m": 1.0, "y_m": 2.0}, "sigma_m": 1.0}
-    for extra, converted_by_front in (
-        ({"steps": steps}, True),
-        ({"steps": steps, "landmarks": [fix]}, False),
-    ):
+    imu = {"accelerometer": {"t_ms": [T0, T0 + 20], "x": [0.0, 0.1], "y": [0.0, 0.0], "z": [9.8, 9.7]}}
+    for extra in ({"steps": steps}, {"steps": steps, "landmarks": [fix]}, {**imu, "landmarks": [fix]}):
         batch = _sensor_batch(**extra)
         raw = batch.model_dump_json().encode()
         fields = pickle.loads(pickle.dumps(batch_fields(Submission.of(batch, raw, 7)), protocol=5))
         received = received_batch(*fields)
         assert received.header == BatchHeader.of(batch)
         assert (received.raw, received.received_ns) == (raw, 7)
-        assert (received.converted is not None) == converted_by_front
-        assert (received.batch == batch) != converted_by_front
+        assert received.batch is None
+        assert received.converted is not None
+        assert received.landmarks == (batch.landmarks or None)
+        assert received.converted.user_batch.fix_t.size == 0  # placed by the building, not the front
+
+
+def test_an_earlier_fronts_batch_without_its_packed_form_is_decoded_by_the_building() -> None:
+    batch = _sensor_batch(landmarks=[{"kind": "fix", "t_ms": T0, "position": {"x_m": 1.0, "y_m": 2.0}}])
+    raw = batch.model_dump_json().encode()
+    received = received_batch(raw, 7, tuple(BatchHeader.of(batch)), None)
+    assert received.batch == batch
+    assert received.converted is None
+    assert received.landmarks is None
+
+
+def _context() -> convert.BuildingContext:
+    return convert.BuildingContext(
+        "hq",
+        GeoFrame(48.0, 11.0, 0.0),
+        {"door": (3.0, 4.0), "lift": (8.0, 1.0)},
+        extent=Extent(-10.0, 60.0, -10.0, 40.0, 10.0),
+        levels=frozenset({0, 1}),
+        known_anchor_levels={"lift": 1},
+    )
+
+
+_FIX = {"kind": "fix", "t_ms": T0, "position": {"x_m": 1.0, "y_m": 2.0}}
+_LANDMARK_SETS: dict[str, list[dict[str, Any]]] = {
+    "a fix on a floor": [{**_FIX, "floor": 1}],
+    "anchors, one unknown": [
+        {"kind": "anchor", "t_ms": T0, "anchor_id": "lift"},
+        {"kind": "anchor", "t_ms": T0 + 5, "anchor_id": "nowhere"},
+        {**_FIX, "t_ms": T0 + 9, "sigma_m": 2.0, "azimuth_rad": 1.0},
+    ],
+    "a GPS fix": [{"kind": "gps", "t_ms": T0, "lat_deg": 48.0001, "lon_deg": 11.0001, "accuracy_m": 4.0}],
+    "outside the extent": [{**_FIX, "position": {"x_m": 500.0, "y_m": 2.0}}],
+    "on a floor it does not have": [{**_FIX, "floor": 3}],
+}
+
+
+@pytest.mark.parametrize("name", list(_LANDMARK_SETS))
+def test_landmarks_placed_by_the_building_give_what_the_whole_batch_gives(name: str) -> None:
+    """The oracle: the whole batch converted in the building (``to_user_batch``). The front's conversion
+    without the landmarks, then ``with_landmarks`` in the building, gives the same arrays and warnings, or
+    the same refusal."""
+    steps = [{"t_ms": T0 + 1, "length_m": 0.7, "azimuth_rad": 0.0}]
+    batch = _sensor_batch(steps=steps, landmarks=_LANDMARK_SETS[name])
+    ctx = _context()
+    received = received_batch(*batch_fields(Submission.of(batch, b"{}", 0)))
+    assert received.converted is not None
+    assert received.landmarks is not None
+    try:
+        whole = convert.to_user_batch(batch, ctx)
+    except ValueError as exc:
+        assert name in ("outside the extent", "on a floor it does not have")
+        with pytest.raises(ValueError, match="^" + re.escape(str(exc)) + "$"):
+            convert.with_landmarks(received.converted, received.landmarks, ctx)
+        return
+    assert bool(whole.warnings) == (name == "anchors, one unknown")
+    placed = convert.with_landmarks(received.converted, received.landmarks, ctx)
+    assert placed.warnings == whole.warnings
+    assert placed.user_batch.fix_t.size == whole.user_batch.fix_t.size > 0
+    for f in dataclasses.fields(UserBatch):
+        a, b = getattr(placed.user_batch, f.name), getattr(whole.user_batch, f.name)
+        if isinstance(a, np.ndarray):
+            np.testing.assert_array_equal(a, b, err_msg=f.name)
+        else:
+            assert a == b, f.name
 
 
 @pytest.mark.parametrize("refuser", ["packed_without_context", "without_context"])
 def test_a_batch_the_front_cannot_convert_is_refused_there(
     monkeypatch: pytest.MonkeyPatch, refuser: str
 ) -> None:
-    def refuse(batch: SensorBatch) -> None:
+    def refuse(batch: SensorBatch, landmarks_apart: bool = False) -> None:
         raise ValueError("user batch of 'phone-1': inconsistent array shapes")
 
     monkeypatch.setattr(convert, refuser, refuse)
     if refuser == "without_context":  # reached for raw IMU only
-        monkeypatch.setattr(convert, "packed_without_context", lambda batch: None)
+        monkeypatch.setattr(convert, "packed_without_context", lambda batch, landmarks_apart=False: None)
     batch = _sensor_batch()
     with pytest.raises(InvalidInputError, match="inconsistent array shapes"):
         batch_fields(Submission.of(batch, b"{}", 0))

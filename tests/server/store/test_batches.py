@@ -161,7 +161,8 @@ def test_the_log_holds_bodies_compressed_and_reads_back_uncompressed_ones_as_the
     with sessions.begin() as session:
         first = insert_batch_once(session, replace(_batch("b-1"), body=body, applied_round=1))
         old = insert_batch_once(session, replace(_batch("b-2", seq=2), applied_round=2))
-        assert first is not None and old is not None
+        assert first is not None
+        assert old is not None
         session.execute(
             insert(BatchLogRow).values(batch_row_id=old, building_id="hq", applied_round=2, body=b"{}")
         )
