@@ -104,9 +104,9 @@ def _converted(batch: SensorBatch, landmarks: Sequence[Landmark], ctx: BuildingC
 
 
 def with_landmarks(converted: Converted, landmarks: Sequence[Landmark], ctx: BuildingContext) -> Converted:
-    """A batch the front converted without its landmarks (``landmarks_apart``) with them placed by its
-    building: the building's frame, extent, floors and known anchors are the
-    building's to know. The same arrays, warnings and refusals as ``to_user_batch`` of the whole batch."""
+    """A batch the front converted without its landmarks (``landmarks_apart``), with them placed by its
+    building, which alone knows its frame, extent, floors and known anchors: the same arrays, warnings and
+    refusals as ``to_user_batch`` of the whole batch."""
     fixes, warnings = landmark_fixes(landmarks, ctx)
     return Converted(dataclasses.replace(converted.user_batch, **fixes), converted.warnings + warnings)
 
