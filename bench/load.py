@@ -28,8 +28,8 @@ Prints one JSON object: per-N rows (``phones, batches_per_s, p50_ms, p99_ms, ws_
 the server's CPU time per batch and cores used, split into its front's and its building processes' cores,
 and the generator's cores, from /proc over the measured window: the steadiest figure of what a change
 costs; ``p50_ms_per_second``: the median latency of each measured second, which shows whether a backlog
-drains) and ``sustained``: the largest N with p99 <= 100 ms, the offered rate met within 5 % and no
-errors.
+drains, and ``p99_ms_per_second``, which shows whether the p99 is a few seconds' spikes or a broad tail)
+and ``sustained``: the largest N with p99 <= 100 ms, the offered rate met within 5 % and no errors.
 
 With ``--cluster FRONTS,WORKERS`` (and ``--postgres``), each N runs on a cluster instead: a private
 ``nats-server -js`` (or the one at ``--nats``; building ids then carry the run's prefix), that many
@@ -273,31 +273,38 @@ class LogHistogram:
         return float(self.LOW * self.RATIO**k)
 
 
-class PerSecondMedians:
-    """The median latency of the posts due in each second, kept as each second's posts are all answered
-    (``SETTLE_S`` after it), so that only the seconds still open hold their latencies."""
+class PerSecondLatencies:
+    """The median and the 99th percentile latency of the posts due in each second, kept as each second's posts
+    are all answered (``SETTLE_S`` after it), so that only the seconds still open hold their latencies. A
+    p99 made of a few seconds' spikes (a pause of the building or the front) shows apart from a broad tail."""
 
     SETTLE_S = 30
 
     def __init__(self) -> None:
         self._open: dict[int, list[float]] = {}
-        self.medians: dict[int, float] = {}
+        self.done: dict[int, tuple[float, float]] = {}
 
     def add(self, second: int, latency_ms: float) -> None:
         self._open.setdefault(second, []).append(latency_ms)
-        for done in [s for s in self._open if s < second - self.SETTLE_S]:
-            self.medians[done] = float(np.median(self._open.pop(done)))
+        for settled in [s for s in self._open if s < second - self.SETTLE_S]:
+            self._settle(settled)
 
-    def close(self) -> list[float]:
-        for done in list(self._open):
-            self.medians[done] = float(np.median(self._open.pop(done)))
-        return [round(self.medians[s], 1) for s in sorted(self.medians)]
+    def _settle(self, second: int) -> None:
+        p50, p99 = np.percentile(self._open.pop(second), [50, 99])
+        self.done[second] = (float(p50), float(p99))
+
+    def close(self) -> tuple[list[float], list[float]]:
+        """The medians and the 99th percentiles, second by second."""
+        for second in list(self._open):
+            self._settle(second)
+        ordered = [self.done[s] for s in sorted(self.done)]
+        return [round(m, 1) for m, _ in ordered], [round(p, 1) for _, p in ordered]
 
 
 @dataclass
 class Results:
     latencies_ms: LogHistogram = field(default_factory=LogHistogram)
-    per_second: PerSecondMedians = field(default_factory=PerSecondMedians)
+    per_second: PerSecondLatencies = field(default_factory=PerSecondLatencies)
     ws_lag_ms: LogHistogram = field(default_factory=LogHistogram)
     errors: int = 0
     sent: int = 0
@@ -881,6 +888,7 @@ def _row(
 ) -> dict[str, Any]:
     lat, lag = results.latencies_ms, results.ws_lag_ms
     measured_s = duration_s - _warmup_s(duration_s)
+    medians, p99s = results.per_second.close()
     return {
         "phones": n,
         "buildings": buildings,
@@ -891,7 +899,8 @@ def _row(
         "p99_ms": round(lat.percentile(99), 1),
         "ws_lag_p50_ms": round(lag.percentile(50), 1),
         "ws_lag_p99_ms": round(lag.percentile(99), 1),
-        "p50_ms_per_second": results.per_second.close(),
+        "p50_ms_per_second": medians,
+        "p99_ms_per_second": p99s,
         "ws_positions": lag.n,
         "errors": results.errors + len(results.dashboard_errors),
         "generator_cores": round(results.generator_cpu_s / results.measured_wall_s, 2),
