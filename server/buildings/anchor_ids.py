@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from slam_core.crowd.anchor_map import CrowdMapBuilder
-
 
 class AnchorIds:
     """Public id <-> crowd index, with each anchor's label. Anchors the crowd found get ``a-<n>`` ids when
@@ -29,22 +27,3 @@ class AnchorIds:
                 self._next += 1
             self.link(index, f"a-{self._next}", None)
         return self.public[index]
-
-    def known_levels(self, crowd: CrowdMapBuilder) -> dict[str, int]:
-        """The floors of the live pinned anchors not on floor 0, by public id."""
-        levels = {}
-        for public_id, index in self.index.items():
-            if crowd.is_live(index) and crowd.anchor(index)[3] and crowd.level(index) != 0:
-                levels[public_id] = crowd.level(index)
-        return levels
-
-    def known_positions(self, crowd: CrowdMapBuilder) -> dict[str, tuple[float, float]]:
-        """The live anchors operators pinned, by public id: where converting a batch finds an anchor reading's
-        position."""
-        known = {}
-        for public_id, index in self.index.items():
-            if crowd.is_live(index):
-                mean, _, _, is_known, _, _ = crowd.anchor(index)
-                if is_known:
-                    known[public_id] = (float(mean[0]), float(mean[1]))
-        return known

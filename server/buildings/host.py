@@ -133,17 +133,8 @@ class BuildingHost:
         return load_radio_map(self.tracker, self._config.signal_maps_dir, self.building_id)
 
     def context(self) -> convert.BuildingContext:
-        """What converting a batch needs of the building: its geo frame, its floors and its known anchors by
-        id."""
-        crowd = self.tracker.crowd
-        return convert.BuildingContext(
-            self.building_id,
-            self.geo,
-            self.ids.known_positions(crowd),
-            extent=self.extent,
-            levels=frozenset(self.tracker.levels),
-            known_anchor_levels=self.ids.known_levels(crowd),
-        )
+        """What converting a batch needs of the building now (``convert.building_context``)."""
+        return convert.building_context(self.building_id, self.tracker, self.ids.index, self.geo, self.extent)
 
     def building_state(self) -> tracker_snapshot.BuildingState:
         """What a snapshot holds: the tracker and the building's bookkeeping, as of the last engine call."""

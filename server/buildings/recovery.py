@@ -156,10 +156,9 @@ class Recovery:
         positions and anchors are already in SQL; only the in-memory filters are rebuilt."""
         tracker = loaded.tracker
         for applied_round, items in itertools.groupby(logged, key=lambda b: b.applied_round):
-            # a logged batch was accepted: it is replayed even if the margin has narrowed since
-            ctx = convert.BuildingContext(
-                self.building_id, loaded.geo, loaded.ids.known_positions(tracker.crowd), extent=None
-            )
+            # converted as the live path converted it, but for the extent: a logged batch was accepted, and
+            # is replayed even if the margin has narrowed since
+            ctx = convert.building_context(self.building_id, tracker, loaded.ids.index, loaded.geo, None)
             batches = []
             for item in items:
                 batch = SensorBatch.model_validate_json(item.body)

@@ -44,7 +44,7 @@ from server.datasets.msindoor import (
 )
 from server.datasets.msindoor_batches import trace_windows
 from server.engine.config import ReplayOptions, replay_params
-from server.ingestion.convert import BuildingContext, to_user_batch
+from server.ingestion.convert import BuildingContext, building_context, to_user_batch
 from server.ingestion.floor_plans import engine_plan
 from server.ingestion.radio_maps import RadioMap
 from slam_core.encounters.models import Calibration
@@ -137,7 +137,7 @@ def replay_msindoor(
     base_params: TrackerParams,
     calibration: Calibration,
     progress: Callable[[int, int], None] | None = None,
-    radio_map_of: Callable[[list[Trace]], RadioMap | None] | None = None,
+    radio_map_of: Callable[[list[Trace], BuildingContext], RadioMap | None] | None = None,
 ) -> tuple[dict[str, Any], np.ndarray]:
     """Replay the floor's (or the building's) walks with the server's tracker (``base_params``, in the
     options' mode); returns the metrics (the simulated evaluation's fields plus ``n_waypoints``, and for a
@@ -169,9 +169,7 @@ def replay_msindoor(
         raise ValueError(f"{floor_dir}: no walk has an accelerometer stream and two waypoints")
     phases = [warm, later] if warm else [later]
     single = len(floors) == 1
-    ctx = BuildingContext(
-        building_id=floor_dir.name, geo=None, known_anchors={}, levels=frozenset(tracker.levels)
-    )
+    ctx = building_context(floor_dir.name, tracker, {}, None, None)
     base = REPLAY_BASE_MS
     scored: list[_Walk] = []
     counts = dict.fromkeys(
@@ -202,7 +200,7 @@ def replay_msindoor(
         if last:
             scored = walks
         elif radio_map_of is not None and single:
-            radio = radio_map_of([t for _, t in phase_traces])
+            radio = radio_map_of([t for _, t in phase_traces], ctx)
             if radio is not None:
                 radio_scans = tracker.load_radio_map(
                     radio.map_id, radio.xy, radio.bssids, radio.rss, radio.t_ms

@@ -5,8 +5,8 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, NamedTuple
 
 import numpy as np
 from pydantic import ValidationError
@@ -33,7 +33,7 @@ from slam_core.encounters.models import MODEL_BLUETOOTH, MODEL_WIFI_FINGERPRINT
 from slam_core.geo import GeoFrame
 from slam_core.sensing.pdr.online import ImuSamples
 from slam_core.tracking.batches import check_values
-from slam_core.tracking.tracker import EncounterResult, EstimateRow, UserBatch
+from slam_core.tracking.tracker import BuildingTracker, EncounterResult, EstimateRow, UserBatch
 
 ENGINE_ANCHOR_TYPES: tuple[AnchorType, ...] = tuple(AnchorType)
 """The engine's anchor type index of each wire type (the first five are the paper testbed's)."""
@@ -42,25 +42,57 @@ TAG_SIGMA_M = 0.5
 """A tag with an encoded position places the phone within about an arm's length of it."""
 
 
+class KnownPlace(NamedTuple):
+    """Where an operator pinned an anchor: its place in local metres and its floor."""
+
+    x_m: float
+    y_m: float
+    floor: int
+
+
 @dataclass(frozen=True)
 class BuildingContext:
-    """What conversion needs to know about the building: its geo-reference and its known anchors."""
+    """What placing a batch's landmarks needs of its building. ``building_context`` builds it from the
+    building's tracker wherever a batch is converted (the live path, recovery, the evaluation, the replays):
+    a field left out would place a landmark wrongly, so none has a default."""
 
     building_id: str
     geo: GeoFrame | None
-    known_anchors: Mapping[str, tuple[float, float]]  # public id -> local position
-    detection_sigma_m: float = 0.5
-    extent: Extent | None = None
+    extent: Extent | None
     """Where positions may be (None: anywhere the schema allows); a fix, GPS fix or tag outside it refuses
     the batch."""
-    levels: frozenset[int] | None = None
-    """The building's floors (None: any): a landmark on another floor refuses the batch."""
-    known_anchor_levels: Mapping[str, int] = field(default_factory=dict)
-    """The floor of each known anchor not on floor 0."""
+    floors: frozenset[int]
+    """The building's floors: a landmark on another floor refuses the batch."""
+    known_anchors: Mapping[str, KnownPlace]
+    """The live anchors operators pinned, by public id: where an anchor reading places the phone."""
+    anchor_sigma_m: float
+    """How far from a known anchor a phone that reads it may be (the filter's anchor detection sigma)."""
 
 
-_NO_CONTEXT = BuildingContext("", None, {})
-"""For batches without landmarks, the only part of a batch that needs its building to be converted."""
+def building_context(
+    building_id: str,
+    tracker: BuildingTracker,
+    public_ids: Mapping[str, int],
+    geo: GeoFrame | None,
+    extent: Extent | None,
+) -> BuildingContext:
+    """The one way a building's conversion context is made: its floors and its pinned anchors (named by
+    ``public_ids``, public id -> crowd index) as its tracker holds them now."""
+    crowd = tracker.crowd
+    known = {}
+    for public_id, index in public_ids.items():
+        if crowd.is_live(index):
+            mean, _, _, is_known, _, _ = crowd.anchor(index)
+            if is_known:
+                known[public_id] = KnownPlace(float(mean[0]), float(mean[1]), crowd.level(index))
+    return BuildingContext(
+        building_id,
+        geo,
+        extent,
+        frozenset(tracker.levels),
+        known,
+        tracker.params.filter.anchors.detection_sigma_m,
+    )
 
 
 @dataclass(frozen=True)
@@ -79,16 +111,17 @@ def without_context(batch: SensorBatch, landmarks_apart: bool = False) -> Conver
     Raises ``ValueError`` as ``to_user_batch``."""
     if batch.landmarks and not landmarks_apart:
         return None
-    return _converted(batch, (), _NO_CONTEXT)
+    return _converted(batch, _NO_FIXES, [])
 
 
 def to_user_batch(batch: SensorBatch, ctx: BuildingContext) -> Converted:
     """The batch as engine arrays. Landmarks that cannot be placed are skipped with a warning saying why."""
-    return _converted(batch, batch.landmarks, ctx)
+    fixes, warnings = landmark_fixes(batch.landmarks, ctx)
+    return _converted(batch, fixes, warnings)
 
 
-def _converted(batch: SensorBatch, landmarks: Sequence[Landmark], ctx: BuildingContext) -> Converted:
-    fixes, warnings = landmark_fixes(landmarks, ctx)
+def _converted(batch: SensorBatch, fixes: Mapping[str, Any], warnings: list[str]) -> Converted:
+    """The batch's sensors as engine arrays, with its landmarks' ``fixes`` (``landmark_fixes``)."""
     ints, floats, strings = _sensor_columns(batch)
     fields: dict[str, Any] = {
         "user": batch.effective_user_id,
@@ -128,10 +161,10 @@ def landmark_fixes(landmarks: Sequence[Landmark], ctx: BuildingContext) -> tuple
         (x, y), sigma, azimuth, level = placed
         if ctx.extent is not None and (refusal := ctx.extent.refusal(f"landmarks.{i}", x, y)) is not None:
             raise ValueError(refusal)
-        if ctx.levels is not None and level not in ctx.levels:
+        if level not in ctx.floors:
             raise ValueError(
                 f"landmarks.{i}: building {ctx.building_id!r} has no floor {level}; its floors: "
-                f"{', '.join(map(str, sorted(ctx.levels)))}"
+                f"{', '.join(map(str, sorted(ctx.floors)))}"
             )
         fix_t.append(mark.t_ms)
         fix_xy.append((x, y))
@@ -214,6 +247,14 @@ def _sensor_columns(
 _NO_INTS = np.zeros(0, dtype=np.int64)
 _NO_FLOATS = np.zeros(0, dtype=np.float64)
 _NO_XY = np.zeros((0, 2), dtype=np.float64)
+_NO_FIXES: dict[str, Any] = {
+    "fix_t": _NO_INTS,
+    "fix_xy": _NO_XY,
+    "fix_sigma": _NO_FLOATS,
+    "fix_azimuth": _NO_FLOATS,
+    "fix_level": _NO_INTS,
+}
+"""``landmark_fixes`` of no landmarks."""
 
 
 def _ints(values: list[int]) -> np.ndarray:
@@ -289,10 +330,10 @@ def _place(
         azimuth = math.nan if mark.azimuth_rad is None else mark.azimuth_rad
         return (mark.position.x_m, mark.position.y_m), mark.sigma_m, azimuth, mark.floor
     if isinstance(mark, AnchorReading):
-        xy = ctx.known_anchors.get(mark.anchor_id)
-        if xy is None:
+        known = ctx.known_anchors.get(mark.anchor_id)
+        if known is None:
             return f"anchor {mark.anchor_id!r} is not a known anchor of building {ctx.building_id!r}"
-        return xy, ctx.detection_sigma_m, math.nan, ctx.known_anchor_levels.get(mark.anchor_id, 0)
+        return (known.x_m, known.y_m), ctx.anchor_sigma_m, math.nan, known.floor
     if isinstance(mark, GpsFix):
         if ctx.geo is None:
             return f"building {ctx.building_id!r} has no geo-reference, so a GPS fix cannot be placed"

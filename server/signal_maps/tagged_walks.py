@@ -21,12 +21,18 @@ from server.signal_maps.build import build_signal_maps
 
 
 def radio_map_of_walks(
-    traces: Sequence[Trace], modalities: tuple[str, ...] = ("wifi",), map_id: str = "tagged-walks"
+    traces: Sequence[Trace],
+    ctx: BuildingContext,
+    modalities: tuple[str, ...] = ("wifi",),
+    map_id: str = "tagged-walks",
 ) -> RadioMap | None:
-    """Record the walks as phones would post them, with a position fix at each walk's first and last
-    waypoint, build their signal maps as a server build does, and return the build's radio map; None when
-    no walk has two waypoints."""
-    building = "walks"
+    """Record the walks of a one-floor building (``ctx``, as its tracker converts batches) as phones would
+    post them, with a position fix at each walk's first and last waypoint, build their signal maps as a
+    server build does, and return the build's radio map; None when no walk has two waypoints."""
+    if len(ctx.floors) != 1:
+        raise ValueError(f"a radio map of walks is built for one floor; the building has {len(ctx.floors)}")
+    (floor,) = ctx.floors
+    building = ctx.building_id
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
         recorder = BuildingRecorder(root / "recordings", building)
@@ -45,6 +51,7 @@ def radio_map_of_walks(
                             t_ms=int(t[0]),
                             position=Position(x_m=float(t[1]), y_m=float(t[2])),
                             sigma_m=START_SIGMA_M,
+                            floor=floor,
                         )
                         for t in due
                     ]
@@ -57,7 +64,7 @@ def radio_map_of_walks(
             return None
         out = root / "build"
         try:
-            build_signal_maps(files, str(out), BuildingContext(building, None, {}), modalities)
+            build_signal_maps(files, str(out), ctx, modalities)
         except ValueError:  # no walk between two tags
             return None
         return read_radio_map(out / RADIO_MAP, map_id)

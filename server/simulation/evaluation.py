@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from server.engine.config import ReplayOptions, replay_params
-from server.ingestion.convert import BuildingContext, anchor_type_index, to_user_batch
+from server.ingestion.convert import anchor_type_index, building_context, to_user_batch
 from server.simulation.liars import liar_devices, lying
 from server.simulation.phones import EPOCH_MS, device_id, known_anchors, simulated_batches
 from slam_core.encounters.models import Calibration
@@ -51,15 +51,13 @@ def evaluate_scenario(
     levels = tuple(range(sim.world.levels))
     if len(levels) > 1:  # as an operator creates the building: its floors, not their heights
         tracker.set_levels(levels)
-    known: dict[str, tuple[float, float]] = {}
-    known_levels: dict[str, int] = {}
+    known: dict[str, int] = {}  # the operator's names of the anchors pinned, as the server's
     for k, anchor in enumerate(known_anchors(sim)):
-        tracker.pin_anchor(np.array(anchor.position), anchor_type_index(anchor.type), level=anchor.level)
-        known[f"known-{k}"] = (float(anchor.position[0]), float(anchor.position[1]))
-        known_levels[f"known-{k}"] = anchor.level
-    ctx = BuildingContext(
-        "simulated", None, known, levels=frozenset(levels), known_anchor_levels=known_levels
-    )
+        index = tracker.pin_anchor(
+            np.array(anchor.position), anchor_type_index(anchor.type), level=anchor.level
+        )
+        known[f"known-{k}"] = index
+    ctx = building_context("simulated", tracker, known, None, None)
     users = {device_id(u): u for u in range(len(sim.users))}
     liars = liar_devices(len(sim.users), options.liars) if options.liars else set()
     score = _Score(sim, users)

@@ -16,7 +16,7 @@ from websockets.sync.client import connect
 from server.app import create_app
 from server.cli.background_server import free_port, running_server
 from server.engine.config import load_calibration, tracker_params
-from server.ingestion.convert import BuildingContext, anchor_type_index, to_user_batch
+from server.ingestion.convert import anchor_type_index, building_context, to_user_batch
 from server.settings import Settings
 from server.simulation.crowd_client import device_keys, post_crowd, prepare_building
 from server.simulation.phones import known_anchors, simulated_batches
@@ -76,7 +76,7 @@ def test_live_estimates_equal_the_offline_engine(live_server: tuple[str, str, Se
     tracker = BuildingTracker(tracker_params(settings), load_calibration(None), seed=settings.seed)
     for anchor in known_anchors(sim):
         tracker.pin_anchor(np.array(anchor.position), anchor_type_index(anchor.type))
-    ctx = BuildingContext("sim", None, {})
+    ctx = building_context("sim", tracker, {}, None, None)
     live = iter(report.receipts)
     compared = fixes = 0
     for batch in simulated_batches(sim, "sim"):

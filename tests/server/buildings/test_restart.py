@@ -331,3 +331,54 @@ def test_idle_users_are_forgotten_at_a_snapshot_and_stay_forgotten_after_a_resta
     assert set(restarted.tracker.users) == {s.batch.effective_user_id for s in groups[8]}
     assert not any(restarted.tracker.is_tracking(u) for u in restarted.tracker.users)
     engine.dispose()
+
+
+def test_a_building_without_floor_0_comes_back_with_a_user_who_started_at_a_lift_on_floor_2(
+    database_url: str,
+) -> None:
+    """The batch log is replayed as the live path converted it: an anchor reading of a lift pinned on floor 2
+    places the phone on floor 2 again, in a building whose floors are 1 and 2 (a replay that took every
+    known anchor on floor 0 refused the log, and the building never loaded again)."""
+    from schemas.anchors import AnchorType
+    from schemas.sensors import SensorBatch
+    from server.store.models import FloorRow
+
+    engine = make_engine(database_url)
+    upgrade(engine)
+    with make_session_factory(engine).begin() as s:
+        s.add(BuildingRow(id="hq", name="HQ", rotation_rad=0.0))
+        s.add_all([FloorRow(building_id="hq", level=lv, name=f"F{lv}") for lv in (1, 2)])
+    building = _building(engine)
+    building.put_known_anchor(
+        "lift", KnownAnchorIn(type=AnchorType.ELEVATOR, position=Position(x_m=10.0, y_m=5.0), floor=2)
+    )
+    t0 = 1_767_225_600_000
+    batches = []
+    for seq in range(6):
+        steps = [{"t_ms": t0 + seq * 1000 + 500, "length_m": 0.7, "azimuth_rad": 0.3}]
+        landmarks = [{"kind": "anchor", "t_ms": t0, "anchor_id": "lift"}] if seq == 0 else []
+        batch = SensorBatch.model_validate(
+            {
+                "building_id": "hq",
+                "device_id": "phone",
+                "batch_id": f"b{seq}",
+                "seq": seq,
+                "steps": steps,
+                "landmarks": landmarks,
+            }
+        )
+        batches.append(Submission.of(batch, batch.model_dump_json().encode(), 0))
+    for sub in batches:
+        (receipt,) = building.process([sub]).receipts
+        assert getattr(receipt, "status", None) == "applied", receipt
+    assert building.tracker.floor_of("phone")[0] == 2
+    at_crash = _estimates(building)
+    del building  # as after kill -9: the log holds every batch
+
+    restarted = _building(engine)
+    assert restarted.counters.replayed == len(batches)
+    assert restarted.tracker.floor_of("phone")[0] == 2
+    assert _estimates(restarted) == at_crash
+    receipts = [restarted.process([sub]).receipts[0] for sub in batches]
+    assert [getattr(r, "status", None) for r in receipts] == ["duplicate"] * len(batches)
+    engine.dispose()

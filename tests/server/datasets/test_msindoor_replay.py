@@ -16,7 +16,7 @@ from server.datasets.msindoor import read_trace
 from server.datasets.msindoor_batches import trace_batches
 from server.datasets.msindoor_replay import replay_msindoor
 from server.engine.config import ReplayOptions, load_calibration, replay_params, tracker_params
-from server.ingestion.convert import BuildingContext, to_user_batch
+from server.ingestion.convert import building_context, to_user_batch
 from server.settings import Settings
 from server.signal_maps.tagged_walks import radio_map_of_walks
 from slam_core.crowd.fingerprints import FingerprintParams
@@ -169,7 +169,8 @@ def test_walks_tagged_at_both_ends_build_a_radio_map_near_the_surveyed_track() -
     """The server's signal-map build over three walks, each tagged at its first and last waypoint: every
     scan of them placed by SignalSLAM near where the surveyor was."""
     traces = [read_trace(FLOOR / "path_data_files" / f"{n}.txt") for n in WALKS[:3]]
-    radio = radio_map_of_walks(traces)
+    tracker = BuildingTracker(tracker_params(Settings()), load_calibration(None))
+    radio = radio_map_of_walks(traces, building_context("walks", tracker, {}, None, None))
     assert radio is not None
     truth = []
     for trace in traces:
@@ -231,9 +232,9 @@ def test_replay_options_are_checked() -> None:
 
 def test_tracker_dead_reckons_raw_imu_and_skips_resent_samples() -> None:
     trace = read_trace(FLOOR / "path_data_files" / f"{WALKS[4]}.txt")
-    ctx = BuildingContext("b", None, {})
-    batches = [to_user_batch(b, ctx).user_batch for b in trace_batches(trace, "b", "phone")]
     tracker = BuildingTracker(tracker_params(Settings()), load_calibration(None))
+    ctx = building_context("b", tracker, {}, None, None)
+    batches = [to_user_batch(b, ctx).user_batch for b in trace_batches(trace, "b", "phone")]
     detected = 0
     for batch in batches[:10]:
         outcome = tracker.apply([batch])

@@ -202,10 +202,10 @@ def _context() -> convert.BuildingContext:
     return convert.BuildingContext(
         "hq",
         GeoFrame(48.0, 11.0, 0.0),
-        {"door": (3.0, 4.0), "lift": (8.0, 1.0)},
-        extent=Extent(-10.0, 60.0, -10.0, 40.0, 10.0),
-        levels=frozenset({0, 1}),
-        known_anchor_levels={"lift": 1},
+        Extent(-10.0, 60.0, -10.0, 40.0, 10.0),
+        frozenset({0, 1}),
+        {"door": convert.KnownPlace(3.0, 4.0, 0), "lift": convert.KnownPlace(8.0, 1.0, 1)},
+        0.5,
     )
 
 
