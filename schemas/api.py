@@ -85,18 +85,29 @@ class BatchReceipt(WireModel):
 
 
 class FailingBuilding(WireModel):
-    """A building some of whose batches could not be applied lately (each refused alone, nothing kept)."""
+    """A building in trouble lately, by an error of the server's (each logged): batches it could not apply
+    (each refused alone with a 500, nothing of it kept), logged batches it could not apply again when it
+    loaded after a crash, or a building that cannot be loaded at all (its requests answer 503)."""
 
     building_id: str
     failed_batches: int = Field(description="Batches refused since the building was loaded.")
-    last_failure_ms: int = Field(description="When the latest was refused (server time, epoch ms).")
+    unreplayed_batches: int = Field(
+        default=0,
+        description="Acknowledged batches its last load could not apply again: it came back without them.",
+    )
+    failed_loads: int = Field(
+        default=0,
+        description="Attempts to load it that failed in a row; while nonzero its requests answer 503, and "
+        "the next request after Retry-After tries again.",
+    )
+    last_failure_ms: int = Field(description="When the latest failure was (server time, epoch ms).")
 
 
 class Health(WireModel):
     status: Literal["ok", "degraded"] = Field(
         default="ok",
-        description="degraded while a building has refused a batch in the last five minutes, or while the "
-        "data directory's disk has less free space than CROWDSLAM_MIN_FREE_DISK_GB.",
+        description="degraded while a building cannot be loaded, or has failed a batch in the last five "
+        "minutes, or while the data directory's disk has less free space than CROWDSLAM_MIN_FREE_DISK_GB.",
     )
     database: str
     buildings_loaded: int

@@ -282,6 +282,6 @@ def _install_error_handlers(app: FastAPI) -> None:
             Problem(
                 title="Internal server error",
                 status=500,
-                detail=f"{type(exc).__name__}: the error was logged",
+                detail="the server could not answer this request; the error was logged for its operators",
             )
         )

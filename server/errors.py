@@ -96,10 +96,18 @@ class ConflictError(ProblemError):
 
 
 class BatchFailedError(ProblemError):
-    """A batch the server could not apply for a reason of its own (logged); nothing of it was kept."""
+    """A batch the server could not apply for a reason of its own (logged, counted, named in ``/healthz``);
+    nothing of it was kept. The answer says so and no more: the error's text is the server's, not the
+    client's."""
 
     status = 500
     title = "Internal server error"
+
+    def __init__(self) -> None:
+        super().__init__(
+            "the server could not apply this batch: nothing of it was kept, and the error was logged for the "
+            "server's operators (/healthz names the building); sending it again may fail the same way"
+        )
 
 
 class TooManyRequestsError(ProblemError):
@@ -137,6 +145,18 @@ class ServiceUnavailableError(ProblemError):
     def __init__(self, detail: str, retry_after_s: float | None = None) -> None:
         super().__init__(detail)
         self.retry_after_s = retry_after_s
+
+
+class BuildingUnavailableError(ServiceUnavailableError):
+    """The building could not be loaded (an error of the server's, logged and named in ``/healthz``): nothing
+    of the request was kept; it may be sent again after ``retry_after_s``, when loading is tried again."""
+
+    def __init__(self, building_id: str, retry_after_s: float) -> None:
+        super().__init__(
+            f"building {building_id!r} cannot be loaded now: nothing of this was kept; send it again later "
+            "(the error was logged for the server's operators, and /healthz names the building)",
+            retry_after_s,
+        )
 
 
 def field_problem(error: Any) -> FieldProblem:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from dataclasses import fields
 from typing import TYPE_CHECKING
 
@@ -11,7 +12,7 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metri
 from prometheus_client.registry import Collector
 
 from server.buildings.counters import Counters
-from server.buildings.registry import Buildings
+from server.buildings.registry import Buildings, failing_buildings
 from server.live.broadcast import Broadcaster
 from server.storage import Storage
 
@@ -61,6 +62,21 @@ class _Collector(Collector):
                     latency.add_metric([building, str(q)], float(np.quantile(values, q)))
         yield depth
         yield latency
+        failing = GaugeMetricFamily(
+            "crowdslam_building_failing",
+            "1 while a building cannot be loaded or failed a batch lately (as /healthz's failing_buildings)",
+            labels=["building"],
+        )
+        load_failures = GaugeMetricFamily(
+            "crowdslam_building_load_failures",
+            "attempts in a row to load a building that failed (0 once it loads)",
+            labels=["building"],
+        )
+        for trouble in failing_buildings(self._tracking, time.time()):
+            failing.add_metric([trouble.building_id], 1.0)
+            load_failures.add_metric([trouble.building_id], float(trouble.failed_loads))
+        yield failing
+        yield load_failures
         subs = GaugeMetricFamily("crowdslam_live_subscribers", "open live WebSocket subscriptions")
         subs.add_metric([], float(self._broadcaster.subscribers()))
         yield subs

@@ -8,9 +8,10 @@ from typing import Any
 from fastapi import APIRouter, Response
 from sqlalchemy import text
 
-from schemas.api import FailingBuilding, Health
+from schemas.api import Health
 from server.api.contract import problems
 from server.api.deps import Caller, State
+from server.buildings.registry import failing_buildings
 from server.errors import ForbiddenError
 from server.state import AppState
 from server.storage import free_bytes
@@ -18,31 +19,17 @@ from server.storage import free_bytes
 router = APIRouter(tags=["health"])
 
 
-DEGRADED_S = 300.0
-"""A building that refused a batch this recently makes the server ``degraded``."""
-
-
 @router.get("/healthz", response_model=Health)
 def get_health(state: State) -> Health:
     with state.engine.connect() as connection:
         connection.execute(text("SELECT 1"))
-    handles = state.tracking.handles
-    now = time.time()
-    failing = [
-        FailingBuilding(
-            building_id=building_id,
-            failed_batches=counters.failed_batches,
-            last_failure_ms=int(counters.last_failure_unix_s * 1000),
-        )
-        for building_id, handle in sorted(handles.items())
-        if (counters := handle.counters).failed_batches and now - counters.last_failure_unix_s < DEGRADED_S
-    ]
+    failing = failing_buildings(state.tracking, time.time())
     free = free_bytes(state.settings.data_dir)
     low_disk = free < state.settings.min_free_disk_gb * 1e9
     return Health(
         status="degraded" if failing or low_disk else "ok",
         database=state.engine.dialect.name,
-        buildings_loaded=len(handles),
+        buildings_loaded=len(state.tracking.handles),
         failing_buildings=failing,
         disk_free_bytes=free,
         low_disk=low_disk,

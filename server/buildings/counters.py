@@ -27,6 +27,9 @@ class Counters:
     """Periodic snapshots that could not be compressed (the batch log keeps what they would have covered)."""
     replayed: int = 0
     """Logged batches re-applied on load, after a crash."""
+    replay_failures: int = 0
+    """Logged batches that could not be applied again on load (each engine call's error logged): the building
+    came back without them. The live path applied them, so each is an error of the server's."""
     log_bodies_cleared: int = 0
     """Logged batch bodies cleared once a snapshot covered them."""
     pruned_positions: int = 0
@@ -53,4 +56,5 @@ class Counters:
     failed_batches: int = 0
     """Batches that could not be applied (each answered with its own error; nothing of them kept)."""
     last_failure_unix_s: float = 0.0
-    """Wall time of the latest failed batch (``/healthz`` calls a building failing lately degraded)."""
+    """Wall time of the latest failed or unreplayed batch (``/healthz`` calls a building failing lately
+    degraded)."""

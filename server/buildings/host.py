@@ -404,10 +404,10 @@ class BuildingHost:
             self._pass_over(group[0])
             if isinstance(exc, ProblemError):
                 return GroupResult([exc])
-            if isinstance(exc, ValueError):  # the engine refused what the batch implies; nothing was kept
-                return GroupResult([InvalidInputError(f"the batch cannot be applied: {exc}")])
+            # the batch passed every check of the client's input: whatever the engine or the store raised
+            # is the server's error, answered 500 without its text
             logger.exception("building %s: batch %s failed", self.building_id, group[0].header.batch_id)
-            return GroupResult([BatchFailedError(f"the batch could not be applied ({type(exc).__name__})")])
+            return GroupResult([BatchFailedError()])
 
     def _process(self, group: list[Submission]) -> GroupResult:
         ctx: convert.BuildingContext | None = None  # only for batches not converted by the front

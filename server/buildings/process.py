@@ -10,7 +10,8 @@ Each frame is an 8-byte length and a pickle:
   the building and sends it packed (``server.ingestion.transport``): a batch's landmarks (a phone's first
   fix) go apart as their JSON, which the building places in its frame (a building decodes the raw body
   only of a front that sends no packed batch);
-- building -> front: first ``("ready", geo)`` or ``("failed", error)``; then per group of batches
+- building -> front: first ``("ready", geo)`` or ``("failed", NotFoundError or None)`` (None: an error of
+  the server's, which the building's process logs); then per group of batches
   ``("group", [(id, receipt JSON | ProblemError)], live messages as JSON, counters, seconds)``, and per call
   ``("result", id, ok, value or error)``.
 
@@ -42,7 +43,7 @@ from server.buildings.handles import MAX_GROUP, GroupPacing, LatencyWindow, chec
 from server.buildings.host import IDLE_S, BuildingHost, open_building
 from server.buildings.submissions import BatchFields, Submission, batch_fields, received_batch, transportable
 from server.engine.warmup import warm_kernels_for
-from server.errors import ProblemError, ServiceUnavailableError
+from server.errors import NotFoundError, ProblemError, ServiceUnavailableError
 from server.gc_tuning import tune_gc_for_serving
 from server.live.broadcast import Broadcaster, live_json
 from server.process_lifetime import die_with
@@ -50,6 +51,15 @@ from server.settings import Settings
 from slam_core.geo import GeoFrame
 
 _HEADER = struct.Struct("!Q")
+
+
+class BuildingLoadError(RuntimeError):
+    """A building's process could not load its building (its process logged why)."""
+
+    def __init__(self, building_id: str) -> None:
+        super().__init__(f"building {building_id!r}: its process could not load it")
+
+
 START_TIMEOUT_S = 300.0
 """A first start compiles the numba kernels (about a minute); later ones load them from the cache."""
 CLOSE_TIMEOUT_S = 120.0
@@ -159,7 +169,9 @@ def serve_building(building_id: str, settings: Settings, sock: socket.socket, fr
     try:
         building = open_building(settings, building_id)
     except Exception as exc:
-        _send(sock, ("failed", exc if isinstance(exc, ProblemError) else ProblemError(repr(exc))))
+        # a building that does not exist is the caller's to hear of; any other error is the server's: told
+        # as such, its traceback left to this process's log
+        _send(sock, ("failed", exc if isinstance(exc, NotFoundError) else None))
         raise
     _send(sock, ("ready", building.geo))
     _BuildingLoop(building, sock).run()
@@ -295,9 +307,11 @@ class BuildingProcess:
         if first is None or first[0] != "ready":
             writer.close()
             await asyncio.to_thread(process.join, 10.0)
-            if first is not None and isinstance(first[1], ProblemError):
+            if process.is_alive():
+                process.kill()
+            if first is not None and isinstance(first[1], NotFoundError):
                 raise first[1]
-            raise ServiceUnavailableError(f"building {building_id!r} could not be started")
+            raise BuildingLoadError(building_id)
         return cls(building_id, process, reader, writer, first[1], broadcaster)
 
     @property

@@ -164,13 +164,27 @@ class Recovery:
                 batch = SensorBatch.model_validate_json(item.body)
                 loaded.device_of_user[batch.effective_user_id] = batch.device_id
                 loaded.devices.replayed(BatchHeader.of(batch))
-                batches.append(convert.to_user_batch(batch, ctx).user_batch)
-            outcome = tracker.apply(batches)
-            for index in outcome.anchors_changed:
-                if tracker.crowd.is_live(index):
-                    loaded.ids.public_id(index)
+                batches.append(batch)
+            try:
+                outcome = tracker.apply([convert.to_user_batch(b, ctx).user_batch for b in batches])
+            except Exception:
+                # the live path applied these; a replay that cannot is the server's error. The building comes
+                # back without them (an engine call that raises changes nothing), counted and named in
+                # /healthz, rather than not at all
+                logger.exception(
+                    "building %s: %d logged batches of engine call %d could not be applied again",
+                    self.building_id,
+                    len(batches),
+                    applied_round,
+                )
+                self.counters.replay_failures += len(batches)
+                self.counters.last_failure_unix_s = time.time()
+            else:
+                for index in outcome.anchors_changed:
+                    if tracker.crowd.is_live(index):
+                        loaded.ids.public_id(index)
+                self.counters.replayed += len(batches)
             loaded.applied_round = applied_round
-            self.counters.replayed += len(batches)
 
     # ------------------------------------------------------------------ snapshots
     def write(self, session: Session, state: tracker_snapshot.BuildingState) -> None:

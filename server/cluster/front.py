@@ -27,6 +27,7 @@ from schemas.live import LiveMessage
 from server.buildings.counters import Counters
 from server.buildings.handles import BuildingHandle, LatencyWindow, check_call
 from server.buildings.recovery import building_geo
+from server.buildings.registry import LoadFailure
 from server.buildings.submissions import Submission, batch_fields
 from server.cluster import messages
 from server.cluster.batch_stream import BatchStream
@@ -117,6 +118,12 @@ class ClusterBuildings:
     @property
     def handles(self) -> dict[str, BuildingHandle]:
         return dict(self._buildings)
+
+    @property
+    def load_failures(self) -> dict[str, LoadFailure]:
+        """None known here: a worker that cannot load a building logs it and leaves the building to another
+        (its phones hear 503 from the front until one can)."""
+        return {}
 
     def request(self) -> tuple[int, str, asyncio.Future[bytes]]:
         """A new request's id, the subject its receipt comes back on, and the receipt's future."""

@@ -113,6 +113,7 @@ class Dashboard {
   logout(reason) {
     if (this.live) this.live.stop();
     this.live = null;
+    this.watchHealth(null);
     this.api = null; // first: nothing below may ask the server with the key any more
     this.history.stop();
     this.identity = null;
@@ -135,6 +136,7 @@ class Dashboard {
   }
 
   async showBuildings(autoOpen = false) {
+    this.watchHealth(null);
     if (this.live) this.live.stop();
     this.live = null;
     root.dataset.building = "";
@@ -213,6 +215,38 @@ class Dashboard {
       onRefused: (reason) => this.logout(`Logged out: the server refused the key (${reason}).`),
     });
     this.live.start();
+    this.watchHealth(building.id);
+  }
+
+  // The server's own trouble with this building (/healthz's failing_buildings), checked every 15 s while
+  // the building is open: a building that cannot be loaded, or failed batches lately.
+  watchHealth(buildingId) {
+    clearInterval(this.healthTimer);
+    this.healthTimer = null;
+    $("health").hidden = true;
+    if (buildingId === null) return;
+    const check = async () => {
+      if (!this.api || !this.building || this.building.id !== buildingId) return;
+      let health;
+      try {
+        health = await this.api.get("/healthz");
+      } catch (err) {
+        return; // the live badge already says when the server cannot be reached
+      }
+      const trouble = (health.failing_buildings || []).find((f) => f.building_id === buildingId);
+      const badge = $("health");
+      badge.hidden = !trouble;
+      root.dataset.failing = trouble ? "true" : "false";
+      if (!trouble) return;
+      const parts = [];
+      if (trouble.failed_loads) parts.push(`cannot be loaded (${trouble.failed_loads} attempts)`);
+      if (trouble.failed_batches) parts.push(`${trouble.failed_batches} batches failed`);
+      if (trouble.unreplayed_batches) parts.push(`${trouble.unreplayed_batches} batches lost in a restart`);
+      badge.textContent = `server error: ${parts.join(", ")}`;
+      badge.title = `The server's own error, logged for its operators; latest ${fmtTime(trouble.last_failure_ms)}`;
+    };
+    check();
+    this.healthTimer = setInterval(check, 15000);
   }
 
   message(text, kind = "error") { showMessage(text, kind); }

@@ -103,6 +103,39 @@ def test_the_link_logs_in_and_the_crowd_moves_as_the_api_says(browser: Browser, 
     page.context.close()
 
 
+def test_a_building_the_server_fails_is_named_on_its_page(browser: Browser, demo: Demo) -> None:
+    """/healthz names a failing building (the server's own error): its page says so in a badge, and says
+    nothing once /healthz no longer names it."""
+    watch = Watch()
+    page = open_page(browser, watch)
+    failing = {
+        "status": "degraded",
+        "database": "sqlite",
+        "buildings_loaded": 1,
+        "failing_buildings": [
+            {
+                "building_id": demo.building,
+                "failed_batches": 3,
+                "unreplayed_batches": 0,
+                "failed_loads": 0,
+                "last_failure_ms": int(time.time() * 1000),
+            }
+        ],
+        "disk_free_bytes": 1,
+        "low_disk": False,
+    }
+    page.route("**/healthz", lambda route: route.fulfill(json=failing))
+    page.goto(demo.dashboard_link)
+    expect(page.locator("#health")).to_be_visible(timeout=20_000)
+    expect(page.locator("#health")).to_contain_text("3 batches failed")
+    assert root_data(page, "failing") == "true"
+    page.unroute("**/healthz")
+    page.evaluate("() => window.crowdslamDashboard.watchHealth(window.crowdslamDashboard.building.id)")
+    expect(page.locator("#health")).to_be_hidden(timeout=10_000)
+    watch.assert_clean()
+    page.context.close()
+
+
 def test_the_form_logs_in_and_a_wrong_key_is_told_why(browser: Browser, demo: Demo) -> None:
     watch = Watch()
     page = open_page(browser, watch)

@@ -13,7 +13,7 @@ import httpx
 import pytest
 
 from server.buildings.submissions import Submission
-from server.errors import InvalidInputError, ProblemError
+from server.errors import BatchFailedError, ProblemError
 from server.recordings.recorder import BuildingRecorder, read_batches
 from slam_core.tracking import tracker as tracker_module
 from tests.server.api.test_api import _batch
@@ -75,9 +75,10 @@ def test_a_failing_batch_leaves_no_trace_and_fails_alone(
         receipts = building.process(group).receipts
     assert [_status(r) for r in receipts[:-1]] == ["applied"] * (len(group) - 1)
     refused = receipts[-1]
-    assert isinstance(refused, ProblemError)
-    assert isinstance(refused, InvalidInputError) == isinstance(failure, ValueError)
-    assert refused.status == (422 if isinstance(failure, ValueError) else 500)
+    # an error inside the building is the server's: 500, without the exception's text
+    assert isinstance(refused, BatchFailedError)
+    assert refused.status == 500
+    assert str(failure) not in refused.detail
     assert building.counters.failed_batches == 1
     assert building.counters.reloads == 2  # the group's, then the failing batch's own
     assert _estimates(building) == _estimates(reference)  # bit for bit: nothing of the failed call kept
@@ -119,8 +120,9 @@ def test_a_restart_after_a_failed_group_restores_the_committed_state(
 def test_through_the_api_the_failing_batch_is_refused_and_health_says_degraded(
     api: Api, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """Over HTTP: the batch whose engine call fails answers 422 and changes nothing, its user's next batch
-    is applied, other phones are served throughout, and /healthz names the building as degraded."""
+    """Over HTTP: the batch whose engine call fails answers 500 (the server's error, not the client's) and
+    changes nothing, its user's next batch is applied, other phones are served throughout, and /healthz
+    names the building as degraded."""
     api.create_building()
     keys = {d: api.key("hq", "device", d) for d in ("phone-1", "phone-2")}
 
@@ -147,8 +149,10 @@ def test_through_the_api_the_failing_batch_is_refused_and_health_says_degraded(
 
         m.setattr(tracker_module.BuildingTracker, "apply", apply)
         refused = post(poisoned)
-        assert refused.status_code == 422, refused.text
-        assert "cannot be applied" in refused.json()["detail"]
+        assert refused.status_code == 500, refused.text
+        assert refused.headers["content-type"] == "application/problem+json"
+        assert "could not apply" in refused.json()["detail"]
+        assert "not finite" not in refused.text
         assert post(_batch(3, "phone-2")).json()["status"] == "applied"
     health = api.client.get("/healthz").json()
     assert health["status"] == "degraded"
