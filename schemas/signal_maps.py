@@ -60,3 +60,10 @@ class SignalMapJob(WireModel):
         default_factory=list, description="Fetch each at .../signal-maps/{id}/files/{name}."
     )
     error: str | None = None
+    radio_map_scans: int | None = Field(
+        default=None,
+        ge=0,
+        description="Scans of this build's radio map that joined the building's tracker, once it has loaded "
+        "it (None until then; a build that finished while the server was down is loaded when the building "
+        "next loads, and is not counted here).",
+    )

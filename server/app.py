@@ -119,7 +119,7 @@ def create_app(settings: Settings, tune_gc: bool = False, warming: Progress | No
         loading: set[asyncio.Task[None]] = set()  # held until done: the loop keeps only weak references
 
         def built(building_id: str) -> None:
-            task = loop.create_task(_load_radio_map(tracking, building_id))
+            task = loop.create_task(_load_radio_map(tracking, app.state.crowdslam.signal_maps, building_id))
             loading.add(task)
             task.add_done_callback(loading.discard)
 
@@ -218,11 +218,14 @@ async def _buildings(
     return tracking, nothing
 
 
-async def _load_radio_map(tracking: Buildings, building_id: str) -> None:
-    """A finished build's radio map joins its building's fingerprints, in order with its batches."""
+async def _load_radio_map(tracking: Buildings, signal_maps: SignalMapService, building_id: str) -> None:
+    """A finished build's radio map joins its building's fingerprints, in order with its batches; the build's
+    record then says how many of its scans joined."""
     try:
         building = await tracking.handle(building_id)
-        await building.call("load_radio_map")
+        loaded: tuple[str, int] | None = await building.call("load_radio_map")
+        if loaded is not None:
+            await asyncio.to_thread(signal_maps.loaded, building_id, *loaded)
     except Exception:
         logger.exception(
             "building %s: loading its new radio map failed; it loads at the next start", building_id

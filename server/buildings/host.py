@@ -92,10 +92,11 @@ class BuildingHost:
             self._writer_turns = writer_turns(session.get_bind().engine)
 
     # ------------------------------------------------------------------ loading and snapshots
-    def _load(self, snapshot_always: bool = True) -> None:
-        """The building as its SQL holds it (``Recovery.load``). Then a snapshot covering the whole log,
-        unless ``snapshot_always`` is off and the one in SQL was used: it still is the state before the log,
-        which the log replays to the same filters."""
+    def _load(self, start: bool = True) -> None:
+        """The building as its SQL holds it (``Recovery.load``). On a start, the batches replayed from the log
+        recorded again, and a snapshot covering the whole log; on a reload (after a failed group, nothing
+        lost from the recordings), a snapshot only if the one in SQL was not used or a radio map joined: else
+        it still is the state before the log, which the log replays to the same filters."""
         loaded = self.recovery.load()
         self.tracker = loaded.tracker
         self.ids = loaded.ids
@@ -104,10 +105,24 @@ class BuildingHost:
         self.devices = loaded.devices
         self.geo = loaded.geo
         self.extent = loaded.extent
-        # Batches the last load replayed from the batch log (none after a clean stop).
-        self.replayed = loaded.replayed
-        if snapshot_always or not loaded.restored:
+        if start:
+            self._record_again(loaded.replayed)
+        if start or not loaded.restored or loaded.radio_map_loaded:
             self.snapshot(clear_log=True)  # it covers the whole log now
+
+    def _record_again(self, bodies: list[bytes]) -> None:
+        """Record the batches the load replayed: a crash may have cut them from the recordings (those a
+        snapshot covers are in them: they were flushed before it was written)."""
+        if self.recorder is None or not bodies:
+            return
+        received_ns = time.time_ns()
+        try:
+            for body in bodies:
+                self.recorder.record_batch(body, received_ns)
+        except OSError as exc:
+            logger.error("building %s: the recording cannot be written (%s)", self.building_id, exc)
+            self.counters.recording_failures += 1
+        self.flush_recording()
 
     @property
     def restore_problem(self) -> str | None:
@@ -119,7 +134,7 @@ class BuildingHost:
         what a rolled-back transaction had changed in the tracker is gone, what committed is all there."""
         self.recovery.discard()  # a snapshot taken from the state thrown away is never written
         try:
-            self._load(snapshot_always=False)  # a reload pickles nothing: the snapshot in SQL is still right
+            self._load(start=False)  # a reload pickles nothing: the snapshot in SQL is still right
         except Exception as exc:
             if not is_disk_full(exc):
                 raise
@@ -127,10 +142,18 @@ class BuildingHost:
             # still holds every batch it would cover, and the next snapshot will
         self.counters.reloads += 1
 
-    def load_radio_map(self) -> int:
+    def load_radio_map(self) -> tuple[str, int] | None:
         """Load the radio map of the building's latest finished signal-map build into the tracker's
-        fingerprints (once per build); returns the scans that joined."""
-        return load_radio_map(self.tracker, self._config.signal_maps_dir, self.building_id)
+        fingerprints (once per build), and snapshot: a restart replays the batches after the load with its
+        scans and none before it. Returns the build loaded and the scans that joined; None when there was
+        none newer to load."""
+        before = self.tracker.radio_map_id
+        added = load_radio_map(self.tracker, self._config.signal_maps_dir, self.building_id)
+        loaded = self.tracker.radio_map_id
+        if loaded is None or loaded == before:
+            return None
+        self.snapshot()
+        return loaded, added
 
     def context(self) -> convert.BuildingContext:
         """What converting a batch needs of the building now (``convert.building_context``)."""
@@ -168,12 +191,15 @@ class BuildingHost:
         """Write the snapshot and the devices' last sequence numbers in the caller's transaction; returns the
         device rows written (the ledger counts them saved once the transaction commits)."""
         rows = self._snapshot_start(session)
+        self.flush_recording()
         self.recovery.write(session, self.building_state())
         return rows
 
     def _periodic_snapshot(self, session: Session) -> list[dict[str, object]]:
         """In a group's transaction: write the snapshot compressed since an earlier group, or take one when
         due. Returns the device rows written."""
+        if self.recovery.ready:
+            self.flush_recording()
         if self.recovery.write_ready(session) or not self.recovery.due:
             return []
         rows = self._snapshot_start(session)
@@ -306,9 +332,17 @@ class BuildingHost:
             index = floor_plans.engine_plan(local)
         except ValueError as exc:
             raise InvalidInputError(f"the floor plan cannot be used: {exc}") from None
-        with self._writer_turns, self._sessions.begin() as session:
-            repo.save_floor_plan(session, self.building_id, level, local.model_dump_json())
+        # the plan and a snapshot in one transaction: a restart replays the batches after it with the plan,
+        # and none before it
         self.tracker.set_floor_plan(index, level)
+        try:
+            with self._writer_turns, self._sessions.begin() as session:
+                repo.save_floor_plan(session, self.building_id, level, local.model_dump_json())
+                rows = self._save_snapshot(session)
+        except Exception:
+            self.reload()  # the tracker as SQL holds it: without the plan
+            raise
+        self.devices.saved(rows)
         return local
 
     # ------------------------------------------------------------------ users

@@ -54,10 +54,13 @@ class Loaded:
     devices: DeviceLedger
     geo: GeoFrame | None
     extent: Extent | None
-    replayed: int
-    """Batches replayed from the batch log (none after a clean stop)."""
+    replayed: list[bytes]
+    """The bodies of the batches replayed from the batch log (none after a clean stop), to be recorded
+    again: a crash may have cut them from the recordings."""
     restored: bool
     """From its snapshot; else from its SQL anchor map, the filters started anew."""
+    radio_map_loaded: bool = False
+    """A newer radio map joined after the log was replayed (a build that finished while it was down)."""
 
 
 class Recovery:
@@ -124,17 +127,30 @@ class Recovery:
                     )
                     ids.link(index, row.public_id, row.label)
             plans = {f.level: repo.floor_plan(session, self.building_id, f.level) for f in floors}
-        # floors and plans are not in the snapshot: set before the log replays, as when the batches applied
+        # floors and plans as SQL has them, set before the log replays: the snapshot holds them too (a plan
+        # is uploaded with a snapshot), and a building started anew has them from here only
         tracker.set_levels(*building_levels(floors))
         for level, plan in plans.items():
             tracker.set_floor_plan(
                 None if plan is None else engine_plan(FloorPlan.model_validate_json(plan)), level
             )
-        load_radio_map(tracker, self._config.signal_maps_dir, self.building_id)
         loaded = Loaded(
-            tracker, ids, device_of_user, applied_round, devices, geo, extent, len(logged), state is not None
+            tracker,
+            ids,
+            device_of_user,
+            applied_round,
+            devices,
+            geo,
+            extent,
+            [item.body for item in logged],
+            state is not None,
         )
         self._replay(loaded, logged)
+        # a radio map joins after the replay: the batches logged applied without it (its load writes a
+        # snapshot), so a newer one is of a build that finished while the building was down
+        before = tracker.radio_map_id
+        load_radio_map(tracker, self._config.signal_maps_dir, self.building_id)
+        loaded.radio_map_loaded = tracker.radio_map_id != before
         return loaded
 
     def _restore(
@@ -207,6 +223,11 @@ class Recovery:
             return False
         self._store(session, *ready)
         return True
+
+    @property
+    def ready(self) -> bool:
+        """Whether a snapshot compressed in the background waits to be written (``write_ready``)."""
+        return self._background.ready_to_write
 
     @property
     def due(self) -> bool:

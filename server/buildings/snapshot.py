@@ -80,6 +80,11 @@ class BackgroundSnapshots:
     def pending(self) -> bool:
         return self._pending is not None
 
+    @property
+    def ready_to_write(self) -> bool:
+        """Whether ``ready`` would give the pending snapshot (or raise its failure) now."""
+        return self._pending is not None and self._pending[1].done()
+
     def take(self, state: BuildingState) -> None:
         """Pickle the state now and compress it in the background (at most one at a time)."""
         if self._pending is not None:

@@ -225,7 +225,7 @@ class ClusterWorker:
                     self.worker_id,
                     building_id,
                     time.perf_counter() - started,
-                    worker.building.replayed,
+                    worker.counters.replayed,
                     owned.last_read,
                 )
             except Exception as exc:

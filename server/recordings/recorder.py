@@ -5,7 +5,10 @@ Channels use JSON encoding with JSON-schema schemas generated from ``schemas/``:
 recording opens in Foxglove or Lichtblick). Records go in zstd-compressed chunks, written when a chunk is
 full (``CHUNK_BYTES``) and at least every ``FLUSH_S`` seconds: a crash loses at most the records of that last
 chunk, and a file cut short is still readable up to its last whole chunk. A recording is not the
-acknowledgement of a batch: the batch log in SQL is.
+acknowledgement of a batch: the batch log in SQL is. The building keeps its recordings whole through a crash
+all the same: it flushes them before it writes a snapshot (so every batch a snapshot covers is in a file),
+and records again the batches it replays from its log when it loads (a batch may then be in a recording
+twice, with the same id: readers keep the first).
 
 The files are written by the Foxglove SDK's MCAP writer (compiled: ~3 us a message, where the ``mcap``
 package's Python writer took ~9-25 us, three messages a batch); the ``mcap`` package reads them.
@@ -215,6 +218,8 @@ class BuildingRecorder:
         once ``FLUSH_S`` have passed since the last (a full chunk is written as it fills), or ``now``."""
         if self._writer is not None and (now or time.monotonic() - self._flushed >= self._flush_s):
             self._writer.flush()
+            if self._file is not None:  # out of this process: a crash of it loses nothing flushed
+                self._file.flush()
             self._flushed = time.monotonic()
 
     def close(self) -> None:

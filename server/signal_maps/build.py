@@ -82,16 +82,19 @@ class _Columns:
 def _collect(files: list[str], ctx: BuildingContext, columns: _Columns) -> tuple[dict[str, _Device], int]:
     devices: dict[str, _Device] = defaultdict(_Device)
     skipped = 0
-    batches: list[SensorBatch] = []
+    batches: dict[tuple[str, str], SensorBatch] = {}
     for path in files:
         for recorded in read_batches(Path(path)):
             try:
-                batches.append(SensorBatch.model_validate_json(recorded.raw))
+                batch = SensorBatch.model_validate_json(recorded.raw)
             except ValidationError:
                 skipped += 1  # recorded by an older schema: not ours to reinterpret
-    batches.sort(key=lambda b: (b.device_id, b.seq))
+                continue
+            # a batch recorded again by a building that replayed its log after a crash: the first is kept
+            batches.setdefault((batch.device_id, batch.batch_id), batch)
+    ordered = sorted(batches.values(), key=lambda b: (b.device_id, b.seq))
     params = PdrParams()
-    for batch in batches:
+    for batch in ordered:
         d = devices[batch.device_id]
         user = to_user_batch(batch, ctx).user_batch
         if user.step_t.size:

@@ -108,6 +108,11 @@ class SignalMapService:
         with self._lock:
             self._futures.pop(job.id, None)
 
+    def loaded(self, building_id: str, job_id: str, scans: int) -> None:
+        """The building's tracker has loaded build ``job_id``'s radio map: ``scans`` joined."""
+        job = self.get(building_id, job_id)
+        self._save(job.model_copy(update={"radio_map_scans": scans}))
+
     def get(self, building_id: str, job_id: str) -> SignalMapJob:
         record = self._folder(building_id, job_id) / RECORD
         if not job_id.isalnum() or not record.is_file():

@@ -8,7 +8,9 @@ import itertools
 import json
 import math
 from dataclasses import replace
+from pathlib import Path
 
+import numpy as np
 import pytest
 from sqlalchemy import Engine, func, select
 
@@ -381,4 +383,102 @@ def test_a_building_without_floor_0_comes_back_with_a_user_who_started_at_a_lift
     assert _estimates(restarted) == at_crash
     receipts = [restarted.process([sub]).receipts[0] for sub in batches]
     assert [getattr(r, "status", None) for r in receipts] == ["duplicate"] * len(batches)
+    engine.dispose()
+
+
+def _radio_map(folder: Path, job_id: str, subs: list[Submission]) -> None:
+    """A finished build's record and radio map: the scans of these batches, placed on a line across the
+    floor (where exactly does not matter here: only that the filters use them)."""
+    from datetime import UTC, datetime
+
+    from schemas.signal_maps import SignalMapJob, SignalMapStatus
+    from server.ingestion.radio_maps import RECORD, write_radio_map
+
+    scans = [s for sub in subs for s in (sub.batch.wifi_scans if sub.batch is not None else [])]
+    assert scans
+    done = folder / "hq" / job_id
+    done.mkdir(parents=True, exist_ok=True)
+    xy = np.column_stack([np.linspace(5.0, 55.0, len(scans)), np.full(len(scans), 25.0)])
+    aps = [{ap.bssid: ap.rssi_dbm for ap in s.aps} for s in scans]
+    write_radio_map(done, xy, aps, np.array([s.t_ms for s in scans]), np.zeros(len(scans), dtype=np.int64))
+    now = datetime.now(UTC)
+    job = SignalMapJob(
+        id=job_id,
+        building_id="hq",
+        status=SignalMapStatus.DONE,
+        created_at=now,
+        finished_at=now,
+        recordings=1,
+    )
+    (done / RECORD).write_text(job.model_dump_json())
+
+
+@pytest.mark.parametrize("change", ["floor plan", "radio map"])
+def test_a_change_between_batches_survives_a_crash_exactly(
+    sqlite_url: str, tmp_path: Path, change: str
+) -> None:
+    """A floor plan uploaded, or a build's radio map loaded, between two batches: after a crash the log's
+    batches from before it are replayed without it and those after it with it, as they were applied (each
+    change is written with a snapshot), and a build that finished while the server was down joins after
+    the replay."""
+    from schemas.floor_plans import FLOOR_PLAN_EXAMPLE, FloorPlan
+
+    groups = _groups(CROWD)[:14]
+
+    def building(engine: Engine, maps: Path) -> BuildingHost:
+        config = TrackingConfig(
+            tracker_params(SETTINGS), load_calibration(None), SETTINGS.seed, math.inf, Retention(), maps
+        )
+        return BuildingHost("hq", make_session_factory(engine), config)
+
+    def changed(b: BuildingHost, maps: Path) -> None:
+        if change == "floor plan":
+            b.put_floor_plan(0, FloorPlan.model_validate(FLOOR_PLAN_EXAMPLE))
+        else:
+            _radio_map(maps, "build1", [s for g in groups[:5] for s in g])
+            loaded = b.load_radio_map()
+            assert loaded is not None
+            assert loaded[0] == "build1"
+            assert loaded[1] > 0
+
+    def floors(url: str) -> Engine:
+        engine = _fresh_building(url)
+        from server.store.models import FloorRow
+
+        with make_session_factory(engine).begin() as s:
+            s.add(FloorRow(building_id="hq", level=0, name="G", width_m=60.0, height_m=50.0))
+        return engine
+
+    reference = building(floors(sqlite_url.replace(".sqlite3", "-ref.sqlite3")), tmp_path / "reference")
+    for group in groups[:6]:
+        reference.process(group)
+    changed(reference, tmp_path / "reference")
+    for group in groups[6:10]:
+        reference.process(group)
+    at_crash = _estimates(reference)
+
+    maps = tmp_path / "signal_maps"
+    engine = floors(sqlite_url)
+    crashed = building(engine, maps)
+    for group in groups[:6]:
+        crashed.process(group)
+    changed(crashed, maps)
+    for group in groups[6:10]:
+        crashed.process(group)
+    assert _estimates(crashed) == at_crash
+    del crashed  # as after kill -9
+
+    restarted = building(engine, maps)
+    assert restarted.counters.replayed == sum(len(g) for g in groups[6:10])
+    assert _estimates(restarted) == at_crash
+    for group in groups[10:]:
+        reference.process(group)
+        restarted.process(group)
+    assert _estimates(restarted) == _estimates(reference)
+    if change == "radio map":  # a build finished while the server was down: it joins after the replay
+        del restarted
+        _radio_map(maps, "build2", [s for g in groups[5:9] for s in g])
+        again = building(engine, maps)
+        assert again.tracker.radio_map_id == "build2"
+        assert _estimates(again) == _estimates(reference)  # the replay did not see it
     engine.dispose()
