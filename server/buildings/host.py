@@ -85,7 +85,6 @@ class BuildingHost:
         self._last_prune = -math.inf
         self._last_recording_prune = -math.inf
         self._last_heard: dict[str, float] = {}  # user -> wall time of its last applied batch
-        self._history_t_ms: dict[str, int] = {}  # user -> phone time of its latest row of history
         self.recovery = Recovery(building_id, sessions, config, self.counters)
         self._load()
         with sessions() as session:
@@ -105,6 +104,7 @@ class BuildingHost:
         self.devices = loaded.devices
         self.geo = loaded.geo
         self.extent = loaded.extent
+        self.history = loaded.history
         if start:
             self._record_again(loaded.replayed)
         if start or not loaded.restored or loaded.radio_map_loaded:
@@ -167,6 +167,7 @@ class BuildingHost:
             dict(self.ids.labels),
             dict(self._device_of_user),
             self._round,
+            dict(self.history.latest_t_ms),
         )
 
     def snapshot(self, clear_log: bool = False) -> None:
@@ -224,7 +225,7 @@ class BuildingHost:
             self.tracker.remove_users(idle)
             for u in idle:
                 del self._last_heard[u]
-                self._history_t_ms.pop(u, None)
+                self.history.forget(u)
             self.counters.users_evicted += len(idle)
 
     # ------------------------------------------------------------------ anchors
@@ -274,6 +275,8 @@ class BuildingHost:
             )
         xy = np.array([body.position.x_m, body.position.y_m])
         type_index = convert.anchor_type_index(body.type)
+        if index is not None and self._pinned_as(index, xy, type_index, body):
+            return self.anchor(index), []  # the same again (a retry): nothing changes
         index = self.tracker.pin_anchor(xy, type_index, index, level=body.floor)
         self.ids.link(index, public_id, body.label)
         anchor = self.anchor(index)
@@ -282,6 +285,17 @@ class BuildingHost:
             rows = self._save_snapshot(session)
         self.devices.saved(rows)
         return anchor, [AnchorMessage(anchor=anchor)]
+
+    def _pinned_as(self, index: int, xy: np.ndarray, type_index: int, body: KnownAnchorIn) -> bool:
+        """Whether the anchor is pinned already exactly as ``body`` asks."""
+        mean, _, pinned_type, known, _, _ = self.tracker.crowd.anchor(index)
+        return (
+            known
+            and pinned_type == type_index
+            and bool(np.array_equal(mean, xy))
+            and self.tracker.crowd.level(index) == body.floor
+            and self.ids.labels.get(index) == body.label
+        )
 
     def delete_anchor(self, public_id: str) -> list[LiveMessage]:
         anchor = self.get_anchor(public_id)
@@ -332,12 +346,16 @@ class BuildingHost:
             index = floor_plans.engine_plan(local)
         except ValueError as exc:
             raise InvalidInputError(f"the floor plan cannot be used: {exc}") from None
+        stored = local.model_dump_json()
+        with self._sessions() as session:
+            if repo.floor_plan(session, self.building_id, level) == stored:
+                return local  # the same plan again (a retry): nothing changes
         # the plan and a snapshot in one transaction: a restart replays the batches after it with the plan,
         # and none before it
         self.tracker.set_floor_plan(index, level)
         try:
             with self._writer_turns, self._sessions.begin() as session:
-                repo.save_floor_plan(session, self.building_id, level, local.model_dump_json())
+                repo.save_floor_plan(session, self.building_id, level, stored)
                 rows = self._save_snapshot(session)
         except Exception:
             self.reload()  # the tracker as SQL holds it: without the plan
@@ -356,7 +374,7 @@ class BuildingHost:
             self.tracker.remove_user(user_id)
             self._device_of_user.pop(user_id, None)
             self._last_heard.pop(user_id, None)
-            self._history_t_ms.pop(user_id, None)
+            self.history.forget(user_id)
         try:
             with self._writer_turns, self._sessions.begin() as session:
                 deleted = repo.delete_user_positions(session, self.building_id, user_id)
@@ -547,7 +565,7 @@ class BuildingHost:
         messages: list[LiveMessage] = []
         stored_at_ms = int(heard * 1000)
         rows = [position_row(self.building_id, e, stored_at_ms) for e in estimates.values()]
-        repo.add_positions(session, rows, [self._into_history(e) for e in estimates.values()])
+        repo.add_positions(session, rows, [self.history.joins(e.user_id, e.t_ms) for e in estimates.values()])
         for index in outcome.anchors_changed:
             if self.tracker.crowd.is_live(index):
                 anchor = self.anchor(index)
@@ -626,16 +644,6 @@ class BuildingHost:
         except OSError as exc:
             logger.error("building %s: the recording cannot be written (%s)", self.building_id, exc)
             self.counters.recording_failures += 1
-
-    def _into_history(self, estimate: Estimate) -> bool:
-        """Whether the estimate joins its user's position history: one a ``position_history_period_s`` of
-        the phone's time (a history dense enough for the dashboard's slider, not one row per batch)."""
-        period_ms = self.retention.position_history_period_s * 1000.0
-        last = self._history_t_ms.get(estimate.user_id)
-        if last is not None and 0 <= estimate.t_ms - last < period_ms:
-            return False
-        self._history_t_ms[estimate.user_id] = estimate.t_ms
-        return True
 
     def _pass_over(self, sub: Submission) -> None:
         """A streamed batch that failed alone is still passed in the stream, so that the next owner of the

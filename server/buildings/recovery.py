@@ -26,6 +26,7 @@ from server.buildings.anchor_ids import AnchorIds
 from server.buildings.config import TrackingConfig
 from server.buildings.counters import Counters
 from server.buildings.ledger import DeviceLedger
+from server.buildings.rows import HistorySampling
 from server.buildings.submissions import BatchHeader
 from server.errors import NotFoundError
 from server.ingestion import convert
@@ -59,6 +60,8 @@ class Loaded:
     again: a crash may have cut them from the recordings."""
     restored: bool
     """From its snapshot; else from its SQL anchor map, the filters started anew."""
+    history: HistorySampling
+    """Which estimates join the position history: as the snapshot left it, advanced by the replay."""
     radio_map_loaded: bool = False
     """A newer radio map joined after the log was replayed (a build that finished while it was down)."""
 
@@ -87,6 +90,7 @@ class Recovery:
         ids = AnchorIds()
         device_of_user: dict[str, str] = {}
         applied_round = 0
+        history = HistorySampling(self._config.retention.position_history_period_s)
         with self._sessions() as session:
             building = repo.get_building(session, self.building_id)
             if building is None:
@@ -102,6 +106,7 @@ class Recovery:
                     ids.link(index, public_id, state.labels.get(index))
                 device_of_user = dict(state.device_of_user)
                 applied_round = state.applied_round
+                history.latest_t_ms = dict(getattr(state, "history_t_ms", {}))
             logged = logged_batches(
                 session, self.building_id, after_round=applied_round if state is not None else None
             )
@@ -144,6 +149,7 @@ class Recovery:
             extent,
             [item.body for item in logged],
             state is not None,
+            history,
         )
         self._replay(loaded, logged)
         # a radio map joins after the replay: the batches logged applied without it (its load writes a
@@ -199,6 +205,8 @@ class Recovery:
                 for index in outcome.anchors_changed:
                     if tracker.crowd.is_live(index):
                         loaded.ids.public_id(index)
+                for user, row in outcome.estimates.items():  # their rows are in SQL: only the sampling moves
+                    loaded.history.joins(user, row.t_ms)
                 self.counters.replayed += len(batches)
             loaded.applied_round = applied_round
 

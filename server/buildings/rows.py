@@ -44,3 +44,25 @@ def position_row(building_id: str, e: Estimate, stored_at_ms: int) -> dict[str, 
         "floor_probability": e.floor_probability,
         "source": e.source.value,
     }
+
+
+class HistorySampling:
+    """Which estimates join their users' position history: one a ``period_s`` of the phone's time (a history
+    dense enough for the dashboard's slider, not one row per batch). Its memory (each user's latest row of
+    history) is part of the building's snapshot, and the batches a restart replays go through it again, so
+    a crash leaves the history as it would have been."""
+
+    def __init__(self, period_s: float, latest_t_ms: dict[str, int] | None = None) -> None:
+        self.period_ms = period_s * 1000.0
+        self.latest_t_ms: dict[str, int] = {} if latest_t_ms is None else latest_t_ms
+
+    def joins(self, user_id: str, t_ms: int) -> bool:
+        """Whether the user's estimate at ``t_ms`` joins its history (and, if so, it is the latest now)."""
+        last = self.latest_t_ms.get(user_id)
+        if last is not None and 0 <= t_ms - last < self.period_ms:
+            return False
+        self.latest_t_ms[user_id] = t_ms
+        return True
+
+    def forget(self, user_id: str) -> None:
+        self.latest_t_ms.pop(user_id, None)

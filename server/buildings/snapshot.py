@@ -17,7 +17,7 @@ import gc
 import pickle
 import zlib
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from slam_core.encounters.models import Calibration
 from slam_core.tracking.tracker import BuildingTracker, TrackerParams
@@ -38,6 +38,9 @@ class BuildingState:
     labels: dict[int, str | None]
     device_of_user: dict[str, str]
     applied_round: int
+    history_t_ms: dict[str, int] = field(default_factory=dict)
+    """Each user's latest row of position history (``server.buildings.rows.HistorySampling``); snapshots of
+    an earlier server have none (read with ``getattr``), and the sampling starts over."""
 
 
 def encode(state: BuildingState) -> bytes:

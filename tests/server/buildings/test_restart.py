@@ -482,3 +482,75 @@ def test_a_change_between_batches_survives_a_crash_exactly(
         assert again.tracker.radio_map_id == "build2"
         assert _estimates(again) == _estimates(reference)  # the replay did not see it
     engine.dispose()
+
+
+def test_the_position_history_after_a_crash_is_the_one_without(sqlite_url: str) -> None:
+    """The history keeps one estimate a period of the phone's time: which one is decided the same way after a
+    crash (the sampling's memory is in the snapshot, and the replay goes through it again)."""
+    from server.store.models import PositionSnapshotRow
+
+    groups = _groups(CROWD)[:16]
+    retention = Retention(position_history_period_s=3.0)
+
+    def history(engine: Engine) -> list[tuple[str, int]]:
+        with make_session_factory(engine)() as s:
+            rows = s.execute(select(PositionSnapshotRow.user_id, PositionSnapshotRow.t_ms)).all()
+        return sorted((u, int(t)) for u, t in rows)
+
+    reference_engine = _fresh_building(sqlite_url.replace(".sqlite3", "-ref.sqlite3"))
+    reference = _building(reference_engine, retention=retention)
+    engine = _fresh_building(sqlite_url)
+    crashed = _building(engine, snapshot_period_s=0.0, retention=retention)
+    for group in groups[:9]:
+        reference.process(group)
+        crashed.process(group)
+    del crashed  # as after kill -9, between its periodic snapshots
+    restarted = _building(engine, snapshot_period_s=0.0, retention=retention)
+    for group in groups[9:]:
+        reference.process(group)
+        restarted.process(group)
+    assert history(engine) == history(reference_engine)
+    assert len(history(engine)) < reference.counters.estimates / 2
+    engine.dispose()
+    reference_engine.dispose()
+
+
+def test_an_operators_retried_edit_changes_nothing(sqlite_url: str) -> None:
+    """A PUT of an anchor or a floor plan sent again (its answer lost in a crash, say) finds it as asked and
+    changes nothing: no engine call, no snapshot, no live message; a PUT that moves it does."""
+    from schemas.anchors import AnchorType
+    from schemas.floor_plans import FLOOR_PLAN_EXAMPLE, FloorPlan
+    from server.store.models import FloorRow
+
+    engine = _fresh_building(sqlite_url)
+    with make_session_factory(engine).begin() as s:
+        s.add(FloorRow(building_id="hq", level=0, name="G", width_m=60.0, height_m=50.0))
+    building = _building(engine)
+    for group in _groups(CROWD)[:4]:
+        building.process(group)
+    body = KnownAnchorIn(type=AnchorType.DOOR, position=Position(x_m=12.0, y_m=8.0), label="kiosk")
+    first, messages = building.put_known_anchor("kiosk", body)
+    assert messages
+    snapshots = building.counters.snapshots
+    state = tracker_snapshot_bytes(building)
+    again, messages = building.put_known_anchor("kiosk", body)
+    assert (again, messages) == (first, [])
+    assert building.counters.snapshots == snapshots
+    assert tracker_snapshot_bytes(building) == state
+    moved, messages = building.put_known_anchor("kiosk", body.model_copy(update={"label": "kiosk 2"}))
+    assert messages
+    assert moved.label == "kiosk 2"
+    plan = FloorPlan.model_validate(FLOOR_PLAN_EXAMPLE)
+    building.put_floor_plan(0, plan)
+    snapshots = building.counters.snapshots
+    state = tracker_snapshot_bytes(building)
+    building.put_floor_plan(0, plan)
+    assert building.counters.snapshots == snapshots
+    assert tracker_snapshot_bytes(building) == state
+    engine.dispose()
+
+
+def tracker_snapshot_bytes(building: BuildingHost) -> bytes:
+    from server.buildings.snapshot import pickled
+
+    return pickled(building.building_state())
