@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from enum import StrEnum
-from typing import Any, Self
+from typing import Any, Literal, Self
 
 from pydantic import Field, model_validator
 
@@ -35,7 +35,7 @@ ANCHOR_EXAMPLE: dict[str, Any] = {
     "observation_count": 41,
     "known": False,
     "label": None,
-    "last_seen_ms": 1700000000500,
+    "last_seen_ms": 1796559880500,
 }
 
 
@@ -87,3 +87,12 @@ class AnchorMergeIn(WireModel):
         if len(set(self.anchor_ids)) != len(self.anchor_ids):
             raise ValueError("anchor_ids must be distinct")
         return self
+
+
+class GeoJsonExport(WireModel):
+    """``GET .../export.geojson``: the anchors as points (``properties.kind`` ``anchor``, with the anchor's
+    fields) and recent tracks as lines (``kind`` ``track``, with ``user_id``), in WGS-84
+    ([longitude, latitude], RFC 7946)."""
+
+    type: Literal["FeatureCollection"] = "FeatureCollection"
+    features: list[dict[str, Any]]

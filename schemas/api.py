@@ -24,17 +24,27 @@ class DeviceKeyIn(WireModel):
     device_id: Identifier
 
 
-class ReaderKeyIn(WireModel):
-    """A dashboard key (reads the building) or a building operator key (manages it): no device."""
+class DashboardKeyIn(WireModel):
+    """A dashboard key: it reads the building (positions, anchors, the live view), changes nothing."""
 
-    scope: Literal[KeyScope.DASHBOARD, KeyScope.OPERATOR]
+    scope: Literal[KeyScope.DASHBOARD]
     device_id: None = None
 
 
-KeyCreateIn = Annotated[DeviceKeyIn | ReaderKeyIn, Field(discriminator="scope")]
+class BuildingOperatorKeyIn(WireModel):
+    """A building operator key: it manages this one building (anchors, plans, keys, users)."""
+
+    scope: Literal[KeyScope.OPERATOR]
+    device_id: None = None
+
+
+KeyCreateIn = Annotated[DeviceKeyIn | DashboardKeyIn | BuildingOperatorKeyIn, Field(discriminator="scope")]
 """An operator mints a key for its building, chosen by ``scope``: a device key names its device, the
-others none."""
-KEY_CREATE_ADAPTER: TypeAdapter[DeviceKeyIn | ReaderKeyIn] = TypeAdapter(KeyCreateIn)
+others none. One model a scope, each with its scope as a constant: a generated client takes the same
+string for each."""
+KEY_CREATE_ADAPTER: TypeAdapter[DeviceKeyIn | DashboardKeyIn | BuildingOperatorKeyIn] = TypeAdapter(
+    KeyCreateIn
+)
 
 
 class KeyCreated(WireModel):

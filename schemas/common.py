@@ -34,7 +34,7 @@ TimeMs = Annotated[
         ge=MIN_TIME_MS,
         le=MAX_TIME_MS,
         description="Unix epoch time in milliseconds (UTC).",
-        examples=[1_700_000_000_000],
+        examples=[1_796_559_880_000],
     ),
 ]
 

@@ -24,7 +24,7 @@ ESTIMATE_EXAMPLE: dict[str, Any] = {
     "building_id": "hq",
     "user_id": "alice",
     "device_id": "phone-1",
-    "t_ms": 1700000000500,
+    "t_ms": 1796559880500,
     "position": {"x_m": 12.4, "y_m": 30.1},
     "covariance_m2": [[0.64, 0.05], [0.05, 0.81]],
     "best_particle": {"x_m": 12.6, "y_m": 29.9},

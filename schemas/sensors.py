@@ -293,49 +293,48 @@ class LteMeasurement(WireModel):
 BATCH_EXAMPLE: dict[str, Any] = {
     "building_id": "hq",
     "device_id": "phone-1",
-    "user_id": "alice",
     "batch_id": "phone-1-000042",
     "seq": 42,
     "ble_advertised_id": "a1b2c3d4",
     "accelerometer": {
-        "t_ms": [1700000000000, 1700000000020, 1700000000040],
+        "t_ms": [1796559880000, 1796559880020, 1796559880040],
         "x": [0.12, 0.10, 0.15],
         "y": [0.31, 0.29, 0.35],
         "z": [9.79, 9.85, 9.72],
     },
     "gyroscope": {
-        "t_ms": [1700000000000, 1700000000020, 1700000000040],
+        "t_ms": [1796559880000, 1796559880020, 1796559880040],
         "x": [0.01, 0.00, -0.01],
         "y": [0.00, 0.02, 0.01],
         "z": [0.05, 0.04, 0.06],
     },
     "rotation_vector": {
-        "t_ms": [1700000000000, 1700000000020, 1700000000040],
+        "t_ms": [1796559880000, 1796559880020, 1796559880040],
         "x": [0.01, 0.01, 0.01],
         "y": [0.02, 0.02, 0.02],
         "z": [0.38, 0.38, 0.39],
     },
-    "steps": [{"t_ms": 1700000000500, "length_m": 0.68, "azimuth_rad": 0.79}],
+    "steps": [{"t_ms": 1796559880500, "length_m": 0.68, "azimuth_rad": 0.79}],
     "wifi_scans": [
         {
-            "t_ms": 1700000000900,
+            "t_ms": 1796559880900,
             "aps": [
                 {
                     "bssid": "0e:74:9c:a7:b2:e4",
                     "ssid": "lobby",
                     "rssi_dbm": -43,
                     "frequency_mhz": 5805,
-                    "last_seen_ms": 1700000000850,
+                    "last_seen_ms": 1796559880850,
                 },
                 {"bssid": "04:33:89:79:fc:7c", "rssi_dbm": -70, "frequency_mhz": 2412},
             ],
         }
     ],
     "bluetooth": [
-        {"kind": "peer", "t_ms": 1700000000300, "peer_advertised_id": "e5f6a7b8", "rssi_dbm": -71},
+        {"kind": "peer", "t_ms": 1796559880300, "peer_advertised_id": "e5f6a7b8", "rssi_dbm": -71},
         {
             "kind": "beacon",
-            "t_ms": 1700000000400,
+            "t_ms": 1796559880400,
             "mac": "E0:78:A3:3D:B5:D6",
             "rssi_dbm": -82,
             "tx_power_dbm": -56,
@@ -344,19 +343,19 @@ BATCH_EXAMPLE: dict[str, Any] = {
     "landmarks": [
         {
             "kind": "tag",
-            "t_ms": 1700000000700,
+            "t_ms": 1796559880700,
             "tag_id": "6e1ebc",
             "payload": "#6e1ebc 40.684492,-74.401406 z0",
         },
         {
             "kind": "fix",
-            "t_ms": 1700000000800,
+            "t_ms": 1796559880800,
             "position": {"x_m": 12.5, "y_m": 4.0},
             "sigma_m": 1.0,
             "azimuth_rad": 1.57,
         },
     ],
-    "lte": [{"t_ms": 1700000000600, "cell_id": "310-410-12345", "rsrp_dbm": -95.5, "rsrq_db": -11.0}],
+    "lte": [{"t_ms": 1796559880600, "cell_id": "310-410-12345", "rsrp_dbm": -95.5, "rsrq_db": -11.0}],
 }
 
 

@@ -7,7 +7,7 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, ValidationError, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from schemas.sensors import MAX_BATCH_BYTES
@@ -231,6 +231,17 @@ class Settings(BaseSettings):
         "answers duplicate).",
     )
 
+    @field_validator("database_url")
+    @classmethod
+    def _a_store_crowdslam_runs_on(cls, url: str | None) -> str | None:
+        """SQLite or PostgreSQL: another store (MySQL, say) would fail later with a driver's traceback."""
+        if url and url.split(":", 1)[0].split("+", 1)[0] not in ("sqlite", "postgresql"):
+            raise ValueError(
+                "crowdslam stores its data in SQLite (the default) or PostgreSQL: give a URL like "
+                "postgresql+psycopg://user@host/db"
+            )
+        return url
+
     @property
     def max_ws_frame_bytes(self) -> int:
         """The largest WebSocket frame the server reads (uvicorn's ``ws_max_size``; its own default is
@@ -292,3 +303,15 @@ def usable_cores() -> int:
 @lru_cache(maxsize=1)
 def get_settings() -> Settings:
     return Settings()
+
+
+def settings_problem(error: ValidationError) -> str:
+    """The settings' validation errors as one line, each named by its environment variable."""
+    parts = []
+    for e in error.errors(include_url=False):
+        name = "CROWDSLAM_" + "_".join(str(p) for p in e.get("loc", ())).upper()
+        value = e.get("input")
+        got = f" (got {value!r})" if isinstance(value, (str, int, float)) else ""
+        message = str(e.get("msg", "invalid")).removeprefix("Value error, ")
+        parts.append(f"{name}: {message}{got}")
+    return "configuration: " + "; ".join(parts)

@@ -6,7 +6,7 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, Query, Response, status
 
-from schemas.anchors import AnchorMergeIn, BuildingAnchor, KnownAnchorIn
+from schemas.anchors import AnchorMergeIn, BuildingAnchor, GeoJsonExport, KnownAnchorIn
 from schemas.common import MAX_TIME_MS, MIN_TIME_MS, Identifier
 from server.api.contract import PROBLEMS, problems
 from server.api.deps import Caller, DbSession, State
@@ -117,6 +117,7 @@ async def merge_anchors(
 
 @router.get(
     "/export.geojson",
+    response_model=GeoJsonExport,
     responses=problems(403, 404, (409, "The building has no geo-reference to export in WGS-84."), 503),
 )
 async def export_geojson(
@@ -126,7 +127,7 @@ async def export_geojson(
     session: DbSession,
     since_ms: Annotated[int, Query(ge=MIN_TIME_MS, le=MAX_TIME_MS)] = MIN_TIME_MS,
     limit: Annotated[int, Query(ge=1, le=100_000)] = 20_000,
-) -> dict[str, Any]:
+) -> GeoJsonExport:
     """Anchors as points and recent tracks as lines, in WGS-84 (needs the building's geo-reference)."""
     caller.require_reader(building_id)
     building = await _handle(state, building_id)
@@ -157,4 +158,4 @@ async def export_geojson(
                     "properties": {"kind": "track", "user_id": user},
                 }
             )
-    return {"type": "FeatureCollection", "features": features}
+    return GeoJsonExport(features=features)

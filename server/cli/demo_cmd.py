@@ -64,6 +64,7 @@ def run(args: argparse.Namespace) -> int:
     engine.dispose()
     scenario = Scenario.from_dict(json.loads(args.scenario.read_text()))
     app = create_app(settings, tune_gc=True, warming=KernelProgress("crowdslam demo"))
+    dashboard: str | None = None
     try:
         with (
             running_server(app, args.host, args.port, ws_compression=settings.ws_compression) as base,
@@ -125,7 +126,27 @@ def run(args: argparse.Namespace) -> int:
         return 1
     except KeyboardInterrupt:
         pass
+    finally:
+        revoke_demo_keys(settings.resolved_database_url, args.building, operator_key, dashboard)
     return 0
+
+
+def revoke_demo_keys(database_url: str, building_id: str, operator_key: str, dashboard: str | None) -> None:
+    """The keys a demo run printed stop working when it stops: its operator key (site-wide) and its
+    dashboard key. A Ctrl-C meanwhile is not stopped halfway: the revocation is one transaction."""
+    from server.auth import key_prefix
+    from server.store import repositories as repo
+    from server.store.db import make_engine, make_session_factory
+
+    engine = make_engine(database_url)
+    try:
+        with make_session_factory(engine).begin() as session:
+            for building, key in ((None, operator_key), (building_id, dashboard)):
+                prefix = None if key is None else key_prefix(key)
+                if prefix is not None:
+                    repo.revoke_keys(session, building, prefix)
+    finally:
+        engine.dispose()
 
 
 DEMO_DEVICE = re.compile(r"[0-9a-f]{6}-r\d+-")

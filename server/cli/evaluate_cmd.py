@@ -8,7 +8,7 @@ import json
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from server.cli.user_errors import floor_folder
+from server.cli.user_errors import floor_folder, output_file
 from server.data import scenario_argument
 
 if TYPE_CHECKING:
@@ -113,9 +113,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="run pdr, semanticslam and dynamicslam (with --msindoor --warm-split, also dynamicslam with no "
         "start fix); their CDFs on one figure (Figure 14)",
     )
-    parser.add_argument("--json", type=Path, required=True, metavar="OUT", help="where to write the metrics")
     parser.add_argument(
-        "--plot", type=Path, metavar="PNG", help="CDF (or sweep) plot; default: beside --json"
+        "--json", type=output_file, required=True, metavar="OUT", help="where to write the metrics"
+    )
+    parser.add_argument(
+        "--plot", type=output_file, metavar="PNG", help="CDF (or sweep) plot; default: beside --json"
     )
 
 
@@ -149,7 +151,24 @@ def run(args: argparse.Namespace) -> int:
     args.json.write_text(json.dumps(result, indent=2) + "\n")
     print(json.dumps(result, indent=2))
     print(f"wrote {args.json} and {plot}")
+    if not args.sweep:
+        runs = result if args.compare else {args.mode: result}
+        for mode, r in runs.items():
+            print(summary(f"{scenario['name']} seed {args.seed}", mode, r))
     return 0
+
+
+def summary(world: str, run: str, result: dict[str, Any]) -> str:
+    """The line a run ends with: its errors' median and p90, and the share on the right floor where floors
+    are told apart."""
+    line = f"{world}, {run}: median {result['median_m']:.2f} m, p90 {result['p90_m']:.2f} m"
+    floor = result.get("right_floor")
+    if floor is not None and len(result.get("levels", [0, 1])) > 1:
+        line += f", {floor:.1%} on the right floor"
+    n = result.get("n_estimates") or result.get("n_waypoints")
+    if n is not None:
+        line += f", {n:,} scored"
+    return line
 
 
 def _msindoor(args: argparse.Namespace) -> int:
@@ -225,6 +244,8 @@ def _msindoor(args: argparse.Namespace) -> int:
     args.json.write_text(json.dumps(out, indent=2) + "\n")
     print(json.dumps(out, indent=2))
     print(f"wrote {args.json} and {plot}")
+    for name, r in results.items():
+        print(summary(floor, name, r))
     return 0
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -79,6 +80,21 @@ def walks_folder(text: str) -> Path:
     return path
 
 
+def output_file(text: str) -> Path:
+    """An output file (``--json``, ``--plot``), checked before a long run rather than after it: not a folder,
+    in a folder that exists or can be made, and may be written."""
+    path = Path(text)
+    if path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text} is a folder: give a file's name")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise argparse.ArgumentTypeError(f"{text}: its folder cannot be made ({error.strerror})") from None
+    if not os.access(path.parent, os.W_OK) or (path.exists() and not os.access(path, os.W_OK)):
+        raise argparse.ArgumentTypeError(f"{text}: cannot be written here (permission denied)")
+    return path
+
+
 def message(exc: BaseException) -> str | None:
     """The line to print for an exception that is the user's mistake, or None for a bug."""
     if isinstance(exc, UserError):
@@ -99,6 +115,11 @@ def message(exc: BaseException) -> str | None:
             return f"not a usable URL ({exc}); give one like http://127.0.0.1:8000"
         if isinstance(exc, httpx.TransportError):
             return f"cannot reach the server: {exc}"
+    pydantic = sys.modules.get("pydantic")
+    if pydantic is not None and isinstance(exc, pydantic.ValidationError) and exc.title == "Settings":
+        from server.settings import settings_problem
+
+        return settings_problem(exc)
     sqlalchemy_exc = sys.modules.get("sqlalchemy.exc")
     if sqlalchemy_exc is not None:
         if isinstance(exc, sqlalchemy_exc.ArgumentError):

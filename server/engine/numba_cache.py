@@ -8,16 +8,28 @@ cache directory is therefore keyed by a hash of every kernel source file.
 from __future__ import annotations
 
 import hashlib
+import importlib.util
 import os
 from pathlib import Path
 
-KERNELS = Path(__file__).resolve().parents[1] / "slam_core"
+
+def kernel_sources() -> Path:
+    """Where the ``slam_core`` package is, found without importing it (nor numba)."""
+    spec = importlib.util.find_spec("slam_core")
+    if spec is None or not spec.submodule_search_locations:
+        raise RuntimeError("the slam_core package cannot be found: is crowdslam installed?")
+    return Path(next(iter(spec.submodule_search_locations)))
 
 
-def kernel_source_hash() -> str:
+def kernel_source_hash(root: Path | None = None) -> str:
+    """A hash of every source file of ``slam_core`` (``root``: that package's folder)."""
+    root = root or kernel_sources()
+    sources = sorted(root.rglob("*.py"))
+    if not sources:
+        raise RuntimeError(f"no kernel sources under {root}")
     digest = hashlib.sha256()
-    for path in sorted(KERNELS.rglob("*.py")):
-        digest.update(path.relative_to(KERNELS).as_posix().encode())
+    for path in sources:
+        digest.update(path.relative_to(root).as_posix().encode())
         digest.update(path.read_bytes())
     return digest.hexdigest()[:16]
 

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import re
+from datetime import datetime
 from pathlib import Path
 
 import pytest
@@ -54,5 +56,16 @@ def test_cli_writes_schemas(tmp_path: Path, capsys: pytest.CaptureFixture[str]) 
 
 
 def test_cli_prints_a_valid_example_batch(capsys: pytest.CaptureFixture[str]) -> None:
+    """A batch as the README asks phones to send one: no ``user_id`` (a device posts as itself), timed at the
+    README's example instant, in the days a reader sees it, not years before."""
     assert main(["schema", "--example", "batch"]) == 0
-    EXAMPLE_MODELS["batch"].model_validate_json(capsys.readouterr().out)
+    out = capsys.readouterr().out
+    batch = EXAMPLE_MODELS["batch"].model_validate_json(out)
+    assert "user_id" not in json.loads(out)
+    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
+    instant = re.search(r"RFC 3339 UTC \(`([0-9T:-]+Z)`\)", readme)
+    assert instant is not None, "the README names its example instant"
+    first = datetime.fromisoformat(instant.group(1)).timestamp() * 1000
+    span = batch.time_span_ms()
+    assert span is not None
+    assert first <= span[0] <= span[1] < first + 60_000

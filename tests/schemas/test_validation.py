@@ -187,8 +187,8 @@ def example() -> dict[str, Any]:
 
 def test_example_batch_is_valid(example: dict[str, Any]) -> None:
     batch = decode_batch(json.dumps(example).encode(), MAX_BATCH_BYTES)
-    assert batch.effective_user_id == "alice"
-    assert batch.time_span_ms() == (1700000000000, 1700000000900)
+    assert batch.effective_user_id == "phone-1"  # a device posts as itself
+    assert batch.time_span_ms() == (1796559880000, 1796559880900)
 
 
 @pytest.mark.parametrize(("case", "mutate", "status", "loc", "fragment"), CASES, ids=[c[0] for c in CASES])

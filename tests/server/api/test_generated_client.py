@@ -90,7 +90,7 @@ def _newcomers_path(
     minted = api("buildings.create_key").sync(
         "generated",
         client=operator,
-        body=models.DeviceKeyIn(scope=models.KeyScope.DEVICE, device_id="phone-1"),
+        body=models.DeviceKeyIn(scope="device", device_id="phone-1"),
     )
     assert isinstance(minted, models.KeyCreated), minted
     assert minted.scope == models.KeyScope.DEVICE
@@ -108,7 +108,7 @@ def _newcomers_path(
 
     positions = api("positions.list_positions").sync("generated", client=operator)
     assert isinstance(positions, list), positions
-    assert [p.user_id for p in positions] == [raw["user_id"]]
+    assert [p.user_id for p in positions] == [raw["device_id"]]  # a device posts as itself
     assert positions[0].t_ms == receipt.estimate.t_ms
 
     keys = api("buildings.list_keys").sync("generated", client=operator)
@@ -126,6 +126,24 @@ def _newcomers_path(
     assert isinstance(refused.parsed, models.Problem), refused.content
     assert refused.parsed.status == 401
     assert json.loads(refused.content)["title"] == "Unauthorized"
+
+
+def test_the_generated_models_are_named_and_typed_as_the_api_reads(client_package: ModuleType) -> None:
+    """Each key body takes its scope as the same plain string (no enum for one and a string for another),
+    and no model is named after a route's internals (``...Response...``)."""
+    models = _module(client_package, "models")
+    bodies = {
+        "DeviceKeyIn": {"scope": "device", "device_id": "phone-1"},
+        "DashboardKeyIn": {"scope": "dashboard"},
+        "BuildingOperatorKeyIn": {"scope": "operator"},
+    }
+    for name, body in bodies.items():
+        model = getattr(models, name).from_dict(body)
+        assert type(model.scope) is str, (name, type(model.scope))
+        assert model.to_dict()["scope"] == body["scope"]
+    names = [n for n in dir(models) if n[:1].isupper()]
+    assert "GeoJsonExport" in names
+    assert [n for n in names if "Response" in n] == []
 
 
 TYPESCRIPT_PACKAGES = ("openapi-typescript@7", "openapi-fetch@0.14", "typescript@5", "@types/node@20")
@@ -166,7 +184,7 @@ const positions = await operator.GET("/v1/buildings/{building_id}/positions", {
   params: { path: { building_id } },
 });
 const users = (positions.data ?? []).map((estimate) => estimate.user_id);
-expect("list_positions", users.length === 1 && users[0] === example.user_id, positions.data);
+expect("list_positions", users.length === 1 && users[0] === example.device_id, positions.data);
 
 const revoked = await operator.DELETE("/v1/buildings/{building_id}/keys/{prefix}", {
   params: { path: { building_id, prefix: minted.data!.prefix } },

@@ -59,6 +59,9 @@ def test_crowds_one_after_another_walk_the_same_building(tmp_path: Path) -> None
             assert count("SELECT COUNT(*) FROM position_snapshots") == 0
             assert count("SELECT COUNT(*) FROM api_keys WHERE scope = 'device'") == 2 * 8
             assert count("SELECT COUNT(*) FROM api_keys WHERE scope = 'device' AND revoked_at IS NULL") == 0
+            # nor the keys the demo printed: its operator and dashboard keys end with it
+            assert count("SELECT COUNT(*) FROM api_keys WHERE scope IN ('operator', 'dashboard')") == 2
+            assert count("SELECT COUNT(*) FROM api_keys WHERE revoked_at IS NULL") == 0
             newest_ms = count("SELECT MAX(t_last_ms) FROM batches")
     finally:
         engine.dispose()

@@ -21,13 +21,21 @@ def small_scenario(tmp_path: Path) -> Path:
     return path
 
 
-def test_single_run_writes_metrics_and_a_cdf(small_scenario: Path, tmp_path: Path) -> None:
+def test_single_run_writes_metrics_and_a_cdf(
+    small_scenario: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     out = tmp_path / "out" / "dyn.json"
     assert (
         main(["evaluate", "--scenario", str(small_scenario), "--mode", "dynamicslam", "--json", str(out)])
         == 0
     )
     result = json.loads(out.read_text())
+    # the run ends with one line that says how it went, as the JSON does
+    last = capsys.readouterr().out.strip().splitlines()[-1]
+    assert last == (
+        f"paper-testbed seed 0, dynamicslam: median {result['median_m']:.2f} m, p90 {result['p90_m']:.2f} m, "
+        f"{result['n_estimates']:,} scored"
+    )
     expected = {"mode", "median_m", "p75_m", "p90_m", "mean_m", "max_m", "n_estimates", "seconds"}
     expected |= {"anchors_passed_per_user", "encounters_per_user"}
     assert expected <= set(result)
@@ -112,3 +120,19 @@ def test_every_evaluation_runs_through_the_tracker(small_scenario: Path, tmp_pat
     other = figures("--filter-seed", "7")
     assert other[2] == first["n_estimates"]  # the same world and phones
     assert other[:2] != (first["median_m"], first["p90_m"])  # other filters' draws
+
+
+@pytest.mark.parametrize("where", ["a folder", "a file in a file"])
+def test_an_output_that_cannot_be_written_is_refused_before_the_run(
+    small_scenario: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], where: str
+) -> None:
+    """Checked when the command starts, not after a run of many minutes."""
+    if where == "a folder":
+        out = tmp_path
+    else:
+        (tmp_path / "plain").write_text("")
+        out = tmp_path / "plain" / "out.json"
+    with pytest.raises(SystemExit) as stopped:
+        main(["evaluate", "--scenario", str(small_scenario), "--json", str(out)])
+    assert stopped.value.code == 2
+    assert "--json" in capsys.readouterr().err

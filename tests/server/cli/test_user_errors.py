@@ -129,3 +129,28 @@ def test_an_unknown_key_prefix_and_scenario(tmp_path: Path) -> None:
     assert "nor a shipped scenario (paper-testbed, three-floors)" in _one_line(code, err)
     code, _, err = _run("datasets", "fetch", "msindoor20", "--floors", "site9/F1", cwd=tmp_path)
     assert "has no floor site9/F1; its floors: site1/F1" in _one_line(code, err)
+
+
+@pytest.mark.parametrize(
+    ("command", "variable", "value", "said"),
+    [
+        (
+            "migrate",
+            "CROWDSLAM_DATABASE_URL",
+            "mysql://root@localhost/test",
+            "SQLite (the default) or PostgreSQL",
+        ),
+        ("serve", "CROWDSLAM_DATABASE_URL", "mysql+pymysql://root@localhost/test", "PostgreSQL"),
+        ("migrate", "CROWDSLAM_MODE", "magic", "'dynamicslam' or 'semanticslam'"),
+        ("demo", "CROWDSLAM_MODE", "magic", "(got 'magic')"),
+        ("serve", "CROWDSLAM_SNAPSHOT_PERIOD_S", "soon", "CROWDSLAM_SNAPSHOT_PERIOD_S"),
+    ],
+)
+def test_a_setting_the_server_cannot_use_is_one_line_naming_it(
+    tmp_path: Path, command: str, variable: str, value: str, said: str
+) -> None:
+    env = {**os.environ, variable: value, "CROWDSLAM_DATA_DIR": str(tmp_path)}
+    done = subprocess.run([*CLI, command], capture_output=True, text=True, cwd=tmp_path, env=env, timeout=120)
+    line = _one_line(done.returncode, done.stderr)
+    assert line.startswith(f"crowdslam {command}: configuration: {variable}: "), line
+    assert said in line
