@@ -1,4 +1,5 @@
-"""A process the server starts (a building's, a signal-map build's) lives no longer than the server."""
+"""A process the server starts (a building's, a signal-map build's, the kernels' compile) lives no longer than
+the server, and is stopped by it, not by a terminal's Ctrl-C."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ import ctypes
 import os
 import signal
 import sys
+from collections.abc import Iterator
 
 
 def die_with(parent_pid: int) -> None:
@@ -20,3 +22,16 @@ def die_with(parent_pid: int) -> None:
             ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
     if os.getppid() != parent_pid:  # the parent died before the line above
         os._exit(0)
+
+
+@contextlib.contextmanager
+def interrupts_held() -> Iterator[None]:
+    """Start child processes inside this: Ctrl-C is blocked in the starting thread meanwhile, and a child
+    inherits the blocked signal from its first instruction (``die_with`` then ignores it). A terminal's
+    Ctrl-C reaches its whole process group; a child that saw it would print a traceback from wherever it
+    was (importing numba, say) and die under its parent, which stops its children in order itself."""
+    held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, held)

@@ -46,7 +46,7 @@ from server.engine.warmup import warm_kernels_for
 from server.errors import NotFoundError, ProblemError, ServiceUnavailableError
 from server.gc_tuning import tune_gc_for_serving
 from server.live.broadcast import Broadcaster, live_json
-from server.process_lifetime import die_with
+from server.process_lifetime import die_with, interrupts_held
 from server.settings import Settings
 from slam_core.geo import GeoFrame
 
@@ -261,6 +261,11 @@ class _BuildingLoop:
 
 
 # -------------------------------------------------------------------------------------- front side
+def _start(process: Any) -> None:
+    with interrupts_held():  # Ctrl-C is the front's to handle: it closes its buildings in order
+        process.start()
+
+
 class BuildingProcess:
     """The front's handle on a building process, with ``BuildingThread``'s interface."""
 
@@ -297,7 +302,7 @@ class BuildingProcess:
             name=f"crowdslam-building-{building_id}",
             daemon=True,
         )
-        await asyncio.to_thread(process.start)
+        await asyncio.to_thread(_start, process)
         back.close()
         reader, writer = await asyncio.open_unix_connection(sock=front)
         try:

@@ -56,7 +56,9 @@ def wait_until_ready(
 def running_server(
     app: FastAPI, host: str, port: int, start_timeout_s: float = 120.0, ws_compression: bool = False
 ) -> Iterator[str]:
-    """Start serving ``app``; yields its base URL once it accepts connections, stops it on exit."""
+    """Start serving ``app`` (``port`` 0: a free one); yields its base URL once it accepts connections,
+    stops it on exit."""
+    port = port or free_port(host)
     config = uvicorn.Config(
         app,
         host=host,

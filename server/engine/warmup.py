@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 import multiprocessing
+import os
 import queue
 import time
 from collections.abc import Callable
@@ -23,6 +24,7 @@ from multiprocessing.queues import Queue
 import numpy as np
 
 from server.engine.config import load_calibration, tracker_params
+from server.process_lifetime import die_with, interrupts_held
 from server.settings import Settings
 from slam_core.encounters.models import Calibration
 from slam_core.filter.kernels.serial import PARALLEL_MIN_USERS
@@ -151,8 +153,14 @@ def _heading_on_square(s: float) -> float:
     return [np.pi / 2, 0.0, -np.pi / 2, np.pi][int((s % 96.0) // 24.0)]
 
 
-def warm_kernels_for(settings: Settings, steps: Queue[int] | None = None) -> None:
-    """``warm_kernels`` with the tracker the settings configure; each step done is put on ``steps``."""
+def warm_kernels_for(
+    settings: Settings, steps: Queue[int] | None = None, parent_pid: int | None = None
+) -> None:
+    """``warm_kernels`` with the tracker the settings configure; each step done is put on ``steps``. In a
+    child started by process ``parent_pid``, it dies with that process (a server stopped while it compiles
+    leaves no compile running)."""
+    if parent_pid is not None:
+        die_with(parent_pid)
     warm_kernels(
         tracker_params(settings),
         load_calibration(settings.encounter_calibration),
@@ -170,9 +178,10 @@ def compile_kernels_in_child(settings: Settings, progress: Progress | None = Non
     context = multiprocessing.get_context("spawn")
     steps: Queue[int] = context.Queue()
     process = context.Process(
-        target=warm_kernels_for, args=(settings, steps), name="crowdslam-compile-kernels"
+        target=warm_kernels_for, args=(settings, steps, os.getpid()), name="crowdslam-compile-kernels"
     )
-    process.start()
+    with interrupts_held():  # a terminal's Ctrl-C is the server's to handle, not the compile's
+        process.start()
     while process.is_alive() or not steps.empty():
         try:
             done = steps.get(timeout=0.2)

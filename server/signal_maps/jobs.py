@@ -20,7 +20,7 @@ from schemas.signal_maps import SignalMapJob, SignalMapStatus
 from server.errors import ConflictError, NotFoundError, TooManyRequestsError
 from server.ingestion.convert import BuildingContext
 from server.ingestion.radio_maps import RECORD
-from server.process_lifetime import die_with
+from server.process_lifetime import die_with, interrupts_held
 from server.signal_maps.build import build_signal_maps
 
 MAX_PENDING_BUILDS = 4
@@ -82,14 +82,15 @@ class SignalMapService:
                 self._pool = ProcessPoolExecutor(
                     max_workers=1, mp_context=multiprocessing.get_context("spawn")
                 )
-            future = self._pool.submit(
-                _run_build,
-                os.getpid(),
-                [str(f) for f in files],
-                str(self._folder(ctx.building_id, job.id)),
-                ctx,
-                self.modalities,
-            )
+            with interrupts_held():  # the pool starts its process on a first submit
+                future = self._pool.submit(
+                    _run_build,
+                    os.getpid(),
+                    [str(f) for f in files],
+                    str(self._folder(ctx.building_id, job.id)),
+                    ctx,
+                    self.modalities,
+                )
             self._futures[job.id] = future
         future.add_done_callback(lambda f: self._finish(job, f))
         return job

@@ -167,6 +167,47 @@ def test_the_demo_stops_cleanly_on_sigint_and_sigterm_even_in_the_background(
     assert logged == 0
 
 
+@pytest.mark.parametrize("after_s", [1.5, 3.0])
+def test_ctrl_c_while_the_demo_starts_prints_no_traceback_and_leaves_no_process(
+    tmp_path: Path, after_s: float
+) -> None:
+    """Ctrl-C in a terminal reaches the whole process group, children just being spawned too (the kernels'
+    compile, a building's process, importing numba): each had printed a KeyboardInterrupt traceback. They
+    are started with Ctrl-C blocked and die with the demo."""
+    from tests.server.cli.test_kill_restart import _building_processes
+
+    env = {**os.environ, "CROWDSLAM_DATA_DIR": str(tmp_path / "data")}
+    env.pop("CROWDSLAM_DATABASE_URL", None)
+    env.pop("CROWDSLAM_BUILDING_PROCESSES", None)  # the default: processes on more than one core
+    scenario = _small_testbed(tmp_path / "small.json")
+    args = ["demo", "--rounds", "0", "--speed", "5", "--port", str(free_port()), "--scenario", str(scenario)]
+    process = subprocess.Popen(
+        [*CLI, *args],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        preexec_fn=os.setpgrp,
+    )
+    try:
+        time.sleep(after_s)
+        os.killpg(process.pid, signal.SIGINT)
+        assert process.wait(timeout=120) in (0, 130)
+        assert process.stdout is not None
+        out = process.stdout.read()
+        assert "Traceback" not in out, out
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+        if process.stdout is not None:
+            process.stdout.close()
+    deadline = time.monotonic() + 10.0
+    while _building_processes(tmp_path / "data") and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert _building_processes(tmp_path / "data") == []
+
+
 def test_a_crowds_clock_runs_at_most_a_minute_ahead_of_the_wall_clock() -> None:
     now = 1_800_000_000_000
     assert crowd_epoch_ms(now, 200.0, 1.0) == now  # in real time a crowd starts now and stays level
