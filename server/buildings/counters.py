@@ -28,7 +28,7 @@ class Counters:
     replayed: int = 0
     """Logged batches re-applied on load, after a crash."""
     replay_failures: int = 0
-    """Logged batches that could not be applied again on load (each engine call's error logged): the building
+    """Logged batches that could not be applied again on load (each tracker call's error logged): the building
     came back without them. The live path applied them, so each is an error of the server's."""
     log_bodies_cleared: int = 0
     """Logged batch bodies cleared once a snapshot covered them."""

@@ -2,7 +2,7 @@
 
 ``BuildingHost`` is synchronous and used only from its building's single worker thread, so a building's
 batches and anchor edits are applied one group at a time, in arrival order. Batches that arrive while a
-group is being processed form the next group: under load, one engine call and one transaction serve many
+group is being processed form the next group: under load, one tracker call and one transaction serve many
 phones.
 """
 
@@ -100,7 +100,7 @@ class BuildingHost:
         self.tracker = loaded.tracker
         self.ids = loaded.ids
         self._device_of_user = loaded.device_of_user
-        self._round = loaded.applied_round
+        self._tracker_call = loaded.tracker_call
         self.devices = loaded.devices
         self.geo = loaded.geo
         self.extent = loaded.extent
@@ -160,13 +160,13 @@ class BuildingHost:
         return convert.building_context(self.building_id, self.tracker, self.ids.index, self.geo, self.extent)
 
     def building_state(self) -> tracker_snapshot.BuildingState:
-        """What a snapshot holds: the tracker and the building's bookkeeping, as of the last engine call."""
+        """What a snapshot holds: the tracker and the building's bookkeeping, as of the last tracker call."""
         return tracker_snapshot.BuildingState(
             self.tracker,
             dict(self.ids.public),
             dict(self.ids.labels),
             dict(self._device_of_user),
-            self._round,
+            self._tracker_call,
             dict(self.history.latest_t_ms),
         )
 
@@ -490,10 +490,10 @@ class BuildingHost:
             converted[i] = (c.user_batch, c.warnings)
         messages: list[LiveMessage] = []
         order = list(converted)
-        # late or applied, and by which engine call, is decided before anything is written: each row goes
+        # late or applied, and by which tracker call, is decided before anything is written: each row goes
         # in with the call that applies it (a retry is recognised by the insert itself, and was late anyway)
         calls = dict(zip(order, self.devices.plan([group[i].header for i in order]), strict=True))
-        base = self._round
+        base = self._tracker_call
         device_rows: list[dict[str, object]] = []
         to_record: list[int] = []
         estimates_to_record: list[tuple[list[Estimate], int]] = []
@@ -521,10 +521,10 @@ class BuildingHost:
             streamed = [sub.stream_sequence for sub in group if sub.stream_sequence is not None]
             if streamed:
                 repo.advance_stream_position(session, self.building_id, max(streamed))
-            # a user may have several batches in one group: one per user per engine call
+            # a user may have several batches in one group: one per user per tracker call
             for call in sorted(by_call):
                 now = by_call[call]
-                self._round = base + call
+                self._tracker_call = base + call
                 applied = self._apply(session, group, converted, now)
                 for i, receipt in applied.receipts.items():
                     results[i] = receipt
@@ -549,7 +549,7 @@ class BuildingHost:
         converted: dict[int, tuple[UserBatch, list[str]]],
         now: list[int],
     ) -> _Applied:
-        """One engine call over the batches ``now`` (indices into ``group``, at most one per user): their
+        """One tracker call over the batches ``now`` (indices into ``group``, at most one per user): their
         positions and anchor changes written in ``session``; their receipts, the live messages, and the
         estimates to record once the transaction commits."""
         outcome = self.tracker.apply([converted[i][0] for i in now])
@@ -711,7 +711,7 @@ class BuildingHost:
 
 @dataclass(frozen=True)
 class _Applied:
-    """What one engine call over a group's batches gives: their receipts (by index in the group), the live
+    """What one tracker call over a group's batches gives: their receipts (by index in the group), the live
     messages, and the estimates to record."""
 
     receipts: dict[int, BatchReceipt]

@@ -1,15 +1,15 @@
-"""A building's devices as the batch path needs them: which batches are late, which engine call applies
+"""A building's devices as the batch path needs them: which batches are late, which tracker call applies
 each, and which device rows SQL must learn.
 
 A batch whose ``seq`` is not after its device's last applied one is late: recorded, never applied (filters
 cannot rewind). Sequence numbers count within an install (``SensorBatch.install_ms``): a batch of a later
 install starts its device's count again (a reinstalled phone posts from 0 with no operator action), and a
 batch of an earlier install is late whatever its ``seq``. A batch without ``install_ms`` counts in the
-device's current install. A device's batches in one group are applied one per engine call, in order. Both are
-decided before anything is written, so each batch row is inserted with the engine call that will apply it (the
-log a restart replays) and no update follows. Device rows are written when a device appears or its user or
-Bluetooth id changes; the last applied sequence numbers are written with each tracker snapshot, and a
-restart takes the newer ones from the batches it replays.
+device's current install. A device's batches in one group are applied one per tracker call, in order. Both
+are decided before anything is written, so each batch row is inserted with the tracker call that will apply
+it (the log a restart replays) and no update follows. Device rows are written when a device appears or its
+user or Bluetooth id changes; the last applied sequence numbers are written with each tracker snapshot, and
+a restart takes the newer ones from the batches it replays.
 """
 
 from __future__ import annotations
@@ -78,7 +78,7 @@ class DeviceLedger:
         return None if device is None else device.last_seq
 
     def plan(self, batches: list[BatchHeader]) -> list[int | None]:
-        """Per batch (in arrival order): the engine call of this group that applies it (1, 2, ...: a user's
+        """Per batch (in arrival order): the tracker call of this group that applies it (1, 2, ...: a user's
         k-th batch here goes in the k-th call) or None when it is late. Nothing is recorded yet."""
         last: dict[str, tuple[int | None, int | None]] = {}  # device -> (install, seq) so far in the group
         calls: dict[str, int] = {}

@@ -1,7 +1,7 @@
 """A building's tracking state that survives a crash.
 
 ``Recovery`` loads a building (its last snapshot plus the batches logged since, replayed in their original
-engine calls; or, when there is no usable snapshot, the SQL anchor map), writes its snapshots, periodically
+tracker calls; or, when there is no usable snapshot, the SQL anchor map), writes its snapshots, periodically
 and when asked, and clears the logged batch bodies a snapshot covers. The building's host
 (``server.buildings.host.BuildingHost``) owns one and decides when.
 """
@@ -50,8 +50,8 @@ class Loaded:
     tracker: BuildingTracker
     ids: AnchorIds
     device_of_user: dict[str, str]
-    applied_round: int
-    """Engine calls so far: the order a restart replays the batch log in."""
+    tracker_call: int
+    """Tracker calls so far: the order a restart replays the batch log in."""
     devices: DeviceLedger
     geo: GeoFrame | None
     extent: Extent | None
@@ -85,11 +85,11 @@ class Recovery:
 
     def load(self) -> Loaded:
         """The building as its SQL holds it: the last snapshot plus the batches logged since, replayed in
-        their original engine calls (or, without a usable snapshot, the SQL anchor map)."""
+        their original tracker calls (or, without a usable snapshot, the SQL anchor map)."""
         params, calibration, seed = self._config.params, self._config.calibration, self._config.seed
         ids = AnchorIds()
         device_of_user: dict[str, str] = {}
-        applied_round = 0
+        tracker_call = 0
         history = HistorySampling(self._config.retention.position_history_period_s)
         with self._sessions() as session:
             building = repo.get_building(session, self.building_id)
@@ -105,17 +105,17 @@ class Recovery:
                 for index, public_id in state.public_ids.items():
                     ids.link(index, public_id, state.labels.get(index))
                 device_of_user = dict(state.device_of_user)
-                applied_round = state.applied_round
+                tracker_call = state.tracker_call
                 history.latest_t_ms = dict(getattr(state, "history_t_ms", {}))
             logged = logged_batches(
-                session, self.building_id, after_round=applied_round if state is not None else None
+                session, self.building_id, after_call=tracker_call if state is not None else None
             )
             if state is None:
                 # the filters start again, but the log still says which sequence numbers were applied; the
-                # engine calls count on from the log's last, so the load snapshot covers the whole log
+                # tracker calls count on from the log's last, so the load snapshot covers the whole log
                 for item in logged:
                     devices.replayed(BatchHeader.of(SensorBatch.model_validate_json(item.body)))
-                applied_round = max((item.applied_round for item in logged), default=applied_round)
+                tracker_call = max((item.tracker_call for item in logged), default=tracker_call)
                 logged = []
                 tracker = BuildingTracker(params, calibration, seed=seed)
                 for row in repo.list_anchors(session, self.building_id):
@@ -143,7 +143,7 @@ class Recovery:
             tracker,
             ids,
             device_of_user,
-            applied_round,
+            tracker_call,
             devices,
             geo,
             extent,
@@ -174,10 +174,10 @@ class Recovery:
             return None
 
     def _replay(self, loaded: Loaded, logged: list[LoggedBatch]) -> None:
-        """Re-apply the batches acknowledged after the snapshot, in their original engine calls. Their
+        """Re-apply the batches acknowledged after the snapshot, in their original tracker calls. Their
         positions and anchors are already in SQL; only the in-memory filters are rebuilt."""
         tracker = loaded.tracker
-        for applied_round, items in itertools.groupby(logged, key=lambda b: b.applied_round):
+        for tracker_call, items in itertools.groupby(logged, key=lambda b: b.tracker_call):
             # converted as the live path converted it, but for the extent: a logged batch was accepted, and
             # is replayed even if the margin has narrowed since
             ctx = convert.building_context(self.building_id, tracker, loaded.ids.index, loaded.geo, None)
@@ -191,13 +191,13 @@ class Recovery:
                 outcome = tracker.apply([convert.to_user_batch(b, ctx).user_batch for b in batches])
             except Exception:
                 # the live path applied these; a replay that cannot is the server's error. The building comes
-                # back without them (an engine call that raises changes nothing), counted and named in
+                # back without them (an tracker call that raises changes nothing), counted and named in
                 # /healthz, rather than not at all
                 logger.exception(
-                    "building %s: %d logged batches of engine call %d could not be applied again",
+                    "building %s: %d logged batches of tracker call %d could not be applied again",
                     self.building_id,
                     len(batches),
-                    applied_round,
+                    tracker_call,
                 )
                 self.counters.replay_failures += len(batches)
                 self.counters.last_failure_unix_s = time.time()
@@ -208,7 +208,7 @@ class Recovery:
                 for user, row in outcome.estimates.items():  # their rows are in SQL: only the sampling moves
                     loaded.history.joins(user, row.t_ms)
                 self.counters.replayed += len(batches)
-            loaded.applied_round = applied_round
+            loaded.tracker_call = tracker_call
 
     # ------------------------------------------------------------------ snapshots
     def write(self, session: Session, state: tracker_snapshot.BuildingState) -> None:
@@ -216,7 +216,7 @@ class Recovery:
         superseded); the log it covers is cleared from now."""
         self._background.discard()
         self._last_snapshot = time.monotonic()
-        self._store(session, state.applied_round, tracker_snapshot.encode(state))
+        self._store(session, state.tracker_call, tracker_snapshot.encode(state))
 
     def write_ready(self, session: Session) -> bool:
         """In a group's transaction: write the snapshot compressed in the background since an earlier
@@ -251,9 +251,9 @@ class Recovery:
         self._last_snapshot = time.monotonic()
         self._background.take(state)
 
-    def _store(self, session: Session, applied_round: int, blob: bytes) -> None:
+    def _store(self, session: Session, tracker_call: int, blob: bytes) -> None:
         repo.save_tracker_snapshot(
-            session, self.building_id, tracker_snapshot.FORMAT_VERSION, applied_round, blob
+            session, self.building_id, tracker_snapshot.FORMAT_VERSION, tracker_call, blob
         )
         self._log_to_clear = True
         self.counters.snapshots += 1

@@ -4,7 +4,7 @@ The snapshot is the whole ``BuildingTracker`` (every user's particles and maps, 
 encounter detector, the random streams) plus the building's bookkeeping (public anchor ids, labels, the
 device of each user, the engine-call counter), pickled and compressed. Together with the batch bodies
 logged since (in the batches table, same transaction as the acknowledgement), it restores tracking
-exactly: replaying the log in its original engine calls gives bit-identical filters (tested).
+exactly: replaying the log in its original tracker calls gives bit-identical filters (tested).
 
 Pickle is used because the state is numpy arrays and plain containers owned by this code, written and
 read only by this server's database; a snapshot written by another code version or other tracker
@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 from slam_core.encounters.models import Calibration
 from slam_core.tracking.tracker import BuildingTracker, TrackerParams
 
-FORMAT_VERSION = 15
+FORMAT_VERSION = 16
 """Bump when BuildingTracker's attributes change, or a pickled class moves to another module: old snapshots
 are then refused, not misread."""
 
@@ -37,7 +37,7 @@ class BuildingState:
     public_ids: dict[int, str]
     labels: dict[int, str | None]
     device_of_user: dict[str, str]
-    applied_round: int
+    tracker_call: int
     history_t_ms: dict[str, int] = field(default_factory=dict)
     """Each user's latest row of position history (``server.buildings.rows.HistorySampling``); snapshots of
     an earlier server have none (read with ``getattr``), and the sampling starts over."""
@@ -71,7 +71,7 @@ class BackgroundSnapshots:
     it takes longer again, and far more with full particle maps: zlib releases the GIL, so it runs on a
     thread of its own while the building applies the
     next groups. The blob is then written by a later group's transaction (``ready``); from then on the
-    logged batch bodies up to the snapshot's engine call are cleared a chunk per group: the batches
+    logged batch bodies up to the snapshot's tracker call are cleared a chunk per group: the batches
     applied meanwhile stay logged, and a crash in between restarts from the previous snapshot and the
     batches logged after it."""
 
@@ -93,16 +93,16 @@ class BackgroundSnapshots:
         if self._pending is not None:
             raise RuntimeError("a snapshot is already being compressed")
         raw = pickled(state)
-        self._pending = (state.applied_round, self._executor.submit(_compress, raw))
+        self._pending = (state.tracker_call, self._executor.submit(_compress, raw))
 
     def ready(self) -> tuple[int, bytes] | None:
-        """The pending snapshot's engine call and blob once compressed (then no longer pending); None while
+        """The pending snapshot's tracker call and blob once compressed (then no longer pending); None while
         it is still being compressed or when none is. A failure to compress is raised once, and forgotten."""
         if self._pending is None or not self._pending[1].done():
             return None
-        applied_round, future = self._pending
+        tracker_call, future = self._pending
         self._pending = None
-        return applied_round, future.result()
+        return tracker_call, future.result()
 
     def wait(self) -> None:
         """Block until the pending snapshot (if any) is compressed, so that the next group writes it."""

@@ -34,14 +34,14 @@ class AcceptedBatch:
     body: bytes | None = None
     """The batch as posted, logged (``batch_log``) until a tracker snapshot covers it; None when nothing
     will apply it."""
-    applied_round: int | None = None
-    """The building's engine call that applies it (the order a restart replays the log in); None: late."""
+    tracker_call: int | None = None
+    """The building's tracker call that applies it (the order a restart replays the log in); None: late."""
 
 
 @dataclass(frozen=True)
 class LoggedBatch:
     row_id: int
-    applied_round: int
+    tracker_call: int
     body: bytes
 
 
@@ -65,12 +65,12 @@ def insert_batches_once(session: Session, batches: list[AcceptedBatch]) -> list[
     for b in batches:
         row_id = ids.pop((b.device_id, b.batch_id), None)  # a repeat within the group gets None
         out.append(row_id)
-        if row_id is not None and b.body is not None and b.applied_round is not None:
+        if row_id is not None and b.body is not None and b.tracker_call is not None:
             logged.append(
                 {
                     "batch_row_id": row_id,
                     "building_id": b.building_id,
-                    "applied_round": b.applied_round,
+                    "tracker_call": b.tracker_call,
                     "body": compressor.compress(b.body),
                 }
             )
@@ -90,8 +90,8 @@ def _values(batch: AcceptedBatch) -> dict[str, object]:
         "t_first_ms": batch.t_first_ms,
         "t_last_ms": batch.t_last_ms,
         "n_bytes": batch.n_bytes,
-        "applied": batch.applied_round is not None,
-        "applied_round": batch.applied_round,
+        "applied": batch.tracker_call is not None,
+        "tracker_call": batch.tracker_call,
     }
 
 
@@ -111,12 +111,12 @@ def clear_covered_bodies(session: Session, building_id: str, limit: int | None =
     thousands of batches a minute clears its log a chunk per group instead of in one long statement.
     Returns how many bodies went."""
     session.flush()  # a snapshot saved in this transaction through the ORM is what the statement reads
-    snapshot_round = (
-        select(TrackerSnapshotRow.applied_round)
+    snapshot_call = (
+        select(TrackerSnapshotRow.tracker_call)
         .where(TrackerSnapshotRow.building_id == building_id)
         .scalar_subquery()
     )
-    covered = (BatchLogRow.building_id == building_id, BatchLogRow.applied_round <= snapshot_round)
+    covered = (BatchLogRow.building_id == building_id, BatchLogRow.tracker_call <= snapshot_call)
     if limit is None:
         stmt = delete(BatchLogRow).where(*covered)
     else:
@@ -125,17 +125,17 @@ def clear_covered_bodies(session: Session, building_id: str, limit: int | None =
     return int(session.connection().execute(stmt).rowcount or 0)
 
 
-def logged_batches(session: Session, building_id: str, after_round: int | None = None) -> list[LoggedBatch]:
-    """The applied batches still logged, in the order they were applied: those of engine calls after
-    ``after_round`` (the round of the snapshot they are replayed onto; older bodies the snapshot covers may
-    not be cleared yet), or all when None."""
+def logged_batches(session: Session, building_id: str, after_call: int | None = None) -> list[LoggedBatch]:
+    """The applied batches still logged, in the order they were applied: those of tracker calls after
+    ``after_call`` (the tracker call of the snapshot they are replayed onto; older bodies the snapshot
+    covers may not be cleared yet), or all when None."""
     stmt = (
-        select(BatchLogRow.batch_row_id, BatchLogRow.applied_round, BatchLogRow.body)
+        select(BatchLogRow.batch_row_id, BatchLogRow.tracker_call, BatchLogRow.body)
         .where(BatchLogRow.building_id == building_id)
-        .order_by(BatchLogRow.applied_round, BatchLogRow.batch_row_id)
+        .order_by(BatchLogRow.tracker_call, BatchLogRow.batch_row_id)
     )
-    if after_round is not None:
-        stmt = stmt.where(BatchLogRow.applied_round > after_round)
+    if after_call is not None:
+        stmt = stmt.where(BatchLogRow.tracker_call > after_call)
     decompressor = zstandard.ZstdDecompressor()
     return [
         LoggedBatch(int(i), int(r), _logged_body(decompressor, bytes(b))) for i, r, b in session.execute(stmt)

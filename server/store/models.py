@@ -148,8 +148,8 @@ class BatchRow(Base):
     t_last_ms: Mapped[int | None] = mapped_column(BigInteger)
     n_bytes: Mapped[int] = mapped_column(Integer)
     applied: Mapped[bool] = mapped_column(Boolean, default=False)
-    applied_round: Mapped[int | None] = mapped_column(BigInteger)
-    """The building's engine call that applied it: a restart replays the log in the same groups."""
+    tracker_call: Mapped[int | None] = mapped_column(BigInteger)
+    """The building's tracker call that applied it: a restart replays the log in the same groups."""
     received_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), server_default=func.now())
 
 
@@ -162,12 +162,12 @@ class BatchLogRow(Base):
     __table_args__ = (
         ForeignKeyConstraint(["batch_row_id"], ["batches.id"], ondelete="CASCADE"),
         ForeignKeyConstraint(["building_id"], ["buildings.id"], ondelete="CASCADE"),
-        Index("ix_batch_log_building_round", "building_id", "applied_round"),
+        Index("ix_batch_log_building_call", "building_id", "tracker_call"),
     )
 
     batch_row_id: Mapped[int] = mapped_column(BigIntPk, primary_key=True, autoincrement=False)
     building_id: Mapped[str] = mapped_column(String(64))
-    applied_round: Mapped[int] = mapped_column(BigInteger)
+    tracker_call: Mapped[int] = mapped_column(BigInteger)
     body: Mapped[bytes] = mapped_column(LargeBinary)
 
 
@@ -197,21 +197,6 @@ class AnchorRow(Base):
     signature: Mapped[bytes | None] = mapped_column(LargeBinary)
     last_seen_ms: Mapped[int | None] = mapped_column(BigInteger)
     created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), server_default=func.now())
-
-
-class AnchorObservationRow(Base):
-    __tablename__ = "anchor_observations"
-
-    id: Mapped[int] = mapped_column(BigIntPk, primary_key=True, autoincrement=True)
-    anchor_id: Mapped[int] = mapped_column(ForeignKey("anchors.id", ondelete="CASCADE"), index=True)
-    user_id: Mapped[str] = mapped_column(String(64))
-    t_ms: Mapped[int] = mapped_column(BigInteger)
-    detected_type: Mapped[str] = mapped_column(String(32))
-    x_m: Mapped[float] = mapped_column(Float)
-    y_m: Mapped[float] = mapped_column(Float)
-    cov_xx: Mapped[float] = mapped_column(Float)
-    cov_xy: Mapped[float] = mapped_column(Float)
-    cov_yy: Mapped[float] = mapped_column(Float)
 
 
 class _EstimateColumns:
@@ -267,6 +252,6 @@ class TrackerSnapshotRow(Base):
 
     building_id: Mapped[str] = mapped_column(String(64), primary_key=True)
     format_version: Mapped[int] = mapped_column(Integer)
-    applied_round: Mapped[int] = mapped_column(BigInteger)
+    tracker_call: Mapped[int] = mapped_column(BigInteger)
     state: Mapped[bytes] = mapped_column(LargeBinary)
     taken_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), server_default=func.now())

@@ -171,20 +171,15 @@ def _of_building(building_id: str | None) -> ColumnElement[bool]:
 
 def list_keys(session: Session, building_id: str | None) -> list[ApiKeyRow]:
     """A building's keys (``None``: the site-wide ones), oldest first, revoked ones included."""
-    where = (
-        ApiKeyRow.building_id == building_id if building_id is not None else ApiKeyRow.building_id.is_(None)
-    )
-    return list(session.execute(select(ApiKeyRow).where(where).order_by(ApiKeyRow.id)).scalars())
+    stmt = select(ApiKeyRow).where(_of_building(building_id)).order_by(ApiKeyRow.id)
+    return list(session.execute(stmt).scalars())
 
 
 def revoke_keys(session: Session, building_id: str | None, prefix: str) -> list[int]:
     """Revoke the live keys of a building (``None``: site-wide) with this prefix; returns their ids."""
-    where = (
-        ApiKeyRow.building_id == building_id if building_id is not None else ApiKeyRow.building_id.is_(None)
-    )
     stmt = (
         update(ApiKeyRow)
-        .where(where, ApiKeyRow.prefix == prefix, ApiKeyRow.revoked_at.is_(None))
+        .where(_of_building(building_id), ApiKeyRow.prefix == prefix, ApiKeyRow.revoked_at.is_(None))
         .values(revoked_at=func.now())
         .returning(ApiKeyRow.id)
     )
@@ -407,7 +402,7 @@ def load_tracker_snapshot(session: Session, building_id: str) -> TrackerSnapshot
 
 
 def save_tracker_snapshot(
-    session: Session, building_id: str, format_version: int, applied_round: int, state: bytes
+    session: Session, building_id: str, format_version: int, tracker_call: int, state: bytes
 ) -> None:
     """Replace the building's snapshot (one row per building)."""
     row = session.get(TrackerSnapshotRow, building_id)
@@ -416,12 +411,12 @@ def save_tracker_snapshot(
             TrackerSnapshotRow(
                 building_id=building_id,
                 format_version=format_version,
-                applied_round=applied_round,
+                tracker_call=tracker_call,
                 state=state,
             )
         )
         return
     row.format_version = format_version
-    row.applied_round = applied_round
+    row.tracker_call = tracker_call
     row.state = state
     row.taken_at = datetime.now(UTC)

@@ -35,7 +35,6 @@ from slam_core.encounters.models import (
     RangeModel,
 )
 from slam_core.encounters.scan_store import ScanStore
-from slam_core.encounters.search import CANDIDATES
 from slam_core.wifi.pairs import fresh_mask
 
 _SIGHTING = struct.Struct("<dd")
@@ -159,11 +158,6 @@ class EncounterDetector:
         self.__dict__.update(state)
         self._bt = OrderedDict(self._bt)
         self._pending = None
-
-    @property
-    def n_candidates(self) -> int:
-        """Scan pairs compared so far."""
-        return int(self._store.meta[CANDIDATES])
 
     @property
     def n_indexed_scans(self) -> int:

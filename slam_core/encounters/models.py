@@ -50,37 +50,6 @@ class WifiFingerprintParams:
     floor_dbm: float = -100.0
 
 
-@dataclass(frozen=True)
-class DistanceFit:
-    """distance = polynomial in the feature; ``variance`` is R (m^2)."""
-
-    coefficients: tuple[float, ...]  # lowest order first
-    variance: float
-    feature: str  # "log-sim" or "rss"
-    min_distance: float = 0.0
-    max_distance: float = 60.0
-    bin_edges: tuple[float, ...] = ()
-    bin_variance: tuple[float, ...] = ()
-    """Residual variance per feature bin: R depends on the feature (the paper's Fig. 4-5 show the error
-    falling with stronger RSS / smaller Sim); empty means the single ``variance``."""
-
-    def variance_at(self, value: np.ndarray) -> np.ndarray:
-        value = np.asarray(value, dtype=float)
-        if not self.bin_variance:
-            return np.full(value.shape, self.variance)
-        k = np.clip(
-            np.searchsorted(np.asarray(self.bin_edges), value, side="right") - 1,
-            0,
-            len(self.bin_variance) - 1,
-        )
-        return np.asarray(self.bin_variance)[k]
-
-    def distance(self, value: np.ndarray) -> np.ndarray:
-        x = np.log(np.maximum(value, 1e-3)) if self.feature == "log-sim" else np.asarray(value, dtype=float)
-        d = sum(c * x**k for k, c in enumerate(self.coefficients))
-        return np.clip(d, self.min_distance, self.max_distance)
-
-
 def strongest(rss: np.ndarray, n: int) -> np.ndarray:
     """Indices of the ``n`` strongest heard entries (NaN = not heard)."""
     heard = np.flatnonzero(~np.isnan(rss))
@@ -288,38 +257,6 @@ def fit_range_model(
     coef, *_ = np.linalg.lstsq(design, feature, rcond=None)
     sigma = float(np.sqrt(np.mean((feature - design @ coef) ** 2)))
     return RangeModel(kind, tuple(float(c) for c in coef), max(sigma, 0.5))
-
-
-def fit_distance(feature: np.ndarray, distance: np.ndarray, kind: str) -> DistanceFit:
-    """Least-squares fit of the paper's model: logarithmic (WiFi) or quadratic (Bluetooth)."""
-    feature = np.asarray(feature, dtype=float)
-    distance = np.asarray(distance, dtype=float)
-    if feature.size < 10:
-        raise ValueError(f"need at least 10 labelled pairs to fit the {kind} model, got {feature.size}")
-    if kind == "log-sim":
-        x = np.log(np.maximum(feature, 1e-3))
-        design = np.column_stack([np.ones_like(x), x])
-    elif kind == "rss":
-        x = feature
-        design = np.column_stack([np.ones_like(x), x, x * x])
-    else:
-        raise ValueError(f"unknown fit kind {kind!r}; valid: log-sim, rss")
-    coef, *_ = np.linalg.lstsq(design, distance, rcond=None)
-    residual = distance - design @ coef
-    n_bins = max(1, min(8, feature.size // 25))
-    edges = np.quantile(feature, np.linspace(0.0, 1.0, n_bins + 1))
-    k = np.clip(np.searchsorted(edges, feature, side="right") - 1, 0, n_bins - 1)
-    bin_var = [
-        float(np.mean(residual[k == b] ** 2)) if np.any(k == b) else float(np.mean(residual**2))
-        for b in range(n_bins)
-    ]
-    return DistanceFit(
-        tuple(float(c) for c in coef),
-        float(np.mean(residual**2)),
-        kind,
-        bin_edges=tuple(float(e) for e in edges[:-1]),
-        bin_variance=tuple(max(v, 0.25) for v in bin_var),
-    )
 
 
 ENCOUNTER_MODELS: dict[str, Callable[..., object]] = {

@@ -61,7 +61,7 @@ FINE, UNKNOWN, REPEATED = 0, 1, 2
 def slots_problem(slots: np.ndarray, active: np.ndarray, seen: np.ndarray, stamp: int, repeats: bool) -> int:
     """Whether every slot is an active one (else ``UNKNOWN``) and, unless ``repeats``, none appears twice
     (else ``REPEATED``), by marking ``seen`` (as long as ``active``) with this call's ``stamp``: one pass,
-    where ``np.unique`` sorted the slots on every engine call (seven a tracker call)."""
+    where ``np.unique`` sorted the slots on every tracker call (seven a tracker call)."""
     n = active.size
     for u in slots:
         if u < 0 or u >= n or not active[u]:

@@ -170,7 +170,7 @@ class FingerprintStage:
         """For each (slot, owner, estimate now, its covariance, the user's scans of this call in time order,
         its floor, whether the filter is sure of that floor): the latest scan the floor's map can place,
         carried to now, is a robust fix (``DynamicSlam.observe_position_robust``, all of a call's fixes in one
-        engine call), then the confident users' scans join their floor's map
+        tracker call), then the confident users' scans join their floor's map
         (``CrowdFingerprints.fixes_and_places``). Returns each user's fix, or None."""
         params = self.params
         slots, fixes = [], []

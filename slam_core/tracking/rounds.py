@@ -1,4 +1,4 @@
-"""A tracker call's rounds: the users' events in time order, cut into rounds of one engine call each (the
+"""A tracker call's rounds: the users' events in time order, cut into rounds of one tracker call each (the
 first step, detection or fix of every user, then the next, ...), and a round's steps laid on the trails."""
 
 from __future__ import annotations

@@ -42,7 +42,7 @@ class SignatureStage:
         signature_sigma^2), gated at ``signature_gate_chi2`` against the user's cloud; then the user's
         pre-update estimate joins the anchor. The detection is reported after the closest approach it
         describes, so the user is placed at that moment through its own dead reckoning since (plus 10 % of
-        the distance walked as variance). Each user appears at most once per round, so the engine call is
+        the distance walked as variance). Each user appears at most once per round, so the tracker call is
         one batch. Returns the crowd anchors the detections joined."""
         crowd = self.crowd
         names = [rnd.det_users[k] for k in signed]

@@ -11,7 +11,7 @@ by the server) and advances everything they imply, in this order:
    estimate and updates the filter (Eq. 15-17, Algorithm 3); a detection of an identified transmitter
    (a signature anchor) joins its crowd anchor by identity and, once other users have placed that anchor,
    is a gated position measurement of the user; a later fix reweights it. Users are advanced
-   together, one engine call per round of events, so a micro-batch of many phones costs one kernel call;
+   together, one tracker call per round of events, so a micro-batch of many phones costs one kernel call;
 2. the crowd map is re-solved jointly (every ``graph_solve_period_ms`` of phone time) and new anchors are
    offered to every user; with fingerprint fixes on, each user's latest scan the crowd's WiFi fingerprint
    map can place is a robust position fix, and confident users' scans join that map;
@@ -754,7 +754,7 @@ class BuildingTracker:
 
     def _observe_stretches(self, rnd: Round) -> None:
         """The straight stretches this round's steps completed, each weighed against the floor plan's grid
-        (``DynamicSlam.observe_heading_axis``): a user's k-th stretch of the round in the k-th engine call,
+        (``DynamicSlam.observe_heading_axis``): a user's k-th stretch of the round in the k-th tracker call,
         since a call takes each user once."""
         table = self._stretches
         done = [

@@ -9,17 +9,6 @@ from numba import njit
 LOG_2PI = math.log(2.0 * math.pi)
 
 
-@njit(cache=True, nogil=True, inline="always")
-def det2(a: float, b: float, c: float) -> float:
-    return a * c - b * b
-
-
-@njit(cache=True, nogil=True, inline="always")
-def inv2(a: float, b: float, c: float) -> tuple[float, float, float]:
-    d = a * c - b * b
-    return c / d, -b / d, a / d
-
-
 @njit(cache=True, nogil=True)
 def largest_eigenvalue2(a: float, b: float, c: float) -> float:
     """The larger eigenvalue of [[a, b], [b, c]]: a covariance's larger variance."""

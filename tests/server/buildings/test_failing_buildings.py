@@ -141,7 +141,7 @@ def test_a_logged_batch_that_cannot_be_replayed_is_counted_and_the_building_come
     with monkeypatch.context() as m:
         m.setattr(tracker_module.BuildingTracker, "apply", apply)
         restarted = _building(engine)
-    failed = restarted.counters.replay_failures  # the batches of the engine call that held it
+    failed = restarted.counters.replay_failures  # the batches of the tracker call that held it
     assert 1 <= failed <= len(groups[3])
     assert restarted.counters.replayed == sum(len(g) for g in groups) - failed
     assert restarted.counters.last_failure_unix_s > 0

@@ -1,4 +1,4 @@
-"""The device ledger: late batches, one engine call per user's batch in a group, which device rows SQL must
+"""The device ledger: late batches, one tracker call per user's batch in a group, which device rows SQL must
 learn when, and sequence numbers carried across a restart by the batch log."""
 
 from __future__ import annotations

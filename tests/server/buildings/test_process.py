@@ -153,7 +153,7 @@ def test_the_kernels_are_compiled_once_in_a_child_before_the_server_takes_reques
         assert client.app.state.crowdslam.tracking.handles == {}  # type: ignore[attr-defined]
 
 
-def _exit_three(settings: Settings, steps: object) -> None:
+def _exit_three(settings: Settings, steps: object, parent_pid: int | None = None) -> None:
     raise SystemExit(3)
 
 

@@ -87,14 +87,14 @@ def _logged(engine: Engine) -> int:
         return int(s.execute(select(func.count()).select_from(BatchLogRow)).scalar_one())
 
 
-def _logged_after(engine: Engine, applied_round: int) -> int:
+def _logged_after(engine: Engine, tracker_call: int) -> int:
     with make_session_factory(engine)() as s:
-        return int(s.execute(select(func.count()).where(BatchRow.applied_round > applied_round)).scalar_one())
+        return int(s.execute(select(func.count()).where(BatchRow.tracker_call > tracker_call)).scalar_one())
 
 
-def _snapshot_round(engine: Engine) -> int:
+def _snapshot_call(engine: Engine) -> int:
     with make_session_factory(engine)() as s:
-        return int(s.execute(select(TrackerSnapshotRow.applied_round)).scalar_one())
+        return int(s.execute(select(TrackerSnapshotRow.tracker_call)).scalar_one())
 
 
 @pytest.mark.parametrize("snapshot_period_s", [math.inf, 0.0])
@@ -117,7 +117,7 @@ def test_an_abandoned_building_is_rebuilt_exactly_and_tracking_resumes(
     for group in groups[:cut]:
         crashed.process(group)
     assert _estimates(crashed) == at_crash
-    applied_since_snapshot = _logged_after(engine, _snapshot_round(engine))
+    applied_since_snapshot = _logged_after(engine, _snapshot_call(engine))
     if snapshot_period_s == 0.0:
         # a snapshot taken at every chance: compressed in the background and written by a later group; the
         # batches applied after the one written last are logged (and maybe some it covers, cleared a chunk
@@ -156,14 +156,14 @@ def test_a_snapshot_compressed_in_the_background_covers_its_own_engine_calls_onl
         reference.process(group)
     engine = _fresh_building(sqlite_url)
     session = _building(engine, snapshot_period_s=0.0)
-    loaded_round = _snapshot_round(engine)
+    loaded_call = _snapshot_call(engine)
     session.process(g0)  # takes a snapshot: compressed in the background, nothing written yet
-    assert _snapshot_round(engine) == loaded_round
+    assert _snapshot_call(engine) == loaded_call
     assert _logged(engine) == len(g0)
-    taken_at = session._round
+    taken_at = session._tracker_call
     session.recovery.wait()
     session.process(g1)  # writes it: g0 is covered, g1 is not
-    assert _snapshot_round(engine) == taken_at
+    assert _snapshot_call(engine) == taken_at
     assert _logged(engine) == len(g1) == _logged_after(engine, taken_at)
     session.process(g2)  # takes the next one
     session.process(g3)  # which may or may not be written yet: either way a restart is exact
@@ -176,9 +176,10 @@ def test_a_snapshot_compressed_in_the_background_covers_its_own_engine_calls_onl
     assert _estimates(restarted) == _estimates(reference)
 
 
-def test_a_log_cleared_slower_than_it_grows_replays_from_the_snapshots_round_only(sqlite_url: str) -> None:
-    """Covered bodies are cleared a chunk per group; when that is slower than the log grows, some stay.
-    A crash then replays only the batches applied after the snapshot's round, and the restart is exact."""
+def test_a_log_cleared_slower_than_it_grows_replays_after_the_snapshots_call_only(sqlite_url: str) -> None:
+    """Covered bodies are cleared a chunk per group; when that is slower than the log grows, some stay. A
+    crash then replays only the batches applied after the snapshot's tracker call, and the restart is
+    exact."""
     groups = _groups(CROWD)[:10]
     reference = _building(_fresh_building(sqlite_url.replace(".sqlite3", "-ref.sqlite3")))
     for group in groups:
@@ -189,7 +190,7 @@ def test_a_log_cleared_slower_than_it_grows_replays_from_the_snapshots_round_onl
     for group in groups:
         session.process(group)
         session.recovery.wait()
-    after_snapshot = _logged_after(engine, _snapshot_round(engine))
+    after_snapshot = _logged_after(engine, _snapshot_call(engine))
     assert session.counters.log_bodies_cleared > 0
     assert _logged(engine) > after_snapshot  # covered bodies not cleared yet
     del session  # as after kill -9
@@ -248,7 +249,7 @@ def test_a_snapshot_taken_with_other_parameters_is_refused_and_the_sql_map_is_ke
     assert other.tracker.users == []  # users start again from their next fix
     assert _logged(engine) == 0  # the load snapshot covers the log it did not replay
     other.process(_groups(CROWD)[20])
-    assert _logged_after(engine, _snapshot_round(engine)) == len(_groups(CROWD)[20])
+    assert _logged_after(engine, _snapshot_call(engine)) == len(_groups(CROWD)[20])
     restored = {a.id: a for a in other.anchors()}
     assert restored.keys() == anchors.keys()
     for public_id, anchor in anchors.items():
@@ -517,7 +518,7 @@ def test_the_position_history_after_a_crash_is_the_one_without(sqlite_url: str) 
 
 def test_an_operators_retried_edit_changes_nothing(sqlite_url: str) -> None:
     """A PUT of an anchor or a floor plan sent again (its answer lost in a crash, say) finds it as asked and
-    changes nothing: no engine call, no snapshot, no live message; a PUT that moves it does."""
+    changes nothing: no tracker call, no snapshot, no live message; a PUT that moves it does."""
     from schemas.anchors import AnchorType
     from schemas.floor_plans import FLOOR_PLAN_EXAMPLE, FloorPlan
     from server.store.models import FloorRow

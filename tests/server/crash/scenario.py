@@ -13,7 +13,7 @@ Built from the simulated world of three storeys (``server/data/three-floors.json
   signal map that the building loads, forget phone 4's user and revoke its key.
 
 Every request is posted one after another (a phone's next batch once the last is answered), so every batch
-is an engine call of its own, and the run has one outcome: a crash anywhere must not change it.
+is an tracker call of its own, and the run has one outcome: a crash anywhere must not change it.
 """
 
 from __future__ import annotations

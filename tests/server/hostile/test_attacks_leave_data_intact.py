@@ -113,7 +113,7 @@ def _attacks(api: Api, keys: dict[str, str], monkeypatch: pytest.MonkeyPatch) ->
         return api.client.put("/v1/buildings/hq/anchors/far", json=body, headers=headers).status_code
 
     def engine_failure(seq: int) -> int:
-        """A batch that passes every check but whose engine call fails after changing the tracker."""
+        """A batch that passes every check but whose tracker call fails after changing the tracker."""
         real = tracker_module.BuildingTracker.apply
 
         def apply(self: tracker_module.BuildingTracker, batches: list[tracker_module.UserBatch]) -> object:

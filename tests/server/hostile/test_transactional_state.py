@@ -1,4 +1,4 @@
-"""A batch changes the building only if its transaction commits. A batch whose engine call fails after it
+"""A batch changes the building only if its transaction commits. A batch whose tracker call fails after it
 changed the tracker (a filter gone non-finite, a refused input, a database error) leaves no trace: the
 building loads again from SQL, the other users of its group are applied, the failing batch alone is refused,
 and neither the filters, the batch log nor the recording keep anything of it."""
@@ -32,7 +32,7 @@ POISON = 3  # the group in which one user's batch fails
 
 
 def _poisoned(monkeypatch: pytest.MonkeyPatch, sub: Submission, exc: Exception) -> None:
-    """The engine call holding this batch fails after it has changed the tracker."""
+    """The tracker call holding this batch fails after it has changed the tracker."""
     real = tracker_module.BuildingTracker.apply
     assert sub.batch is not None
     assert sub.batch.steps
@@ -120,7 +120,7 @@ def test_a_restart_after_a_failed_group_restores_the_committed_state(
 def test_through_the_api_the_failing_batch_is_refused_and_health_says_degraded(
     api: Api, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """Over HTTP: the batch whose engine call fails answers 500 (the server's error, not the client's) and
+    """Over HTTP: the batch whose tracker call fails answers 500 (the server's error, not the client's) and
     changes nothing, its user's next batch is applied, other phones are served throughout, and /healthz
     names the building as degraded."""
     api.create_building()

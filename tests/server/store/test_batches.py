@@ -99,13 +99,13 @@ def test_rolled_back_batch_can_be_sent_again(migrated_engine: Engine) -> None:
     with pytest.raises(RuntimeError, match="filter update failed"):
         apply_and_fail()
     with sessions.begin() as session:
-        retried = replace(_batch(), body=b"{}", applied_round=7)
+        retried = replace(_batch(), body=b"{}", tracker_call=7)
         assert insert_batch_once(session, retried) is not None
     with sessions() as session:
         row = find_batch(session, "hq", "phone-1", "b-1")
         assert row is not None
         assert row.applied
-        assert [(b.applied_round, b.body) for b in logged_batches(session, "hq")] == [(7, b"{}")]
+        assert [(b.tracker_call, b.body) for b in logged_batches(session, "hq")] == [(7, b"{}")]
 
 
 def test_a_late_batch_is_stored_but_not_logged_for_replay(migrated_engine: Engine) -> None:
@@ -117,16 +117,16 @@ def test_a_late_batch_is_stored_but_not_logged_for_replay(migrated_engine: Engin
         row = find_batch(session, "hq", "phone-1", "b-1")
         assert row is not None
         assert not row.applied
-        assert row.applied_round is None
+        assert row.tracker_call is None
         assert logged_batches(session, "hq") == []
 
 
-def test_the_log_is_cleared_a_chunk_at_a_time_up_to_the_snapshots_round_only(migrated_engine: Engine) -> None:
-    """Bodies the snapshot in SQL covers go, at most ``limit`` per call; those after its round stay (they
-    are what a restart replays), and without a snapshot no applied body goes."""
+def test_the_log_is_cleared_a_chunk_at_a_time_up_to_the_snapshots_call_only(migrated_engine: Engine) -> None:
+    """Bodies the snapshot in SQL covers go, at most ``limit`` per call; those after its tracker call stay
+    (they are what a restart replays), and without a snapshot no applied body goes."""
     _with_building(migrated_engine)
     sessions = make_session_factory(migrated_engine)
-    batches = [replace(_batch(f"b-{r}", seq=r), body=b"{}", applied_round=r) for r in range(1, 6)]
+    batches = [replace(_batch(f"b-{r}", seq=r), body=b"{}", tracker_call=r) for r in range(1, 6)]
     with sessions.begin() as session:
         insert_batches_once(session, batches)
         assert clear_covered_bodies(session, "hq") == 0  # no snapshot: nothing is covered
@@ -136,8 +136,8 @@ def test_the_log_is_cleared_a_chunk_at_a_time_up_to_the_snapshots_round_only(mig
         assert clear_covered_bodies(session, "hq", limit=2) == 1
         assert clear_covered_bodies(session, "hq", limit=2) == 0
     with sessions() as session:
-        assert [b.applied_round for b in logged_batches(session, "hq")] == [4, 5]
-        assert [b.applied_round for b in logged_batches(session, "hq", after_round=4)] == [5]
+        assert [b.tracker_call for b in logged_batches(session, "hq")] == [4, 5]
+        assert [b.tracker_call for b in logged_batches(session, "hq", after_call=4)] == [5]
     with sessions.begin() as session:
         save_tracker_snapshot(session, "hq", 1, 5, b"state")
         assert clear_covered_bodies(session, "hq") == 2
@@ -159,12 +159,12 @@ def test_the_log_holds_bodies_compressed_and_reads_back_uncompressed_ones_as_the
         + b"]}"
     )
     with sessions.begin() as session:
-        first = insert_batch_once(session, replace(_batch("b-1"), body=body, applied_round=1))
-        old = insert_batch_once(session, replace(_batch("b-2", seq=2), applied_round=2))
+        first = insert_batch_once(session, replace(_batch("b-1"), body=body, tracker_call=1))
+        old = insert_batch_once(session, replace(_batch("b-2", seq=2), tracker_call=2))
         assert first is not None
         assert old is not None
         session.execute(
-            insert(BatchLogRow).values(batch_row_id=old, building_id="hq", applied_round=2, body=b"{}")
+            insert(BatchLogRow).values(batch_row_id=old, building_id="hq", tracker_call=2, body=b"{}")
         )
     with sessions() as session:
         stored = session.execute(
@@ -172,7 +172,7 @@ def test_the_log_holds_bodies_compressed_and_reads_back_uncompressed_ones_as_the
         ).scalar_one()
         assert bytes(stored).startswith(b"\x28\xb5\x2f\xfd")
         assert len(stored) < len(body) / 3
-        assert [(b.applied_round, b.body) for b in logged_batches(session, "hq")] == [(1, body), (2, b"{}")]
+        assert [(b.tracker_call, b.body) for b in logged_batches(session, "hq")] == [(1, body), (2, b"{}")]
 
 
 def test_batch_for_unknown_building_violates_the_foreign_key(migrated_engine: Engine) -> None:

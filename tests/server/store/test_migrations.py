@@ -47,18 +47,18 @@ def test_migration_0010_moves_the_logged_bodies_out_of_the_batch_ids(migrated_en
     downgrade(migrated_engine, "0009")
     with migrated_engine.begin() as connection:
         connection.execute(text("INSERT INTO buildings (id, name, rotation_rad) VALUES ('hq', 'HQ', 0.0)"))
-        for k, (body, applied_round) in enumerate([(b"applied", 3), (b"late", None), (None, 2)]):
+        for k, (body, call) in enumerate([(b"applied", 3), (b"late", None), (None, 2)]):
             connection.execute(
-                text(
+                text(  # at revision 0009 the tracker call was named applied_round
                     "INSERT INTO batches (building_id, device_id, batch_id, seq, n_bytes, applied, "
                     "applied_round, body) VALUES ('hq', 'p', :b, :k, 1, :a, :r, :body)"
                 ),
-                {"b": f"b{k}", "k": k, "a": applied_round is not None, "r": applied_round, "body": body},
+                {"b": f"b{k}", "k": k, "a": call is not None, "r": call, "body": body},
             )
     upgrade(migrated_engine)
     with migrated_engine.connect() as connection:
         ids = connection.execute(text("SELECT batch_id FROM batches ORDER BY batch_id")).scalars().all()
-        log = connection.execute(text("SELECT applied_round, body FROM batch_log")).all()
+        log = connection.execute(text("SELECT tracker_call, body FROM batch_log")).all()
     assert ids == ["b0", "b1", "b2"]
     assert [(r, bytes(b)) for r, b in log] == [(3, b"applied")]
     downgrade(migrated_engine, "0009")  # and back: the body returns to its row

@@ -67,7 +67,7 @@ def test_old_history_and_batch_ids_are_pruned_in_chunks_but_never_the_log(migrat
                 None,
                 10,
                 body=b"{}" if k == 4 else None,
-                applied_round=k if k == 4 else None,
+                tracker_call=k if k == 4 else None,
             )
             for k in range(5)
         ]

@@ -26,11 +26,11 @@ def _churn(engine: Engine, first: int, n: int) -> None:
         conn.execute(
             insert(BatchRow),
             [{"id": first + k, "building_id": "hq", "device_id": "p", "batch_id": f"b{first + k}", "seq": k,
-              "n_bytes": 10, "applied": True, "applied_round": k} for k in range(n)],
+              "n_bytes": 10, "applied": True, "tracker_call": k} for k in range(n)],
         )  # fmt: skip
         conn.execute(
             insert(BatchLogRow),
-            [{"batch_row_id": first + k, "building_id": "hq", "applied_round": k, "body": BODY}
+            [{"batch_row_id": first + k, "building_id": "hq", "tracker_call": k, "body": BODY}
              for k in range(n)],
         )  # fmt: skip
     with engine.begin() as conn:
