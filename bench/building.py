@@ -156,7 +156,7 @@ def run(
                 tune_gc_for_serving()  # as the server does once its kernels are warm
         if profiler is not None and profile is not None:
             profiler.dump_stats(profile)
-        pickle_s = min(_timed(lambda: tracker_snapshot.pickled(building.building_state())) for _ in range(3))
+        pickle_s = min(_timed(lambda: tracker_snapshot.pickled(building.building.state())) for _ in range(3))
         gc_s = min(_timed(gc.collect) for _ in range(3))
         building.close()
         assert building.recorder is not None

@@ -23,6 +23,7 @@ from server.api.contract import allowed_methods, install_openapi, operation_id
 from server.api.deps import revalidate_keys
 from server.api.limits import BodyLimit
 from server.auth import KeyCache
+from server.buildings.calls import LoadRadioMap
 from server.buildings.host import tracking_config
 from server.buildings.registry import Buildings, TrackingService
 from server.dashboard.pages import install_pages
@@ -201,7 +202,7 @@ async def _buildings(
             f"CROWDSLAM_ROLE={settings.role} runs without HTTP: start it with `crowdslam serve --role worker`"
         )
     if settings.resolved_building_processes:
-        await asyncio.to_thread(compile_kernels_in_child, settings, warming)
+        await compile_kernels_in_child(settings, warming)
     else:
         warm_kernels(tracker_params(settings), load_calibration(settings.encounter_calibration), warming)
     tracking = TrackingService(
@@ -223,7 +224,7 @@ async def _load_radio_map(tracking: Buildings, signal_maps: SignalMapService, bu
     record then says how many of its scans joined."""
     try:
         building = await tracking.handle(building_id)
-        loaded: tuple[str, int] | None = await building.call("load_radio_map")
+        loaded = await building.ask(LoadRadioMap())
         if loaded is not None:
             await asyncio.to_thread(signal_maps.loaded, building_id, *loaded)
     except Exception:

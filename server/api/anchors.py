@@ -11,6 +11,7 @@ from schemas.common import MAX_TIME_MS, MIN_TIME_MS, Identifier
 from server.api.contract import PROBLEMS, problems
 from server.api.deps import Caller, DbSession, State
 from server.api.links import BUILDING, SAME_BUILDING, link, links
+from server.buildings.calls import DeleteAnchor, GetAnchor, ListAnchors, MergeAnchors, PinAnchor
 from server.buildings.handles import BuildingHandle
 from server.errors import ConflictError
 from server.store import repositories as repo
@@ -27,7 +28,7 @@ async def list_anchors(building_id: str, caller: Caller, state: State) -> list[B
     """The building's shared anchor map: learned by the crowd, or pinned by operators."""
     caller.require_reader(building_id)
     building = await _handle(state, building_id)
-    anchors: list[BuildingAnchor] = await building.call("anchors")
+    anchors = await building.ask(ListAnchors())
     return anchors
 
 
@@ -38,7 +39,7 @@ _NO_ANCHOR = (404, "No such building, or no live anchor of this id in it.")
 async def get_anchor(building_id: str, anchor_id: Identifier, caller: Caller, state: State) -> BuildingAnchor:
     caller.require_reader(building_id)
     building = await _handle(state, building_id)
-    anchor: BuildingAnchor = await building.call("get_anchor", anchor_id)
+    anchor = await building.ask(GetAnchor(anchor_id))
     return anchor
 
 
@@ -74,7 +75,7 @@ async def put_known_anchor(
     caller.require_operator(building_id)
     building = await _handle(state, building_id)
     anchor: BuildingAnchor
-    anchor, messages = await building.call("put_known_anchor", anchor_id, body)
+    anchor, messages = await building.ask(PinAnchor(anchor_id, body))
     building.publish(messages)
     return anchor
 
@@ -88,7 +89,7 @@ async def put_known_anchor(
 async def delete_anchor(building_id: str, anchor_id: Identifier, caller: Caller, state: State) -> Response:
     caller.require_operator(building_id)
     building = await _handle(state, building_id)
-    messages = await building.call("delete_anchor", anchor_id)
+    messages = await building.ask(DeleteAnchor(anchor_id))
     building.publish(messages)
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 
@@ -110,7 +111,7 @@ async def merge_anchors(
     caller.require_operator(building_id)
     building = await _handle(state, building_id)
     anchor: BuildingAnchor
-    anchor, messages = await building.call("merge_anchors", list(body.anchor_ids))
+    anchor, messages = await building.ask(MergeAnchors(tuple(body.anchor_ids)))
     building.publish(messages)
     return anchor
 
@@ -134,7 +135,7 @@ async def export_geojson(
     geo = building.geo
     if geo is None:
         raise ConflictError(f"building {building_id!r} has no geo-reference; set one to export GeoJSON")
-    anchors: list[BuildingAnchor] = await building.call("anchors")
+    anchors = await building.ask(ListAnchors())
     features: list[dict[str, Any]] = []
     for a in anchors:
         lat, lon = geo.to_wgs84(a.position.x_m, a.position.y_m)

@@ -15,6 +15,7 @@ from server.api.contract import problems
 from server.api.deps import Caller, DbSession, State
 from server.api.links import BUILDING, SAME_BUILDING, link, links
 from server.auth import mint_key
+from server.buildings.calls import AssignDevice, PutFloorPlan
 from server.errors import ConflictError, InvalidInputError, NotFoundError
 from server.store import repositories as repo
 from server.store.models import ApiKeyRow, BuildingRow, FloorRow
@@ -216,7 +217,7 @@ async def assign_device(
     device may no longer post as the user it posted as before (a phone handed to someone else)."""
     caller.require_operator(building_id)
     building = await state.tracking.handle(building_id)
-    await building.call("assign_device", device_id, body.user_id)
+    await building.ask(AssignDevice(device_id, body.user_id))
     return DeviceAssignment(device_id=device_id, user_id=body.user_id)
 
 
@@ -238,7 +239,7 @@ async def put_floor_plan(
     plan as stored, in the local frame."""
     caller.require_operator(building_id)
     building = await state.tracking.handle(building_id)
-    plan: FloorPlan = await building.call("put_floor_plan", level, body)
+    plan = await building.ask(PutFloorPlan(level, body))
     return plan
 
 

@@ -9,6 +9,7 @@ from schemas.signal_maps import SignalMapJob
 from server.api.contract import problems
 from server.api.deps import Caller, State
 from server.api.links import BUILDING, SAME_BUILDING, link, links
+from server.buildings.calls import ConversionContext, FlushRecording
 
 router = APIRouter(prefix="/v1/buildings/{building_id}/signal-maps", tags=["signal maps"])
 
@@ -44,8 +45,8 @@ async def start_signal_map_build(building_id: str, caller: Caller, state: State)
     database, the optimised trajectories)."""
     caller.require_operator(building_id)
     building = await state.tracking.handle(building_id)
-    await building.call("flush_recording")  # the build reads every batch recorded until now
-    ctx = await building.call("context")
+    await building.ask(FlushRecording())  # the build reads every batch recorded until now
+    ctx = await building.ask(ConversionContext())
     return state.signal_maps.start(ctx)
 
 

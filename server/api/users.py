@@ -8,6 +8,7 @@ from fastapi import APIRouter, Response, status
 from schemas.common import Identifier
 from server.api.contract import problems
 from server.api.deps import Caller, State
+from server.buildings.calls import ForgetUser
 
 router = APIRouter(prefix="/v1/buildings/{building_id}", tags=["users"])
 
@@ -27,6 +28,6 @@ async def forget_user(building_id: str, user_id: Identifier, caller: Caller, sta
     filter: revoke the device's key to stop it posting."""
     caller.require_operator(building_id)
     building = await state.tracking.handle(building_id)
-    messages = await building.call("forget_user", user_id)
+    messages = await building.ask(ForgetUser(user_id))
     building.publish(messages)
     return Response(status_code=status.HTTP_204_NO_CONTENT)

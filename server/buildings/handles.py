@@ -1,4 +1,4 @@
-"""A building's worker: what the API submits batches and anchor edits to, one building at a time.
+"""A building's handle: what the API submits batches and calls to, one building at a time.
 
 ``BuildingThread`` runs the building on a thread of this process: requests enqueue and await their receipt;
 the building's task drains the queue into a group, runs it in the building's thread (numba kernels release
@@ -15,11 +15,12 @@ import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Protocol, TypeVar
 
 import numba
 
 from schemas.live import LiveMessage
+from server.buildings.calls import Call
 from server.buildings.counters import Counters
 from server.buildings.host import IDLE_S, BuildingHost
 from server.buildings.submissions import Submission
@@ -30,28 +31,7 @@ from slam_core.geo import GeoFrame
 MAX_GROUP = 256
 
 
-CALLS = frozenset(
-    {
-        "assign_device",
-        "forget_user",
-        "anchors",
-        "get_anchor",
-        "put_known_anchor",
-        "delete_anchor",
-        "merge_anchors",
-        "put_floor_plan",
-        "load_radio_map",
-        "context",
-        "flush_recording",
-    }
-)
-"""The building's methods the API may call (``BuildingThread.call``), in order with its batches."""
-
-
-def check_call(name: str) -> None:
-    """Refuse a call of anything but one of the building's ``CALLS``, wherever a call is taken or sent."""
-    if name not in CALLS:
-        raise ValueError(f"unknown building call {name!r}; valid: {', '.join(sorted(CALLS))}")
+T = TypeVar("T")
 
 
 class BuildingHandle(Protocol):
@@ -69,7 +49,10 @@ class BuildingHandle(Protocol):
     @property
     def queue_depth(self) -> int: ...
     async def submit(self, submission: Submission) -> bytes: ...
-    async def call(self, name: str, *args: Any) -> Any: ...
+    async def ask(self, call: Call[T]) -> T:
+        """Run ``call`` on the building, in order with its batches."""
+        ...
+
     def publish(self, messages: list[LiveMessage]) -> None: ...
     async def close(self) -> None: ...
     async def abandon(self) -> None: ...
@@ -171,12 +154,9 @@ class BuildingThread:
         self._queue.put_nowait(_Pending(submission, future))
         return future
 
-    async def call(self, name: str, *args: Any) -> Any:
-        """Run one of the building's ``CALLS`` on the building's thread (anchor edits stay ordered with
-        batches)."""
-        check_call(name)
-        method = getattr(self.building, name)
-        return await asyncio.get_running_loop().run_in_executor(self._executor, lambda: method(*args))
+    async def ask(self, call: Call[T]) -> T:
+        """Run ``call`` on the building's thread (anchor edits stay ordered with batches)."""
+        return await asyncio.get_running_loop().run_in_executor(self._executor, call.run, self.building)
 
     def publish(self, messages: list[LiveMessage]) -> None:
         self._broadcaster.publish(self.building.building_id, messages)

@@ -1,12 +1,12 @@
 """A building in a process of its own (``CROWDSLAM_BUILDING_PROCESSES``): its batch path runs under its own
 GIL, beside the HTTP front's event loop, so a busy building and the front use two cores, and buildings one
-each. The building process holds the same ``BuildingHost`` as the in-process worker
+each. The building process holds the same ``BuildingHost`` as a building on a thread of the front
 (``server.buildings.handles.BuildingThread``); this module is both ends of the socket between them.
 
 Each frame is an 8-byte length and a pickle:
 - front -> building: ``("batch", id, raw body, received_ns, BatchHeader, packed UserBatch or None, landmarks'
-  JSON or None)`` (the header and the packed batch as plain tuples),
-  ``("call", id, name, args)``, ``("close", id)``. The front converts every batch as far as it can without
+  JSON or None)`` (the header and the packed batch as plain tuples), ``("call", id, Call)``
+  (``server.buildings.calls``), ``("close", id)``. The front converts every batch as far as it can without
   the building and sends it packed (``server.ingestion.transport``): a batch's landmarks (a phone's first
   fix) go apart as their JSON, which the building places in its frame (a building decodes the raw body
   only of a front that sends no packed batch);
@@ -33,13 +33,14 @@ import select
 import socket
 import struct
 import time
-from typing import Any
+from typing import Any, TypeVar
 
 import numba
 
 from schemas.live import LiveMessage
+from server.buildings.calls import Call
 from server.buildings.counters import Counters
-from server.buildings.handles import MAX_GROUP, GroupPacing, LatencyWindow, check_call
+from server.buildings.handles import MAX_GROUP, GroupPacing, LatencyWindow
 from server.buildings.host import IDLE_S, BuildingHost, open_building
 from server.buildings.submissions import BatchFields, Submission, batch_fields, received_batch, transportable
 from server.engine.warmup import warm_kernels_for
@@ -51,6 +52,7 @@ from server.settings import Settings
 from slam_core.geo import GeoFrame
 
 _HEADER = struct.Struct("!Q")
+T = TypeVar("T")
 
 
 class BuildingLoadError(RuntimeError):
@@ -217,7 +219,7 @@ class _BuildingLoop:
                         self.building.recorder.close()
                     _send(self.sock, ("result", f[1], True, None))
                     return
-                self._call(f[1], f[2], f[3])
+                self._call(f[1], f[2])
             self._flush()
 
     def _flush(self) -> None:
@@ -250,10 +252,11 @@ class _BuildingLoop:
         seconds = time.perf_counter() - started
         _send(self.sock, ("group", list(answers.items()), messages, self.building.counters, seconds))
 
-    def _call(self, request: int, name: str, args: tuple[Any, ...]) -> None:
+    def _call(self, request: int, call: Call[Any]) -> None:
         try:
-            check_call(name)
-            value = getattr(self.building, name)(*args)
+            if not isinstance(call, Call):
+                raise TypeError(f"not a building call: {type(call).__name__}")
+            value = call.run(self.building)
         except Exception as exc:
             _send(self.sock, ("result", request, False, transportable(exc)))
             return
@@ -336,9 +339,9 @@ class BuildingProcess:
         answer: bytes = await self._ask(("batch", *batch_fields(submission)))
         return answer
 
-    async def call(self, name: str, *args: Any) -> Any:
-        check_call(name)
-        return await self._ask(("call", name, args))
+    async def ask(self, call: Call[T]) -> T:
+        answer: T = await self._ask(("call", call))
+        return answer
 
     def publish(self, messages: list[LiveMessage]) -> None:
         self._broadcaster.publish(self.building_id, messages)

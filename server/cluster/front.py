@@ -13,7 +13,7 @@ import itertools
 import logging
 import time
 import uuid
-from typing import Any
+from typing import Any, TypeVar
 
 from nats.aio.client import Client
 from nats.aio.msg import Msg
@@ -24,8 +24,9 @@ from nats.errors import TimeoutError as NatsTimeoutError
 from sqlalchemy.orm import Session, sessionmaker
 
 from schemas.live import LiveMessage
+from server.buildings.calls import Call
 from server.buildings.counters import Counters
-from server.buildings.handles import BuildingHandle, LatencyWindow, check_call
+from server.buildings.handles import BuildingHandle, LatencyWindow
 from server.buildings.recovery import building_geo
 from server.buildings.registry import LoadFailure
 from server.buildings.submissions import Submission, batch_fields
@@ -44,6 +45,8 @@ from server.store import repositories as repo
 from slam_core.geo import GeoFrame
 
 logger = logging.getLogger(__name__)
+
+T = TypeVar("T")
 
 RETRY_AFTER_S = 2.0
 """What a 503 tells the phone to wait: about the time a worker takes to open a building it took over."""
@@ -216,15 +219,14 @@ class RemoteBuilding:
         self.latency.add(time.perf_counter() - started)
         return receipt
 
-    async def call(self, name: str, *args: Any) -> Any:
-        check_call(name)
+    async def ask(self, call: Call[T]) -> T:
         deadline = time.monotonic() + self.front.timeout_s
         try:
             while True:
                 try:
                     msg = await self.front.connection.request(
                         calls_subject(self.building_id),
-                        messages.encode_call(name, args),
+                        messages.encode_call(call),
                         timeout=max(0.1, deadline - time.monotonic()),
                     )
                     break
@@ -242,7 +244,8 @@ class RemoteBuilding:
                 "send the request again",
                 RETRY_AFTER_S,
             ) from None
-        return messages.decode_answer(msg.data)
+        answer: T = messages.decode_answer(msg.data)
+        return answer
 
     def publish(self, messages_: list[LiveMessage]) -> None:
         """Messages an operator's call returned, to every front's dashboards."""

@@ -8,6 +8,7 @@ from __future__ import annotations
 import pickle
 from typing import Any
 
+from server.buildings.calls import Call
 from server.buildings.submissions import BatchFields, transportable
 
 
@@ -39,13 +40,16 @@ def decode_answer(data: bytes) -> Any:
     return value
 
 
-def encode_call(name: str, args: tuple[Any, ...]) -> bytes:
-    return pickle.dumps((name, args), protocol=pickle.HIGHEST_PROTOCOL)
+def encode_call(call: Call[Any]) -> bytes:
+    return pickle.dumps(call, protocol=pickle.HIGHEST_PROTOCOL)
 
 
-def decode_call(data: bytes) -> tuple[str, tuple[Any, ...]]:
-    name, args = pickle.loads(data)
-    return str(name), tuple(args)
+def decode_call(data: bytes) -> Call[Any]:
+    """A building call (``server.buildings.calls``); ``TypeError`` for anything else."""
+    call = pickle.loads(data)
+    if not isinstance(call, Call):
+        raise TypeError(f"not a building call: {type(call).__name__}")
+    return call
 
 
 def encode_live(texts: list[str]) -> bytes:

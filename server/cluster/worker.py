@@ -367,8 +367,7 @@ class ClusterWorker:
             return  # not this worker's any more: the front times out and the operator retries
         value: object
         try:
-            name, args = messages.decode_call(msg.data)
-            value = await owned.worker.call(name, *args)
+            value = await owned.worker.ask(messages.decode_call(msg.data))
         except Exception as exc:
             value = exc
         await msg.respond(messages.encode_answer(value))

@@ -12,6 +12,7 @@ warm-up and fails if any kernel still compiles.
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import multiprocessing
 import os
@@ -168,29 +169,39 @@ def warm_kernels_for(
     )
 
 
-def compile_kernels_in_child(settings: Settings, progress: Progress | None = None) -> None:
+async def compile_kernels_in_child(settings: Settings, progress: Progress | None = None) -> None:
     """For buildings in processes of their own: compile every kernel once into numba's on-disk cache, in a
     short-lived child, before the server takes requests. Each building's process warms its kernels when
     it starts, at its building's first request: from the cache that takes a second or two, where a cold
     compile would hold the building's first batches and be repeated by every building starting with it. A
-    child rather than the front itself, so that the front does not keep compiled code it never runs."""
+    child rather than the front itself, so that the front does not keep compiled code it never runs. Its
+    progress is awaited on the event loop, not in a thread: a server stopped meanwhile (Ctrl-C) exits at
+    once, and the child with it, where a thread waiting for it had held the exit until the compile ended."""
     started = time.perf_counter()
     context = multiprocessing.get_context("spawn")
     steps: Queue[int] = context.Queue()
-    process = context.Process(
-        target=warm_kernels_for, args=(settings, steps, os.getpid()), name="crowdslam-compile-kernels"
+    process = context.Process(  # daemonic: a server exiting ends it rather than waiting for it
+        target=warm_kernels_for,
+        args=(settings, steps, os.getpid()),
+        name="crowdslam-compile-kernels",
+        daemon=True,
     )
     with interrupts_held():  # a terminal's Ctrl-C is the server's to handle, not the compile's
         process.start()
-    while process.is_alive() or not steps.empty():
-        try:
-            done = steps.get(timeout=0.2)
-        except queue.Empty:
-            continue
-        if progress is not None:
-            progress(done, WARM_STEPS)
-    process.join()
-    steps.close()
+    try:
+        while process.is_alive() or not steps.empty():
+            try:
+                done = steps.get_nowait()
+            except queue.Empty:
+                await asyncio.sleep(0.1)
+                continue
+            if progress is not None:
+                progress(done, WARM_STEPS)
+    finally:
+        if process.is_alive():  # the server stopped first
+            process.kill()
+        process.join()
+        steps.close()
     if process.exitcode != 0:
         raise RuntimeError(f"compiling the kernels failed in their process (exit code {process.exitcode})")
     logger.info("kernels compiled into the cache in %.1f s", time.perf_counter() - started)

@@ -1,8 +1,10 @@
-"""Errors keep what they say when they cross a process boundary; a building accepts only its named calls."""
+"""Errors keep what they say when they cross a process boundary; a building takes only its typed calls."""
 
 from __future__ import annotations
 
 import pickle
+
+import pytest
 
 from schemas.errors import FieldProblem
 from server.errors import BodyTooLargeError, InvalidInputError, NotFoundError, ProblemError
@@ -21,16 +23,15 @@ def test_problem_errors_survive_pickling_with_status_title_detail_and_errors() -
         assert str(copy) == str(original)
 
 
-def test_a_building_worker_refuses_calls_it_does_not_offer() -> None:
-    import asyncio
+def test_a_building_takes_only_its_typed_calls_across_a_process() -> None:
+    """A call crosses as it is (a frozen dataclass), and anything else is refused before it is run."""
+    from server.buildings.calls import Call, GetAnchor, MergeAnchors
+    from server.cluster import messages
 
-    import pytest
-
-    from server.buildings.handles import CALLS, BuildingThread
-
-    assert "process" not in CALLS  # batches go through submit, in order
-    worker = BuildingThread.__new__(BuildingThread)  # the check comes before the session is touched
-    with pytest.raises(
-        ValueError, match="unknown building call 'process'; valid: anchors, assign_device, context"
-    ):
-        asyncio.run(worker.call("process", []))
+    for call in (GetAnchor("lift"), MergeAnchors(("a", "b"))):
+        again = pickle.loads(pickle.dumps(call))
+        assert again == call
+        assert isinstance(again, Call)
+        assert messages.decode_call(messages.encode_call(call)) == call
+    with pytest.raises(TypeError, match="not a building call: tuple"):
+        messages.decode_call(pickle.dumps(("process", [])))

@@ -40,18 +40,18 @@ def test_a_forgotten_user_stays_forgotten_after_a_crash(database_url: str) -> No
     assert _stored(engine, gone) > 0
     before = _estimates(building)
 
-    assert building.forget_user(gone) == [UserForgottenMessage(user_id=gone)]
+    assert building.users.forget(gone) == [UserForgottenMessage(user_id=gone)]
     assert gone not in building.tracker.users
     assert _stored(engine, gone) == 0
     assert {u: before[u] for u in kept} == _estimates(building)
     with pytest.raises(NotFoundError):
-        building.forget_user(gone)
+        building.users.forget(gone)
 
     building.abandon()  # a crash: nothing more is written
     rebuilt = _building(engine)
     assert sorted(rebuilt.tracker.users) == kept
     assert _estimates(rebuilt) == {u: before[u] for u in kept}
     with pytest.raises(NotFoundError):
-        rebuilt.forget_user(gone)
+        rebuilt.users.forget(gone)
     rebuilt.close()
     engine.dispose()

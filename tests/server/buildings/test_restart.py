@@ -75,11 +75,11 @@ def _pin_known(session: BuildingHost) -> None:
         body = KnownAnchorIn(
             type=anchor.type, position=Position(x_m=anchor.position[0], y_m=anchor.position[1])
         )
-        session.put_known_anchor(f"known-{k}", body)
+        session.anchor_edits.put_known(f"known-{k}", body)
 
 
 def _estimates(session: BuildingHost) -> dict[str, object]:
-    return {u: session.latest_estimate(u) for u in session.tracker.users}
+    return {u: session.building.latest_estimate(u) for u in session.tracker.users}
 
 
 def _logged(engine: Engine) -> int:
@@ -127,14 +127,14 @@ def test_an_abandoned_building_is_rebuilt_exactly_and_tracking_resumes(
         assert applied_since_snapshot < sum(len(g) for g in groups[:cut])
     else:
         assert _logged(engine) == applied_since_snapshot == sum(len(g) for g in groups[:cut])
-    anchors_at_crash = crashed.anchors()
+    anchors_at_crash = crashed.anchor_edits.anchors()
     del crashed  # no shutdown, no final snapshot: as after kill -9
 
     restarted = _building(engine, snapshot_period_s)
     assert restarted.restore_problem is None
     assert restarted.counters.replayed == applied_since_snapshot
     assert _estimates(restarted) == at_crash
-    assert restarted.anchors() == anchors_at_crash
+    assert restarted.anchor_edits.anchors() == anchors_at_crash
     assert _logged(engine) == 0  # the load snapshot covers the replayed log
 
     for group in groups[cut:]:
@@ -160,7 +160,7 @@ def test_a_snapshot_compressed_in_the_background_covers_its_own_engine_calls_onl
     session.process(g0)  # takes a snapshot: compressed in the background, nothing written yet
     assert _snapshot_call(engine) == loaded_call
     assert _logged(engine) == len(g0)
-    taken_at = session._tracker_call
+    taken_at = session.building.tracker_call
     session.recovery.wait()
     session.process(g1)  # writes it: g0 is covered, g1 is not
     assert _snapshot_call(engine) == taken_at
@@ -241,7 +241,7 @@ def test_a_snapshot_taken_with_other_parameters_is_refused_and_the_sql_map_is_ke
     _pin_known(session)
     for group in _groups(CROWD)[:20]:
         session.process(group)
-    anchors = {a.id: a for a in session.anchors()}
+    anchors = {a.id: a for a in session.anchor_edits.anchors()}
     other = _building(engine, n_particles=40)
     assert other.restore_problem == "snapshot was taken with other tracker parameters"
     assert other.counters.restore_failures == 1
@@ -250,7 +250,7 @@ def test_a_snapshot_taken_with_other_parameters_is_refused_and_the_sql_map_is_ke
     assert _logged(engine) == 0  # the load snapshot covers the log it did not replay
     other.process(_groups(CROWD)[20])
     assert _logged_after(engine, _snapshot_call(engine)) == len(_groups(CROWD)[20])
-    restored = {a.id: a for a in other.anchors()}
+    restored = {a.id: a for a in other.anchor_edits.anchors()}
     assert restored.keys() == anchors.keys()
     for public_id, anchor in anchors.items():
         assert restored[public_id].position == anchor.position
@@ -282,7 +282,7 @@ def test_the_batch_path_prunes_history_but_keeps_every_users_latest_position(sql
     assert session.counters.pruned_positions > 0
     assert history == session.counters.estimates - session.counters.pruned_positions
     assert set(latest) == set(session.tracker.users)
-    assert all(latest[u] == session.latest_estimate(u).t_ms for u in latest)  # type: ignore[union-attr]
+    assert all(latest[u] == session.building.latest_estimate(u).t_ms for u in latest)  # type: ignore[union-attr]
     assert batches == sum(len(g) for g in groups)  # batch ids kept: None keeps them all
     engine.dispose()
 
@@ -307,7 +307,7 @@ def test_the_history_keeps_one_estimate_a_period_and_the_latest_position_every_b
     for user, times in by_user.items():
         times.sort()
         assert all(b - a >= 3_000 for a, b in itertools.pairwise(times)), user
-        assert latest[user] == building.latest_estimate(user).t_ms >= times[-1]  # type: ignore[union-attr]
+        assert latest[user] == building.building.latest_estimate(user).t_ms >= times[-1]  # type: ignore[union-attr]
     engine.dispose()
 
 
@@ -352,7 +352,7 @@ def test_a_building_without_floor_0_comes_back_with_a_user_who_started_at_a_lift
         s.add(BuildingRow(id="hq", name="HQ", rotation_rad=0.0))
         s.add_all([FloorRow(building_id="hq", level=lv, name=f"F{lv}") for lv in (1, 2)])
     building = _building(engine)
-    building.put_known_anchor(
+    building.anchor_edits.put_known(
         "lift", KnownAnchorIn(type=AnchorType.ELEVATOR, position=Position(x_m=10.0, y_m=5.0), floor=2)
     )
     t0 = 1_767_225_600_000
@@ -434,7 +434,7 @@ def test_a_change_between_batches_survives_a_crash_exactly(
 
     def changed(b: BuildingHost, maps: Path) -> None:
         if change == "floor plan":
-            b.put_floor_plan(0, FloorPlan.model_validate(FLOOR_PLAN_EXAMPLE))
+            b.floor_plans.put(0, FloorPlan.model_validate(FLOOR_PLAN_EXAMPLE))
         else:
             _radio_map(maps, "build1", [s for g in groups[:5] for s in g])
             loaded = b.load_radio_map()
@@ -530,22 +530,22 @@ def test_an_operators_retried_edit_changes_nothing(sqlite_url: str) -> None:
     for group in _groups(CROWD)[:4]:
         building.process(group)
     body = KnownAnchorIn(type=AnchorType.DOOR, position=Position(x_m=12.0, y_m=8.0), label="kiosk")
-    first, messages = building.put_known_anchor("kiosk", body)
+    first, messages = building.anchor_edits.put_known("kiosk", body)
     assert messages
     snapshots = building.counters.snapshots
     state = tracker_snapshot_bytes(building)
-    again, messages = building.put_known_anchor("kiosk", body)
+    again, messages = building.anchor_edits.put_known("kiosk", body)
     assert (again, messages) == (first, [])
     assert building.counters.snapshots == snapshots
     assert tracker_snapshot_bytes(building) == state
-    moved, messages = building.put_known_anchor("kiosk", body.model_copy(update={"label": "kiosk 2"}))
+    moved, messages = building.anchor_edits.put_known("kiosk", body.model_copy(update={"label": "kiosk 2"}))
     assert messages
     assert moved.label == "kiosk 2"
     plan = FloorPlan.model_validate(FLOOR_PLAN_EXAMPLE)
-    building.put_floor_plan(0, plan)
+    building.floor_plans.put(0, plan)
     snapshots = building.counters.snapshots
     state = tracker_snapshot_bytes(building)
-    building.put_floor_plan(0, plan)
+    building.floor_plans.put(0, plan)
     assert building.counters.snapshots == snapshots
     assert tracker_snapshot_bytes(building) == state
     engine.dispose()
@@ -554,4 +554,4 @@ def test_an_operators_retried_edit_changes_nothing(sqlite_url: str) -> None:
 def tracker_snapshot_bytes(building: BuildingHost) -> bytes:
     from server.buildings.snapshot import pickled
 
-    return pickled(building.building_state())
+    return pickled(building.building.state())

@@ -8,6 +8,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from server.buildings.calls import ListAnchors
 from server.cluster import messages
 from server.cluster.names import building_token, calls_subject, live_subject, receipts_subject, token_building
 from server.errors import InvalidInputError, ProblemError
@@ -44,7 +45,7 @@ def test_answers_carry_values_and_errors() -> None:
     # an unexpected error crosses as a RuntimeError naming it (the front answers 500 and logs it)
     with pytest.raises(RuntimeError, match="KeyError"):
         messages.decode_answer(messages.encode_answer(KeyError("x")))
-    assert messages.decode_call(messages.encode_call("anchors", ())) == ("anchors", ())
+    assert messages.decode_call(messages.encode_call(ListAnchors())) == ListAnchors()
     texts = ['{"type":"position"}', '{"type":"anchor"}']
     assert messages.decode_live(messages.encode_live(texts)) == texts
     assert messages.decode_live(b"") == []

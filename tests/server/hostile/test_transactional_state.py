@@ -66,7 +66,7 @@ def test_a_failing_batch_leaves_no_trace_and_fails_alone(
 
     engine = _fresh_building(database_url)
     building = _building(engine)
-    building.recorder = BuildingRecorder(tmp_path / "recordings", "hq")
+    building.building.recorder = BuildingRecorder(tmp_path / "recordings", "hq")
     _pin_known(building)
     for g in GROUPS[:POISON]:
         building.process(g)
