@@ -27,7 +27,7 @@ the end of the run: ``group_ms_p99`` and ``group_ms_max`` (per call of ``process
 full pass of the cyclic collector, tuned as in the server: start-up objects frozen after the first second).
 
 The kernels are warmed before the first batch, as a building's process warms them
-(``server.engine.warmup.warm_kernels_for``), so that the first second, in which every phone posts its fix and
+(``server.slam.warmup.warm_kernels_for``), so that the first second, in which every phone posts its fix and
 is admitted, measures what a new user's first batch costs and not the kernels' loading:
 ``admit_us_per_phone`` (wall time), ``admit_cpu_us_per_phone`` (CPU) and ``admit_vs_walking`` (that CPU over
 ``cpu_us_per_batch``).
@@ -53,7 +53,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
-from server.engine.numba_cache import configure_numba_cache
+from server.slam.numba_cache import configure_numba_cache
 
 configure_numba_cache()
 
@@ -66,11 +66,11 @@ from server.buildings import snapshot as tracker_snapshot
 from server.buildings.host import open_building
 from server.buildings.submissions import Submission, batch_fields, received_batch
 from server.cli.local_cluster import postgres_database
-from server.engine.warmup import warm_kernels_for
 from server.errors import ProblemError
 from server.gc_tuning import tune_gc_for_serving
 from server.ingestion.decoding import decode_batch
 from server.settings import Settings
+from server.slam.warmup import warm_kernels_for
 from server.store.db import make_engine, make_session_factory
 from server.store.migrate import upgrade
 from server.store.models import BuildingRow

@@ -27,7 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
-from server.engine.numba_cache import configure_numba_cache
+from server.slam.numba_cache import configure_numba_cache
 
 configure_numba_cache()
 

@@ -24,7 +24,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from server.engine.numba_cache import configure_numba_cache
+from server.slam.numba_cache import configure_numba_cache
 
 configure_numba_cache()
 from report import emit

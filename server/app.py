@@ -8,7 +8,6 @@ import logging
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from contextlib import asynccontextmanager
-from pathlib import Path
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -24,11 +23,8 @@ from server.api.deps import revalidate_keys
 from server.api.limits import BodyLimit
 from server.auth import KeyCache
 from server.buildings.calls import LoadRadioMap
-from server.buildings.host import tracking_config
 from server.buildings.registry import Buildings, TrackingService
 from server.dashboard.pages import install_pages
-from server.engine.config import load_calibration, tracker_params
-from server.engine.warmup import Progress, compile_kernels_in_child, warm_kernels
 from server.errors import (
     InvalidInputError,
     ProblemError,
@@ -41,6 +37,8 @@ from server.metrics import Metrics
 from server.rate_limit import RateLimiter, retry_after_header
 from server.settings import Settings
 from server.signal_maps.jobs import SignalMapService
+from server.slam.config import load_calibration, tracker_params
+from server.slam.warmup import Progress, compile_kernels_in_child, warm_kernels
 from server.state import AppState
 from server.storage import StorageWatch
 from server.store.db import make_engine, make_session_factory
@@ -93,7 +91,7 @@ def create_app(settings: Settings, tune_gc: bool = False, warming: Progress | No
             broadcaster.add_sink(foxglove_live.publish)
         recordings = settings.recordings_dir if settings.record else None
         try:
-            tracking, disconnect = await _buildings(settings, sessions, broadcaster, recordings, warming)
+            tracking, disconnect = await _buildings(settings, sessions, broadcaster, warming)
         except BaseException:
             engine.dispose()  # and its checkpoint thread: a server that cannot track does not start
             raise
@@ -164,7 +162,6 @@ async def _buildings(
     settings: Settings,
     sessions: sessionmaker[Session],
     broadcaster: Broadcaster,
-    recordings: Path | None,
     warming: Progress | None,
 ) -> tuple[Buildings, Callable[[], Awaitable[None]]]:
     """The buildings as this process reaches them, and what disconnects it from them once they are closed:
@@ -206,11 +203,7 @@ async def _buildings(
     else:
         warm_kernels(tracker_params(settings), load_calibration(settings.encounter_calibration), warming)
     tracking = TrackingService(
-        sessions,
-        broadcaster,
-        tracking_config(settings),
-        recordings,
-        settings if settings.resolved_building_processes else None,
+        sessions, broadcaster, settings, in_processes=settings.resolved_building_processes
     )
 
     async def nothing() -> None:

@@ -14,12 +14,12 @@ from schemas.estimates import Estimate
 from server.buildings.config import TrackingConfig
 from server.buildings.host import BuildingHost
 from server.buildings.submissions import Submission
-from server.engine.config import load_calibration, tracker_params
 from server.errors import ProblemError
 from server.ingestion.decoding import decode_batch
 from server.recordings.recorder import RecordedBatch
 from server.settings import Settings
 from server.simulation.crowd_client import post_batch
+from server.slam.config import load_calibration, tracker_params
 from server.store.db import make_engine, make_session_factory
 from server.store.migrate import upgrade
 from server.store.models import BuildingRow

@@ -12,7 +12,7 @@ import pytest
 from sqlalchemy import Engine, text
 
 from server.datasets.fetch import dataset_dir
-from server.engine.numba_cache import configure_numba_cache
+from server.slam.numba_cache import configure_numba_cache
 from server.store.db import make_engine
 from server.store.migrate import upgrade
 

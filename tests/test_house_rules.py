@@ -65,7 +65,7 @@ LAYERS: dict[str, list[list[str]]] = {
             "data",
             "dashboard",
         ],
-        ["store", "engine"],
+        ["store", "slam"],
         ["auth", "ingestion", "recordings"],
         ["buildings"],
         ["datasets", "simulation", "cluster"],

@@ -76,7 +76,7 @@ class BatchPath:
         try:
             return self._process(group)
         except repo.StaleStreamPositionError:
-            # another worker applied these batches: this one lost the building and must not go on with it
+            # another cluster worker applied these batches: this one lost the building and must not go on
             vars(b.counters).update(vars(counted))
             raise
         except Exception as exc:

@@ -26,13 +26,13 @@ from server.buildings.recovery import Recovery, load_radio_map
 from server.buildings.submissions import GroupResult, Submission
 from server.buildings.upkeep import Upkeep
 from server.buildings.users import Users
-from server.engine.config import load_calibration, tracker_params
 from server.recordings.recorder import BuildingRecorder
 from server.settings import Settings
+from server.slam.config import load_calibration, tracker_params
 from server.store import repositories as repo
 from server.store.db import is_disk_full, make_engine, make_session_factory
 from server.store.wal_checkpoints import checkpoint_in_background
-from server.store.writer_lock import writer_turns
+from server.store.writer_turns import writer_turns
 from slam_core.geo import GeoFrame
 from slam_core.tracking.tracker import BuildingTracker
 
@@ -188,7 +188,8 @@ class BuildingHost:
         self.recovery.close()
 
     def abandon(self) -> None:
-        """Stop without writing anything: the building is another worker's now (its lease was lost)."""
+        """Stop without writing anything: another cluster worker holds the building now (its lease was
+        lost)."""
         self.recovery.close()  # drops the pending snapshot unwritten
 
 

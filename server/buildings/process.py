@@ -43,12 +43,12 @@ from server.buildings.counters import Counters
 from server.buildings.handles import MAX_GROUP, GroupPacing, LatencyWindow
 from server.buildings.host import IDLE_S, BuildingHost, open_building
 from server.buildings.submissions import BatchFields, Submission, batch_fields, received_batch, transportable
-from server.engine.warmup import warm_kernels_for
 from server.errors import NotFoundError, ProblemError, ServiceUnavailableError
 from server.gc_tuning import tune_gc_for_serving
 from server.live.broadcast import Broadcaster, live_json
 from server.process_lifetime import die_with, interrupts_held
 from server.settings import Settings
+from server.slam.warmup import warm_kernels_for
 from slam_core.geo import GeoFrame
 
 _HEADER = struct.Struct("!Q")
@@ -243,7 +243,7 @@ class _BuildingLoop:
             self.pacing.start(time.monotonic())
             try:
                 result = self.building.process(group)
-            except Exception as exc:  # as the in-process worker: every batch of the group fails with it
+            except Exception as exc:  # as on a building's thread: every batch of the group fails with it
                 answers.update((request, transportable(exc)) for request in ids)
             else:
                 answers.update(zip(ids, result.wire_receipts(), strict=True))

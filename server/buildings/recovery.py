@@ -69,7 +69,7 @@ class Loaded:
 class Recovery:
     """The part of a building that survives a crash, owned by its host (``server.buildings.host``): it loads
     the building, writes its snapshots (now, or compressed in the background between groups) and clears
-    the logged batch bodies a snapshot covers. Used from the building's single worker thread only."""
+    the logged batch bodies a snapshot covers. Used from the building's thread only."""
 
     def __init__(
         self, building_id: str, sessions: sessionmaker[Session], config: TrackingConfig, counters: Counters

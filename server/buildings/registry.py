@@ -9,15 +9,13 @@ import asyncio
 import logging
 import time
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Protocol
 
 from sqlalchemy.orm import Session, sessionmaker
 
 from schemas.api import FailingBuilding
-from server.buildings.config import TrackingConfig
 from server.buildings.handles import BuildingHandle, BuildingThread
-from server.buildings.host import BuildingHost
+from server.buildings.host import BuildingHost, tracking_config
 from server.buildings.process import BuildingLoadError, BuildingProcess
 from server.errors import BuildingUnavailableError, NotFoundError
 from server.live.broadcast import Broadcaster
@@ -68,17 +66,18 @@ class TrackingService:
         self,
         sessions: sessionmaker[Session],
         broadcaster: Broadcaster,
-        config: TrackingConfig,
-        recordings: Path | None = None,
-        processes: Settings | None = None,
+        settings: Settings,
+        *,
+        in_processes: bool,
         kernel_threads: int | None = None,
     ) -> None:
-        """``processes``: run each building in a process of its own, configured by these settings;
-        otherwise on a thread whose kernels use ``kernel_threads`` numba threads (None: numba's default)."""
-        self._processes = processes
+        """Buildings tracked as ``settings`` say, each ``in_processes`` of its own, or else on a thread of
+        this process whose kernels use ``kernel_threads`` numba threads (None: numba's default)."""
+        self._settings = settings
+        self._in_processes = in_processes
+        self._config = tracking_config(settings)
+        self._recordings = settings.recordings_dir if settings.record else None
         self._kernel_threads = kernel_threads
-        self._config = config
-        self._recordings = recordings
         self._sessions = sessions
         self._broadcaster = broadcaster
         self._handles: dict[str, BuildingHandle] = {}
@@ -120,10 +119,10 @@ class TrackingService:
 
     async def _open(self, building_id: str) -> BuildingHandle:
         """Load the building in a process of its own or on a thread of this one."""
-        if self._processes is not None:
+        if self._in_processes:
             if not await asyncio.to_thread(self._exists, building_id):  # never a process for nothing
                 raise NotFoundError(f"no building {building_id!r}")
-            return await BuildingProcess.start(building_id, self._processes, self._broadcaster)
+            return await BuildingProcess.start(building_id, self._settings, self._broadcaster)
         recorder = None if self._recordings is None else BuildingRecorder(self._recordings, building_id)
         host = await asyncio.to_thread(BuildingHost, building_id, self._sessions, self._config, recorder)
         return BuildingThread(host, self._broadcaster, self._kernel_threads)

@@ -53,7 +53,7 @@ def run(args: argparse.Namespace) -> int:
     # deferred: the command's dependencies load when it runs (`crowdslam --help` loads none)
     from server.datasets.msindoor import TraceFormatError
     from server.datasets.msindoor_calibration import calibrate_floor, plot_calibration
-    from server.engine.config import load_calibration
+    from server.slam.config import load_calibration
 
     try:
         base = load_calibration(args.base)

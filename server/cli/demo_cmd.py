@@ -26,7 +26,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--speed", type=float, default=5.0, help="crowd pace, x real time (0: flat out)")
     parser.add_argument(
-        "--rounds", type=int, default=0, help="crowds to walk, one after another (0: forever)"
+        "--crowds", type=int, default=0, help="crowds to walk, one after another (0: forever)"
+    )
+    # the earlier name of --crowds
+    parser.add_argument(
+        "--rounds", dest="crowds", type=int, default=argparse.SUPPRESS, help=argparse.SUPPRESS
     )
     parser.add_argument("--building", default="demo")
 
@@ -95,32 +99,32 @@ def run(args: argparse.Namespace) -> int:
             else:
                 print("  Foxglove/Lichtblick: set CROWDSLAM_FOXGLOVE_PORT=8765 to watch the crowd there")
             print("  Ctrl-C stops.", flush=True)
-            round_number = 0
+            crowd = 0
             # this run's devices and batch ids are its own: a demo run again in the same folder walks new
             # phones, whose batches are not duplicates of the last run's
             run = secrets.token_hex(3)
             left = retire_leftovers(client, args.building, operator_key)
             if left:
                 print(f"  {left} people of an earlier demo run left the building", flush=True)
-            while args.rounds == 0 or round_number < args.rounds:
+            while args.crowds == 0 or crowd < args.crowds:
                 # new people walking the same building (its anchors and access points), after the last crowd;
                 # their phones' clocks near the wall clock, so the dashboard's times read as today's
-                sim = simulate(scenario, round_number, world_seed=0)
+                sim = simulate(scenario, crowd, world_seed=0)
                 duration_s = max(float(tr.t[-1]) for tr in sim.users)
                 epoch_ms = crowd_epoch_ms(int(time.time() * 1000), duration_s, args.speed)
-                prefix = f"{run}-r{round_number}-"
+                prefix = f"{run}-c{crowd}-"
                 keys = device_keys(client, args.building, operator_key, len(sim.users), prefix)
                 report = post_crowd(client, sim, args.building, keys, args.speed, prefix, epoch_ms=epoch_ms)
                 s = report.summary()
                 print(
-                    f"  crowd {round_number}: {s['batches']} batches, {s['errors']} errors, "
+                    f"  crowd {crowd}: {s['batches']} batches, {s['errors']} errors, "
                     f"{s['duplicates']} duplicates, "
                     f"{s['encounters']} encounters, error median {s['median_m']:.2f} m, "
                     f"p90 {s['p90_m']:.2f} m, {s['seconds']:.0f} s; it leaves the building",
                     flush=True,
                 )
                 retire_crowd(client, args.building, operator_key, {d: key_prefix(k) for d, k in keys.items()})
-                round_number += 1
+                crowd += 1
     except ServerDidNotStartError as exc:
         print(f"error: {exc}")
         return 1
@@ -149,8 +153,8 @@ def revoke_demo_keys(database_url: str, building_id: str, operator_key: str, das
         engine.dispose()
 
 
-DEMO_DEVICE = re.compile(r"[0-9a-f]{6}-r\d+-")
-"""The demo's device ids: ``<run>-r<round>-<device>``."""
+DEMO_DEVICE = re.compile(r"[0-9a-f]{6}-[cr]\d+-")
+"""The demo's device ids: ``<run>-c<crowd>-<device>`` (``-r`` in earlier versions)."""
 
 
 def retire_leftovers(client: Any, building_id: str, operator_key: str) -> int:

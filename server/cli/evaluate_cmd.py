@@ -12,7 +12,7 @@ from server.cli.user_errors import floor_folder, output_file
 from server.data import scenario_argument
 
 if TYPE_CHECKING:
-    from server.engine.config import ReplayOptions
+    from server.slam.config import ReplayOptions
 
 
 PLAN_ALIGNED_SHARE = 0.95
@@ -179,9 +179,9 @@ def _msindoor(args: argparse.Namespace) -> int:
 
     from server.datasets.msindoor import TraceFormatError
     from server.datasets.msindoor_replay import replay_msindoor
-    from server.engine.config import load_calibration, tracker_params
     from server.settings import Settings
     from server.signal_maps.tagged_walks import radio_map_of_walks
+    from server.slam.config import load_calibration, tracker_params
     from slam_core.sim.statistics import empirical_cdf
     from slam_core.tracking.params import MODES
 
@@ -254,9 +254,9 @@ def _run(scenario: Any, args: argparse.Namespace, mode: str, particles: int, bar
     # deferred: the command's dependencies load when it runs (`crowdslam --help` loads none)
     from dataclasses import replace
 
-    from server.engine.config import load_calibration, tracker_params
     from server.settings import Settings
     from server.simulation.evaluation import evaluate_scenario
+    from server.slam.config import load_calibration, tracker_params
 
     options = replace(_replay_options(args), mode=mode, particles=particles)
     return evaluate_scenario(
@@ -380,7 +380,7 @@ def _plot_lines(
 def _replay_options(args: argparse.Namespace) -> ReplayOptions:
     """The command's options for a replay through the server's tracker (real walks or simulated phones)."""
     # deferred: the command's dependencies load when it runs (`crowdslam --help` loads none)
-    from server.engine.config import ReplayOptions  # imported late: the CLI starts fast
+    from server.slam.config import ReplayOptions  # imported late: the CLI starts fast
 
     return ReplayOptions(
         mode=args.mode,

@@ -71,7 +71,7 @@ class KernelProgress:
 
 
 def kernels_cached() -> bool:
-    """Whether numba's cache folder (keyed by the kernels' sources: ``server.engine.numba_cache``) holds
+    """Whether numba's cache folder (keyed by the kernels' sources: ``server.slam.numba_cache``) holds
     compiled kernels: a folder without any index is a first start."""
     folder = os.environ.get("NUMBA_CACHE_DIR")
     return folder is not None and any(Path(folder).rglob("*.nbi"))

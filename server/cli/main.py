@@ -76,7 +76,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     args = parser.parse_args()
     # deferred: the command's dependencies load when it runs (`crowdslam --help` loads none)
-    from server.engine.numba_cache import configure_numba_cache
+    from server.slam.numba_cache import configure_numba_cache
 
     configure_numba_cache()
     module = importlib.import_module(args._module)

@@ -43,7 +43,6 @@ from nats.aio.subscription import Subscription
 from sqlalchemy.orm import Session, sessionmaker
 
 from server.buildings.handles import BuildingThread
-from server.buildings.host import tracking_config
 from server.buildings.registry import TrackingService
 from server.buildings.submissions import received_batch
 from server.cluster import messages
@@ -53,11 +52,11 @@ from server.cluster.leases import Lease, LeaseLostError, Leases
 from server.cluster.live_relay import LiveRelay
 from server.cluster.members import Members
 from server.cluster.names import calls_subject
-from server.engine.config import load_calibration, tracker_params
-from server.engine.warmup import warm_kernels
 from server.errors import NotFoundError, ProblemError
 from server.live.broadcast import Broadcaster
 from server.settings import Settings
+from server.slam.config import load_calibration, tracker_params
+from server.slam.warmup import warm_kernels
 from server.store import repositories as repo
 from server.store.db import make_engine, make_session_factory
 from server.store.migrate import current_revision, head_revision
@@ -409,12 +408,9 @@ async def serve(settings: Settings) -> None:
             relay = LiveRelay(connection)
             broadcaster.add_sink(relay)
             sessions = make_session_factory(engine)
-            recordings = settings.recordings_dir if settings.record else None
             # one numba thread a building: a worker is a process per core, its buildings its threads (numba's
             # pool had its workers spin between the back-to-back launches of several buildings)
-            tracking = TrackingService(
-                sessions, broadcaster, tracking_config(settings), recordings, kernel_threads=1
-            )
+            tracking = TrackingService(sessions, broadcaster, settings, in_processes=False, kernel_threads=1)
             worker = ClusterWorker(
                 connection, stream, leases, members, tracking, sessions, settings.lease_ttl_s
             )

@@ -43,10 +43,10 @@ from server.datasets.msindoor import (
     shifted,
 )
 from server.datasets.msindoor_batches import trace_windows
-from server.engine.config import ReplayOptions, replay_params
 from server.ingestion.convert import BuildingContext, building_context, to_user_batch
 from server.ingestion.floor_plans import engine_plan
 from server.ingestion.radio_maps import RadioMap
+from server.slam.config import ReplayOptions, replay_params
 from slam_core.encounters.models import Calibration
 from slam_core.filter.floor_plan import PlanIndex
 from slam_core.sim.statistics import error_summary

@@ -27,6 +27,7 @@ from schemas.sensors import (
     Vector3Stream,
     WifiScan,
 )
+from server.errors import InvalidInputError
 from server.ingestion.extent import Extent
 from server.ingestion.transport import PackedBatch, pack_lists
 from slam_core.encounters.models import MODEL_BLUETOOTH, MODEL_WIFI_FINGERPRINT
@@ -382,8 +383,33 @@ def estimate(
             }
         )
     except ValidationError as exc:
+        if all(_out_of_range(e) for e in exc.errors()):
+            # finite, but beyond where positions may be: the batch walked its user there, and is refused
+            raise InvalidInputError(
+                f"the batch would take user {user_id!r} to ({row.x:.0f}, {row.y:.0f}) m from the building's "
+                f"origin, beyond the {MAX_COORDINATE_M:g} m (or the WGS-84 range) positions may have"
+            ) from None
         raise ValueError(f"the engine's estimate of {user_id!r} breaks the schema: {exc}") from None
     return built
+
+
+_RANGE_ERRORS = frozenset({"less_than_equal", "greater_than_equal", "less_than", "greater_than"})
+
+
+def _out_of_range(error: Any) -> bool:
+    """A validation error of a finite position (local or WGS-84) beyond its bounds."""
+    loc = error.get("loc", ())
+    return (
+        error.get("type") in _RANGE_ERRORS
+        and bool(loc)
+        and loc[0]
+        in (
+            "position",
+            "best_particle",
+            "lat_deg",
+            "lon_deg",
+        )
+    )
 
 
 _validate_estimate = Estimate.__pydantic_validator__.validate_python

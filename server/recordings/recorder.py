@@ -124,7 +124,7 @@ def _mm2(square_metres: float) -> str:
 
 
 class BuildingRecorder:
-    """Writes one building's recordings. Used from that building's worker thread only."""
+    """Writes one building's recordings. Used from that building's thread only."""
 
     def __init__(
         self, root: Path, building_id: str, chunk_bytes: int = CHUNK_BYTES, flush_s: float = FLUSH_S

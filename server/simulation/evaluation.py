@@ -22,10 +22,10 @@ from typing import Any
 
 import numpy as np
 
-from server.engine.config import ReplayOptions, replay_params
 from server.ingestion.convert import anchor_type_index, building_context, to_user_batch
 from server.simulation.liars import liar_devices, lying
 from server.simulation.phones import EPOCH_MS, device_id, known_anchors, simulated_batches
+from server.slam.config import ReplayOptions, replay_params
 from slam_core.encounters.models import Calibration
 from slam_core.sim.encounters import meetings_per_user
 from slam_core.sim.map_quality import map_quality

@@ -88,7 +88,7 @@ class EncounterStage:
 
     def collect(
         self,
-        engine: DynamicSlam,
+        filters: DynamicSlam,
         batches: list[UserBatch],
         users: dict[str, UserTrack],
         by_ble: dict[str, str],
@@ -119,13 +119,13 @@ class EncounterStage:
         slot_a, slot_b = slots[: len(found)], slots[len(found) :]
         tracked = (slot_a >= 0) & (slot_b >= 0)
         if tracked.any():  # a pair heard through a ceiling is no encounter: both on one floor, as believed
-            levels = engine.levels
+            levels = filters.levels
             tracked &= levels[np.maximum(slot_a, 0)] == levels[np.maximum(slot_b, 0)]
         usable = np.flatnonzero(tracked)
         if usable.size == 0:
             return [], len(found)
         mask, offset, carry_var, places = choose_readings(
-            engine.means,
+            filters.means,
             detector,
             self.selector,
             found.subset(usable),
@@ -135,13 +135,13 @@ class EncounterStage:
         )
         keep = usable[mask]
         chosen = detector.ranged(detector.to_detections(found.subset(keep)))
-        levels = engine.levels[slot_a[keep]].tolist()
+        levels = filters.levels[slot_a[keep]].tolist()
         if not chosen or not self.apply_human_anchors:
             return [
                 EncounterResult(d, False, tuple(p), lv)
                 for d, p, lv in zip(chosen, places.tolist(), levels, strict=True)
             ], len(found)
-        outcome = engine.observe_encounters(
+        outcome = filters.observe_encounters(
             slot_a[keep],
             slot_b[keep],
             np.array([d.distance_m for d in chosen]),

@@ -124,7 +124,7 @@ class FingerprintStage:
 
     def fix(
         self,
-        engine: DynamicSlam,
+        filters: DynamicSlam,
         batches: list[UserBatch],
         users: dict[str, UserTrack],
         rows: dict[str, EstimateRow],
@@ -156,7 +156,7 @@ class FingerprintStage:
             # a scan joins its floor's map only when the filter is sure of the floor
             sure = row.floor_probability >= self.floors.join_confidence
             located.append((u.slot, u.number, np.array([row.x, row.y]), cov, scans, row.floor, sure))
-        got = self.apply(engine, located)
+        got = self.apply(filters, located)
         for name, fixed in zip(names, got, strict=True):
             if fixed is not None:
                 reports[name].fingerprint_fixes += 1
@@ -164,7 +164,7 @@ class FingerprintStage:
 
     def apply(
         self,
-        engine: DynamicSlam,
+        filters: DynamicSlam,
         located: list[tuple[int, int, np.ndarray, np.ndarray, list[Scan], int, bool]],
     ) -> list[np.ndarray | None]:
         """For each (slot, owner, estimate now, its covariance, the user's scans of this call in time order,
@@ -190,7 +190,7 @@ class FingerprintStage:
                 slots.append(slot)
                 fixes.append(fix)
         if slots:
-            engine.observe_position_robust(
+            filters.observe_position_robust(
                 np.array(slots, dtype=np.int64),
                 np.array(fixes),
                 params.sigma_m,

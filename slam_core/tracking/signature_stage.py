@@ -31,7 +31,7 @@ class SignatureStage:
 
     def observe(
         self,
-        engine: DynamicSlam,
+        filters: DynamicSlam,
         users: dict[str, UserTrack],
         rnd: Round,
         signed: list[int],
@@ -47,7 +47,7 @@ class SignatureStage:
         crowd = self.crowd
         names = [rnd.det_users[k] for k in signed]
         slots = np.array([users[n].slot for n in names], dtype=np.int64)
-        before = engine.summaries(slots)
+        before = filters.summaries(slots)
         fix_slots, fix_xy, fix_sigma = [], [], []
         ids = []
         r2 = self.sigma_m**2
@@ -62,7 +62,7 @@ class SignatureStage:
             shift = u.displacement - then
             drift = float(carry_variance(u.walked - walked_then))
             cov = np.array([[row[2], row[3]], [row[3], row[4]]]) + drift * np.eye(2)
-            level = int(engine.levels[u.slot])  # the transmitter's anchor on the user's floor
+            level = int(filters.levels[u.slot])  # the transmitter's anchor on the user's floor
             existing = crowd.find_signature(rnd.det_signature[k], level)
             if existing is not None and crowd.informed_by_others(existing, u.number):
                 anchor_mean, anchor_cov, *_ = crowd.anchor(existing)
@@ -91,7 +91,7 @@ class SignatureStage:
             if self.into_graph:
                 self.graph.add_detection(u.number, index, then, walked_then, self.sigma_m)
         if fix_slots:
-            engine.observe_position(
+            filters.observe_position(
                 np.array(fix_slots, dtype=np.int64), np.array(fix_xy), np.array(fix_sigma)
             )
         return ids

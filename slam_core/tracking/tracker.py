@@ -90,7 +90,7 @@ class BuildingTracker:
     def __init__(self, params: TrackerParams, calibration: Calibration, seed: int = 0) -> None:
         self.params = params
         fp = params.filter
-        self.engine = DynamicSlam(fp, seed=seed)
+        self.filters = DynamicSlam(fp, seed=seed)
         self.crowd = CrowdMapBuilder(
             fp.anchors.type_posterior,
             fp.anchors.detection_sigma_m,
@@ -142,7 +142,7 @@ class BuildingTracker:
         """The plan that weighs the steps of the users on floor ``level`` from now on (beyond the papers);
         None: that floor has none."""
         self.floors.index(level)
-        self.engine.set_floor_plan(level, plan)
+        self.filters.set_floor_plan(level, plan)
 
     @property
     def levels(self) -> tuple[int, ...]:
@@ -159,16 +159,16 @@ class BuildingTracker:
         if new.levels != old.levels:
             for u in self._users.values():
                 p = np.zeros(len(new.levels))
-                for level, q in zip(old.levels, u.floor, strict=True):
+                for level, q in zip(old.levels, u.floor_belief, strict=True):
                     if level in new.levels:
                         p[new.index(level)] = q
-                u.floor = array("d", (p / p.sum() if p.sum() > 0 else new.uniform()).tolist())
+                u.floor_belief = array("d", (p / p.sum() if p.sum() > 0 else new.uniform()).tolist())
         self.floors = new
         self._follow_floors([n for n, u in self._users.items() if u.slot >= 0])
 
     def floor_of(self, user: str) -> tuple[int, float]:
         """The floor the user is believed on and the belief's probability."""
-        return self.floors.believed(np.asarray(self._users[user].floor))
+        return self.floors.believed(np.asarray(self._users[user].floor_belief))
 
     # ------------------------------------------------------------------ users and anchors
     @property
@@ -204,7 +204,7 @@ class BuildingTracker:
             self.front_end.forget(name)
             self._stretches.forget(name)
             if u.slot >= 0:
-                self.engine.remove_user(u.slot)
+                self.filters.remove_user(u.slot)
                 self.encounters.remove(name)
         gone = set(users)
         self._by_ble = {k: v for k, v in self._by_ble.items() if v not in gone}
@@ -302,7 +302,7 @@ class BuildingTracker:
         batches = [self._dead_reckon(b, reports[b.user]) for b in batches]
         for b in batches:
             if b.user not in self._users:  # unsure of its floor until a fix names it or the radio tells
-                self._users[b.user] = UserTrack(floor=array("d", self.floors.uniform().tolist()))
+                self._users[b.user] = UserTrack(floor_belief=array("d", self.floors.uniform().tolist()))
             if b.ble_id is not None:
                 self._by_ble[b.ble_id] = b.user
         callers = [self._users[b.user] for b in batches]
@@ -317,7 +317,7 @@ class BuildingTracker:
             self._observe_places(batches, reports)
             self.encounters.heard(callers, [_heard_until(b) for b in batches])
             encounters, detections = self.encounters.collect(
-                self.engine, batches, self._users, self._by_ble, scans
+                self.filters, batches, self._users, self._by_ble, scans
             )
         finally:
             scans.join()
@@ -373,8 +373,8 @@ class BuildingTracker:
                 if self.crowd.is_live(c):
                     self.crowd.set_estimate(c, mean, covs[c])
                     changed.add(c)
-            for users, level in self._by_level(self.engine.active_users):
-                self.engine.refresh_crowd_anchors(users, self.crowd.snapshot(level))
+            for users, level in self._by_level(self.filters.active_users):
+                self.filters.refresh_crowd_anchors(users, self.crowd.snapshot(level))
         if len(self.crowd) != crowd_size:
             self._offer_crowd_map()
         if self.params.fingerprints.enabled:
@@ -383,14 +383,14 @@ class BuildingTracker:
             if not self.floors.single:
                 self._weigh_floors(batches, rows)
                 rows = self._rows(names)
-            self.fingerprints.fix(self.engine, batches, self._users, rows, reports)
+            self.fingerprints.fix(self.filters, batches, self._users, rows, reports)
         return changed
 
     def _by_level(self, slots: np.ndarray) -> list[tuple[np.ndarray, int]]:
         """The slots grouped by the floor they are on (one group in a one-floor building)."""
         if not slots.size:
             return []
-        levels = self.engine.levels[slots]
+        levels = self.filters.levels[slots]
         if levels.min() == levels.max():
             return [(slots, int(levels[0]))]
         return [(slots[levels == lv], int(lv)) for lv in np.unique(levels).tolist()]
@@ -411,7 +411,7 @@ class BuildingTracker:
             )
             if not math.isfinite(ll[self.floors.index(row.floor)]):
                 continue  # the believed floor's crowd never walked here: no evidence either way
-            u.floor = array("d", self.floors.weigh(np.asarray(u.floor), ll).tolist())
+            u.floor_belief = array("d", self.floors.weigh(np.asarray(u.floor_belief), ll).tolist())
             moved.append(b.user)
         self._follow_floors(moved)
 
@@ -423,16 +423,16 @@ class BuildingTracker:
             u = self._users[name]
             if u.slot < 0:
                 continue
-            level, _ = self.floors.believed(np.asarray(u.floor))
-            if int(self.engine.levels[u.slot]) != level:
+            level, _ = self.floors.believed(np.asarray(u.floor_belief))
+            if int(self.filters.levels[u.slot]) != level:
                 changing.append((u.slot, level))
         if not changing:
             return
         slots = np.array([c[0] for c in changing], dtype=np.int64)
-        self.engine.set_levels(slots, np.array([c[1] for c in changing], dtype=np.int64))
-        self.engine.clear_maps(slots)
+        self.filters.set_levels(slots, np.array([c[1] for c in changing], dtype=np.int64))
+        self.filters.clear_maps(slots)
         for users, level in self._by_level(slots):
-            self.engine.merge_crowd_map(users, self.crowd.snapshot(level))
+            self.filters.merge_crowd_map(users, self.crowd.snapshot(level))
 
     def _dead_reckon(self, b: UserBatch, report: UserReport) -> UserBatch:
         """The batch with the steps the PDR front-end finds in its raw IMU (phones counting their own steps
@@ -575,7 +575,7 @@ class BuildingTracker:
             found = self._candidates(b, latest=True)
             if found is not None:
                 _, centres, weights, _ = found
-                self.engine.observe_places(
+                self.filters.observe_places(
                     u.slot,
                     centres,
                     weights,
@@ -595,12 +595,12 @@ class BuildingTracker:
         u = self._users[b.user]
         if not self.floors.single and b.scan_t.size:
             stale = self.params.detection.stale_ap_ms
-            belief = np.asarray(u.floor)
+            belief = np.asarray(u.floor_belief)
             for c in np.argsort(b.scan_t, kind="stable").tolist():
                 _, bssids, rss = b.fresh_scan(int(c), stale)
                 ll = self.fingerprints.floor_evidence(self.floors.levels, NOBODY, bssids, rss, None)
                 belief = self.floors.weigh(belief, ll)
-            u.floor = array("d", belief.tolist())
+            u.floor_belief = array("d", belief.tolist())
         return self._candidates(b, latest=False)
 
     def _candidates(self, b: UserBatch, latest: bool) -> tuple[int, np.ndarray, np.ndarray, int] | None:
@@ -611,7 +611,7 @@ class BuildingTracker:
         if not b.scan_t.size:
             return None
         u = self._users[b.user]
-        level = self.floors.believed(np.asarray(u.floor))[0]
+        level = self.floors.believed(np.asarray(u.floor_belief))[0]
         spread = math.inf if latest else self.params.fingerprints.max_spread_m
         stale = self.params.detection.stale_ap_ms
         order = np.argsort(b.scan_t, kind="stable")
@@ -637,7 +637,7 @@ class BuildingTracker:
         confident."""
         u = self._users[user]
         sigma = self.params.cold_start.candidate_sigma_m
-        slot = self.engine.add_user_among(
+        slot = self.filters.add_user_among(
             candidates, weights, sigma, 0.0, self._crowd_map(level, built), level=level
         )
         u.placed = False
@@ -651,8 +651,8 @@ class BuildingTracker:
         if math.isfinite(azimuth):
             u.heading = heading
         sigma = max(sigma, self.params.start_sigma_floor_m)
-        u.floor = array("d", self.floors.start(level).tolist())
-        slot = self.engine.add_user(
+        u.floor_belief = array("d", self.floors.start(level).tolist())
+        slot = self.filters.add_user(
             float(xy[0]), float(xy[1]), heading, sigma, self._crowd_map(level, built), level=level
         )
         u.placed = True
@@ -677,11 +677,11 @@ class BuildingTracker:
             offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
             lengths = np.concatenate(rnd.step_len)
             headings = np.concatenate(rnd.step_head)
-            self.engine.step(np.array([u.slot for u in users], dtype=np.int64), offsets, lengths, headings)
+            self.filters.step(np.array([u.slot for u in users], dtype=np.int64), offsets, lengths, headings)
             lay_steps(users, rnd, lengths, headings)
             if self.params.revise_headings:
                 self._revise_headings(users)
-            if self.params.filter.floor_plan.heading_axes and self.engine.floor_plans:
+            if self.params.filter.floor_plan.heading_axes and self.filters.floor_plans:
                 self._observe_stretches(rnd)
         plain = [k for k, s in enumerate(rnd.det_signature) if not s]
         signed = [k for k, s in enumerate(rnd.det_signature) if s]
@@ -696,10 +696,10 @@ class BuildingTracker:
             if rising:  # a change of floor: the anchor is the landing, on the floor arrived at
                 for name, rise, _ in rising:
                     u = self._users[name]
-                    before = np.asarray(u.floor)
+                    before = np.asarray(u.floor_belief)
                     after = self.floors.rise(before, rise)
                     self.floors.learn(before, after, rise)  # the crowd measures the storeys
-                    u.floor = array("d", after.tolist())
+                    u.floor_belief = array("d", after.tolist())
                 self._follow_floors([n for n, _, _ in rising])
                 self._carry([(n, r) for n, r, t in rising if t == self._escalator_type])
             unmeasured = [
@@ -712,10 +712,11 @@ class BuildingTracker:
             if unmeasured:  # a phone without a barometer at stairs, a lift or an escalator: maybe a new floor
                 for name in unmeasured:
                     u = self._users[name]
-                    u.floor = array("d", self.floors.maybe_changed(np.asarray(u.floor)).tolist())
+                    maybe = self.floors.maybe_changed(np.asarray(u.floor_belief))
+                    u.floor_belief = array("d", maybe.tolist())
             slots = np.array([self._users[n].slot for n in names], dtype=np.int64)
-            before = self.engine.summaries(slots)
-            levels = self.engine.levels[slots].tolist()
+            before = self.filters.summaries(slots)
+            levels = self.filters.levels[slots].tolist()
             ids = []
             for name, row, f, k, level in zip(names, before, types, plain, levels, strict=True):
                 cov = np.array([[row[2], row[3]], [row[3], row[4]]])
@@ -725,19 +726,19 @@ class BuildingTracker:
                     )
                 )
                 reports[name].anchor_joins.append((rnd.det_t[k], ids[-1]))
-            self.engine.observe_building_anchors(slots, np.array(types), np.array(ids))
+            self.filters.observe_building_anchors(slots, np.array(types), np.array(ids))
             for name in names:
                 self._users[name].pin()
             self._add_to_graph(names, ids, changed)
         if signed:
-            changed.update(self.signatures.observe(self.engine, self._users, rnd, signed, reports))
+            changed.update(self.signatures.observe(self.filters, self._users, rnd, signed, reports))
         if rnd.fix_users:
             slots = np.array([self._users[n].slot for n in rnd.fix_users], dtype=np.int64)
-            recentred = self.engine.observe_position(slots, np.array(rnd.fix_xy), np.array(rnd.fix_sigma))
+            recentred = self.filters.observe_position(slots, np.array(rnd.fix_xy), np.array(rnd.fix_sigma))
             for name, flag, level in zip(rnd.fix_users, recentred, rnd.fix_level, strict=True):
                 reports[name].recentred += int(flag)
                 self._users[name].pin()
-                self._users[name].floor = array("d", self.floors.start(level).tolist())
+                self._users[name].floor_belief = array("d", self.floors.start(level).tolist())
             self._follow_floors(rnd.fix_users)
 
     def _carry(self, rides: list[tuple[str, float]]) -> None:
@@ -750,7 +751,7 @@ class BuildingTracker:
         incline = math.tan(math.radians(self.params.floors.escalator_incline_deg))
         lengths = np.array([abs(r) / incline for _, r in rides])
         headings = np.array([self._users[n].heading for n, _ in rides])
-        self.engine.step(slots, np.arange(len(rides) + 1, dtype=np.int64), lengths, headings)
+        self.filters.step(slots, np.arange(len(rides) + 1, dtype=np.int64), lengths, headings)
 
     def _observe_stretches(self, rnd: Round) -> None:
         """The straight stretches this round's steps completed, each weighed against the floor plan's grid
@@ -764,7 +765,7 @@ class BuildingTracker:
         for k in range(max((len(d) for d in done), default=0)):
             who = [i for i, d in enumerate(done) if len(d) > k]
             slots = np.array([self._users[rnd.users[i]].slot for i in who], dtype=np.int64)
-            self.engine.observe_heading_axis(slots, np.array([done[i][k] for i in who]))
+            self.filters.observe_heading_axis(slots, np.array([done[i][k] for i in who]))
 
     def _revise_headings(self, users: list[UserTrack]) -> None:
         """Beyond both papers: the PDR front-end sends each step with its current estimate of the north
@@ -779,7 +780,7 @@ class BuildingTracker:
                 slots.append(u.slot)
                 shifts.append(shift)
         if slots:
-            self.engine.shift(np.array(slots, dtype=np.int64), np.array(shifts))
+            self.filters.shift(np.array(slots, dtype=np.int64), np.array(shifts))
 
     def _add_to_graph(self, names: list[str], ids: list[int], changed: set[int]) -> None:
         changed.update(ids)
@@ -789,19 +790,19 @@ class BuildingTracker:
                 self.graph.add_detection(u.number, int(c), u.displacement, u.walked)
 
     def _offer_crowd_map(self) -> None:
-        for users, level in self._by_level(self.engine.active_users):
-            self.engine.merge_crowd_map(users, self.crowd.snapshot(level))
+        for users, level in self._by_level(self.filters.active_users):
+            self.filters.merge_crowd_map(users, self.crowd.snapshot(level))
 
     def _rows(self, users: list[str]) -> dict[str, EstimateRow]:
         if not users:
             return {}
-        summary = self.engine.summaries(np.array([self._users[n].slot for n in users], dtype=np.int64))
+        summary = self.filters.summaries(np.array([self._users[n].slot for n in users], dtype=np.int64))
         if self.floors.single:
             return {  # rows as Python floats at once: indexing each numpy row cost more than the row
                 n: EstimateRow(self._users[n].last_t_ms, x, y, (xx, xy, yy), (bx, by), heading)
                 for n, (x, y, xx, xy, yy, bx, by, heading) in zip(users, summary.tolist(), strict=True)
             }
-        floors = [self.floors.believed(np.asarray(self._users[n].floor)) for n in users]
+        floors = [self.floors.believed(np.asarray(self._users[n].floor_belief)) for n in users]
         return {
             n: EstimateRow(self._users[n].last_t_ms, x, y, (xx, xy, yy), (bx, by), heading, level, p)
             for n, (x, y, xx, xy, yy, bx, by, heading), (level, p) in zip(

@@ -50,7 +50,7 @@ class UserTrack:
     """Recent steps, four numbers each: time (ms, exact in a double), displacement x and y after it, distance
     walked after it. A flat array of doubles: the garbage collector does not walk it and a snapshot writes
     it as one block, where a list of small tuples would be thousands of objects a user for both."""
-    floor: array[float] = field(default_factory=lambda: array("d", [1.0]))
+    floor_belief: array[float] = field(default_factory=lambda: array("d", [1.0]))
     """The belief over the building's floors, one probability per level (``slam_core.tracking.floors``)."""
 
     # A user travels in a snapshot as one flat tuple, its fields in declaration order and its 2-vectors as
@@ -63,13 +63,13 @@ class UserTrack:
         return (
             self.number, self.slot, self.last_t_ms, self.heading, self.walked, self.heading_offset,
             self.trail, float(d[0]), float(d[1]), float(o[0]), float(o[1]), float(g[0]), float(g[1]),
-            float(sg[0]), float(sg[1]), float(sl[0]), float(sl[1]), self.placed, self.floor,
+            float(sg[0]), float(sg[1]), float(sl[0]), float(sl[1]), self.placed, self.floor_belief,
         )  # fmt: skip
 
     def __setstate__(self, state: tuple[object, ...]) -> None:
         (
             self.number, self.slot, self.last_t_ms, self.heading, self.walked, self.heading_offset,
-            self.trail, dx, dy, ox, oy, gx, gy, sgx, sgy, slx, sly, self.placed, self.floor,
+            self.trail, dx, dy, ox, oy, gx, gy, sgx, sgy, slx, sly, self.placed, self.floor_belief,
         ) = state  # type: ignore[assignment]  # fmt: skip
         self.displacement = np.array([dx, dy])
         self.origin = np.array([ox, oy])

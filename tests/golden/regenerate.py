@@ -14,7 +14,7 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parents[1]))
 
-from server.engine.numba_cache import configure_numba_cache  # noqa: E402
+from server.slam.numba_cache import configure_numba_cache  # noqa: E402
 
 configure_numba_cache()
 

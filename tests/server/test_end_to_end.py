@@ -15,11 +15,11 @@ from websockets.sync.client import connect
 
 from server.app import create_app
 from server.cli.background_server import free_port, running_server
-from server.engine.config import load_calibration, tracker_params
 from server.ingestion.convert import anchor_type_index, building_context, to_user_batch
 from server.settings import Settings
 from server.simulation.crowd_client import device_keys, post_crowd, prepare_building
 from server.simulation.phones import known_anchors, simulated_batches
+from server.slam.config import load_calibration, tracker_params
 from slam_core.sim.simulation import Scenario, simulate
 from slam_core.tracking.tracker import BuildingTracker
 from tests.conftest import TESTBED

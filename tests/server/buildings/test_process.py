@@ -19,8 +19,8 @@ from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
 from server.app import create_app
-from server.engine import warmup
 from server.settings import Settings
+from server.slam import warmup
 from server.store.db import make_engine, make_session_factory
 from server.store.models import BatchLogRow, TrackerSnapshotRow
 from tests.server.api.test_api import _batch
@@ -145,7 +145,7 @@ def test_the_kernels_are_compiled_once_in_a_child_before_the_server_takes_reques
     migrate_with_operator(url)
     settings = Settings(data_dir=tmp_path, database_url=url, building_processes=True)
     with (
-        caplog.at_level(logging.INFO, logger="server.engine.warmup"),
+        caplog.at_level(logging.INFO, logger="server.slam.warmup"),
         TestClient(create_app(settings)) as client,
     ):
         assert client.get("/healthz").status_code == 200

@@ -19,9 +19,9 @@ from schemas.common import Position
 from server.buildings.config import Retention, TrackingConfig
 from server.buildings.host import BuildingHost
 from server.buildings.submissions import Submission
-from server.engine.config import load_calibration, tracker_params
 from server.settings import Settings
 from server.simulation.phones import KnownAnchor, known_anchors, simulated_batches
+from server.slam.config import load_calibration, tracker_params
 from server.store.db import make_engine, make_session_factory
 from server.store.migrate import upgrade
 from server.store.models import BatchLogRow, BatchRow, BuildingRow, TrackerSnapshotRow

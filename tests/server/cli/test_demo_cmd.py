@@ -31,7 +31,7 @@ def test_crowds_one_after_another_walk_the_same_building(tmp_path: Path) -> None
     env.pop("CROWDSLAM_DATABASE_URL", None)
     env.pop("CROWDSLAM_BUILDING_PROCESSES", None)  # the default: processes on more than one core
     scenario = _small_testbed(tmp_path / "small.json")
-    args = ["demo", "--rounds", "2", "--speed", "0", "--port", str(free_port()), "--scenario", str(scenario)]
+    args = ["demo", "--crowds", "2", "--speed", "0", "--port", str(free_port()), "--scenario", str(scenario)]
     done = subprocess.run([*CLI, *args], env=env, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-2000:]
     out = done.stdout
@@ -90,7 +90,7 @@ def test_a_demo_run_again_in_the_same_folder_moves_a_new_crowd(tmp_path: Path) -
     for _ in range(2):
         args = [
             "demo",
-            "--rounds",
+            "--crowds",
             "1",
             "--speed",
             "0",
@@ -124,7 +124,7 @@ def test_the_demo_stops_cleanly_on_sigint_and_sigterm_even_in_the_background(
     env.pop("CROWDSLAM_DATABASE_URL", None)
     env.pop("CROWDSLAM_BUILDING_PROCESSES", None)  # the default: processes on more than one core
     scenario = _small_testbed(tmp_path / "small.json")
-    args = ["demo", "--rounds", "0", "--speed", "5", "--port", str(free_port()), "--scenario", str(scenario)]
+    args = ["demo", "--crowds", "0", "--speed", "5", "--port", str(free_port()), "--scenario", str(scenario)]
     process = subprocess.Popen(
         [*CLI, *args],
         env=env,
@@ -180,7 +180,7 @@ def test_ctrl_c_while_the_demo_starts_prints_no_traceback_and_leaves_no_process(
     env.pop("CROWDSLAM_DATABASE_URL", None)
     env.pop("CROWDSLAM_BUILDING_PROCESSES", None)  # the default: processes on more than one core
     scenario = _small_testbed(tmp_path / "small.json")
-    args = ["demo", "--rounds", "0", "--speed", "5", "--port", str(free_port()), "--scenario", str(scenario)]
+    args = ["demo", "--crowds", "0", "--speed", "5", "--port", str(free_port()), "--scenario", str(scenario)]
     process = subprocess.Popen(
         [*CLI, *args],
         env=env,

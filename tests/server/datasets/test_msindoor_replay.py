@@ -15,10 +15,10 @@ from server.cli.main import main
 from server.datasets.msindoor import read_trace
 from server.datasets.msindoor_batches import trace_batches
 from server.datasets.msindoor_replay import replay_msindoor
-from server.engine.config import ReplayOptions, load_calibration, replay_params, tracker_params
 from server.ingestion.convert import building_context, to_user_batch
 from server.settings import Settings
 from server.signal_maps.tagged_walks import radio_map_of_walks
+from server.slam.config import ReplayOptions, load_calibration, replay_params, tracker_params
 from slam_core.crowd.fingerprints import FingerprintParams
 from slam_core.tracking.tracker import BuildingTracker
 from tests.conftest import TESTBED, whole_floor

@@ -1,6 +1,7 @@
 """The engine's estimate rows and chosen encounters become wire ``Estimate``s and ``EncounterEvent``s (the
 batch path's hottest conversions): equal to the models validated from their dumps, and a row that breaks the
-schema's rules is refused with a ``ValueError`` naming it."""
+schema's rules is refused naming it: as the client's (422) when it is a finite position out of range, with a
+``ValueError`` (the server's) otherwise."""
 
 from __future__ import annotations
 
@@ -57,7 +58,6 @@ def test_constructed_estimates_equal_validated_ones(geo: GeoFrame | None) -> Non
         ({"cov": (1.0, 2.0, 1.0)}, "positive semi-definite"),
         ({"cov": (-1.0, 0.0, 1.0)}, "positive semi-definite"),
         ({"heading": math.nan}, "finite number"),
-        ({"x": 1e9}, "lat_deg|lon_deg"),
     ],
 )
 def test_an_estimate_breaking_the_schema_is_refused(change: dict[str, Any], message: str) -> None:
@@ -120,3 +120,25 @@ def test_an_encounter_says_where_and_on_which_floor_the_two_met() -> None:
         bare = encounter_event(replace(base, places=places), "hq")
         assert bare.position_a is None
         assert bare.position_b is None
+
+
+@pytest.mark.parametrize(
+    ("x", "geo", "clients"),
+    [
+        (100_002.0, None, True),  # finite, beyond where positions may be: the batch walked its user there
+        (10.0, GeoFrame(89.99999, 0.0, 0.0), True),  # north of the pole: beyond WGS-84's range
+        (math.nan, None, False),  # not finite: the engine's own failure
+    ],
+    ids=["beyond-the-local-range", "beyond-wgs84", "not-finite"],
+)
+def test_an_estimate_out_of_range_is_the_clients_and_a_broken_one_the_servers(
+    x: float, geo: GeoFrame | None, clients: bool
+) -> None:
+    """A finite estimate beyond the positions the schema allows is refused as the batch's (422: its fixes
+    and steps took the user there); anything else the schema refuses is the engine's failure (a 500)."""
+    from server.errors import InvalidInputError
+
+    row = replace(_row(np.random.default_rng(3)), x=x, y=2_000.0 if geo is not None else 5.0)
+    with pytest.raises((ValueError, InvalidInputError), match="u-1") as refused:
+        estimate(row, "hq", "u-1", "d-1", geo, EstimateSource.DYNAMICSLAM)
+    assert isinstance(refused.value, InvalidInputError) == clients

@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 from server.data import shipped_scenario
-from server.engine.config import ReplayOptions, load_calibration, tracker_params
 from server.settings import Settings
 from server.simulation.evaluation import evaluate_scenario
+from server.slam.config import ReplayOptions, load_calibration, tracker_params
 from slam_core.sim.encounters import calibrate
 from slam_core.sim.simulation import Scenario
 from slam_core.sim.sweeps import swept_scenario

@@ -8,11 +8,11 @@ import json
 import pytest
 
 from schemas.sensors import PositionFix
-from server.engine.config import ReplayOptions, load_calibration, tracker_params
 from server.settings import Settings
 from server.simulation.evaluation import evaluate_scenario
 from server.simulation.liars import OFFSET_M, liar_devices, lying
 from server.simulation.phones import advertised_id, device_id, simulated_batches
+from server.slam.config import ReplayOptions, load_calibration, tracker_params
 from slam_core.sim.simulation import Scenario, simulate
 from tests.conftest import TESTBED
 

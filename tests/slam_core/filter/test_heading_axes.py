@@ -194,7 +194,7 @@ def test_the_tracker_observes_its_users_stretches_only_when_asked() -> None:
         t0 = 1_700_000_000_000
         for k in range(10):
             tracker.apply([_batch(t0 + 10_000 * k, 20, azimuth, fix=k == 0)])
-        ends[on] = _heading_error(tracker.engine, tracker._users["u"].slot)
+        ends[on] = _heading_error(tracker.filters, tracker._users["u"].slot)
         tracker.remove_user("u")
         assert not tracker._stretches  # a removed user's open stretch goes with it (none kept when off)
     assert abs(ends[False]) < 5.0

@@ -130,7 +130,7 @@ def test_filter_is_moved_by_the_revision_of_the_path_since_the_last_fix() -> Non
 def test_engine_shift_translates_particles_and_checks_its_input() -> None:
     tracker = BuildingTracker(TrackerParams(), CAL, seed=4)
     tracker.apply([_steps(T0, 3, 0.0, None, fix=True)])
-    engine = tracker.engine
+    engine = tracker.filters
     slot = np.flatnonzero(engine.state.active)
     before = (engine.state.x[slot].copy(), engine.state.y[slot].copy(), engine.state.logw[slot].copy())
     engine.shift(slot, np.array([[1.5, -2.0]]))

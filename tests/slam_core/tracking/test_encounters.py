@@ -118,10 +118,10 @@ def test_forgotten_users_free_their_slots_and_are_no_longer_heard() -> None:
     import pytest
 
     tracker = _tracker()
-    slots = tracker.engine.active_users.size
+    slots = tracker.filters.active_users.size
     tracker.remove_users(["a", "c"])
     assert tracker.users == ["b"]
-    assert tracker.engine.active_users.size == slots - 2
+    assert tracker.filters.active_users.size == slots - 2
     # "b" hears "a"'s phone: not an encounter any more, "a" is unknown until its next fix
     outcome = tracker.apply([_sighting("b", "a", T0 + 1_000, 2.0)])
     assert outcome.detections == 0
@@ -131,7 +131,7 @@ def test_forgotten_users_free_their_slots_and_are_no_longer_heard() -> None:
     assert tracker.users == ["b"]  # nothing was removed
     tracker.apply([_fix("a", (1.0, 0.0), T0 + 2_000)])  # a new fix brings "a" back, in a free slot
     assert tracker.is_tracking("a")
-    assert tracker.engine.active_users.size == slots - 1
+    assert tracker.filters.active_users.size == slots - 1
 
 
 def _walk_with_scans(user: int, t_ms: int, rng: np.random.Generator, scan_lag_ms: int = 0) -> UserBatch:

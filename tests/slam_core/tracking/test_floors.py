@@ -121,7 +121,7 @@ def test_estimates_say_the_floor_a_fix_named_and_a_fix_on_a_missing_floor_is_ref
     outcome = tracker.apply([_fix("up", (5.0, 5.0), T0, 1), _fix("down", (5.0, 5.0), T0, 0)])
     assert (outcome.estimates["up"].floor, outcome.estimates["down"].floor) == (1, 0)
     assert outcome.estimates["up"].floor_probability > 0.99
-    assert tracker.engine.levels[tracker._users["up"].slot] == 1
+    assert tracker.filters.levels[tracker._users["up"].slot] == 1
     with pytest.raises(ValueError, match=r"no floor 3; the building's floors: 0, 1"):
         tracker.apply([_fix("lost", (5.0, 5.0), T0, 3)])
     assert "lost" not in tracker.users or not tracker.is_tracking("lost")
@@ -173,7 +173,7 @@ def test_a_user_s_floor_survives_a_snapshot_and_levels_that_go_take_their_share(
     again.set_levels((0, 1))  # floor 2 taken away: the user starts over, unsure
     level, p = again.floor_of("a")
     assert p == pytest.approx(0.5)
-    assert again.engine.levels[again._users["a"].slot] == level
+    assert again.filters.levels[again._users["a"].slot] == level
 
 
 # ---------------------------------------------------------------------- the floors' fingerprints
@@ -233,7 +233,7 @@ def test_a_phone_without_a_fix_finds_its_floor_first() -> None:
     level, p = tracker.floor_of("upstairs")
     assert level == 1
     assert p > 0.9
-    assert tracker.engine.levels[tracker._users["upstairs"].slot] == 1
+    assert tracker.filters.levels[tracker._users["upstairs"].slot] == 1
 
 
 # ---------------------------------------------------------------------- ways between floors

@@ -69,7 +69,7 @@ def test_a_pickled_track_is_restored_exactly() -> None:
     track.since_gyro, track.since_laid = np.array([0.5, -1.5]), np.array([2.5, 3.5])
     track.gyro_displacement = np.array([-4.0, 8.0])
     track.placed = False
-    track.floor = array("d", [0.25, 0.75])
+    track.floor_belief = array("d", [0.25, 0.75])
     restored = pickle.loads(pickle.dumps(track, protocol=pickle.HIGHEST_PROTOCOL))
     for f in dataclasses.fields(UserTrack):
         got, want = getattr(restored, f.name), getattr(track, f.name)

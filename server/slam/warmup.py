@@ -6,7 +6,7 @@ what a busy building does: single phones and groups, each on the serial twins an
 (``slam_core.filter.kernels.serial``), and a small crowd long enough that its WiFi scans meet (Eq. 3), its
 Bluetooth sightings pair up, its scans outgrow the encounter index and the fingerprint map (both
 compact), and the fingerprint map places scans. A kernel missed here was seen only by a load run from a
-fresh install: ``tests/server/engine/test_warmup.py`` runs a simulated crowd through a building after the
+fresh install: ``tests/server/slam/test_warmup.py`` runs a simulated crowd through a building after the
 warm-up and fails if any kernel still compiles.
 """
 
@@ -24,9 +24,9 @@ from multiprocessing.queues import Queue
 
 import numpy as np
 
-from server.engine.config import load_calibration, tracker_params
 from server.process_lifetime import die_with, interrupts_held
 from server.settings import Settings
+from server.slam.config import load_calibration, tracker_params
 from slam_core.encounters.models import Calibration
 from slam_core.filter.kernels.serial import PARALLEL_MIN_USERS
 from slam_core.sensing.pdr.online import ImuSamples, PdrState, pdr_steps
@@ -66,7 +66,7 @@ def warm_kernels(params: TrackerParams, calibration: Calibration, progress: Prog
 def _warm_pair(params: TrackerParams, calibration: Calibration, parallel_min_users: int) -> None:
     """Two users with a fix, steps, an anchor detection, an encounter and a position fix."""
     tracker = BuildingTracker(params, calibration, seed=0)
-    tracker.engine.parallel_min_users = parallel_min_users
+    tracker.filters.parallel_min_users = parallel_min_users
     tracker.pin_anchor(np.array([1.0, 0.0]), 0)
     for name in ("a", "b"):
         tracker.apply(
@@ -86,8 +86,8 @@ def _warm_pair(params: TrackerParams, calibration: Calibration, parallel_min_use
                 )
             ]
         )
-    tracker.engine.observe_encounters(np.array([0]), np.array([1]), np.array([1.0]), np.array([1.0]))
-    tracker.engine.observe_position(np.array([0]), np.array([[1.0, 0.0]]), np.array([0.5]))
+    tracker.filters.observe_encounters(np.array([0]), np.array([1]), np.array([1.0]), np.array([1.0]))
+    tracker.filters.observe_position(np.array([0]), np.array([[1.0, 0.0]]), np.array([0.5]))
 
 
 def _warm_crowd(params: TrackerParams, calibration: Calibration, seconds_done: Callable[[int], None]) -> None:
@@ -138,7 +138,7 @@ def _warm_crowd(params: TrackerParams, calibration: Calibration, seconds_done: C
                     peer_rss=np.array([-60.0 - 2.0 * np.hypot(*(xy[v] - xy[u])) for v in near]),
                 )
             )
-        tracker.engine.parallel_min_users = 1 if second % 2 else PARALLEL_MIN_USERS
+        tracker.filters.parallel_min_users = 1 if second % 2 else PARALLEL_MIN_USERS
         tracker.apply(batches)
         seconds_done(second)
 

@@ -21,8 +21,8 @@ sys.path.insert(0, {root!r})
 from numba.core.registry import CPUDispatcher
 
 import slam_core
-from server.engine.config import load_calibration, tracker_params
-from server.engine.warmup import warm_kernels
+from server.slam.config import load_calibration, tracker_params
+from server.slam.warmup import warm_kernels
 from server.buildings.config import TrackingConfig
 from server.buildings.submissions import Submission
 from server.settings import Settings
@@ -60,7 +60,7 @@ with tempfile.TemporaryDirectory() as tmp:
     for batch in simulated_batches(simulate(small_crowd(users=23, walk_m=150.0), 3), "b"):
         groups.setdefault((batch.time_span_ms() or (0, 0))[1], []).append(batch)
     for k, group in enumerate(groups.values()):
-        building.tracker.engine.parallel_min_users = 1 if k % 2 else PARALLEL_MIN_USERS
+        building.tracker.filters.parallel_min_users = 1 if k % 2 else PARALLEL_MIN_USERS
         subs = [Submission.of(b, b.model_dump_json().encode(), time.time_ns()) for b in group]
         for part in (subs,) if k % 3 else ([s] for s in subs):
             building.process(list(part))

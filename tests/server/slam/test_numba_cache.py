@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from server.engine import numba_cache
+from server.slam import numba_cache
 from tests.conftest import ROOT
 
 

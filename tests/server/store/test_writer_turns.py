@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from server.store.db import make_engine
-from server.store.writer_lock import WriterTurns, writer_turns
+from server.store.writer_turns import WriterTurns, writer_turns
 from tests.server.buildings.test_restart import CROWD, _building, _fresh_building
 
 
@@ -105,7 +105,7 @@ def test_a_file_system_without_flock_falls_back_to_the_busy_handler(
         raise OSError(errno.ENOLCK, "No locks available")
 
     monkeypatch.setattr(fcntl, "flock", refuse)
-    with caplog.at_level(logging.WARNING, logger="server.store.writer_lock"):
+    with caplog.at_level(logging.WARNING, logger="server.store.writer_turns"):
         with turns:
             pass
         with turns:  # not tried again
