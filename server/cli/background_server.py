@@ -111,3 +111,18 @@ def serve_process(
             return False
 
     return wait_until_ready(process, "crowdslam serve", log, answers, start_timeout_s, poll_s=0.2)
+
+
+def spawned_processes(data_dir: Path) -> list[int]:
+    """The processes a server of this data directory spawned that are still alive: its buildings', its
+    kernels' compile, its signal-map builds' (Linux ``/proc``)."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        try:
+            cmdline = (entry / "cmdline").read_bytes()
+            environ = (entry / "environ").read_bytes()
+        except OSError:
+            continue
+        if b"spawn_main" in cmdline and f"CROWDSLAM_DATA_DIR={data_dir}".encode() in environ.split(b"\0"):
+            found.append(int(entry.name))
+    return found

@@ -10,12 +10,13 @@ import re
 import signal
 import subprocess
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from server.cli.background_server import CLI, free_port
+from server.cli.background_server import CLI, free_port, spawned_processes
 from server.simulation.crowd_client import crowd_epoch_ms
 from server.store.db import make_engine
 from slam_core.sim.simulation import Scenario, simulate
@@ -107,6 +108,24 @@ def test_a_demo_run_again_in_the_same_folder_moves_a_new_crowd(tmp_path: Path) -
         assert float(median) < 3.0
 
 
+def _demo_running_until_stopped(tmp_path: Path, preexec: Callable[[], object]) -> subprocess.Popen[str]:
+    """``crowdslam demo`` of a small crowd, forever, in its data folder, with the server's default of building
+    processes; ``preexec`` runs in the child before it starts (a process group of its own, say)."""
+    env = {**os.environ, "CROWDSLAM_DATA_DIR": str(tmp_path / "data")}
+    env.pop("CROWDSLAM_DATABASE_URL", None)
+    env.pop("CROWDSLAM_BUILDING_PROCESSES", None)  # the default: processes on more than one core
+    scenario = _small_testbed(tmp_path / "small.json")
+    args = ["demo", "--crowds", "0", "--speed", "5", "--port", str(free_port()), "--scenario", str(scenario)]
+    return subprocess.Popen(
+        [*CLI, *args],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        preexec_fn=preexec,
+    )
+
+
 @pytest.mark.parametrize(
     ("signum", "to_group"),
     [(signal.SIGINT, False), (signal.SIGTERM, False), (signal.SIGINT, True)],
@@ -120,19 +139,9 @@ def test_the_demo_stops_cleanly_on_sigint_and_sigterm_even_in_the_background(
     (no logged body is left to replay). Ctrl-C in a terminal reaches the whole process group, the building's
     process too, which had died with a traceback in the middle of a transaction: children leave it to the
     demo, which stops them in order."""
-    env = {**os.environ, "CROWDSLAM_DATA_DIR": str(tmp_path / "data")}
-    env.pop("CROWDSLAM_DATABASE_URL", None)
-    env.pop("CROWDSLAM_BUILDING_PROCESSES", None)  # the default: processes on more than one core
-    scenario = _small_testbed(tmp_path / "small.json")
-    args = ["demo", "--crowds", "0", "--speed", "5", "--port", str(free_port()), "--scenario", str(scenario)]
-    process = subprocess.Popen(
-        [*CLI, *args],
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        # a terminal's foreground process group of its own, or a shell's `&` (SIGINT ignored)
-        preexec_fn=os.setpgrp if to_group else lambda: signal.signal(signal.SIGINT, signal.SIG_IGN),
+    # a terminal's foreground process group of its own, or a shell's `&` (SIGINT ignored)
+    process = _demo_running_until_stopped(
+        tmp_path, os.setpgrp if to_group else lambda: signal.signal(signal.SIGINT, signal.SIG_IGN)
     )
     try:
         assert process.stdout is not None
@@ -174,21 +183,7 @@ def test_ctrl_c_while_the_demo_starts_prints_no_traceback_and_leaves_no_process(
     """Ctrl-C in a terminal reaches the whole process group, children just being spawned too (the kernels'
     compile, a building's process, importing numba): each had printed a KeyboardInterrupt traceback. They
     are started with Ctrl-C blocked and die with the demo."""
-    from tests.server.cli.test_kill_restart import _building_processes
-
-    env = {**os.environ, "CROWDSLAM_DATA_DIR": str(tmp_path / "data")}
-    env.pop("CROWDSLAM_DATABASE_URL", None)
-    env.pop("CROWDSLAM_BUILDING_PROCESSES", None)  # the default: processes on more than one core
-    scenario = _small_testbed(tmp_path / "small.json")
-    args = ["demo", "--crowds", "0", "--speed", "5", "--port", str(free_port()), "--scenario", str(scenario)]
-    process = subprocess.Popen(
-        [*CLI, *args],
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        preexec_fn=os.setpgrp,
-    )
+    process = _demo_running_until_stopped(tmp_path, os.setpgrp)
     try:
         time.sleep(after_s)
         os.killpg(process.pid, signal.SIGINT)
@@ -203,9 +198,9 @@ def test_ctrl_c_while_the_demo_starts_prints_no_traceback_and_leaves_no_process(
         if process.stdout is not None:
             process.stdout.close()
     deadline = time.monotonic() + 10.0
-    while _building_processes(tmp_path / "data") and time.monotonic() < deadline:
+    while spawned_processes(tmp_path / "data") and time.monotonic() < deadline:
         time.sleep(0.1)
-    assert _building_processes(tmp_path / "data") == []
+    assert spawned_processes(tmp_path / "data") == []
 
 
 def test_a_crowds_clock_runs_at_most_a_minute_ahead_of_the_wall_clock() -> None:

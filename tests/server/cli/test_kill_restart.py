@@ -14,27 +14,12 @@ import httpx
 import pytest
 
 from schemas.api import BatchReceipt
-from server.cli.background_server import CLI, free_port, serve_process
+from server.cli.background_server import CLI, free_port, serve_process, spawned_processes
 from server.simulation.crowd_client import device_keys, prepare_building
 from server.simulation.phones import simulated_batches
 from slam_core.sim.simulation import Scenario, simulate
 from tests.conftest import TESTBED
 from tests.server.signal_maps.test_jobs import _walk
-
-
-def _building_processes(data_dir: Path) -> list[int]:
-    """Processes a server of this data directory spawned: its buildings', its signal-map builds' (Linux
-    /proc)."""
-    found = []
-    for entry in Path("/proc").iterdir():
-        try:
-            cmdline = (entry / "cmdline").read_bytes()
-            environ = (entry / "environ").read_bytes()
-        except OSError:
-            continue
-        if b"spawn_main" in cmdline and f"CROWDSLAM_DATA_DIR={data_dir}".encode() in environ.split(b"\0"):
-            found.append(int(entry.name))
-    return found
 
 
 @pytest.mark.parametrize("processes", [False, True], ids=["building-threads", "building-processes"])
@@ -78,15 +63,15 @@ def test_kill_9_loses_no_acknowledged_batch_and_tracking_resumes(tmp_path: Path,
             auth = {"Authorization": f"Bearer {operator}"}
             anchors_before = client.get("/v1/buildings/hq/anchors", headers=auth).json()
             positions_before = client.get("/v1/buildings/hq/positions", headers=auth).json()
-            assert (len(_building_processes(tmp_path)) == 1) == processes
+            assert (len(spawned_processes(tmp_path)) == 1) == processes
     finally:
         server.send_signal(signal.SIGKILL)
         server.wait()
     assert all(r.status == "applied" for r in before)
     deadline = time.monotonic() + 10.0  # a building's process dies with the server
-    while _building_processes(tmp_path) and time.monotonic() < deadline:
+    while spawned_processes(tmp_path) and time.monotonic() < deadline:
         time.sleep(0.05)
-    assert _building_processes(tmp_path) == []
+    assert spawned_processes(tmp_path) == []
 
     server = serve_process(env, port, tmp_path / "server.log")
     try:
@@ -153,12 +138,12 @@ def test_kill_9_leaves_no_signal_map_build_behind(tmp_path: Path) -> None:
             ):
                 assert time.monotonic() < deadline, "the build never started"
                 time.sleep(0.02)
-            builders = _building_processes(tmp_path)  # the build's process, spawned by the server
+            builders = spawned_processes(tmp_path)  # the build's process, spawned by the server
             assert builders
     finally:
         server.send_signal(signal.SIGKILL)
         server.wait()
     deadline = time.monotonic() + 10.0
-    while _building_processes(tmp_path) and time.monotonic() < deadline:
+    while spawned_processes(tmp_path) and time.monotonic() < deadline:
         time.sleep(0.05)
-    assert _building_processes(tmp_path) == [], "a build's process outlived the server"
+    assert spawned_processes(tmp_path) == [], "a build's process outlived the server"

@@ -30,7 +30,7 @@ from typing import Any, Literal, Protocol
 
 import httpx
 
-from server.cli.background_server import CLI, free_port, wait_until_ready
+from server.cli.background_server import CLI, free_port, spawned_processes, wait_until_ready
 from server.recordings.recorder import read_batches
 from tests.server.crash.scenario import BUILDING, CrashScenario, Step
 
@@ -114,19 +114,7 @@ class Embedded:
         return wait_until_ready(process, "crowdslam serve", log, answers, 120.0, poll_s=0.05)
 
     def building_processes(self) -> list[int]:
-        """The building processes this server spawned (Linux /proc)."""
-        found = []
-        for entry in Path("/proc").iterdir():
-            try:
-                cmdline = (entry / "cmdline").read_bytes()
-                environ = (entry / "environ").read_bytes()
-            except OSError:
-                continue
-            if b"spawn_main" in cmdline and f"CROWDSLAM_DATA_DIR={self.root}".encode() in environ.split(
-                b"\0"
-            ):
-                found.append(int(entry.name))
-        return found
+        return spawned_processes(self.root)
 
     def kill(self, target: Target) -> None:
         if target == "building":
