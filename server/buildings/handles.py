@@ -109,11 +109,11 @@ class LatencyWindow:
 
 class BuildingThread:
     def __init__(
-        self, building: BuildingHost, broadcaster: Broadcaster, kernel_threads: int | None = None
+        self, host: BuildingHost, broadcaster: Broadcaster, kernel_threads: int | None = None
     ) -> None:
         """``kernel_threads``: the numba threads the building's kernels may use (default: numba's, every
         core); a cluster worker gives each building one, as a building's process does."""
-        self.building = building
+        self.host = host
         self._broadcaster = broadcaster
         self._queue: asyncio.Queue[_Pending] = asyncio.Queue()
 
@@ -123,13 +123,13 @@ class BuildingThread:
 
         self._executor = ThreadPoolExecutor(
             max_workers=1,
-            thread_name_prefix=f"building-{building.building_id}",
+            thread_name_prefix=f"building-{host.building_id}",
             initializer=limit_kernel_threads,
         )
         self._task = asyncio.get_running_loop().create_task(self._run())
         self.latency = LatencyWindow()
         self.group_sizes = LatencyWindow()
-        self._pacing = GroupPacing(building.group_linger_s)
+        self._pacing = GroupPacing(host.group_linger_s)
         self.alive = True
 
     @property
@@ -138,11 +138,11 @@ class BuildingThread:
 
     @property
     def geo(self) -> GeoFrame | None:
-        return self.building.geo
+        return self.host.geo
 
     @property
     def counters(self) -> Counters:
-        return self.building.counters
+        return self.host.counters
 
     async def submit(self, submission: Submission) -> bytes:
         """The batch's receipt, as JSON."""
@@ -156,10 +156,10 @@ class BuildingThread:
 
     async def ask(self, call: Call[T]) -> T:
         """Run ``call`` on the building's thread (anchor edits stay ordered with batches)."""
-        return await asyncio.get_running_loop().run_in_executor(self._executor, call.run, self.building)
+        return await asyncio.get_running_loop().run_in_executor(self._executor, call.run, self.host)
 
     def publish(self, messages: list[LiveMessage]) -> None:
-        self._broadcaster.publish(self.building.building_id, messages)
+        self._broadcaster.publish(self.host.building_id, messages)
 
     async def _run(self) -> None:
         loop = asyncio.get_running_loop()
@@ -167,7 +167,7 @@ class BuildingThread:
             try:
                 group = [await asyncio.wait_for(self._queue.get(), IDLE_S)]
             except TimeoutError:
-                await loop.run_in_executor(self._executor, self.building.idle)
+                await loop.run_in_executor(self._executor, self.host.idle)
                 continue
             try:
                 wait = self._pacing.wait_s(time.monotonic())
@@ -203,20 +203,20 @@ class BuildingThread:
 
     def _process(self, group: list[Submission]) -> tuple[list[bytes | ProblemError], list[LiveMessage]]:
         """On the building's thread: the group, with its receipts serialised there."""
-        result = self.building.process(group)
+        result = self.host.process(group)
         return result.wire_receipts(), result.messages
 
     async def close(self) -> None:
         # a clean stop leaves nothing to replay: the next start loads this snapshot and an empty log
-        await self._stop(self.building.close)
+        await self._stop(self.host.close)
 
     async def abandon(self) -> None:
         """Stop without a snapshot: the building is another worker's now (cluster mode)."""
-        await self._stop(self.building.abandon)
+        await self._stop(self.host.abandon)
 
     def _fail_stopped(self, pending: list[_Pending]) -> None:
         """Answer batches the stopped building will not apply: send them again (to its next owner)."""
-        stopped = ServiceUnavailableError(f"building {self.building.building_id!r} stopped; send again", 1.0)
+        stopped = ServiceUnavailableError(f"building {self.host.building_id!r} stopped; send again", 1.0)
         for p in pending:
             if not p.future.done():
                 p.future.set_exception(stopped)
@@ -229,5 +229,5 @@ class BuildingThread:
         self._fail_stopped([self._queue.get_nowait() for _ in range(self._queue.qsize())])
         await asyncio.get_running_loop().run_in_executor(self._executor, last)
         self._executor.shutdown(wait=True)
-        if self.building.recorder is not None:
-            self.building.recorder.close()
+        if self.host.recorder is not None:
+            self.host.recorder.close()

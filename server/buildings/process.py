@@ -180,12 +180,12 @@ def serve_building(building_id: str, settings: Settings, sock: socket.socket, fr
 
 
 class _BuildingLoop:
-    def __init__(self, building: BuildingHost, sock: socket.socket) -> None:
-        self.building = building
+    def __init__(self, host: BuildingHost, sock: socket.socket) -> None:
+        self.host = host
         self.sock = sock
         self.batches: list[tuple[int, BatchFields]] = []
         self.reader = FrameReader(sock)
-        self.pacing = GroupPacing(building.group_linger_s)
+        self.pacing = GroupPacing(host.group_linger_s)
 
     def run(self) -> None:
         reader = self.reader
@@ -194,7 +194,7 @@ class _BuildingLoop:
             if frame is None:  # the front is gone without closing us: a crash, nothing more to write
                 return
             if frame is _NONE:
-                self.building.idle()
+                self.host.idle()
                 continue
             frames = [frame]
             now = time.monotonic()
@@ -214,9 +214,9 @@ class _BuildingLoop:
                     continue
                 self._flush()
                 if f[0] == "close":
-                    self.building.close()
-                    if self.building.recorder is not None:
-                        self.building.recorder.close()
+                    self.host.close()
+                    if self.host.recorder is not None:
+                        self.host.recorder.close()
                     _send(self.sock, ("result", f[1], True, None))
                     return
                 self._call(f[1], f[2])
@@ -242,7 +242,7 @@ class _BuildingLoop:
         if group:
             self.pacing.start(time.monotonic())
             try:
-                result = self.building.process(group)
+                result = self.host.process(group)
             except Exception as exc:  # as on a building's thread: every batch of the group fails with it
                 answers.update((request, transportable(exc)) for request in ids)
             else:
@@ -250,13 +250,13 @@ class _BuildingLoop:
                 messages = [live_json(m) for m in result.messages]
             self.pacing.end(len(group), self.reader.pending())
         seconds = time.perf_counter() - started
-        _send(self.sock, ("group", list(answers.items()), messages, self.building.counters, seconds))
+        _send(self.sock, ("group", list(answers.items()), messages, self.host.counters, seconds))
 
     def _call(self, request: int, call: Call[Any]) -> None:
         try:
             if not isinstance(call, Call):
                 raise TypeError(f"not a building call: {type(call).__name__}")
-            value = call.run(self.building)
+            value = call.run(self.host)
         except Exception as exc:
             _send(self.sock, ("result", request, False, transportable(exc)))
             return

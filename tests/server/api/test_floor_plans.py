@@ -19,7 +19,7 @@ PLAN = "/v1/buildings/hq/floors/0/plan"
 def _tracked_plan(api: Api) -> object:
     """The plan the building's tracker weighs steps with (None: none)."""
     worker: Any = api.client.app.state.crowdslam.tracking.handles["hq"]  # type: ignore[attr-defined]
-    return worker.building.tracker.filters.floor_plans.get(0)
+    return worker.host.tracker.filters.floor_plans.get(0)
 
 
 def test_a_plan_is_stored_served_and_tracked(api: Api) -> None:
@@ -43,7 +43,7 @@ def test_a_plan_is_stored_served_and_tracked(api: Api) -> None:
         again = stack.enter_context(TestClient(create_app(api.settings)))
         again.get("/v1/buildings/hq/anchors", headers=op)  # loads the building
         worker: Any = again.app.state.crowdslam.tracking.handles["hq"]  # type: ignore[attr-defined]
-        assert worker.building.tracker.filters.floor_plans[0].walls.shape == (5, 4)
+        assert worker.host.tracker.filters.floor_plans[0].walls.shape == (5, 4)
 
 
 def test_a_wgs84_plan_is_placed_by_the_geo_reference(sqlite_api: Api) -> None:

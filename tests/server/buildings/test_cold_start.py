@@ -95,4 +95,4 @@ def test_a_phone_without_a_fix_is_placed_by_the_buildings_radio_map(cold_api: Ap
     last = receipts[-1]["estimate"]
     assert abs(last["position"]["x_m"] - x) < 5.0
     worker: Any = api.client.app.state.crowdslam.tracking.handles["hq"]  # type: ignore[attr-defined]
-    assert worker.building.tracker.radio_map_id == "build1"  # loaded with the building
+    assert worker.host.tracker.radio_map_id == "build1"  # loaded with the building

@@ -148,7 +148,7 @@ def test_a_build_from_recordings_serves_maps(sqlite_api: Api) -> None:
     radio = json.loads(api.client.get(f"{base}/radio_map.json", headers=op).content)["scans"]
     assert len(radio) == 20  # a scan every 2 s of two 20 s walks
     assert all(abs(s["y_m"]) < 1.0 and set(s["aps"]) <= set(APS) for s in radio)
-    tracker: Any = api.client.app.state.crowdslam.tracking.handles["hq"].building.tracker  # type: ignore[attr-defined]
+    tracker: Any = api.client.app.state.crowdslam.tracking.handles["hq"].host.tracker  # type: ignore[attr-defined]
     deadline = time.monotonic() + 10
     while tracker.radio_map_id != job["id"] and time.monotonic() < deadline:
         time.sleep(0.05)
@@ -180,7 +180,7 @@ def test_each_floor_gets_its_own_maps_and_its_scans_join_its_fingerprints(sqlite
     assert sorted((t["device_id"], t["floor"]) for t in tracks) == [("phone-a", 0), ("phone-b", 1)]
     radio = json.loads(api.client.get(f"{base}/radio_map.json", headers=op).content)["scans"]
     assert sorted({s["floor"] for s in radio}) == [0, 1]
-    tracker: Any = api.client.app.state.crowdslam.tracking.handles["hq"].building.tracker  # type: ignore[attr-defined]
+    tracker: Any = api.client.app.state.crowdslam.tracking.handles["hq"].host.tracker  # type: ignore[attr-defined]
     deadline = time.monotonic() + 10
     while tracker.radio_map_id != job["id"] and time.monotonic() < deadline:
         time.sleep(0.05)
