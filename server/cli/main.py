@@ -78,21 +78,33 @@ def main(argv: Sequence[str] | None = None) -> int:
     # deferred: the command's dependencies load when it runs (`crowdslam --help` loads none)
     from server.slam.numba_cache import configure_numba_cache
 
-    configure_numba_cache()
-    module = importlib.import_module(args._module)
     try:
-        return int(module.run(args))
+        configure_numba_cache()
+        return int(importlib.import_module(args._module).run(args))
     except KeyboardInterrupt:
         return 130
     except BrokenPipeError:  # output piped into `head` and closed early
         sys.stderr.close()
         return 0
     except Exception as exc:
+        if _interrupted(exc):
+            return 130
         line = user_errors.message(exc)
         if line is None:
             raise  # a bug: the traceback is what a report needs
         sys.stderr.write(f"crowdslam {args.command}: {line}\n")
         return user_errors.EXIT_USER_ERROR
+
+
+def _interrupted(exc: BaseException) -> bool:
+    """Whether Ctrl-C caused ``exc``: an extension module interrupted while it initialises raises an
+    ``ImportError`` whose cause is the ``KeyboardInterrupt``."""
+    seen: BaseException | None = exc
+    while seen is not None:
+        if isinstance(seen, KeyboardInterrupt):
+            return True
+        seen = seen.__cause__ or seen.__context__
+    return False
 
 
 if __name__ == "__main__":
