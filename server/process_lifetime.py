@@ -30,6 +30,13 @@ def interrupts_held() -> Iterator[None]:
     inherits the blocked signal from its first instruction (``die_with`` then ignores it). A terminal's
     Ctrl-C reaches its whole process group; a child that saw it would print a traceback from wherever it
     was (importing numba, say) and die under its parent, which stops its children in order itself."""
+    if sys.platform != "win32":
+        from multiprocessing import resource_tracker
+
+        # started on a first spawn, the resource tracker unblocks SIGINT in the calling thread once it runs
+        # (multiprocessing blocks SIGINT and SIGTERM around its own start, then unblocks both): started
+        # before the mask is set, it cannot undo it
+        resource_tracker.ensure_running()
     held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
         yield

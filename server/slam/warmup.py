@@ -13,6 +13,7 @@ warm-up and fails if any kernel still compiles.
 from __future__ import annotations
 
 import asyncio
+import hashlib
 import logging
 import multiprocessing
 import os
@@ -21,7 +22,9 @@ import time
 from collections.abc import Callable
 from dataclasses import replace
 from multiprocessing.queues import Queue
+from pathlib import Path
 
+import numba
 import numpy as np
 
 from server.process_lifetime import die_with, interrupts_held
@@ -178,6 +181,12 @@ async def compile_kernels_in_child(settings: Settings, progress: Progress | None
     progress is awaited on the event loop, not in a thread: a server stopped meanwhile (Ctrl-C) exits at
     once, and the child with it, where a thread waiting for it had held the exit until the compile ended."""
     started = time.perf_counter()
+    warm = warm_marker()
+    if warm is not None and warm.exists():  # every kernel is in the cache for this CPU already
+        if progress is not None:
+            progress(WARM_STEPS, WARM_STEPS)
+        logger.info("kernels found in the cache (%s)", warm)
+        return
     context = multiprocessing.get_context("spawn")
     steps: Queue[int] = context.Queue()
     process = context.Process(  # daemonic: a server exiting ends it rather than waiting for it
@@ -204,4 +213,19 @@ async def compile_kernels_in_child(settings: Settings, progress: Progress | None
         steps.close()
     if process.exitcode != 0:
         raise RuntimeError(f"compiling the kernels failed in their process (exit code {process.exitcode})")
+    if warm is not None:
+        warm.touch()
     logger.info("kernels compiled into the cache in %.1f s", time.perf_counter() - started)
+
+
+def warm_marker() -> Path | None:
+    """The file that says numba's cache folder (``NUMBA_CACHE_DIR``, keyed by the kernels' sources) holds
+    every kernel compiled for this machine's CPU: written once a compile child has run the whole warm-up, so
+    that later starts spend no child on it (~2 s a start). None without a cache folder."""
+    folder = os.environ.get("NUMBA_CACHE_DIR")
+    if not folder:
+        return None
+    import llvmlite.binding as llvm  # loaded with numba already: the kernels' modules import it
+
+    cpu = f"{llvm.get_host_cpu_name()} {llvm.get_host_cpu_features().flatten()} {numba.__version__}"
+    return Path(folder) / f"warm-{hashlib.sha256(cpu.encode()).hexdigest()[:16]}"
