@@ -69,6 +69,7 @@ def replay_offline(
             for recorded in batches:
                 try:
                     batch = decode_batch(recorded.raw, settings.max_batch_bytes)
+                    submission = Submission.of(batch, recorded.raw, recorded.received_ns)
                 except ProblemError:
                     report.rejected += 1
                     continue
@@ -82,7 +83,7 @@ def replay_offline(
                         batch.building_id, sessions, TrackingConfig(params, calibration, settings.seed)
                     )
                     buildings[batch.building_id] = building
-                result = building.process([Submission.of(batch, recorded.raw, recorded.received_ns)])
+                result = building.process([submission])
                 receipt = result.receipts[0]
                 if isinstance(receipt, ProblemError):
                     report.rejected += 1

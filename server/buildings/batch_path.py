@@ -30,7 +30,7 @@ from server.errors import (
     InvalidInputError,
     ProblemError,
 )
-from server.ingestion import convert
+from server.ingestion import convert, transport
 from server.store import repositories as repo
 from server.store.batches import AcceptedBatch, insert_batches_once
 from server.store.db import is_disk_full
@@ -113,7 +113,7 @@ class BatchPath:
 
     def _process(self, group: list[Submission]) -> GroupResult:
         b = self.building
-        ctx: convert.BuildingContext | None = None  # only for batches not converted by the front
+        ctx: convert.BuildingContext | None = None  # made once a group, for the batches with landmarks
         results: list[BatchReceipt | ProblemError | None] = [None] * len(group)
         converted: dict[int, tuple[UserBatch, list[str]]] = {}
         for i, sub in enumerate(group):
@@ -126,18 +126,15 @@ class BatchPath:
                     f"/v1/buildings/{b.building_id}/devices/{header.device_id})"
                 )
                 continue
-            c = sub.converted
-            if c is None or sub.landmarks:
-                ctx = ctx or b.context()
-                try:
-                    if c is None:
-                        assert sub.batch is not None  # a Submission holds one or the other
-                        c = convert.to_user_batch(sub.batch, ctx)
-                    else:  # converted by the front, but for the landmarks: only the building can place them
-                        c = convert.with_landmarks(c, sub.landmarks or [], ctx)
-                except ValueError as exc:
-                    results[i] = InvalidInputError(str(exc))
-                    continue
+            try:
+                if sub.landmarks:  # only the building can place them: its frame, extent, floors, anchors
+                    ctx = ctx or b.context()
+                    c = convert.placed(sub.columns, sub.landmarks, ctx)
+                else:
+                    c = convert.Converted(transport.unpack(sub.columns), [])
+            except ValueError as exc:
+                results[i] = InvalidInputError(str(exc))
+                continue
             converted[i] = (c.user_batch, c.warnings)
         messages: list[LiveMessage] = []
         order = list(converted)

@@ -48,6 +48,6 @@ class TrackingConfig:
     extent_margin_m: float = 1000.0
     """How far beyond its floors a position posted to a building may lie (``server.ingestion.extent``)."""
     group_linger_s: float = 0.02
-    """How long a busy building lets batches gather into its next group (``server.buildings.handles.
+    """How long a busy building lets batches gather into its next group (``server.buildings.groups.
     GroupPacing``): each group pays a fixed cost (a transaction, the filters' calls), which batches
     gathered into one group share."""

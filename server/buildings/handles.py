@@ -10,8 +10,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import math
-import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -22,14 +20,12 @@ import numba
 from schemas.live import LiveMessage
 from server.buildings.calls import Call
 from server.buildings.counters import Counters
+from server.buildings.groups import MAX_GROUP, GroupRunner
 from server.buildings.host import IDLE_S, BuildingHost
 from server.buildings.submissions import Submission
-from server.errors import ProblemError, ServiceUnavailableError
+from server.errors import ServiceUnavailableError
 from server.live.broadcast import Broadcaster
 from slam_core.geo import GeoFrame
-
-MAX_GROUP = 256
-
 
 T = TypeVar("T")
 
@@ -56,36 +52,6 @@ class BuildingHandle(Protocol):
     def publish(self, messages: list[LiveMessage]) -> None: ...
     async def close(self) -> None: ...
     async def abandon(self) -> None: ...
-
-
-class GroupPacing:
-    """When a building's next group starts: a group pays a fixed cost (a transaction, the filters' and the
-    encounters' calls) that its batches share, and applying each batch as soon as the building is free
-    keeps the groups at one batch at moderate loads. So while the building is busy, which its last group
-    says (it held more than one
-    batch, or batches were waiting when it ended), the next group starts ``linger_s`` after the previous
-    one started and takes what arrived meanwhile, as Kafka's ``linger.ms`` and PostgreSQL's
-    ``commit_delay`` do. A phone posting alone, or a replay posting one batch after another's receipt,
-    never finds the building busy and never waits; a group that took longer than ``linger_s`` starts the
-    next at once."""
-
-    def __init__(self, linger_s: float) -> None:
-        self.linger_s = linger_s
-        self._started = -math.inf
-        self._busy = False
-
-    def wait_s(self, now: float) -> float:
-        """How long a group whose first batch is here waits for more (``now``: ``time.monotonic()``)."""
-        if not self._busy:
-            return 0.0
-        return max(0.0, self._started + self.linger_s - now)
-
-    def start(self, now: float) -> None:
-        self._started = now
-
-    def end(self, size: int, waiting: bool) -> None:
-        """The group that started last held ``size`` batches; ``waiting``: batches arrived meanwhile."""
-        self._busy = size > 1 or waiting
 
 
 @dataclass
@@ -129,7 +95,7 @@ class BuildingThread:
         self._task = asyncio.get_running_loop().create_task(self._run())
         self.latency = LatencyWindow()
         self.group_sizes = LatencyWindow()
-        self._pacing = GroupPacing(host.group_linger_s)
+        self._groups = GroupRunner(host)
         self.alive = True
 
     @property
@@ -170,41 +136,30 @@ class BuildingThread:
                 await loop.run_in_executor(self._executor, self.host.idle)
                 continue
             try:
-                wait = self._pacing.wait_s(time.monotonic())
+                wait = self._groups.wait_s()
                 if wait > 0:
                     await asyncio.sleep(wait)
                 while not self._queue.empty() and len(group) < MAX_GROUP:
                     group.append(self._queue.get_nowait())
-                self._pacing.start(time.monotonic())
-                started = time.perf_counter()
-                receipts, messages = await loop.run_in_executor(
-                    self._executor, self._process, [p.submission for p in group]
+                done = await loop.run_in_executor(
+                    self._executor,
+                    self._groups.run,
+                    [p.submission for p in group],
+                    lambda: not self._queue.empty(),
                 )
             except asyncio.CancelledError:  # stopped: nobody waits for a group that may never be answered
                 self._fail_stopped(group)
                 raise
-            except Exception as exc:
-                for p in group:
-                    if not p.future.done():
-                        p.future.set_exception(exc)
-                continue
-            finally:
-                self._pacing.end(len(group), not self._queue.empty())
-            self.latency.add(time.perf_counter() - started)
+            self.latency.add(done.seconds)
             self.group_sizes.add(len(group))
-            for p, receipt in zip(group, receipts, strict=True):
+            for p, answer in zip(group, done.answers, strict=True):
                 if p.future.done():
                     continue
-                if isinstance(receipt, ProblemError):
-                    p.future.set_exception(receipt)
+                if isinstance(answer, Exception):
+                    p.future.set_exception(answer)
                 else:
-                    p.future.set_result(receipt)
-            self.publish(messages)
-
-    def _process(self, group: list[Submission]) -> tuple[list[bytes | ProblemError], list[LiveMessage]]:
-        """On the building's thread: the group, with its receipts serialised there."""
-        result = self.host.process(group)
-        return result.wire_receipts(), result.messages
+                    p.future.set_result(answer)
+            self._broadcaster.publish_texts(self.host.building_id, done.texts, done.messages)
 
     async def close(self) -> None:
         # a clean stop leaves nothing to replay: the next start loads this snapshot and an empty log

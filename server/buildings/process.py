@@ -40,12 +40,13 @@ import numba
 from schemas.live import LiveMessage
 from server.buildings.calls import Call
 from server.buildings.counters import Counters
-from server.buildings.handles import MAX_GROUP, GroupPacing, LatencyWindow
+from server.buildings.groups import MAX_GROUP, GroupRunner
+from server.buildings.handles import LatencyWindow
 from server.buildings.host import IDLE_S, BuildingHost, open_building
 from server.buildings.submissions import BatchFields, Submission, batch_fields, received_batch, transportable
 from server.errors import NotFoundError, ProblemError, ServiceUnavailableError
 from server.gc_tuning import tune_gc_for_serving
-from server.live.broadcast import Broadcaster, live_json
+from server.live.broadcast import Broadcaster
 from server.process_lifetime import die_with, interrupts_held
 from server.settings import Settings
 from server.slam.warmup import warm_kernels_for
@@ -185,7 +186,7 @@ class _BuildingLoop:
         self.sock = sock
         self.batches: list[tuple[int, BatchFields]] = []
         self.reader = FrameReader(sock)
-        self.pacing = GroupPacing(host.group_linger_s)
+        self.groups = GroupRunner(host)
 
     def run(self) -> None:
         reader = self.reader
@@ -198,7 +199,7 @@ class _BuildingLoop:
                 continue
             frames = [frame]
             now = time.monotonic()
-            deadline = now + self.pacing.wait_s(now) if frame[0] == "batch" else now
+            deadline = now + self.groups.wait_s() if frame[0] == "batch" else now
             while len(self.batches) + len(frames) < MAX_GROUP:
                 more = reader.ready(max(0.0, deadline - time.monotonic()))
                 if more is None:
@@ -225,7 +226,6 @@ class _BuildingLoop:
     def _flush(self) -> None:
         if not self.batches:
             return
-        started = time.perf_counter()
         ids: list[int] = []
         group: list[Submission] = []
         answers: dict[int, bytes | Exception] = {}
@@ -238,19 +238,14 @@ class _BuildingLoop:
             ids.append(request)
             group.append(submission)
         self.batches = []
-        messages: list[str] = []
+        texts: list[str] = []
+        seconds = 0.0
         if group:
-            self.pacing.start(time.monotonic())
-            try:
-                result = self.host.process(group)
-            except Exception as exc:  # as on a building's thread: every batch of the group fails with it
-                answers.update((request, transportable(exc)) for request in ids)
-            else:
-                answers.update(zip(ids, result.wire_receipts(), strict=True))
-                messages = [live_json(m) for m in result.messages]
-            self.pacing.end(len(group), self.reader.pending())
-        seconds = time.perf_counter() - started
-        _send(self.sock, ("group", list(answers.items()), messages, self.host.counters, seconds))
+            done = self.groups.run(group, self.reader.pending)
+            wire = (a if isinstance(a, bytes) else transportable(a) for a in done.answers)
+            answers.update(zip(ids, wire, strict=True))
+            texts, seconds = done.texts, done.seconds
+        _send(self.sock, ("group", list(answers.items()), texts, self.host.counters, seconds))
 
     def _call(self, request: int, call: Call[Any]) -> None:
         try:

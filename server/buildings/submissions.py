@@ -1,4 +1,4 @@
-"""A batch as it goes to its building (its header, the validated or converted batch), as it crosses to a
+"""A batch as it goes to its building (its header, its columns and its landmarks), as it crosses to a
 building's process or a cluster's worker (``batch_fields`` and ``received_batch``), and what a group of
 batches gives back."""
 
@@ -14,7 +14,6 @@ from schemas.live import LiveMessage
 from schemas.sensors import Landmark, SensorBatch
 from server.errors import InvalidInputError, ProblemError
 from server.ingestion import convert, transport
-from server.ingestion.convert import Converted
 from server.ingestion.decoding import decode_batch
 
 
@@ -45,32 +44,30 @@ class BatchHeader(NamedTuple):
         )
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class Submission:
-    """One accepted batch for its building: the validated batch, or, from the front of a building's own
-    process, the batch converted already (``server.ingestion.transport``)."""
+    """One accepted batch for its building, in the one shape every mode gives it (threads, processes, a
+    cluster): its sensors as the columns the front packed (``server.ingestion.convert.packed``) and its
+    landmarks, which only the building can place (``convert.placed``)."""
 
     header: BatchHeader
-    raw: bytes  # the body as posted, for the recording
+    raw: bytes  # the body as posted, for the batch log and the recording
     received_ns: int
-    batch: SensorBatch | None = None
-    converted: Converted | None = None
+    columns: transport.PackedBatch
+    landmarks: tuple[Landmark, ...] = ()
     stream_sequence: int | None = None
     """Cluster mode: the batch's sequence in the batch stream, stored as applied in the group's transaction
     (``server.cluster``)."""
-    landmarks: list[Landmark] | None = None
-    """The landmarks of a batch the front converted without them: its building places them
-    (``server.ingestion.convert.with_landmarks``), as only it knows its frame, extent, floors and anchors."""
-
-    def __post_init__(self) -> None:
-        if (self.batch is None) == (self.converted is None):
-            raise ValueError("a submission carries either the batch or its conversion")
-        if self.landmarks is not None and self.converted is None:
-            raise ValueError("landmarks travel apart only with a converted batch")
 
     @classmethod
     def of(cls, batch: SensorBatch, raw: bytes, received_ns: int) -> Submission:
-        return cls(BatchHeader.of(batch), raw, received_ns, batch=batch)
+        """The front's conversion of a validated batch. Raises ``InvalidInputError`` for values its arrays
+        refuse."""
+        try:
+            columns = convert.packed(batch)
+        except ValueError as exc:
+            raise InvalidInputError(str(exc)) from None
+        return cls(BatchHeader.of(batch), raw, received_ns, columns, tuple(batch.landmarks))
 
 
 @dataclass
@@ -84,54 +81,37 @@ class GroupResult:
 
 
 BatchFields = tuple[bytes, int, tuple[Any, ...], tuple[Any, ...] | None, bytes | None]
-"""A batch on the socket: raw body, received_ns, its ``BatchHeader``, its packed conversion (None: the
-building decodes the raw body) and the JSON of the landmarks that conversion left for the building to place
-(None: none), the header and the conversion as plain tuples (a named tuple pickles by its class, which costs
+"""A batch on the socket: raw body, received_ns, its ``BatchHeader``, its columns and its landmarks' JSON
+(None: none), the header and the columns as plain tuples (a named tuple pickles by its class, which costs
 both sides of every batch)."""
 
 _LANDMARKS = TypeAdapter(list[Landmark])
 
 
 def batch_fields(submission: Submission) -> BatchFields:
-    """The front's side: a batch as it crosses to its building, converted as far as that needs nothing of
-    the building: a batch with landmarks (a phone's first, with its fix) is packed without them, and its
-    landmarks travel as their JSON for the building to place. Raises ``InvalidInputError`` where the
-    building's conversion would have answered it."""
-    packed = None
-    landmarks = None
-    batch = submission.batch
-    if batch is not None:
-        try:
-            packed = convert.packed_without_context(batch, landmarks_apart=True)  # straight to the bytes
-            if packed is None:  # raw IMU, a barometer: the arrays, packed
-                converted = convert.without_context(batch, landmarks_apart=True)
-                packed = None if converted is None else transport.pack(converted.user_batch)
-        except ValueError as exc:
-            raise InvalidInputError(str(exc)) from None
-        if batch.landmarks:
-            landmarks = _LANDMARKS.dump_json(batch.landmarks)
-    fields = None if packed is None else tuple(packed)
-    return submission.raw, submission.received_ns, tuple(submission.header), fields, landmarks
+    """A batch as it crosses to its building's process or a cluster's worker."""
+    landmarks = _LANDMARKS.dump_json(list(submission.landmarks)) if submission.landmarks else None
+    header = tuple(submission.header)
+    return submission.raw, submission.received_ns, header, tuple(submission.columns), landmarks
 
 
 def received_batch(
     raw: bytes,
     received_ns: int,
     header: tuple[Any, ...],
-    packed: tuple[Any, ...] | None,
+    columns: tuple[Any, ...] | None,
     landmarks: bytes | None = None,
 ) -> Submission:
-    """The building's side of ``batch_fields`` (also of an earlier front's batch, without ``landmarks``)."""
-    if packed is None:
-        batch = decode_batch(raw, max(len(raw), 1))  # validated by the front already
-        return Submission(BatchHeader._make(header), raw, received_ns, batch=batch)
-    user_batch = transport.unpack(transport.PackedBatch._make(packed))
+    """The building's side of ``batch_fields``. A batch without columns (a cluster's stream may still hold
+    one an earlier front published) is converted here as a front would."""
+    if columns is None:
+        return Submission.of(decode_batch(raw, max(len(raw), 1)), raw, received_ns)
     return Submission(
         BatchHeader._make(header),
         raw,
         received_ns,
-        converted=convert.Converted(user_batch, []),
-        landmarks=None if landmarks is None else _LANDMARKS.validate_json(landmarks),
+        transport.PackedBatch._make(columns),
+        () if landmarks is None else tuple(_LANDMARKS.validate_json(landmarks)),
     )
 
 

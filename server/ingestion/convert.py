@@ -28,8 +28,9 @@ from schemas.sensors import (
     WifiScan,
 )
 from server.errors import InvalidInputError
+from server.ingestion import transport
 from server.ingestion.extent import Extent
-from server.ingestion.transport import PackedBatch, pack_lists
+from server.ingestion.transport import PackedBatch
 from slam_core.encounters.models import MODEL_BLUETOOTH, MODEL_WIFI_FINGERPRINT
 from slam_core.geo import GeoFrame
 from slam_core.sensing.pdr.online import ImuSamples
@@ -106,43 +107,54 @@ def anchor_type_index(anchor_type: AnchorType) -> int:
     return _TYPE_INDEX[anchor_type]
 
 
-def without_context(batch: SensorBatch, landmarks_apart: bool = False) -> Converted | None:
-    """The batch as engine arrays when that needs nothing of its building (it has no landmarks to place),
-    else None; with ``landmarks_apart``, any batch, without its landmarks (``with_landmarks`` places them).
-    Raises ``ValueError`` as ``to_user_batch``."""
-    if batch.landmarks and not landmarks_apart:
-        return None
-    return _converted(batch, _NO_FIXES, [])
+def packed(batch: SensorBatch) -> PackedBatch:
+    """The front's half of a batch's conversion, the same in every mode: its sensors as the packed columns
+    its building receives (``server.ingestion.transport``), its landmarks left for the building to place
+    (``placed``), as only the building knows its frame, extent, floors and known anchors. Raises
+    ``ValueError`` where ``UserBatch``'s checks would.
+
+    The batches phones send most (no raw IMU or barometer: the phone counts its own steps) are packed
+    straight from the wire model's values, without the ~25 small arrays in between."""
+    if batch.pressure is not None or _has_raw_imu(batch):
+        return transport.pack(sensor_arrays(batch))
+    ints, floats, strings = _sensor_columns(batch)
+    lengths = floats["step_length"]
+    check_values(batch.effective_user_id, (lengths, floats["scan_rss"], floats["peer_rss"]), (), lengths)
+    return transport.pack_lists(batch.effective_user_id, batch.ble_advertised_id, ints, floats, strings)
+
+
+def placed(columns: PackedBatch, landmarks: Sequence[Landmark], ctx: BuildingContext) -> Converted:
+    """The building's half: the front's columns as engine arrays, with the batch's landmarks placed in the
+    building's frame (a landmark that cannot be placed skipped with a warning saying why). Raises
+    ``ValueError`` for a landmark outside the building's extent or on a floor it does not have."""
+    user_batch = transport.unpack(columns)
+    if not landmarks:
+        return Converted(user_batch, [])
+    fixes, warnings = landmark_fixes(landmarks, ctx)
+    return Converted(dataclasses.replace(user_batch, **fixes), warnings)
 
 
 def to_user_batch(batch: SensorBatch, ctx: BuildingContext) -> Converted:
-    """The batch as engine arrays. Landmarks that cannot be placed are skipped with a warning saying why."""
-    fixes, warnings = landmark_fixes(batch.landmarks, ctx)
-    return _converted(batch, fixes, warnings)
+    """The batch as engine arrays, converted by the same two halves as the live path (``packed`` at the
+    front, ``placed`` in the building), so that recovery, the evaluation and the replays see what the
+    server saw."""
+    return placed(packed(batch), batch.landmarks, ctx)
 
 
-def _converted(batch: SensorBatch, fixes: Mapping[str, Any], warnings: list[str]) -> Converted:
-    """The batch's sensors as engine arrays, with its landmarks' ``fixes`` (``landmark_fixes``)."""
+def sensor_arrays(batch: SensorBatch) -> UserBatch:
+    """The batch's sensors as engine arrays, its landmarks left out: what ``packed`` packs (straight from
+    the wire model's values where it can). Raises ``ValueError`` as ``UserBatch`` does."""
     ints, floats, strings = _sensor_columns(batch)
     fields: dict[str, Any] = {
         "user": batch.effective_user_id,
         "ble_id": batch.ble_advertised_id,
-        **fixes,
+        **_NO_FIXES,
         **{name: _ints(values) for name, values in ints.items()},
         **{name: _floats(values) for name, values in floats.items()},
         **strings,
         "imu": _imu(batch),
     }
-    user_batch = UserBatch(**fields)
-    return Converted(user_batch, warnings)
-
-
-def with_landmarks(converted: Converted, landmarks: Sequence[Landmark], ctx: BuildingContext) -> Converted:
-    """A batch the front converted without its landmarks (``landmarks_apart``), with them placed by its
-    building, which alone knows its frame, extent, floors and known anchors: the same arrays, warnings and
-    refusals as ``to_user_batch`` of the whole batch."""
-    fixes, warnings = landmark_fixes(landmarks, ctx)
-    return Converted(dataclasses.replace(converted.user_batch, **fixes), converted.warnings + warnings)
+    return UserBatch(**fields)
 
 
 def landmark_fixes(landmarks: Sequence[Landmark], ctx: BuildingContext) -> tuple[dict[str, Any], list[str]]:
@@ -180,23 +192,6 @@ def landmark_fixes(landmarks: Sequence[Landmark], ctx: BuildingContext) -> tuple
         "fix_level": _ints(fix_level) if any(fix_level) else _NO_INTS,
     }
     return fixes, warnings
-
-
-def packed_without_context(batch: SensorBatch, landmarks_apart: bool = False) -> PackedBatch | None:
-    """``transport.pack(without_context(batch).user_batch)``, built straight from the batch's values
-    without the arrays in between, for the batches phones send most (no landmarks, no raw IMU or barometer:
-    the phone counts its own steps), else None. Raises ``ValueError`` where ``UserBatch``'s checks would.
-    ``landmarks_apart``: a batch with landmarks is packed too, without them, for its building to place
-    (``with_landmarks``).
-
-    The front of a building process sends every batch packed, so this is on the front's path of every
-    batch: no ~25 small arrays made only to be joined again."""
-    if (batch.landmarks and not landmarks_apart) or batch.pressure is not None or _has_raw_imu(batch):
-        return None
-    ints, floats, strings = _sensor_columns(batch)
-    lengths = floats["step_length"]
-    check_values(batch.effective_user_id, (lengths, floats["scan_rss"], floats["peer_rss"]), (), lengths)
-    return pack_lists(batch.effective_user_id, batch.ble_advertised_id, ints, floats, strings)
 
 
 def _sensor_columns(

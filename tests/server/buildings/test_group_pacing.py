@@ -16,7 +16,8 @@ import numpy as np
 import pytest
 
 from server.buildings import process as building_process
-from server.buildings.handles import BuildingThread, GroupPacing
+from server.buildings.groups import GroupPacing
+from server.buildings.handles import BuildingThread
 from server.buildings.process import _BuildingLoop, _frame
 from server.buildings.submissions import GroupResult
 from server.live.broadcast import Broadcaster

@@ -16,6 +16,7 @@ from sqlalchemy import Engine, func, select
 
 from schemas.anchors import KnownAnchorIn
 from schemas.common import Position
+from schemas.sensors import SensorBatch
 from server.buildings.config import Retention, TrackingConfig
 from server.buildings.host import BuildingHost
 from server.buildings.submissions import Submission
@@ -224,11 +225,15 @@ def test_a_batch_older_than_the_logged_ones_is_late_after_a_restart(
     session = _building(engine)  # snapshots only on load: every group below stays in the log
     for group in _groups(CROWD)[:6]:
         session.process(group)
-    last = {b.device_id: b.seq for g in _groups(CROWD)[:6] for b in (s.batch for s in g)}
+    last = {s.header.device_id: s.header.seq for g in _groups(CROWD)[:6] for s in g}
     device, seq = next(iter(last.items()))
     restarted = _building(engine, n_particles=40 if other_parameters else None)
     assert (restarted.restore_problem is not None) == other_parameters
-    old = next(s.batch for s in CROWD if s.batch.device_id == device and s.batch.seq == seq - 1)
+    old = next(
+        SensorBatch.model_validate_json(s.raw)
+        for s in CROWD
+        if s.header.device_id == device and s.header.seq == seq - 1
+    )
     resent = old.model_copy(update={"batch_id": f"{old.batch_id}-again"})
     receipt = restarted.process([Submission.of(resent, resent.model_dump_json().encode(), 0)]).receipts[0]
     assert getattr(receipt, "status", None) == "late"
@@ -331,7 +336,7 @@ def test_idle_users_are_forgotten_at_a_snapshot_and_stay_forgotten_after_a_resta
     assert all(getattr(r, "status", None) == "applied" for r in receipts)
     assert not any(getattr(r, "tracking", True) for r in receipts)  # back without a fix: not tracked
     restarted = session()  # the snapshot has no users, the log only the batch after it
-    assert set(restarted.tracker.users) == {s.batch.effective_user_id for s in groups[8]}
+    assert set(restarted.tracker.users) == {s.header.effective_user_id for s in groups[8]}
     assert not any(restarted.tracker.is_tracking(u) for u in restarted.tracker.users)
     engine.dispose()
 
@@ -395,7 +400,7 @@ def _radio_map(folder: Path, job_id: str, subs: list[Submission]) -> None:
     from schemas.signal_maps import SignalMapJob, SignalMapStatus
     from server.ingestion.radio_maps import RECORD, write_radio_map
 
-    scans = [s for sub in subs for s in (sub.batch.wifi_scans if sub.batch is not None else [])]
+    scans = [s for sub in subs for s in SensorBatch.model_validate_json(sub.raw).wifi_scans]
     assert scans
     done = folder / "hq" / job_id
     done.mkdir(parents=True, exist_ok=True)

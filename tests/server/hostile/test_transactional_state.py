@@ -14,6 +14,7 @@ import pytest
 
 from server.buildings.submissions import Submission
 from server.errors import BatchFailedError, ProblemError
+from server.ingestion import transport
 from server.recordings.recorder import BuildingRecorder, read_batches
 from slam_core.tracking import tracker as tracker_module
 from tests.server.api.test_api import _batch
@@ -34,9 +35,9 @@ POISON = 3  # the group in which one user's batch fails
 def _poisoned(monkeypatch: pytest.MonkeyPatch, sub: Submission, exc: Exception) -> None:
     """The tracker call holding this batch fails after it has changed the tracker."""
     real = tracker_module.BuildingTracker.apply
-    assert sub.batch is not None
-    assert sub.batch.steps
-    device, first_step = sub.header.device_id, sub.batch.steps[0].t_ms
+    step_t = transport.unpack(sub.columns).step_t
+    assert step_t.size
+    device, first_step = sub.header.device_id, int(step_t[0])
 
     def apply(self: tracker_module.BuildingTracker, batches: list[tracker_module.UserBatch]) -> object:
         outcome = real(self, batches)

@@ -1,6 +1,6 @@
-"""The packed form of a converted batch (front -> building process): every field comes back equal, with the
-dtype, shape and numba type a conversion gives (another type would compile the kernels anew), writable;
-batches with landmarks are left to the building, which alone can place them."""
+"""A batch's one shape from the front to its building: its columns packed by the front (every field comes
+back equal, with the dtype, shape and numba type a conversion gives: another type would compile the kernels
+anew; writable) and its landmarks, which the building alone can place."""
 
 from __future__ import annotations
 
@@ -64,9 +64,7 @@ def _walking_batch() -> SensorBatch:
 
 
 def _walking() -> UserBatch:
-    converted = convert.without_context(_walking_batch())
-    assert converted is not None
-    return converted.user_batch
+    return convert.sensor_arrays(_walking_batch())
 
 
 def _raw_imu() -> UserBatch:
@@ -79,10 +77,9 @@ def _raw_imu() -> UserBatch:
         rotation_vector={"t_ms": t, "x": [0.0] * n, "y": [0.0] * n, "z": [0.1] * n},  # no w: NaN
         pressure={"t_ms": t[:3], "value": [1000.0, 1000.1, 1000.2]},
     )
-    converted = convert.without_context(batch)
-    assert converted is not None
-    assert converted.user_batch.imu is not None
-    return converted.user_batch
+    arrays = convert.sensor_arrays(batch)
+    assert arrays.imu is not None
+    return arrays
 
 
 def _with_signatures() -> UserBatch:
@@ -148,54 +145,38 @@ def test_unpacked_arrays_do_not_share_memory_with_the_message() -> None:
     assert packed.floats == before
 
 
-def test_only_batches_without_landmarks_convert_without_their_building() -> None:
+def test_the_front_converts_every_batch_and_leaves_its_landmarks_to_the_building() -> None:
     fix = {"kind": "fix", "t_ms": T0, "position": {"x_m": 1.0, "y_m": 2.0}, "sigma_m": 1.0}
-    assert convert.without_context(_sensor_batch(landmarks=[fix])) is None
-    plain = convert.without_context(_sensor_batch(steps=[{"t_ms": T0, "length_m": 0.7, "azimuth_rad": 0.0}]))
-    assert plain is not None
-    assert plain.warnings == []
-    assert plain.user_batch.step_t.tolist() == [T0]
+    steps = [{"t_ms": T0, "length_m": 0.7, "azimuth_rad": 0.0}]
+    batch = _sensor_batch(steps=steps, landmarks=[fix])
+    submission = Submission.of(batch, b"{}", 0)
+    assert submission.header == BatchHeader.of(batch)
+    assert submission.landmarks == tuple(batch.landmarks)
+    arrays = batch_transport.unpack(submission.columns)
+    assert arrays.step_t.tolist() == [T0]
+    assert arrays.fix_t.size == 0  # placed by the building, not the front
+    assert BatchHeader.of(_sensor_batch()) == ("phone-1", "phone-1", "b-1", 4, None, None, None)
 
 
-def test_a_submission_holds_the_batch_or_its_conversion() -> None:
-    batch = _sensor_batch()
-    header = BatchHeader.of(batch)
-    assert header == ("phone-1", "phone-1", "b-1", 4, None, None, None)
-    converted = convert.without_context(batch)
-    assert converted is not None
-    with pytest.raises(ValueError, match="either the batch or its conversion"):
-        Submission(header, b"{}", 0)
-    with pytest.raises(ValueError, match="either the batch or its conversion"):
-        Submission(header, b"{}", 0, batch=batch, converted=converted)
-    assert Submission.of(batch, b"{}", 0).header == header
-
-
-def test_a_batch_crosses_to_its_building_process_converted_its_landmarks_apart() -> None:
+def test_a_batch_crosses_to_its_building_process_as_the_front_converted_it() -> None:
     """``batch_fields`` (the front) and ``received_batch`` (the building), through pickle as on the socket:
-    every batch arrives converted; a fix travels apart, for the building to place."""
+    the submission arrives as it left, its landmarks apart for the building to place."""
     steps = [{"t_ms": T0, "length_m": 0.7, "azimuth_rad": 0.0}]
     fix = {"kind": "fix", "t_ms": T0, "position": {"x_m": 1.0, "y_m": 2.0}, "sigma_m": 1.0}
     imu = {"accelerometer": {"t_ms": [T0, T0 + 20], "x": [0.0, 0.1], "y": [0.0, 0.0], "z": [9.8, 9.7]}}
     for extra in ({"steps": steps}, {"steps": steps, "landmarks": [fix]}, {**imu, "landmarks": [fix]}):
         batch = _sensor_batch(**extra)
         raw = batch.model_dump_json().encode()
-        fields = pickle.loads(pickle.dumps(batch_fields(Submission.of(batch, raw, 7)), protocol=5))
-        received = received_batch(*fields)
-        assert received.header == BatchHeader.of(batch)
-        assert (received.raw, received.received_ns) == (raw, 7)
-        assert received.batch is None
-        assert received.converted is not None
-        assert received.landmarks == (batch.landmarks or None)
-        assert received.converted.user_batch.fix_t.size == 0  # placed by the building, not the front
+        sent = Submission.of(batch, raw, 7)
+        fields = pickle.loads(pickle.dumps(batch_fields(sent), protocol=5))
+        assert received_batch(*fields) == sent
 
 
-def test_an_earlier_fronts_batch_without_its_packed_form_is_decoded_by_the_building() -> None:
+def test_an_earlier_fronts_batch_without_its_columns_is_converted_by_the_building() -> None:
     batch = _sensor_batch(landmarks=[{"kind": "fix", "t_ms": T0, "position": {"x_m": 1.0, "y_m": 2.0}}])
     raw = batch.model_dump_json().encode()
     received = received_batch(raw, 7, tuple(BatchHeader.of(batch)), None)
-    assert received.batch == batch
-    assert received.converted is None
-    assert received.landmarks is None
+    assert received == Submission.of(batch, raw, 7)
 
 
 def _context() -> convert.BuildingContext:
@@ -225,47 +206,45 @@ _LANDMARK_SETS: dict[str, list[dict[str, Any]]] = {
 
 @pytest.mark.parametrize("name", list(_LANDMARK_SETS))
 def test_landmarks_placed_by_the_building_give_what_the_whole_batch_gives(name: str) -> None:
-    """The oracle: the whole batch converted in the building (``to_user_batch``). The front's conversion
-    without the landmarks, then ``with_landmarks`` in the building, gives the same arrays and warnings, or
-    the same refusal."""
+    """The oracle: the whole batch converted at once (``sensor_arrays`` and ``landmark_fixes``). The front's
+    columns, then ``placed`` in the building, give the same arrays and warnings, or the same refusal."""
     steps = [{"t_ms": T0 + 1, "length_m": 0.7, "azimuth_rad": 0.0}]
     batch = _sensor_batch(steps=steps, landmarks=_LANDMARK_SETS[name])
     ctx = _context()
     received = received_batch(*batch_fields(Submission.of(batch, b"{}", 0)))
-    assert received.converted is not None
-    assert received.landmarks is not None
+    assert received.landmarks
     try:
-        whole = convert.to_user_batch(batch, ctx)
+        fixes, warnings = convert.landmark_fixes(batch.landmarks, ctx)
     except ValueError as exc:
         assert name in ("outside the extent", "on a floor it does not have")
         with pytest.raises(ValueError, match="^" + re.escape(str(exc)) + "$"):
-            convert.with_landmarks(received.converted, received.landmarks, ctx)
+            convert.placed(received.columns, received.landmarks, ctx)
         return
-    assert bool(whole.warnings) == (name == "anchors, one unknown")
-    placed = convert.with_landmarks(received.converted, received.landmarks, ctx)
-    assert placed.warnings == whole.warnings
-    assert placed.user_batch.fix_t.size == whole.user_batch.fix_t.size > 0
+    whole = UserBatch(**{**vars(convert.sensor_arrays(batch)), **fixes})
+    assert bool(warnings) == (name == "anchors, one unknown")
+    placed = convert.placed(received.columns, received.landmarks, ctx)
+    assert placed.warnings == warnings
+    assert convert.to_user_batch(batch, ctx).warnings == warnings
+    assert placed.user_batch.fix_t.size == whole.fix_t.size > 0
     for f in dataclasses.fields(UserBatch):
-        a, b = getattr(placed.user_batch, f.name), getattr(whole.user_batch, f.name)
+        a, b = getattr(placed.user_batch, f.name), getattr(whole, f.name)
         if isinstance(a, np.ndarray):
             np.testing.assert_array_equal(a, b, err_msg=f.name)
         else:
             assert a == b, f.name
 
 
-@pytest.mark.parametrize("refuser", ["packed_without_context", "without_context"])
+@pytest.mark.parametrize("raw_imu", [False, True])
 def test_a_batch_the_front_cannot_convert_is_refused_there(
-    monkeypatch: pytest.MonkeyPatch, refuser: str
+    monkeypatch: pytest.MonkeyPatch, raw_imu: bool
 ) -> None:
-    def refuse(batch: SensorBatch, landmarks_apart: bool = False) -> None:
+    def refuse(*args: object) -> None:
         raise ValueError("user batch of 'phone-1': inconsistent array shapes")
 
-    monkeypatch.setattr(convert, refuser, refuse)
-    if refuser == "without_context":  # reached for raw IMU only
-        monkeypatch.setattr(convert, "packed_without_context", lambda batch, landmarks_apart=False: None)
-    batch = _sensor_batch()
+    monkeypatch.setattr(convert, "sensor_arrays" if raw_imu else "check_values", refuse)
+    extra = {"gyroscope": {"t_ms": [T0], "x": [0.0], "y": [0.0], "z": [0.1]}} if raw_imu else {}
     with pytest.raises(InvalidInputError, match="inconsistent array shapes"):
-        batch_fields(Submission.of(batch, b"{}", 0))
+        Submission.of(_sensor_batch(**extra), b"{}", 0)
 
 
 _MACS = [f"02:00:00:00:00:{i:02x}" for i in range(40)]
@@ -315,26 +294,22 @@ def _phone_batches(draw: st.DrawFn) -> SensorBatch:
 @settings(max_examples=150, deadline=None)
 @given(_phone_batches())
 def test_the_front_packs_straight_what_converting_then_packing_gives(batch: SensorBatch) -> None:
-    converted = convert.without_context(batch)
-    assert converted is not None
-    assert convert.packed_without_context(batch) == batch_transport.pack(converted.user_batch)
+    assert convert.packed(batch) == batch_transport.pack(convert.sensor_arrays(batch))
 
 
-def test_batches_with_landmarks_or_raw_imu_are_not_packed_straight() -> None:
+def test_batches_with_raw_imu_are_packed_from_their_arrays() -> None:
     fix = {"kind": "fix", "t_ms": T0, "position": {"x_m": 1.0, "y_m": 2.0}, "sigma_m": 1.0}
-    assert convert.packed_without_context(_sensor_batch(landmarks=[fix])) is None
+    with_fix = _sensor_batch(landmarks=[fix])
+    assert convert.packed(with_fix) == batch_transport.pack(convert.sensor_arrays(with_fix))
     raw = _sensor_batch(gyroscope={"t_ms": [T0], "x": [0.0], "y": [0.0], "z": [0.1]})
-    assert convert.packed_without_context(raw) is None
-    assert convert.packed_without_context(_walking_batch()) == batch_transport.pack(_walking())
+    assert batch_transport.unpack(convert.packed(raw)).imu is not None
+    assert convert.packed(_walking_batch()) == batch_transport.pack(_walking())
 
 
 def test_a_phone_that_counts_its_steps_still_sends_its_barometer() -> None:
     body = _walking_batch().model_dump() | {"pressure": {"t_ms": [T0, T0 + 200], "value": [1000.0, 999.9]}}
     batch = SensorBatch.model_validate(body)
-    assert convert.packed_without_context(batch) is None  # the straight path carries no IMU
-    converted = convert.without_context(batch)
-    assert converted is not None
-    ub = converted.user_batch
+    ub = convert.sensor_arrays(batch)
     assert ub.step_t.size == 2
     assert ub.imu is not None
     np.testing.assert_array_equal(ub.imu.pressure, [[T0, 1000.0], [T0 + 200, 999.9]])
@@ -351,9 +326,9 @@ def test_values_the_engine_refuses_are_refused_when_packed_straight() -> None:
         batch = _sensor_batch(steps=[step])
         broken = batch.model_copy(update={"steps": [batch.steps[0].model_copy(update={field: value})]})
         with pytest.raises(ValueError, match="non-finite values, sigma <= 0 or negative lengths"):
-            convert.packed_without_context(broken)
+            convert.packed(broken)
         with pytest.raises(ValueError, match="non-finite values, sigma <= 0 or negative lengths"):
-            convert.without_context(broken)
+            convert.sensor_arrays(broken)
 
 
 def test_pack_lists_refuses_unknown_fields() -> None:
