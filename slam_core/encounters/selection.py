@@ -33,6 +33,7 @@ from dataclasses import dataclass
 from typing import Protocol, TypeVar
 
 import numpy as np
+from numba import njit
 
 from slam_core.encounters.detection import DetectionArrays, EncounterDetector
 from slam_core.filter.dense_ids import unique_ints, unique_ints_inverse
@@ -60,12 +61,17 @@ class SelectionParams:
 
 
 class EncounterSelector:
-    """Per-pair cooldowns of one building (or one evaluation run)."""
+    """Per-pair cooldowns and per-user allowances of one building (or one evaluation run), kept as arrays
+    that one compiled call reads and updates for a whole tracker call's readings (``_choose``): a hash
+    table of pair keys and the time each pair last had an encounter applied, and each user's tokens left
+    and the time it last took one."""
 
     def __init__(self, params: SelectionParams) -> None:
         self.params = params
-        self._last_applied: dict[Hashable, int] = {}
-        self._tokens: dict[Hashable, tuple[float, int]] = {}  # user -> (allowance left, at time)
+        self._pairs = _PairTable()
+        self._left = np.zeros(0)  # by user id: the allowance left when it last took one
+        self._since = np.zeros(0, dtype=np.int64)  # by user id: when it last took one; _NEVER: full
+        self._ids: dict[Hashable, int] = {}  # keys and users not given as ints, interned
         self.n_considered = 0
         self.n_chosen = 0
 
@@ -80,9 +86,9 @@ class EncounterSelector:
         """Boolean mask of the readings to apply. ``pair_keys[i]`` identifies reading i's unordered pair and
         model (``pair_key``, or an int64 array from ``pair_keys``); ``predicted_m`` is the filters' distance
         between the two users; ``sigma_at_prediction_m`` is the model's range standard deviation at that
-        distance; ``users`` the two users of each reading (None: no user's cooldown applies). The chosen
-        pairs and users start their cooldowns. Vectorised but for the cooldowns of the readings that pass
-        both gates: a busy building has thousands of readings per call."""
+        distance; ``users`` the two users of each reading (None: no user's allowance applies; ints: user ids
+        >= 0). The chosen pairs and users start their cooldowns. The gates are vectorised and the cooldowns
+        one compiled pass over the readings that pass them: a busy building has thousands a call."""
         t_ms = np.asarray(t_ms, dtype=np.int64)
         predicted_m = np.asarray(predicted_m, dtype=np.float64)
         sigma_at_prediction_m = np.asarray(sigma_at_prediction_m, dtype=np.float64)
@@ -95,53 +101,167 @@ class EncounterSelector:
         if n == 0:
             return chosen
         p = self.params
-        keys = pair_keys if isinstance(pair_keys, np.ndarray) else _codes(pair_keys)
+        keys = pair_keys if isinstance(pair_keys, np.ndarray) else self._interned(pair_keys)
+        keys = np.asarray(keys, dtype=np.int64)
         latest = latest_per_pair(t_ms, keys)
         self.n_considered += int(latest.size)
         gated = latest[
             (predicted_m[latest] <= p.select_range_m) & (sigma_at_prediction_m[latest] <= p.max_sigma_m)
         ]
-        if users is not None:  # the most informative first: a user's cooldown keeps the first it takes
+        if users is None:
+            user_a = user_b = np.full(n, -1, dtype=np.int64)
+        else:  # the most informative first: a user's allowance goes to the first it takes
             gated = gated[np.argsort(sigma_at_prediction_m[gated], kind="stable")]
-        for i in gated.tolist():
-            key = pair_keys[i] if not isinstance(pair_keys, np.ndarray) else int(pair_keys[i])
-            last = self._last_applied.get(key)
-            t = int(t_ms[i])
-            if last is not None and t - last < p.pair_cooldown_ms:
-                continue
-            if users is not None:
-                a, b = _item(users[0], i), _item(users[1], i)
-                left = (self._allowance(a, t), self._allowance(b, t))
-                if min(left) < 1.0:
-                    continue
-                self._tokens[a], self._tokens[b] = (left[0] - 1.0, t), (left[1] - 1.0, t)
-            self._last_applied[key] = t
-            chosen[i] = True
-            self.n_chosen += 1
+            user_a, user_b = (self._user_ids(u) for u in users)
+            self._grow(int(max(user_a.max(), user_b.max())) + 1)
+        if gated.size:
+            self._pairs.make_room(gated.size)
+            n_chosen, n_new = _choose(
+                gated, t_ms, keys, user_a, user_b, self._pairs.keys, self._pairs.last_t_ms,
+                self._left, self._since, p.pair_cooldown_ms, p.user_burst, p.user_rate_per_s, chosen,
+            )  # fmt: skip
+            self.n_chosen += n_chosen
+            self._pairs.count += n_new
         return chosen
 
-    def _allowance(self, user: Hashable, t_ms: int) -> float:
-        """The encounters ``user`` may still take at ``t_ms`` (its bucket refilled since it last took one;
-        a reading older than that refills nothing)."""
-        p = self.params
-        held = self._tokens.get(user)
-        if held is None:
-            return p.user_burst
-        left, since = held
-        return min(p.user_burst, left + max(t_ms - since, 0) * p.user_rate_per_s / 1e3)
+    def _interned(self, values: Sequence[Hashable]) -> np.ndarray:
+        ids = self._ids
+        return np.array([ids.setdefault(v, len(ids)) for v in values], dtype=np.int64)
+
+    def _user_ids(self, values: Sequence[Hashable] | np.ndarray) -> np.ndarray:
+        if isinstance(values, np.ndarray) and values.dtype.kind in "iu":
+            ids = values.astype(np.int64, copy=False)
+            if ids.size and ids.min() < 0:
+                raise ValueError("user ids must be >= 0")
+            return ids
+        return self._interned(list(values))
+
+    def _grow(self, n_users: int) -> None:
+        if n_users > self._since.size:
+            more = max(n_users, 2 * self._since.size) - self._since.size
+            self._left = np.concatenate([self._left, np.zeros(more)])
+            self._since = np.concatenate([self._since, np.full(more, _NEVER, dtype=np.int64)])
 
     def __len__(self) -> int:
         """Pairs with a remembered cooldown."""
-        return len(self._last_applied)
+        return self._pairs.count
 
     def forget_before(self, t_ms: int) -> None:
         """Drop cooldowns that ended before ``t_ms`` (bounded memory in a long-running building)."""
         horizon = t_ms - self.params.pair_cooldown_ms
-        self._last_applied = {k: v for k, v in self._last_applied.items() if v >= horizon}
-        full = (
-            t_ms - self.params.user_burst / self.params.user_rate_per_s * 1e3
-        )  # buckets full again: forgotten
-        self._tokens = {k: v for k, v in self._tokens.items() if v[1] >= full}
+        self._pairs.keep(self._pairs.last_t_ms >= horizon)
+        full = t_ms - self.params.user_burst / self.params.user_rate_per_s * 1e3  # buckets full again
+        self._since[self._since < full] = _NEVER
+
+
+_NEVER = np.iinfo(np.int64).min
+"""A user's last encounter time when its allowance is full (never taken one, or forgotten)."""
+_EMPTY = np.iinfo(np.int64).min
+"""A free entry of the pair table (pair keys are >= 0)."""
+
+
+class _PairTable:
+    """Open addressing over int64 pair keys (linear probing, at most half full): each pair's last encounter
+    time, as arrays a compiled call reads and writes (and a snapshot pickles as two blocks)."""
+
+    def __init__(self, capacity: int = 64) -> None:
+        self.keys = np.full(capacity, _EMPTY, dtype=np.int64)
+        self.last_t_ms = np.zeros(capacity, dtype=np.int64)
+        self.count = 0
+
+    def make_room(self, more: int) -> None:
+        """Room for ``more`` new pairs with the table at most half full."""
+        need = self.count + more
+        if 2 * need > self.keys.size:
+            capacity = self.keys.size
+            while 2 * need > capacity:
+                capacity *= 2
+            self._rebuild(np.ones(self.keys.size, dtype=bool), capacity)
+
+    def keep(self, mask: np.ndarray) -> None:
+        """Keep only the pairs where ``mask`` (by table entry) holds."""
+        self._rebuild(mask, self.keys.size)
+
+    def _rebuild(self, mask: np.ndarray, capacity: int) -> None:
+        used = mask & (self.keys != _EMPTY)
+        keys, times = self.keys[used], self.last_t_ms[used]
+        self.keys = np.full(capacity, _EMPTY, dtype=np.int64)
+        self.last_t_ms = np.zeros(capacity, dtype=np.int64)
+        _insert_all(self.keys, self.last_t_ms, keys, times)
+        self.count = int(keys.size)
+
+
+@njit(cache=True, nogil=True)
+def _slot(table: np.ndarray, key: np.int64) -> int:
+    """Where ``key`` is in the table, or the free entry where it would go."""
+    mask = table.size - 1  # a power of two
+    i = int((key * np.int64(-7046029254386353131)) >> np.int64(17)) & mask  # Fibonacci-style scramble
+    while table[i] != _EMPTY and table[i] != key:
+        i = (i + 1) & mask
+    return i
+
+
+@njit(cache=True, nogil=True)
+def _insert_all(table: np.ndarray, values: np.ndarray, keys: np.ndarray, times: np.ndarray) -> None:
+    for k in range(keys.size):
+        i = _slot(table, keys[k])
+        table[i] = keys[k]
+        values[i] = times[k]
+
+
+@njit(cache=True, nogil=True)
+def _allowance(
+    left: np.ndarray, since: np.ndarray, user: int, t: np.int64, burst: float, rate: float
+) -> float:
+    """The encounters ``user`` may still take at ``t`` (its bucket refilled since it last took one; a
+    reading older than that refills nothing)."""
+    if since[user] == _NEVER:
+        return burst
+    return float(min(burst, left[user] + max(t - since[user], 0) * rate / 1e3))
+
+
+@njit(cache=True, nogil=True)
+def _choose(
+    gated: np.ndarray,
+    t_ms: np.ndarray,
+    keys: np.ndarray,
+    user_a: np.ndarray,
+    user_b: np.ndarray,
+    table: np.ndarray,
+    last_t_ms: np.ndarray,
+    left: np.ndarray,
+    since: np.ndarray,
+    cooldown_ms: int,
+    burst: float,
+    rate: float,
+    chosen: np.ndarray,
+) -> tuple[int, int]:
+    """The cooldowns over the gated readings, in order: a reading is chosen when its pair's last encounter
+    is ``cooldown_ms`` behind it and both its users (unless -1: none) have an encounter left; the chosen
+    start their cooldowns. How many were chosen, and how many of their pairs are new to the table."""
+    n = 0
+    new = 0
+    for g in range(gated.size):
+        i = gated[g]
+        t = t_ms[i]
+        at = _slot(table, keys[i])
+        if table[at] == keys[i] and t - last_t_ms[at] < cooldown_ms:
+            continue
+        a, b = user_a[i], user_b[i]
+        if a >= 0:
+            left_a = _allowance(left, since, a, t, burst, rate)
+            left_b = _allowance(left, since, b, t, burst, rate)
+            if min(left_a, left_b) < 1.0:
+                continue
+            left[a], since[a] = left_a - 1.0, t
+            left[b], since[b] = left_b - 1.0, t
+        if table[at] != keys[i]:
+            table[at] = keys[i]
+            new += 1
+        last_t_ms[at] = t
+        chosen[i] = True
+        n += 1
+    return n, new
 
 
 def latest_per_pair(t_ms: np.ndarray, keys: np.ndarray) -> np.ndarray:
@@ -151,16 +271,6 @@ def latest_per_pair(t_ms: np.ndarray, keys: np.ndarray) -> np.ndarray:
     _, first = np.unique(np.asarray(keys)[backwards], return_index=True)
     latest: np.ndarray = np.sort(backwards[first])
     return latest
-
-
-def _item(values: Sequence[Hashable] | np.ndarray, i: int) -> Hashable:
-    return int(values[i]) if isinstance(values, np.ndarray) else values[i]
-
-
-def _codes(keys: Sequence[Hashable]) -> np.ndarray:
-    """Hashable keys as integer codes (equal keys, equal codes)."""
-    index: dict[Hashable, int] = {}
-    return np.array([index.setdefault(k, len(index)) for k in keys], dtype=np.int64)
 
 
 UserId = TypeVar("UserId", int, str)

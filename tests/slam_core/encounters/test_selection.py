@@ -4,12 +4,19 @@ chosen on their own value are biased; readings chosen on the prediction are not)
 from __future__ import annotations
 
 import math
+import pickle
 
 import numpy as np
 import pytest
 
 from slam_core.encounters.models import RangeModel, fit_range_model
-from slam_core.encounters.selection import EncounterSelector, SelectionParams, latest_per_pair, pair_key
+from slam_core.encounters.selection import (
+    EncounterSelector,
+    SelectionParams,
+    latest_per_pair,
+    pair_key,
+    pair_keys,
+)
 
 PHYSICAL_BT = RangeModel("bt-quadratic", (-60.0, -22.0 / math.log(10.0), 0.0), 2.8)
 
@@ -161,3 +168,77 @@ def test_a_user_in_a_crowd_takes_its_nearest_peers_and_then_one_a_second() -> No
     assert free.choose(np.zeros(8, dtype=np.int64), keys, predicted, sigma).sum() == 8
     with pytest.raises(ValueError, match="user_rate_per_s"):
         SelectionParams(user_rate_per_s=0.0)
+
+
+class _ReferenceSelector:
+    """The oracle: the selector's rule as plain Python over dictionaries, one reading at a time."""
+
+    def __init__(self, params: SelectionParams) -> None:
+        self.params = params
+        self.last: dict[int, int] = {}
+        self.tokens: dict[int, tuple[float, int]] = {}
+
+    def allowance(self, user: int, t: int) -> float:
+        p = self.params
+        held = self.tokens.get(user)
+        if held is None:
+            return p.user_burst
+        left, since = held
+        return min(p.user_burst, left + max(t - since, 0) * p.user_rate_per_s / 1e3)
+
+    def choose(self, t_ms, keys, predicted, sigma, users):  # type: ignore[no-untyped-def]
+        p = self.params
+        chosen = np.zeros(t_ms.size, dtype=bool)
+        latest = latest_per_pair(t_ms, keys)
+        gated = latest[(predicted[latest] <= p.select_range_m) & (sigma[latest] <= p.max_sigma_m)]
+        gated = gated[np.argsort(sigma[gated], kind="stable")]
+        for i in gated.tolist():
+            key, t = int(keys[i]), int(t_ms[i])
+            if key in self.last and t - self.last[key] < p.pair_cooldown_ms:
+                continue
+            a, b = int(users[0][i]), int(users[1][i])
+            left = (self.allowance(a, t), self.allowance(b, t))
+            if min(left) < 1.0:
+                continue
+            self.tokens[a], self.tokens[b] = (left[0] - 1.0, t), (left[1] - 1.0, t)
+            self.last[key] = t
+            chosen[i] = True
+        return chosen
+
+    def forget_before(self, t_ms: int) -> None:
+        p = self.params
+        self.last = {k: v for k, v in self.last.items() if v >= t_ms - p.pair_cooldown_ms}
+        full = t_ms - p.user_burst / p.user_rate_per_s * 1e3
+        self.tokens = {k: v for k, v in self.tokens.items() if v[1] >= full}
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_compiled_cooldowns_choose_what_the_rule_read_one_reading_at_a_time_chooses(seed: int) -> None:
+    """Many calls of a busy building (readings of 60 users, out of order within a call, the table growing
+    past its first size, pickled as a snapshot would and forgotten now and then): the same choices, the same
+    allowances, the same pairs remembered."""
+    rng = np.random.default_rng(seed)
+    params = SelectionParams(
+        user_rate_per_s=[1.0, 0.7, 2.0, 1.0][seed], user_burst=[3.0, 1.0, 2.5, 3.0][seed]
+    )
+    compiled, reference = EncounterSelector(params), _ReferenceSelector(params)
+    t0 = 1_796_559_880_000
+    for call in range(120):
+        n = int(rng.integers(0, 400))
+        a, b = rng.integers(0, 60, n), rng.integers(0, 60, n)
+        b = np.where(a == b, (b + 1) % 60, b)
+        keys = pair_keys(a, b, rng.integers(0, 2, n))
+        t = t0 + 1_000 * call + rng.integers(-900, 900, n)
+        predicted = rng.uniform(0.0, 12.0, n)
+        sigma = rng.uniform(0.5, 6.0, n)
+        got = compiled.choose(t, keys, predicted, sigma, (a, b))
+        want = reference.choose(t, keys, predicted, sigma, (a, b))
+        assert got.tolist() == want.tolist(), call
+        assert len(compiled) == len(reference.last)
+        if call % 37 == 36:
+            compiled = pickle.loads(pickle.dumps(compiled))
+        if call % 25 == 24:
+            compiled.forget_before(int(t.max()) if n else t0 + 1_000 * call)
+            reference.forget_before(int(t.max()) if n else t0 + 1_000 * call)
+            assert len(compiled) == len(reference.last)
+    assert compiled.n_chosen > 100  # the cooldowns and allowances were exercised, not only the gates
