@@ -27,8 +27,10 @@ formats them as they are due), so that it costs little next to the server.
 Prints one JSON object: per-N rows (``phones, batches_per_s, p50_ms, p99_ms, ws_lag_p99_ms, errors``, and
 the server's CPU time per batch and cores used, split into its front's and its building processes' cores,
 and the generator's cores, from /proc over the measured window: the steadiest figure of what a change
-costs; ``p50_ms_per_second``: the median latency of each measured second, which shows whether a backlog
-drains, and ``p99_ms_per_second``, which shows whether the p99 is a few seconds' spikes or a broad tail)
+costs; the same as each process's CPU microseconds a batch: ``front_us_per_batch``,
+``building_us_per_batch``, ``generator_us_per_batch``; ``p50_ms_per_second``: the median latency of each
+measured second, which shows whether a backlog drains, and ``p99_ms_per_second``, which shows whether
+the p99 is a few seconds' spikes or a broad tail)
 and ``sustained``: the largest N with p99 <= 100 ms, the offered rate met within 5 % and no errors.
 
 With ``--cluster FRONTS,WORKERS`` (and ``--postgres``), each N runs on a cluster instead: a private
@@ -658,6 +660,10 @@ def run_one(
         "server_cores": round(cpu["server"] / wall, 2),
         "front_cores": round(cpu["front"] / wall, 2),
         "building_cores": round((cpu["server"] - cpu["front"]) / wall, 2),
+        # each process's CPU a batch: what a change to the front, the buildings or the generator costs
+        "front_us_per_batch": round(1e6 * cpu["front"] / max(results.sent, 1), 1),
+        "building_us_per_batch": round(1e6 * (cpu["server"] - cpu["front"]) / max(results.sent, 1), 1),
+        "generator_us_per_batch": round(1e6 * results.generator_cpu_s / max(results.sent, 1), 1),
     }
     if "postgresql" in cpu:
         row["postgresql_cpu_ms_per_batch"] = round(1e3 * cpu["postgresql"] / max(results.sent, 1), 3)
