@@ -181,12 +181,6 @@ class Settings(BaseSettings):
         "learns while it is tracked and apply it as a robust position fix (on msindoor site1 F1, warm "
         "replay, seeds 0-3: p50 2.08-2.18 m with them, 2.16-2.25 m without).",
     )
-    http_server: Literal["uvicorn", "granian"] = Field(
-        default="uvicorn",
-        description="The HTTP server `crowdslam serve` runs the app under: uvicorn (with uvloop and "
-        "httptools), or granian (Rust's HTTP stack, in the same process; `pip install crowdslam[granian]`). "
-        "The API is the same under both; docs/operations.md gives what each costs a batch.",
-    )
     ws_compression: bool = Field(
         default=False,
         description="Per-message deflate on WebSockets. It compresses every live message once per "

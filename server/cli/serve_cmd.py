@@ -52,20 +52,12 @@ def run(args: argparse.Namespace) -> int:
         asyncio.run(serve(settings))
         return 0
 
-    if settings.http_server == "granian":
-        try:
-            import granian  # noqa: F401  (told before the app loads)
-        except ImportError:
-            needs = "needs granian: pip install 'crowdslam[granian]'"
-            raise SystemExit(f"crowdslam serve: CROWDSLAM_HTTP_SERVER=granian {needs}") from None
+    import uvicorn
+
     from server.app import create_app
     from server.cli.kernel_progress import KernelProgress
 
     app = create_app(settings, tune_gc=True, warming=KernelProgress("crowdslam serve"))
-    if settings.http_server == "granian":
-        return _serve_granian(app, args)
-    import uvicorn
-
     uvicorn.run(
         app,
         host=args.host,
@@ -75,35 +67,4 @@ def run(args: argparse.Namespace) -> int:
         ws_per_message_deflate=settings.ws_compression,
         ws_max_size=settings.max_ws_frame_bytes,
     )
-    return 0
-
-
-def _serve_granian(app: object, args: argparse.Namespace) -> int:
-    """The app under granian's server embedded in this process: its HTTP/1.1 and WebSocket stack in Rust
-    threads, the app on this process's event loop (so that building processes, the numba kernels and the
-    metrics see one front process, as under uvicorn)."""
-    import asyncio
-    import signal
-
-    import uvloop
-    from granian.constants import Interfaces
-    from granian.log import LogLevels
-    from granian.server.embed import Server
-
-    server = Server(
-        app,
-        address=args.host,
-        port=args.port,
-        interface=Interfaces.ASGI,
-        log_level=LogLevels(args.log_level),
-        backlog=2048,
-    )
-
-    async def serve() -> None:
-        loop = asyncio.get_running_loop()
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.add_signal_handler(sig, server.stop)
-        await server.serve()
-
-    uvloop.run(serve())
     return 0
