@@ -95,6 +95,16 @@ class ConflictError(ProblemError):
     title = "Conflict"
 
 
+class UnexpectedError(ProblemError):
+    """Any error no handler names: logged for the operators, answered without its text."""
+
+    status = 500
+    title = "Internal server error"
+
+    def __init__(self) -> None:
+        super().__init__("the server could not answer this request; the error was logged for its operators")
+
+
 class BatchFailedError(ProblemError):
     """A batch the server could not apply for a reason of its own (logged, counted, named in ``/healthz``);
     nothing of it was kept. The answer says so and no more: the error's text is the server's, not the

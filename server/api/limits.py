@@ -16,7 +16,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from server.errors import BodyTooLargeError, MalformedBodyError, ProblemError, problem_response_parts
 
 BATCHES_PATH = re.compile(r"/v1/buildings/([^/]+)/batches")
-"""The batch route: read under its own limit by ``server.api.batches.BatchFastPath``."""
+"""The batch route: read under its own limit by ``server.api.batches.serve_batch``."""
 PLAN_PATH = re.compile(r"/v1/buildings/[^/]+/floors/[^/]+/plan")
 """Floor plans are larger than other requests (a mall floor's GeoJSON is ~0.1-0.3 MB)."""
 

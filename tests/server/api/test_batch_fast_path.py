@@ -1,6 +1,7 @@
-"""POST /batches is served by a pure ASGI middleware (``BatchFastPath``); the documented FastAPI route must
-answer exactly as it does. The same requests go to two apps on two databases, one without the middleware:
-statuses, bodies and the headers a client reads agree, for a receipt and for every error."""
+"""POST /batches is served as pure ASGI before the app's middleware (``serve_batch``, taken by
+``CrowdslamApp``); the documented FastAPI route must answer exactly as it does. The same requests go to two
+apps on two databases, one without the fast path: statuses, bodies and the headers a client reads agree,
+for a receipt and for every error."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ from typing import Any
 import pytest
 from fastapi.testclient import TestClient
 
-from server.api.batches import BatchFastPath
+from server.api import batches
 from server.app import create_app
 from server.settings import Settings
 from tests.server.api.test_api import _batch
@@ -23,9 +24,8 @@ def _client(tmp: Path, fast: bool) -> tuple[TestClient, str]:
     url = f"sqlite:///{tmp / 'db.sqlite3'}"
     operator = migrate_with_operator(url)
     app = create_app(Settings(data_dir=tmp, database_url=url, max_batch_bytes=4_000))
-    if not fast:
-        app.user_middleware = [m for m in app.user_middleware if m.cls is not BatchFastPath]
-    return TestClient(app), operator
+    app.batch_fast_path = fast
+    return TestClient(app, raise_server_exceptions=False), operator
 
 
 @pytest.fixture
@@ -87,3 +87,17 @@ def test_the_fast_path_answers_as_the_route_does(
     if status != 200:
         assert fast[2] == "application/problem+json"
         assert (fast[3] == "Bearer") == (status == 401)
+
+
+def test_an_unexpected_error_answers_500_without_its_text_on_both_paths(
+    clients: list[tuple[TestClient, dict[str, str]]], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    async def broken(*args: object) -> bytes:
+        raise RuntimeError("the secret of the ingest")
+
+    monkeypatch.setattr(batches, "ingest", broken)
+    fast, routed = (_exchange(client, keys, "applied") for client, keys in clients)
+    assert fast == routed
+    assert fast[0] == 500
+    assert fast[2] == "application/problem+json"
+    assert "secret" not in json.dumps(fast[1])
