@@ -1,10 +1,11 @@
 """A building's groups of batches, the same wherever the building runs (a thread of the server, a process of
 its own, a cluster's worker): when the next group starts (``GroupPacing``) and what running one gives back
-(``GroupRunner.run``: each batch's answer, the live messages serialised once, the time it took). Only how
+(``GroupRunner.run``: each batch's answer, the live messages, the time it took). Only how
 batches arrive and answers leave differs between those places (``handles``, ``process``)."""
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from collections.abc import Callable
@@ -49,18 +50,23 @@ class GroupPacing:
         self._busy = size > 1 or waiting
 
 
-@dataclass(frozen=True)
+@dataclass
 class GroupAnswers:
     """What a group gives back to whoever waits for its batches."""
 
     answers: list[bytes | Exception]
     """Each batch's receipt as JSON, or the error that refused it (a ``ProblemError``; anything else is the
     server's: a process sends it ``transportable``)."""
-    texts: list[str]
-    """The live messages' JSON, serialised once for every subscriber (and every front)."""
     messages: list[LiveMessage]
-    """The same messages, for live sinks in the building's own process."""
+    """The group's live messages."""
     seconds: float
+
+    @functools.cached_property
+    def texts(self) -> list[str]:
+        """The live messages' JSON, serialised once for every subscriber (and every front). A building in
+        the server's own process publishes the messages instead: the broadcaster serialises them only when
+        the building has subscribers."""
+        return [live_json(m) for m in self.messages]
 
 
 class GroupRunner:
@@ -89,5 +95,4 @@ class GroupRunner:
             messages = result.messages
         finally:
             self.pacing.end(len(group), waiting())
-        texts = [live_json(m) for m in messages]
-        return GroupAnswers(answers, texts, messages, time.perf_counter() - started)
+        return GroupAnswers(answers, messages, time.perf_counter() - started)

@@ -159,7 +159,7 @@ class BuildingThread:
                     p.future.set_exception(answer)
                 else:
                     p.future.set_result(answer)
-            self._broadcaster.publish_texts(self.host.building_id, done.texts, done.messages)
+            self.publish(done.messages)
 
     async def close(self) -> None:
         # a clean stop leaves nothing to replay: the next start loads this snapshot and an empty log

@@ -128,16 +128,11 @@ class Broadcaster:
         if self._subs.get(building_id):
             self._offer(building_id, [live_json(m) for m in messages])
 
-    def publish_texts(
-        self, building_id: str, texts: list[str], messages: list[LiveMessage] | None = None
-    ) -> None:
-        """Messages a building serialised once for all (``publish`` without serialising again); sinks, which
-        need the messages themselves, get ``messages`` or, from a building in another process, the texts
-        parsed back (only when there are sinks)."""
+    def publish_texts(self, building_id: str, texts: list[str]) -> None:
+        """Messages a building's process serialised (``publish`` without serialising again); sinks, which
+        need the messages themselves, get them parsed back only when there are sinks."""
         if self._sinks and texts:
-            if messages is None:
-                messages = [LIVE_MESSAGE_ADAPTER.validate_json(t) for t in texts]
-            self._to_sinks(building_id, messages)
+            self._to_sinks(building_id, [LIVE_MESSAGE_ADAPTER.validate_json(t) for t in texts])
         self._offer(building_id, texts)
 
     def _to_sinks(self, building_id: str, messages: list[LiveMessage]) -> None:
