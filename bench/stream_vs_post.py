@@ -19,7 +19,6 @@ import argparse
 import asyncio
 import json
 import os
-import subprocess
 import sys
 import tempfile
 import time
@@ -31,33 +30,17 @@ sys.path.insert(0, str(ROOT))
 
 import httpx
 import numpy as np
+from load import _cpu_seconds
 from report import emit
 from websockets.asyncio.client import connect
 
 from schemas.sensors import SensorBatch
-from server.cli.background_server import CLI, free_port, serve_process
+from server.cli.background_server import free_port, migrate_with_operator_key, serve_process
 from server.simulation.crowd_client import device_keys, prepare_building
 from server.simulation.phones import simulated_batches
 from slam_core.sim.simulation import Scenario, simulate
 
 SCENARIO = ROOT / "server" / "data" / "paper-testbed.json"
-CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
-
-
-def _cpu_s(pid: int, children: bool = False) -> float:
-    """CPU seconds (user + system) of a process, or of its live children (Linux /proc)."""
-    if not children:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-        return (int(fields[11]) + int(fields[12])) / CLOCK_TICKS
-    total = 0.0
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        if int(fields[1]) == pid:
-            total += (int(fields[11]) + int(fields[12])) / CLOCK_TICKS
-    return total
 
 
 async def _stretch(
@@ -114,12 +97,13 @@ async def _measure(
             by_phone: dict[str, list[bytes]] = {d: [] for d in keys}
             for i in cut.tolist():
                 by_phone[batches[i].device_id].append(batches[i].model_dump_json(exclude_none=True).encode())
-            front, buildings, client = _cpu_s(pid), _cpu_s(pid, children=True), time.process_time()
+            front, server, client = _cpu_seconds(pid), _cpu_seconds(pid, children=True), time.process_time()
             latencies[transport] += await _stretch(transport, port, by_phone, keys, posts, streams)
             f = figures[transport]
             f["batches"] += cut.size
-            f["front_s"] += _cpu_s(pid) - front
-            f["buildings_s"] += _cpu_s(pid, children=True) - buildings
+            front = _cpu_seconds(pid) - front
+            f["front_s"] += front
+            f["buildings_s"] += _cpu_seconds(pid, children=True) - server - front
             f["client_s"] += time.process_time() - client
     finally:
         for client in posts.values():
@@ -149,15 +133,7 @@ def run(users: int, rounds: int) -> dict[str, Any]:
     batches = list(simulated_batches(sim, "hq"))
     with tempfile.TemporaryDirectory() as tmp:
         env = {**os.environ, "CROWDSLAM_DATA_DIR": tmp, "CROWDSLAM_DEVICE_RATE_PER_S": "1000"}
-        subprocess.run([*CLI, "migrate"], env=env, check=True, capture_output=True)
-        created = subprocess.run(
-            [*CLI, "keys", "create", "--scope", "operator"],
-            env=env,
-            check=True,
-            capture_output=True,
-            text=True,
-        )
-        operator = created.stdout.strip().splitlines()[-1]
+        operator = migrate_with_operator_key(env)
         port = free_port()
         server = serve_process(env, port, Path(tmp) / "server.log", log_level="warning")
         try:

@@ -86,6 +86,20 @@ def running_server(
         thread.join(timeout=120)  # the lifespan's shutdown snapshots every building
 
 
+def migrate_with_operator_key(env: Mapping[str, str]) -> str:
+    """``crowdslam migrate`` and ``crowdslam keys create --scope operator`` on the database ``env`` names, as
+    an operator sets up a server; returns the operator key."""
+    subprocess.run([*CLI, "migrate"], env=dict(env), check=True, capture_output=True)
+    created = subprocess.run(
+        [*CLI, "keys", "create", "--scope", "operator"],
+        env=dict(env),
+        check=True,
+        capture_output=True,
+        text=True,
+    )
+    return created.stdout.strip().splitlines()[-1]
+
+
 def serve_process(
     env: Mapping[str, str],
     port: int,

@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 import os
 import signal
-import subprocess
 import time
 from pathlib import Path
 
@@ -14,7 +13,12 @@ import httpx
 import pytest
 
 from schemas.api import BatchReceipt
-from server.cli.background_server import CLI, free_port, serve_process, spawned_processes
+from server.cli.background_server import (
+    free_port,
+    migrate_with_operator_key,
+    serve_process,
+    spawned_processes,
+)
 from server.simulation.crowd_client import device_keys, prepare_building
 from server.simulation.phones import simulated_batches
 from slam_core.sim.simulation import Scenario, simulate
@@ -30,11 +34,7 @@ def test_kill_9_loses_no_acknowledged_batch_and_tracking_resumes(tmp_path: Path,
         "CROWDSLAM_SNAPSHOT_PERIOD_S": "1e9",
         "CROWDSLAM_BUILDING_PROCESSES": str(processes).lower(),
     }
-    subprocess.run([*CLI, "migrate"], env=env, check=True, capture_output=True)
-    created = subprocess.run(
-        [*CLI, "keys", "create", "--scope", "operator"], env=env, check=True, capture_output=True, text=True
-    )
-    operator = created.stdout.strip().splitlines()[-1]
+    operator = migrate_with_operator_key(env)
     raw = json.loads(TESTBED.read_text())
     raw["users"]["count"] = 3
     raw["users"]["walk_length_m"] = 40.0
@@ -112,11 +112,7 @@ def test_kill_9_leaves_no_signal_map_build_behind(tmp_path: Path) -> None:
     """A signal-map build's process had been orphaned by ``kill -9`` of the server, holding a core for a job
     nobody would read. It dies with the server."""
     env = {**os.environ, "CROWDSLAM_DATA_DIR": str(tmp_path)}
-    subprocess.run([*CLI, "migrate"], env=env, check=True, capture_output=True)
-    created = subprocess.run(
-        [*CLI, "keys", "create", "--scope", "operator"], env=env, check=True, capture_output=True, text=True
-    )
-    auth = {"Authorization": f"Bearer {created.stdout.strip().splitlines()[-1]}"}
+    auth = {"Authorization": f"Bearer {migrate_with_operator_key(env)}"}
     port = free_port()
     server = serve_process(env, port, tmp_path / "server.log")
     try:

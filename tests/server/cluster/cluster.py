@@ -26,7 +26,7 @@ from sqlalchemy import text
 
 from schemas.api import BatchReceipt
 from schemas.sensors import SensorBatch
-from server.cli.background_server import CLI, free_port, serve_process
+from server.cli.background_server import free_port, migrate_with_operator_key, serve_process
 from server.cli.local_cluster import nats_server, postgres_database, worker_process
 from server.cluster.leases import BUCKET
 from server.cluster.names import building_token
@@ -222,15 +222,7 @@ def local_cluster(root: Path, fronts: int = 2, workers: int = 2) -> Iterator[Clu
     }
     cluster: Cluster | None = None
     try:
-        subprocess.run([*CLI, "migrate"], env=env, check=True, capture_output=True)
-        created = subprocess.run(
-            [*CLI, "keys", "create", "--scope", "operator"],
-            env=env,
-            check=True,
-            capture_output=True,
-            text=True,
-        )
-        cluster = Cluster(root, env, nats_port, nats, created.stdout.strip().splitlines()[-1])
+        cluster = Cluster(root, env, nats_port, nats, migrate_with_operator_key(env))
         for _ in range(workers):
             cluster.start_worker()
         for _ in range(fronts):

@@ -30,7 +30,13 @@ from typing import Any, Literal, Protocol
 
 import httpx
 
-from server.cli.background_server import CLI, free_port, spawned_processes, wait_until_ready
+from server.cli.background_server import (
+    CLI,
+    free_port,
+    migrate_with_operator_key,
+    spawned_processes,
+    wait_until_ready,
+)
 from server.recordings.recorder import read_batches
 from tests.server.crash.scenario import BUILDING, CrashScenario, Step
 
@@ -81,15 +87,7 @@ class Embedded:
         }
         if database_url is not None:
             self.env["CROWDSLAM_DATABASE_URL"] = database_url
-        subprocess.run([*CLI, "migrate"], env=self.env, check=True, capture_output=True)
-        created = subprocess.run(
-            [*CLI, "keys", "create", "--scope", "operator"],
-            env=self.env,
-            check=True,
-            capture_output=True,
-            text=True,
-        )
-        self.operator = created.stdout.strip().splitlines()[-1]
+        self.operator = migrate_with_operator_key(self.env)
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         self.process = self._start()

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
 import time
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
@@ -18,7 +17,7 @@ from playwright.sync_api import Browser, Page, expect
 
 from schemas.floor_plans import FLOOR_PLAN_EXAMPLE
 from schemas.signal_maps import SignalMapJob, SignalMapStatus
-from server.cli.background_server import CLI, free_port, serve_process
+from server.cli.background_server import free_port, migrate_with_operator_key, serve_process
 from server.datasets.signalslam_plots import write_scan_maps
 from server.signal_maps.jobs import RECORD
 from tests.server.dashboard.conftest import Demo, Watch, open_page
@@ -244,18 +243,7 @@ def test_the_api_docs_work_offline(browser: Browser, demo: Demo) -> None:
 def test_the_page_reconnects_after_the_server_restarts(browser: Browser, tmp_path: Path) -> None:
     env = {**os.environ, "CROWDSLAM_DATA_DIR": str(tmp_path)}
     env.pop("CROWDSLAM_DATABASE_URL", None)
-    subprocess.run([*CLI, "migrate"], env=env, check=True, capture_output=True)
-    operator = (
-        subprocess.run(
-            [*CLI, "keys", "create", "--scope", "operator"],
-            env=env,
-            check=True,
-            capture_output=True,
-            text=True,
-        )
-        .stdout.strip()
-        .splitlines()[-1]
-    )
+    operator = migrate_with_operator_key(env)
     port = free_port()
     base = f"http://127.0.0.1:{port}"
     server = serve_process(env, port, tmp_path / "server.log")
