@@ -18,8 +18,6 @@ estimates (``slam_core.encounters.selection``), and only those are ranged
 
 from __future__ import annotations
 
-import struct
-from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -35,16 +33,8 @@ from slam_core.encounters.models import (
     RangeModel,
 )
 from slam_core.encounters.scan_store import ScanStore
+from slam_core.encounters.sighting_pairs import SightingPairs
 from slam_core.wifi.pairs import fresh_mask
-
-_SIGHTING = struct.Struct("<dd")
-"""A Bluetooth sighting in a pair's history: its time (ms, exact as a double) and RSS (dBm)."""
-_SIGHTING_T = struct.Struct("<d")
-
-
-def _pair_key(a: int, b: int) -> int:
-    """Two interned user ids as one int, the same either way round (ids stay below 2**32)."""
-    return (a << 32) | b if a < b else (b << 32) | a
 
 
 @dataclass(frozen=True)
@@ -131,14 +121,7 @@ class EncounterDetector:
         self._user_ids: dict[str, int] = {}
         self._user_names: list[str] = []
         self._store = ScanStore(params.wifi.strongest_n, scan_capacity)
-        # per pair (``_pair_key``), its sightings within the smoothing window as packed (t_ms, rss) doubles
-        # (``_SIGHTING``). Neither ints nor bytes are objects the garbage collector tracks, and pickle
-        # writes both natively, where tuples of tuples replaced at every sighting would be tens of thousands
-        # of tracked objects in a busy building and much of a snapshot's pickling. Least recently heard
-        # first: an OrderedDict, whose first key is found at once (a dict's first key, after the deletions
-        # of pairs moved to its end, is found by skipping every deleted slot before it).
-        self._bt: OrderedDict[int, bytes] = OrderedDict()
-        self._bt_newest_ms = 0
+        self._bt = SightingPairs()  # each pair's sightings within the smoothing window
         self._pending: BackgroundCall[DetectionArrays] | None = None  # scans compared on a thread
         if params.wifi_model == "wifi-fingerprint" and calibration.wifi_fingerprint is None:
             raise ValueError(
@@ -150,13 +133,11 @@ class EncounterDetector:
         if self._pending is not None:
             raise RuntimeError("cannot pickle a detector while scans are being compared")
         state = dict(self.__dict__)
-        del state["_pending"]  # a thread handle; snapshots keep their format
-        state["_bt"] = dict(self._bt)  # a plain dict in the snapshot (same order): its format is the dict's
+        del state["_pending"]  # a thread handle
         return state
 
     def __setstate__(self, state: dict[str, object]) -> None:
         self.__dict__.update(state)
-        self._bt = OrderedDict(self._bt)
         self._pending = None
 
     @property
@@ -177,7 +158,7 @@ class EncounterDetector:
     def bluetooth_pairs(self) -> list[tuple[str, str]]:
         """The pairs whose sightings are kept, least recently heard first (each by its users' names, the
         earlier interned first)."""
-        return [(self._user_names[k >> 32], self._user_names[k & 0xFFFF_FFFF]) for k in self._bt]
+        return [(self._user_names[a], self._user_names[b]) for a, b in self._bt.pairs()]
 
     @property
     def n_user_ids(self) -> int:
@@ -308,53 +289,40 @@ class EncounterDetector:
         self, receivers: Sequence[str], senders: Sequence[str], t_ms: np.ndarray, rss_dbm: np.ndarray
     ) -> DetectionArrays:
         """Phones heard other phones (in arrival order); an encounter each time a pair's RSS, averaged over
-        both directions and ``bt_smoothing_ms``, passes the cut-off."""
-        rows = []
-        smoothing_ms = self.params.bt_smoothing_ms
-        for receiver, sender, t, rss in zip(receivers, senders, t_ms.tolist(), rss_dbm.tolist(), strict=True):
-            if receiver == sender:
-                continue
-            self._advance_bluetooth(t)
-            a, b = self.user_id(receiver), self.user_id(sender)
-            pair = _pair_key(a, b)
-            sighting = _SIGHTING.pack(t, rss)
-            earlier = self._bt.get(pair)
-            history = sighting if earlier is None else earlier + sighting
-            start = 0  # the sightings that left the window (the new one never has: smoothing_ms > 0)
-            while t - _SIGHTING_T.unpack_from(history, start)[0] >= smoothing_ms:
-                start += _SIGHTING.size
-            if start:
-                history = history[start:]
-            self._bt[pair] = history
-            self._bt.move_to_end(pair)  # the pairs run from the least recently heard
-            smoothed = sum(r for _, r in _SIGHTING.iter_unpack(history)) / (len(history) // _SIGHTING.size)
-            if smoothed >= self.params.bluetooth.cutoff_dbm:
-                rows.append((t, a, b, smoothed))
-        if not rows:
+        both directions and ``bt_smoothing_ms``, passes the cut-off (``SightingPairs``). A phone hearing
+        itself is no sighting."""
+        user_id = self.user_id
+        ids = [
+            (user_id(receiver), user_id(sender))  # interned in arrival order, receiver first
+            for receiver, sender in zip(receivers, senders, strict=True)
+            if receiver != sender
+        ]
+        if len(ids) < len(receivers):
+            kept = [k for k, (r, s) in enumerate(zip(receivers, senders, strict=True)) if r != s]
+            t_ms, rss_dbm = np.asarray(t_ms)[kept], np.asarray(rss_dbm)[kept]
+        if not ids:
             return DetectionArrays.empty()
-        t_col, a_col, b_col, f_col = zip(*rows, strict=True)
-        return DetectionArrays(
-            np.array(t_col, dtype=np.int64),
-            np.array(a_col, dtype=np.int64),
-            np.array(b_col, dtype=np.int64),
-            np.full(len(rows), MODEL_BLUETOOTH, dtype=np.int64),
-            np.array(f_col, dtype=np.float64),
-        )
+        pairs = np.array(ids, dtype=np.int64)
+        return self.add_sighting_ids(pairs[:, 0], pairs[:, 1], t_ms, rss_dbm)
 
-    def _advance_bluetooth(self, t_ms: int) -> None:
-        """Forget pairs not heard within ``retention_ms``: their sightings can no longer be averaged with
-        anything new. Only the least recently heard pairs are looked at (the dict's front), so the cost
-        follows the pairs dropped, never a rebuild of every pair's entry."""
-        if t_ms <= self._bt_newest_ms:
-            return
-        self._bt_newest_ms = t_ms
-        horizon = t_ms - self.params.retention_ms
-        while self._bt:
-            oldest = next(iter(self._bt))
-            history = self._bt[oldest]
-            if _SIGHTING_T.unpack_from(history, len(history) - _SIGHTING.size)[0] >= horizon:
-                return
-            self._bt.popitem(last=False)
+    def add_sighting_ids(
+        self, receivers: np.ndarray, senders: np.ndarray, t_ms: np.ndarray, rss_dbm: np.ndarray
+    ) -> DetectionArrays:
+        """``add_sightings`` of users given by their interned ids (``user_id``), none hearing itself."""
+        p = self.params
+        t = np.asarray(t_ms, dtype=np.int64)
+        passed, smoothed = self._bt.add(
+            receivers, senders, t, rss_dbm, p.bt_smoothing_ms, p.retention_ms, p.bluetooth.cutoff_dbm
+        )
+        if not passed.size:
+            return DetectionArrays.empty()
+        return DetectionArrays(
+            t[passed],
+            np.asarray(receivers, dtype=np.int64)[passed],
+            np.asarray(senders, dtype=np.int64)[passed],
+            np.full(passed.size, MODEL_BLUETOOTH, dtype=np.int64),
+            smoothed,
+        )
 
     def ranged(self, detections: list[Detection]) -> list[RangedDetection]:
         """The detections with their calibrated ranges and R, one vectorised lookup per model (only the

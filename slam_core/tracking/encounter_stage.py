@@ -98,19 +98,27 @@ class EncounterStage:
         sightings'), applied as human anchors when the mode has them, and how many detections there were.
         The detections stay arrays until the few chosen ones are ranged (a busy building finds thousands)."""
         detector = self.detector
-        receivers: list[str] = []
-        senders: list[str] = []
+        user_id = detector.user_id
+        receivers: list[int] = []
+        senders: list[int] = []
         peer_t, peer_rss = [], []
-        for b in batches:
-            for k in range(b.peer_t.size):
-                peer = by_ble.get(b.peer_id[k])
-                if peer is not None:
-                    receivers.append(b.user)
-                    senders.append(peer)
-                    peer_t.append(int(b.peer_t[k]))
-                    peer_rss.append(float(b.peer_rss[k]))
+        for b in batches:  # the phones heard, by their users' detector ids (a user hearing itself is none)
+            if not b.peer_t.size:
+                continue
+            peers = [by_ble.get(ident) for ident in b.peer_id]
+            heard = [k for k, peer in enumerate(peers) if peer is not None and peer != b.user]
+            if heard:
+                receivers += [user_id(b.user)] * len(heard)  # interned before its first peer, as one by one
+                senders += [user_id(peers[k]) for k in heard]  # type: ignore[arg-type]
+                peer_t.append(b.peer_t[heard])
+                peer_rss.append(b.peer_rss[heard])
         sightings = (
-            detector.add_sightings(receivers, senders, np.array(peer_t), np.array(peer_rss))
+            detector.add_sighting_ids(
+                np.array(receivers, dtype=np.int64),
+                np.array(senders, dtype=np.int64),
+                np.concatenate(peer_t),
+                np.concatenate(peer_rss),
+            )
             if receivers
             else DetectionArrays.empty()
         )

@@ -102,9 +102,9 @@ def test_bluetooth_pairs_not_heard_within_the_retention_are_forgotten() -> None:
 
 
 def test_bluetooth_pairs_keep_their_order_through_a_snapshot() -> None:
-    """Pairs run from the least recently heard (a pair heard again moves to the end); a snapshot stores them
-    as a plain dict in that order (the format snapshots had), and the restored detector forgets the same
-    pairs as the original."""
+    """Pairs run from the least recently heard (a pair heard again moves to the end); a snapshot stores the
+    pairs' arrays (no object per pair or sighting), and the restored detector forgets the same pairs as the
+    original."""
     params = DetectionParams()
     detector = EncounterDetector(params, Calibration(EQ3, BT))
     for k in range(20):
@@ -112,9 +112,8 @@ def test_bluetooth_pairs_keep_their_order_through_a_snapshot() -> None:
     detector.add_sightings(["v3"], ["u3"], np.array([T0 + 2_500]), np.array([-72.0]))  # heard again
     order = detector.bluetooth_pairs()
     assert order == [(f"u{k}", f"v{k}") for k in range(20) if k != 3] + [("u3", "v3")]
-    state = detector.__getstate__()
-    assert type(state["_bt"]) is dict
-    assert list(state["_bt"]) == list(detector._bt)
+    state = detector.__getstate__()["_bt"].__dict__
+    assert all(isinstance(value, np.ndarray) for value in state.values())
     restored = pickle.loads(pickle.dumps(detector))
     assert restored.bluetooth_pairs() == order
     later = T0 + 100 * 10 + params.retention_ms  # u0..u9 (but u3) are past the retention
@@ -151,23 +150,27 @@ class _TupleHistories:
         return smoothed if smoothed >= self.params.bluetooth.cutoff_dbm else None
 
 
-@pytest.mark.parametrize("seed", range(4))
-def test_bluetooth_smoothing_matches_the_tuple_oracle(seed: int) -> None:
-    """Random sightings among 12 phones (times mostly increasing, some late, some repeated; RSS around the
-    cut-off): the same detections with bit-identical averages, and the same pairs kept, as the oracle."""
+@pytest.mark.parametrize(("seed", "phones", "calls"), [(0, 12, 60), (1, 12, 60), (2, 80, 150), (3, 300, 80)])
+def test_bluetooth_smoothing_matches_the_tuple_oracle(seed: int, phones: int, calls: int) -> None:
+    """Random sightings among the phones (times mostly increasing, some late, some repeated; RSS around the
+    cut-off): the same detections with bit-identical averages, and the same pairs kept in the same order,
+    as the oracle; with many phones the pair table and the sightings' pool grow and are rebuilt with
+    forgotten pairs in them, and a snapshot taken on the way goes on alike."""
     rng = np.random.default_rng(seed)
     params = DetectionParams()
     detector = EncounterDetector(params, Calibration(EQ3, BT))
     oracle = _TupleHistories(params)
-    names = [f"p{k}" for k in range(12)]
+    names = [f"p{k}" for k in range(phones)]
     t = T0
-    for _ in range(60):
-        n = int(rng.integers(1, 30))
+    for call in range(calls):
+        if call == calls // 2:
+            detector = pickle.loads(pickle.dumps(detector))
+        n = int(rng.integers(1, 30 if phones < 50 else 400))
         t += int(rng.integers(0, 1_500))
         times = t + rng.integers(-1_200, 400, n)  # a batch's sightings, some before the newest seen
         rss = rng.normal(-88.0, 6.0, n)
-        receivers = [names[i] for i in rng.integers(0, 12, n)]
-        senders = [names[i] for i in rng.integers(0, 12, n)]
+        receivers = [names[i] for i in rng.integers(0, phones, n)]
+        senders = [names[i] for i in rng.integers(0, phones, n)]
         found = detector.add_sightings(receivers, senders, times, rss)
         expected = []
         for rx, tx, ti, ri in zip(receivers, senders, times.tolist(), rss.tolist(), strict=True):
@@ -188,6 +191,7 @@ def test_bluetooth_smoothing_matches_the_tuple_oracle(seed: int) -> None:
         ]
         assert got == expected
         assert [tuple(sorted(p)) for p in detector.bluetooth_pairs()] == list(oracle.bt)
+        assert len(detector._bt) == len(oracle.bt)
 
 
 def test_bluetooth_smoothing_needs_a_window() -> None:
