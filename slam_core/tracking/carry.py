@@ -4,15 +4,10 @@ guessed ahead at its recent velocity (``SlotColumns``). Pure numerics."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import TYPE_CHECKING
-
 import numpy as np
+from numba import njit
 
-from slam_core.tracking.trails import TRAIL_MS
-
-if TYPE_CHECKING:
-    from slam_core.tracking.trails import UserTrack
+from slam_core.tracking.trails import TRAIL_MS, Trails, UserTrack
 
 CARRY_DRIFT = 0.1
 """Dead reckoning's error per metre walked (PDR drifts ~10-13 % of the distance on the real walks): the
@@ -24,88 +19,103 @@ def carry_variance(walked_m: np.ndarray | float) -> np.ndarray:
     return np.square(CARRY_DRIFT * np.asarray(walked_m, dtype=np.float64))
 
 
-@dataclass(frozen=True)
-class TrackTable:
-    """Some users' tracks with the columns the vectorised lookups below need, read once per call rather
-    than once per lookup."""
-
-    tracks: list[UserTrack]
-    last_t_ms: np.ndarray  # (n,) int64
-    walked: np.ndarray  # (n,)
-    displacement: np.ndarray  # (n, 2)
-
-    @classmethod
-    def of(cls, tracks: list[UserTrack]) -> TrackTable:
-        rows = np.array(
-            [(u.last_t_ms, u.walked, *u.displacement.tolist()) for u in tracks], dtype=np.float64
-        ).reshape(-1, 4)  # epoch ms are exact in a double
-        return cls(tracks, rows[:, 0].astype(np.int64), rows[:, 1], rows[:, 2:4])
-
-    def subset(self, index: np.ndarray) -> TrackTable:
-        return TrackTable(
-            [self.tracks[i] for i in index.tolist()],
-            self.last_t_ms[index],
-            self.walked[index],
-            self.displacement[index],
-        )
-
-
-_SEGMENT = np.int64(1) << np.int64(41)
-"""Users' trails searched at once are told apart by multiples of 2^41 ms (~70 years) added to the times."""
-
-
-def trail_lookup(table: TrackTable, which: np.ndarray, t_ms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Dead-reckoned displacement and distance walked of user ``which[i]`` of the table at ``t_ms[i]`` (its
-    last step then; the oldest kept when older than its trail; where it is now when after its last step),
-    for every i: (n, 2) displacements and (n,) distances walked. One search over all the table's trails at
-    once, not a pass per user: a busy call carries readings of hundreds of users."""
-    which = np.asarray(which, dtype=np.int64)
-    t = np.asarray(t_ms, dtype=np.int64)
-    displacement = table.displacement[which]
-    walked = table.walked[which]
-    sizes = np.array([len(u.trail) // 4 for u in table.tracks], dtype=np.int64)
-    if not which.size or not sizes.any():
-        return displacement, walked
-    last = table.last_t_ms[which]
-    # frombuffer's views only live inside the concatenation: a trail exporting its buffer cannot grow
-    parts = [np.frombuffer(u.trail, dtype=np.float64) for u in table.tracks if u.trail]
-    trail = np.concatenate(parts).reshape(-1, 4)
-    del parts
-    trail_t = trail[:, 0].astype(np.int64)
-    base = min(int(trail_t.min()), int(t.min()))
-    segment = np.repeat(np.arange(sizes.size, dtype=np.int64), sizes)
-    start = np.cumsum(sizes) - sizes  # each user's first row
-    keys = segment * _SEGMENT + (trail_t - base)
-    k = np.searchsorted(keys, which * _SEGMENT + (t - base), side="right") - 1
-    own = start[which]
-    has_trail = sizes[which] > 0
-    in_trail = has_trail & (k >= own)
-    # before the oldest step kept: that step, unless the time is past the user's last one anyway
-    use = in_trail | (has_trail & (t < last))
-    rows = np.where(in_trail, k, own)[use]
-    displacement[use] = trail[rows, 1:3]
-    walked[use] = trail[rows, 3]
-    return displacement, walked
+def trail_lookup(
+    trails: Trails,
+    slots: np.ndarray,
+    t_ms: np.ndarray,
+    last_t_ms: np.ndarray,
+    displacement: np.ndarray,
+    walked: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Dead-reckoned displacement and distance walked of the user in ``slots[i]`` at ``t_ms[i]`` (its last
+    step then; the oldest kept when older than its trail; where it is now, ``displacement[i]`` and
+    ``walked[i]``, when it has no trail, or when the time is before its trail and not before its last event
+    ``last_t_ms[i]``), for every i: (n, 2) displacements and (n,) distances walked. One compiled search over
+    all the users' trails, not a pass per user: a busy call carries readings of hundreds of users."""
+    out_xy = np.array(displacement, dtype=np.float64).reshape(-1, 2)
+    out_walked = np.array(walked, dtype=np.float64)
+    _lookup(
+        trails.rows, trails.start, trails.length, np.asarray(slots, dtype=np.int64),
+        np.asarray(t_ms, dtype=np.int64), np.asarray(last_t_ms, dtype=np.int64), out_xy, out_walked,
+    )  # fmt: skip
+    return out_xy, out_walked
 
 
 def carried_since(
-    table: TrackTable, which: np.ndarray, t_ms: np.ndarray
+    trails: Trails, slots: np.ndarray, last_t_ms: np.ndarray, t_ms: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """From ``t_ms[i]`` to now along user ``which[i]``'s own steps: (n, 2) displacement, (n,) the distance
-    walked (``carry_variance`` gives the carry's variance), and (n,) whether the time can be placed at all
-    (the user's trail reaches back to it). Only users with steps after a time are searched."""
-    which = np.asarray(which, dtype=np.int64)
+    """From ``t_ms[i]`` to now along the steps of the user in ``slots[i]`` (its last event ``last_t_ms[i]``):
+    (n, 2) displacement, (n,) the distance walked (``carry_variance`` gives the carry's variance), and (n,)
+    whether the time can be placed at all (the user's trail reaches back to it). A time not before the
+    user's last event, or a user without a trail, is carried nowhere."""
     t = np.asarray(t_ms, dtype=np.int64)
-    last = table.last_t_ms[which]
+    last = np.asarray(last_t_ms, dtype=np.int64)
     shift, walked = np.zeros((t.size, 2)), np.zeros(t.size)
-    behind = np.flatnonzero(t < last)
-    if behind.size:
-        walkers, local = np.unique(which[behind], return_inverse=True)
-        moved = table.subset(walkers)
-        then, walked_then = trail_lookup(moved, local, t[behind])
-        shift[behind] = moved.displacement[local] - then
-        walked[behind] = moved.walked[local] - walked_then
+    _carry(
+        trails.rows, trails.start, trails.length, np.asarray(slots, dtype=np.int64), t, last, shift, walked
+    )
     return shift, walked, t >= last - TRAIL_MS
+
+
+@njit(cache=True, nogil=True)
+def _row_at(rows: np.ndarray, begin: int, n: int, t: np.int64, last: np.int64) -> int:
+    """The row of a trail (``n`` rows from ``begin``) for a time: its last step at or before it, else its
+    oldest while the time is before the user's last event; -1: none (the user is where it is now)."""
+    if n == 0:
+        return -1
+    lo, hi = 0, n
+    while lo < hi:  # the steps at or before t (exact integer ms)
+        mid = (lo + hi) // 2
+        if np.int64(rows[begin + mid, 0]) <= t:
+            lo = mid + 1
+        else:
+            hi = mid
+    if lo > 0:
+        return begin + lo - 1
+    return begin if t < last else -1
+
+
+@njit(cache=True, nogil=True)
+def _lookup(
+    rows: np.ndarray,
+    start: np.ndarray,
+    length: np.ndarray,
+    slots: np.ndarray,
+    t: np.ndarray,
+    last: np.ndarray,
+    out_xy: np.ndarray,
+    out_walked: np.ndarray,
+) -> None:
+    for i in range(slots.size):
+        s = slots[i]
+        r = _row_at(rows, start[s], length[s], t[i], last[i])
+        if r >= 0:
+            out_xy[i, 0], out_xy[i, 1], out_walked[i] = rows[r, 1], rows[r, 2], rows[r, 3]
+
+
+@njit(cache=True, nogil=True)
+def _carry(
+    rows: np.ndarray,
+    start: np.ndarray,
+    length: np.ndarray,
+    slots: np.ndarray,
+    t: np.ndarray,
+    last: np.ndarray,
+    shift: np.ndarray,
+    walked: np.ndarray,
+) -> None:
+    for i in range(slots.size):
+        if t[i] >= last[i]:
+            continue  # nothing walked since
+        s = slots[i]
+        n = length[s]
+        r = _row_at(rows, start[s], n, t[i], last[i])
+        if r < 0:
+            continue
+        now = start[s] + n - 1  # where the user is now: its last step
+        shift[i, 0] = rows[now, 1] - rows[r, 1]
+        shift[i, 1] = rows[now, 2] - rows[r, 2]
+        walked[i] = rows[now, 3] - rows[r, 3]
 
 
 GUESS_SIGMA_FRACTION = 0.5
@@ -167,9 +177,9 @@ class SlotColumns:
                 self._room(u.slot)
                 self.start_t_ms[u.slot], self.start_walked[u.slot] = u.last_t_ms, u.walked
 
-    def update(self, tracks: list[UserTrack], heard_t_ms: list[int]) -> None:
-        """After a call's events: its tracked users as they are now, each heard up to ``heard_t_ms`` (its
-        batch's latest time of anything)."""
+    def update(self, tracks: list[UserTrack], heard_t_ms: list[int], trails: Trails) -> None:
+        """After a call's events: its tracked users as they are now (their steps in ``trails``), each heard
+        up to ``heard_t_ms`` (its batch's latest time of anything)."""
         for u, heard in zip(tracks, heard_t_ms, strict=True):
             if u.slot < 0:
                 continue
@@ -180,8 +190,9 @@ class SlotColumns:
                 u.last_t_ms,
                 u.walked,
             )
-            walking = bool(u.trail) and heard - u.trail[-4] <= STANDING_MS
-            self.velocity[u.slot] = u.recent_velocity() if walking else (0.0, 0.0)
+            last_step = trails.last_step_ms(u.slot)
+            walking = last_step is not None and heard - last_step <= STANDING_MS
+            self.velocity[u.slot] = trails.recent_velocity(u.slot) if walking else (0.0, 0.0)
 
     def reach(self, slots: np.ndarray, t_ms: np.ndarray) -> np.ndarray:
         """A bound on how far each user walked after ``t_ms`` (at least that far): 0 when it has not reported
@@ -195,7 +206,7 @@ class SlotColumns:
 
     def extrapolated(self, slots: np.ndarray, t_ms: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Where each user has gone from its phone's last report to ``t_ms``, a time it has not reported
-        yet, at its recent velocity (``UserTrack.recent_velocity``; zero for a user standing at its last
+        yet, at its recent velocity (``Trails.recent_velocity``; zero for a user standing at its last
         report): (n, 2) displacement (zero when the time has been reported); (n,) the variance of that guess
         (``guess_variance``); and (n,) whether it is guessed at all (not after ``MAX_EXTRAPOLATION_MS`` of
         silence)."""

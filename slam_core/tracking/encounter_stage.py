@@ -18,9 +18,9 @@ from slam_core.encounters.models import Calibration
 from slam_core.encounters.selection import EncounterSelector, choose_readings
 from slam_core.filter.dynamic_slam import DynamicSlam
 from slam_core.tracking.batches import EncounterResult, UserBatch
-from slam_core.tracking.carry import SlotColumns, TrackTable, carried_since, carry_variance
+from slam_core.tracking.carry import SlotColumns, carried_since, carry_variance
 from slam_core.tracking.params import TrackerParams
-from slam_core.tracking.trails import UserTrack
+from slam_core.tracking.trails import Trails, UserTrack
 
 BACKGROUND_SCANS = 16
 """A call with this many scans compares them on a thread of its own while the tracker runs the rounds and
@@ -54,9 +54,9 @@ class EncounterStage:
         """Before a call's events (``SlotColumns.begin``)."""
         self.columns.begin(tracks)
 
-    def heard(self, tracks: list[UserTrack], heard_t_ms: list[int]) -> None:
+    def heard(self, tracks: list[UserTrack], heard_t_ms: list[int], trails: Trails) -> None:
         """After a call's events (``SlotColumns.update``)."""
-        self.columns.update(tracks, heard_t_ms)
+        self.columns.update(tracks, heard_t_ms, trails)
 
     # ------------------------------------------------------------------ a call's encounters
     def start(self, batches: list[UserBatch]) -> BackgroundCall[DetectionArrays]:
@@ -93,6 +93,7 @@ class EncounterStage:
         users: dict[str, UserTrack],
         by_ble: dict[str, str],
         scans: BackgroundCall[DetectionArrays],
+        trails: Trails,
     ) -> tuple[list[EncounterResult], int]:
         """The encounters chosen among this call's detections (its scans' from ``start``, and its Bluetooth
         sightings'), applied as human anchors when the mode has them, and how many detections there were.
@@ -139,7 +140,7 @@ class EncounterStage:
             found.subset(usable),
             slot_a[usable],
             slot_b[usable],
-            _TrailCarrier(self.columns, detector, users),
+            _TrailCarrier(self.columns, trails, self.slots, detector, users),
         )
         keep = usable[mask]
         chosen = detector.ranged(detector.to_detections(found.subset(keep)))
@@ -164,13 +165,21 @@ class EncounterStage:
 
 
 class _TrailCarrier:
-    """``ReadingCarrier`` over the tracker's users: the slots' columns, and the users' own trails looked up
-    by their detector ids."""
+    """``ReadingCarrier`` over the tracker's users: the slots' columns, and the users' trails, found by their
+    detector ids' slots. Called after the call's events (``EncounterStage.heard``), when the columns' last
+    event of every tracked user is its track's."""
 
     def __init__(
-        self, columns: SlotColumns, detector: EncounterDetector, users: dict[str, UserTrack]
+        self,
+        columns: SlotColumns,
+        trails: Trails,
+        slots: DetectorSlots,
+        detector: EncounterDetector,
+        users: dict[str, UserTrack],
     ) -> None:
         self.columns = columns
+        self.trails = trails
+        self.slots = slots
         self.detector = detector
         self.users = users
 
@@ -187,8 +196,8 @@ class _TrailCarrier:
     def carried_since(
         self, user_ids: np.ndarray, which: np.ndarray, t_ms: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        table = TrackTable.of([self.users[self.detector.user_name(i)] for i in user_ids.tolist()])
-        return carried_since(table, which, t_ms)
+        slots = self.slots.of(self.detector, self.users, user_ids)[which]
+        return carried_since(self.trails, slots, self.columns.last_t_ms[slots], t_ms)
 
     def carry_variance(self, walked_m: np.ndarray) -> np.ndarray:
         return carry_variance(walked_m)

@@ -22,9 +22,9 @@ from slam_core.crowd.fingerprints import (
 )
 from slam_core.filter.dynamic_slam import DynamicSlam
 from slam_core.tracking.batches import EstimateRow, UserBatch, UserReport
-from slam_core.tracking.carry import TrackTable, carried_since
+from slam_core.tracking.carry import carried_since
 from slam_core.tracking.floors import FloorParams
-from slam_core.tracking.trails import UserTrack
+from slam_core.tracking.trails import Trails, UserTrack
 
 FLOOR_NEIGHBOURS = 8
 """A floor's references near the user that its evidence weighs (the nearest in signal space among them)."""
@@ -129,9 +129,11 @@ class FingerprintStage:
         users: dict[str, UserTrack],
         rows: dict[str, EstimateRow],
         reports: dict[str, UserReport],
+        trails: Trails,
     ) -> None:
-        """Each fresh scan of a tracked user, carried to now with the user's dead reckoning since it, for
-        ``apply``. ``rows``: the current estimates of the batches' tracked users with scans."""
+        """Each fresh scan of a tracked user, carried to now with the user's dead reckoning since it (its
+        steps in ``trails``), for ``apply``. ``rows``: the current estimates of the batches' tracked users
+        with scans."""
         names, located = [], []
         scanning = [b for b in batches if b.user in rows]
         if not scanning:
@@ -139,8 +141,9 @@ class FingerprintStage:
         tracks = [users[b.user] for b in scanning]
         counts = [b.scan_t.size for b in scanning]
         carried, _, _ = carried_since(  # every scan of the call carried to now in one search
-            TrackTable.of(tracks),
-            np.repeat(np.arange(len(tracks)), counts),
+            trails,
+            np.repeat(np.array([u.slot for u in tracks], dtype=np.int64), counts),
+            np.repeat(np.array([u.last_t_ms for u in tracks], dtype=np.int64), counts),
             np.concatenate([b.scan_t for b in scanning]),
         )
         first = 0

@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from slam_core.tracking.trails import UserTrack
+from slam_core.tracking.trails import Trails, UserTrack
 
 
 @dataclass
@@ -40,10 +40,12 @@ class Round:
         self.step_t.append(np.array(times, dtype=np.int64))
 
 
-def lay_steps(users: list[UserTrack], rnd: Round, lengths: np.ndarray, headings: np.ndarray) -> None:
+def lay_steps(
+    users: list[UserTrack], rnd: Round, lengths: np.ndarray, headings: np.ndarray, trails: Trails
+) -> None:
     """Every user's steps of a round (``lengths`` and ``headings``: the round's, concatenated) on its
-    dead-reckoned path: the trigonometry of all users' steps in one array pass (a Python pass per user had
-    cost more than the engine's motion update)."""
+    dead-reckoned path and its trail in ``trails``: the trigonometry of all users' steps in one array pass
+    (a Python pass per user had cost more than the engine's motion update)."""
     counts = [x.size for x in rnd.step_len]
     offsets = np.concatenate(rnd.step_offset)
     relative = headings + np.nan_to_num(offsets)  # counter-clockwise headings, the clockwise offset taken out
@@ -67,6 +69,7 @@ def lay_steps(users: list[UserTrack], rnd: Round, lengths: np.ndarray, headings:
         start, end = end, end + n
         k = int(last_finite[end - 1])
         u.lay(
+            trails,
             times[start:end],
             dx[start:end],
             dy[start:end],

@@ -13,10 +13,10 @@ from slam_core.crowd.anchor_map import CrowdMapBuilder
 from slam_core.crowd.graph import CrowdGraph
 from slam_core.filter.dynamic_slam import DynamicSlam
 from slam_core.tracking.batches import UserReport
-from slam_core.tracking.carry import TrackTable, carry_variance, trail_lookup
+from slam_core.tracking.carry import carry_variance, trail_lookup
 from slam_core.tracking.params import TrackerParams
 from slam_core.tracking.rounds import Round
-from slam_core.tracking.trails import UserTrack
+from slam_core.tracking.trails import Trails, UserTrack
 
 
 class SignatureStage:
@@ -36,6 +36,7 @@ class SignatureStage:
         rnd: Round,
         signed: list[int],
         reports: dict[str, UserReport],
+        trails: Trails,
     ) -> list[int]:
         """The round's signed detections ``signed`` (indices into its detections): the crowd anchor with that
         identity, once placed by other users, is a position measurement N(anchor; user, anchor cov +
@@ -52,8 +53,14 @@ class SignatureStage:
         ids = []
         r2 = self.sigma_m**2
         observed = np.array([rnd.det_observed_t[k] for k in signed], dtype=np.int64)
+        tracks = [users[n] for n in names]
         at_peak, walked_at_peak = trail_lookup(
-            TrackTable.of([users[n] for n in names]), np.arange(len(names)), observed
+            trails,
+            slots,
+            observed,
+            np.array([u.last_t_ms for u in tracks], dtype=np.int64),
+            np.array([u.displacement for u in tracks]),
+            np.array([u.walked for u in tracks]),
         )
         for name, row, k, then, walked_then in zip(
             names, before, signed, at_peak, walked_at_peak, strict=True

@@ -68,7 +68,7 @@ from slam_core.tracking.params import CROWD_SOLVERS, TrackerParams
 from slam_core.tracking.rounds import Round, lay_steps, round_at
 from slam_core.tracking.signature_stage import SignatureStage
 from slam_core.tracking.stretches import StraightStretches
-from slam_core.tracking.trails import UserTrack
+from slam_core.tracking.trails import Trails, UserTrack
 
 CLOCK_JUMP_BACK_MS = 60_000
 """A batch whose every time is this far behind its user's last one: the phone's clock went back (set by hand,
@@ -103,6 +103,7 @@ class BuildingTracker:
         self.floors = Floors(params.floors)
         self.encounters = EncounterStage(params, calibration)
         self._users: dict[str, UserTrack] = {}
+        self.trails = Trails()  # the tracked users' recent steps, by filter slot
         self.front_end = FrontEnd(params.pdr, params.detectors)
         vertical = (params.detectors or DetectorParams()).vertical
         self._escalator_type = vertical.escalator_type
@@ -206,6 +207,7 @@ class BuildingTracker:
             if u.slot >= 0:
                 self.filters.remove_user(u.slot)
                 self.encounters.remove(name)
+                self.trails.release(u.slot)
         gone = set(users)
         self._by_ble = {k: v for k, v in self._by_ble.items() if v not in gone}
 
@@ -315,9 +317,9 @@ class BuildingTracker:
         try:
             changed = self._observe(batches, rounds, reports, newest)
             self._observe_places(batches, reports)
-            self.encounters.heard(callers, [_heard_until(b) for b in batches])
+            self.encounters.heard(callers, [_heard_until(b) for b in batches], self.trails)
             encounters, detections = self.encounters.collect(
-                self.filters, batches, self._users, self._by_ble, scans
+                self.filters, batches, self._users, self._by_ble, scans, self.trails
             )
         finally:
             scans.join()
@@ -347,11 +349,11 @@ class BuildingTracker:
         and maps kept), instead of every step being skipped as out of order until the clock catches up.
         Readings from before the jump can no longer be placed on its trail."""
         u.last_t_ms = -1
-        u.trail = array("d")
         self.front_end.forget(user)
         self._stretches.forget(user)
         if u.slot >= 0:
             self.encounters.restart(u.slot)
+            self.trails.reset(u.slot)
 
     def _observe(
         self, batches: list[UserBatch], rounds: list[Round], reports: dict[str, UserReport], newest: int
@@ -383,7 +385,7 @@ class BuildingTracker:
             if not self.floors.single:
                 self._weigh_floors(batches, rows)
                 rows = self._rows(names)
-            self.fingerprints.fix(self.filters, batches, self._users, rows, reports)
+            self.fingerprints.fix(self.filters, batches, self._users, rows, reports, self.trails)
         return changed
 
     def _by_level(self, slots: np.ndarray) -> list[tuple[np.ndarray, int]]:
@@ -662,6 +664,7 @@ class BuildingTracker:
         u = self._users[user]
         u.slot = slot
         self.encounters.admit(user, u.slot)
+        self.trails.reset(slot)
         u.number = self._started
         u.origin = np.asarray(xy, dtype=float).copy()
         self._started += 1
@@ -678,7 +681,7 @@ class BuildingTracker:
             lengths = np.concatenate(rnd.step_len)
             headings = np.concatenate(rnd.step_head)
             self.filters.step(np.array([u.slot for u in users], dtype=np.int64), offsets, lengths, headings)
-            lay_steps(users, rnd, lengths, headings)
+            lay_steps(users, rnd, lengths, headings, self.trails)
             if self.params.revise_headings:
                 self._revise_headings(users)
             if self.params.filter.floor_plan.heading_axes and self.filters.floor_plans:
@@ -731,7 +734,9 @@ class BuildingTracker:
                 self._users[name].pin()
             self._add_to_graph(names, ids, changed)
         if signed:
-            changed.update(self.signatures.observe(self.filters, self._users, rnd, signed, reports))
+            changed.update(
+                self.signatures.observe(self.filters, self._users, rnd, signed, reports, self.trails)
+            )
         if rnd.fix_users:
             slots = np.array([self._users[n].slot for n in rnd.fix_users], dtype=np.int64)
             recentred = self.filters.observe_position(slots, np.array(rnd.fix_xy), np.array(rnd.fix_sigma))

@@ -295,7 +295,7 @@ def test_narrowing_the_readings_before_carrying_them_chooses_as_carrying_all(
 
     from slam_core.encounters.selection import pair_keys
     from slam_core.filter.dense_ids import unique_ints_inverse
-    from slam_core.tracking.carry import TrackTable, carried_since
+    from slam_core.tracking.carry import carried_since
 
     calls: list[int] = []
     narrowed = encounter_stage.choose_readings
@@ -309,12 +309,13 @@ def test_narrowing_the_readings_before_carrying_them_chooses_as_carrying_all(
         n = len(found)
         ids, who = unique_ints_inverse(np.concatenate([found.user_a, found.user_b]))
         tracks = [users[detector.user_name(i)] for i in ids.tolist()]
-        table = TrackTable.of(tracks)
         t2 = np.concatenate([found.t_ms, found.t_ms])
-        shift, walked, placeable = carried_since(table, who, t2)
+        own_slots = np.array([u.slot for u in tracks], dtype=np.int64)[who]  # the tracks' own last events
+        last = np.array([u.last_t_ms for u in tracks], dtype=np.int64)[who]
+        shift, walked, placeable = carried_since(carrier.trails, own_slots, last, t2)
         # each user's guessed walk beyond its phone's last report, at its own track's velocity (all walk)
         heard_until = columns.heard_t_ms[np.concatenate([slot_a, slot_b])]
-        velocity = np.array([u.recent_velocity() for u in tracks])[who]
+        velocity = np.array([carrier.trails.recent_velocity(u.slot) for u in tracks])[who]
         ahead = velocity * np.maximum(t2 - heard_until, 0)[:, None]
         guess_var = 0.25 * np.sum(ahead**2, axis=1)
         heard = t2 - heard_until <= 5_000
