@@ -212,46 +212,64 @@ class EncounterDetector:
         self._pending = None
 
     def _prepared(self, scans: ScanBatch) -> _PreparedScans | None:
-        """The kept scans as the scan store's arrays (None when no scan has a fresh AP)."""
+        """The kept scans as the scan store's arrays (None when no scan has a fresh AP): each scan's fresh
+        entries (``fresh_mask``), its ``strongest_n`` strongest of them (ties in arrival order), their BSSIDs
+        interned in that order and a BSSID repeated within a scan counted once (at its first place, with its
+        last RSS, as a dict keeps it). The masks and sorts run over all of a call's entries at once."""
         p = self.params
-        by_fingerprint = p.wifi_model == "wifi-fingerprint"
         n_top = p.wifi.strongest_n
-        users, t_ms, offsets, bssids = scans.users, scans.t_ms, scans.offsets, scans.bssids
-        rss, last_seen_ms = scans.rss, scans.last_seen_ms
-        kept_t, kept_user, tops, top_rss = [], [], [], []
+        offsets = np.asarray(scans.offsets, dtype=np.int64)
+        base, end = int(offsets[0]), int(offsets[-1])  # entry k of the call is entry base + k of the arrays
+        scan_of = np.repeat(np.arange(offsets.size - 1), np.diff(offsets))
+        t = np.asarray(scans.t_ms, dtype=np.int64)
+        rss = np.asarray(scans.rss, dtype=np.float64)[base:end]
+        last_seen = np.asarray(scans.last_seen_ms)[base:end]
+        fresh = np.flatnonzero(fresh_mask(t[scan_of], last_seen, p.stale_ap_ms))
+        if fresh.size == 0:
+            return None
+        # each scan's fresh entries from the strongest, ties in arrival order (lexsort is stable)
+        ranked = fresh[np.lexsort((-rss[fresh], scan_of[fresh]))]
+        ranked_scan = scan_of[ranked]
+        kept = np.unique(ranked_scan)  # the scans with a fresh entry, in arrival order
+        first = np.searchsorted(ranked_scan, kept)
+        rank = np.arange(ranked.size) - np.repeat(first, np.diff(np.append(first, ranked.size)))
+        top = ranked[rank < n_top]
+        intern = self._intern
+        bssids = scans.bssids[base:end]
+        by_fingerprint = p.wifi_model == "wifi-fingerprint"
+        if by_fingerprint:
+            fresh_by_scan = np.split(fresh, np.searchsorted(scan_of[fresh], kept[1:]))
+        top_scan = scan_of[top]
+        top_first = np.searchsorted(top_scan, kept)
+        top_ends = np.append(top_first[1:], top.size)
+        rows = np.full((kept.size, n_top), -1, dtype=np.int64)
+        values = np.zeros((kept.size, n_top))
         fresh_ap: list[int] = []
         fresh_rss: list[float] = []
         fresh_offsets = [0]
-        for c in range(len(users)):
-            lo, hi = int(offsets[c]), int(offsets[c + 1])
-            t = int(t_ms[c])
-            keep = lo + np.flatnonzero(fresh_mask(t, last_seen_ms[lo:hi], p.stale_ap_ms))
-            if keep.size == 0:
-                continue
-            order = keep[np.argsort(-rss[keep], kind="stable")[:n_top]]
-            top = {
-                self._intern(bssids[i]): float(rss[i]) for i in order.tolist()
-            }  # a repeated BSSID counts once
-            kept_t.append(t)
-            kept_user.append(self.user_id(users[c]))
-            row = np.full(n_top, -1, dtype=np.int64)
-            row[: len(top)] = list(top)
-            tops.append(row)
-            values = np.zeros(n_top)
-            values[: len(top)] = list(top.values())
-            top_rss.append(values)
+        top_rss = rss[top].tolist()
+        for j, (lo, hi) in enumerate(zip(top_first.tolist(), top_ends.tolist(), strict=True)):
+            ids = [intern(bssids[i]) for i in top[lo:hi].tolist()]
+            if len(set(ids)) == len(ids):
+                rows[j, : len(ids)] = ids
+                values[j, : len(ids)] = top_rss[lo:hi]
+            else:  # a repeated BSSID counts once
+                once = dict(zip(ids, top_rss[lo:hi], strict=True))
+                rows[j, : len(once)] = list(once)
+                values[j, : len(once)] = list(once.values())
             if by_fingerprint:
-                fresh = {self._intern(bssids[i]): float(rss[i]) for i in keep.tolist()}
-                fresh_ap += fresh
-                fresh_rss += fresh.values()
+                entries = fresh_by_scan[j].tolist()
+                heard = {intern(bssids[i]): float(rss[i]) for i in entries}
+                fresh_ap += heard
+                fresh_rss += heard.values()
             fresh_offsets.append(len(fresh_ap))
-        if not kept_t:
-            return None
+        user_id = self.user_id
+        users = scans.users
         return _PreparedScans(
-            np.array(kept_t, dtype=np.int64),
-            np.array(kept_user, dtype=np.int64),
-            np.array(tops),
-            np.array(top_rss),
+            t[kept],
+            np.array([user_id(users[c]) for c in kept.tolist()], dtype=np.int64),
+            rows,
+            values,
             np.array(fresh_offsets, dtype=np.int64),
             np.array(fresh_ap, dtype=np.int64),
             np.array(fresh_rss, dtype=np.float64),

@@ -20,9 +20,10 @@ STALE_AP_MS = 3_000
 last-seen time is more than this before its scan is dropped before any WiFi feature."""
 
 
-def fresh_mask(t_ms: int, last_seen_ms: np.ndarray, stale_ms: int = STALE_AP_MS) -> np.ndarray:
-    """Entries of a scan taken at ``t_ms`` that were heard in it, not re-reported from the phone's cache:
-    last seen within ``stale_ms`` of the scan, or without a last-seen time (-1)."""
+def fresh_mask(t_ms: int | np.ndarray, last_seen_ms: np.ndarray, stale_ms: int = STALE_AP_MS) -> np.ndarray:
+    """Entries of a scan taken at ``t_ms`` (or of scans taken at each entry's ``t_ms``) that were heard in it,
+    not re-reported from the phone's cache: last seen within ``stale_ms`` of the scan, or without a
+    last-seen time (-1)."""
     fresh: np.ndarray = (last_seen_ms < 0) | (last_seen_ms >= t_ms - stale_ms)
     return fresh
 

@@ -8,7 +8,7 @@ import pickle
 import numpy as np
 import pytest
 
-from slam_core.encounters.detection import EncounterDetector
+from slam_core.encounters.detection import EncounterDetector, ScanBatch, _PreparedScans
 from slam_core.encounters.models import (
     ENCOUNTER_MODELS,
     MODEL_WIFI,
@@ -19,6 +19,7 @@ from slam_core.encounters.models import (
     WifiFingerprintParams,
     encounter_model,
 )
+from slam_core.wifi.pairs import fresh_mask
 
 BT = RangeModel("bt-quadratic", (-60.0, -10.0, 0.0), 4.0)
 EQ3 = RangeModel("wifi-log", (1.0, 2.0), 0.5)
@@ -197,3 +198,97 @@ def test_bluetooth_smoothing_matches_the_tuple_oracle(seed: int, phones: int, ca
 def test_bluetooth_smoothing_needs_a_window() -> None:
     with pytest.raises(ValueError, match="bt_smoothing_ms"):
         DetectionParams(bt_smoothing_ms=0)
+
+
+def _prepared_scan_by_scan(detector: EncounterDetector, scans: ScanBatch) -> _PreparedScans | None:
+    """The scans' preparation as it was first written, one scan at a time: the oracle for the call-wide
+    masks and sorts of ``EncounterDetector._prepared``."""
+    p = detector.params
+    by_fingerprint = p.wifi_model == "wifi-fingerprint"
+    n_top = p.wifi.strongest_n
+    users, t_ms, offsets, bssids = scans.users, scans.t_ms, scans.offsets, scans.bssids
+    rss, last_seen_ms = scans.rss, scans.last_seen_ms
+    kept_t, kept_user, tops, top_rss = [], [], [], []
+    fresh_ap: list[int] = []
+    fresh_rss: list[float] = []
+    fresh_offsets = [0]
+    for c in range(len(users)):
+        lo, hi = int(offsets[c]), int(offsets[c + 1])
+        t = int(t_ms[c])
+        keep = lo + np.flatnonzero(fresh_mask(t, last_seen_ms[lo:hi], p.stale_ap_ms))
+        if keep.size == 0:
+            continue
+        order = keep[np.argsort(-rss[keep], kind="stable")[:n_top]]
+        top = {detector._intern(bssids[i]): float(rss[i]) for i in order.tolist()}
+        kept_t.append(t)
+        kept_user.append(detector.user_id(users[c]))
+        row = np.full(n_top, -1, dtype=np.int64)
+        row[: len(top)] = list(top)
+        tops.append(row)
+        values = np.zeros(n_top)
+        values[: len(top)] = list(top.values())
+        top_rss.append(values)
+        if by_fingerprint:
+            fresh = {detector._intern(bssids[i]): float(rss[i]) for i in keep.tolist()}
+            fresh_ap += fresh
+            fresh_rss += fresh.values()
+        fresh_offsets.append(len(fresh_ap))
+    if not kept_t:
+        return None
+    return _PreparedScans(
+        np.array(kept_t, dtype=np.int64),
+        np.array(kept_user, dtype=np.int64),
+        np.array(tops),
+        np.array(top_rss),
+        np.array(fresh_offsets, dtype=np.int64),
+        np.array(fresh_ap, dtype=np.int64),
+        np.array(fresh_rss, dtype=np.float64),
+        len(detector._ap_ids),
+    )
+
+
+@pytest.mark.parametrize("model", ["wifi-eq3", "wifi-fingerprint"])
+@pytest.mark.parametrize("seed", range(3))
+def test_a_calls_scans_are_prepared_as_one_scan_at_a_time(model: str, seed: int) -> None:
+    """Calls of random scans (some empty or all stale, BSSIDs repeated within a scan in either case, RSS
+    ties, more entries than the strongest N): the same kept scans, strongest entries, fresh entries, and
+    BSSIDs and users interned in the same order, as the scan-by-scan oracle."""
+    rng = np.random.default_rng(seed)
+    calibration = Calibration(EQ3, BT, FINGERPRINT)
+    detector = EncounterDetector(DetectionParams(wifi_model=model), calibration)
+    oracle = EncounterDetector(DetectionParams(wifi_model=model), calibration)
+    pool = [f"0a:00:00:00:{i // 256:02x}:{i % 256:02x}" for i in range(300)]
+    for call in range(25):
+        n = int(rng.integers(1, 12))
+        counts = rng.integers(0, 30, n)
+        offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        total = int(offsets[-1])
+        t = T0 + 1_000 * call + np.sort(rng.integers(0, 1_000, n))
+        bssids = [pool[i] for i in rng.integers(0, 40 + 10 * call, total)]
+        if total > 3:
+            bssids[1] = bssids[0].upper()  # the same AP, spelled otherwise
+        rss = np.round(rng.normal(-70.0, 8.0, total))  # whole dB: ties
+        scan_t = np.repeat(t, counts)
+        last_seen = np.where(rng.random(total) < 0.3, scan_t - rng.integers(0, 20_000, total), -1)
+        users = [f"u{i}" for i in rng.integers(0, 15, n)]
+        scans = ScanBatch(users, t, offsets, bssids, rss, last_seen)
+        got, want = detector._prepared(scans), _prepared_scan_by_scan(oracle, scans)
+        if want is None:
+            assert got is None
+            continue
+        assert got is not None
+        for name in ("t_ms", "user", "top_ap", "top_rss", "fresh_offsets", "fresh_ap", "fresh_rss"):
+            assert np.array_equal(getattr(got, name), getattr(want, name)), (call, name)
+            assert getattr(got, name).dtype == getattr(want, name).dtype, name
+        assert got.n_aps == want.n_aps
+        assert detector._ap_ids == oracle._ap_ids
+        assert list(detector._ap_ids) == list(oracle._ap_ids)
+        assert detector._user_names == oracle._user_names
+    # a call's entries may start past the arrays' first (the offsets say where)
+    shifted = ScanBatch(["a"], np.array([T0]), np.array([2, 5]), ["x", "y", *BSSIDS[:3]],
+                        np.array([0.0, 0.0, -60.0, -50.0, -70.0]), np.full(5, -1))  # fmt: skip
+    got, want = detector._prepared(shifted), _prepared_scan_by_scan(oracle, shifted)
+    assert got is not None
+    assert want is not None
+    assert np.array_equal(got.top_ap, want.top_ap)
+    assert np.array_equal(got.top_rss, want.top_rss)
