@@ -97,6 +97,7 @@ def run(
             s.add(BuildingRow(id="load", name="Load test", rotation_rad=0.0))
         numba.set_num_threads(1)
         warm_kernels_for(settings)  # as a building's process does before its first batch
+        tune_gc_for_serving()  # and then the garbage collector, before the first batch too
         # the tracking a building's process serves with: its own engine with the write-ahead log
         # checkpointed by a thread beside the batch path, recording, snapshots and retention as configured
         building = open_building(settings, "load", engine)
@@ -153,7 +154,6 @@ def run(
             else:
                 admit_us = busy / phones * 1e6
                 admit_cpu_us = cpu / phones * 1e6
-                tune_gc_for_serving()  # as the server does once its kernels are warm
         if profiler is not None and profile is not None:
             profiler.dump_stats(profile)
         pickle_s = min(_timed(lambda: tracker_snapshot.pickled(building.building.state())) for _ in range(3))

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -131,7 +130,11 @@ def placed(columns: PackedBatch, landmarks: Sequence[Landmark], ctx: BuildingCon
     if not landmarks:
         return Converted(user_batch, [])
     fixes, warnings = landmark_fixes(landmarks, ctx)
-    return Converted(dataclasses.replace(user_batch, **fixes), warnings)
+    # the unpacked batch is this call's own: its fixes set in place and the whole batch checked once
+    # (``dataclasses.replace`` built it field by field again, half of a first batch's conversion)
+    user_batch.__dict__.update(fixes)
+    user_batch.__post_init__()
+    return Converted(user_batch, warnings)
 
 
 def to_user_batch(batch: SensorBatch, ctx: BuildingContext) -> Converted:
