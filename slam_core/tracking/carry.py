@@ -122,12 +122,6 @@ GUESS_SIGMA_FRACTION = 0.5
 """A user guessed ahead may have stopped or turned: the guess's sigma is half its length."""
 
 
-def guess_variance(ahead: np.ndarray) -> np.ndarray:
-    """Variance (m^2) of guessed displacements ``ahead`` (..., 2)."""
-    variance: np.ndarray = GUESS_SIGMA_FRACTION**2 * np.sum(ahead * ahead, axis=-1)
-    return variance
-
-
 MAX_EXTRAPOLATION_MS = 5_000
 """A user not heard from for longer than this is not guessed at: where it went is anyone's guess."""
 STANDING_MS = 1_500
@@ -198,18 +192,67 @@ class SlotColumns:
         """A bound on how far each user walked after ``t_ms`` (at least that far): 0 when it has not reported
         steps past it, its latest batch's walk when the time is within that batch, infinity (unknown) when
         older."""
-        t = np.asarray(t_ms, dtype=np.int64)
-        latest_batch = self.walked[slots] - self.start_walked[slots]
-        bound = np.where(t >= self.start_t_ms[slots], latest_batch, np.inf)
-        result: np.ndarray = np.where(t >= self.last_t_ms[slots], 0.0, bound)
+        result = np.empty(len(slots))
+        _reach(
+            np.asarray(slots, dtype=np.int64), np.asarray(t_ms, dtype=np.int64), self.walked,
+            self.start_walked, self.start_t_ms, self.last_t_ms, result,
+        )  # fmt: skip
         return result
 
     def extrapolated(self, slots: np.ndarray, t_ms: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Where each user has gone from its phone's last report to ``t_ms``, a time it has not reported
         yet, at its recent velocity (``Trails.recent_velocity``; zero for a user standing at its last
         report): (n, 2) displacement (zero when the time has been reported); (n,) the variance of that guess
-        (``guess_variance``); and (n,) whether it is guessed at all (not after ``MAX_EXTRAPOLATION_MS`` of
-        silence)."""
-        silence = np.asarray(t_ms, dtype=np.int64) - self.heard_t_ms[slots]
-        ahead = self.velocity[slots] * np.maximum(silence, 0).astype(np.float64)[:, None]
-        return ahead, guess_variance(ahead), silence <= MAX_EXTRAPOLATION_MS
+        (its sigma ``GUESS_SIGMA_FRACTION`` of its length); and (n,) whether it is guessed at all (not after
+        ``MAX_EXTRAPOLATION_MS`` of silence). One compiled pass over the readings."""
+        n = len(slots)
+        ahead, variance, heard = np.empty((n, 2)), np.empty(n), np.empty(n, dtype=np.bool_)
+        _extrapolated(
+            np.asarray(slots, dtype=np.int64), np.asarray(t_ms, dtype=np.int64), self.heard_t_ms,
+            self.velocity, GUESS_SIGMA_FRACTION**2, MAX_EXTRAPOLATION_MS, ahead, variance, heard,
+        )  # fmt: skip
+        return ahead, variance, heard
+
+
+@njit(cache=True, nogil=True)
+def _reach(
+    slots: np.ndarray,
+    t: np.ndarray,
+    walked: np.ndarray,
+    start_walked: np.ndarray,
+    start_t_ms: np.ndarray,
+    last_t_ms: np.ndarray,
+    out: np.ndarray,
+) -> None:
+    for i in range(slots.size):
+        s = slots[i]
+        if t[i] >= last_t_ms[s]:
+            out[i] = 0.0
+        elif t[i] >= start_t_ms[s]:
+            out[i] = walked[s] - start_walked[s]
+        else:
+            out[i] = np.inf
+
+
+@njit(cache=True, nogil=True)
+def _extrapolated(
+    slots: np.ndarray,
+    t: np.ndarray,
+    heard_t_ms: np.ndarray,
+    velocity: np.ndarray,
+    fraction2: float,
+    max_silence_ms: int,
+    ahead: np.ndarray,
+    variance: np.ndarray,
+    heard: np.ndarray,
+) -> None:
+    """``SlotColumns.extrapolated``, a reading at a time: the guess ``ahead`` and its variance,
+    ``fraction2 * |ahead|^2`` (m^2)."""
+    for i in range(slots.size):
+        s = slots[i]
+        silence = t[i] - heard_t_ms[s]
+        dt = float(max(silence, 0))
+        ax, ay = velocity[s, 0] * dt, velocity[s, 1] * dt
+        ahead[i, 0], ahead[i, 1] = ax, ay
+        variance[i] = fraction2 * (ax * ax + ay * ay)
+        heard[i] = silence <= max_silence_ms
