@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import errno
+import re
 from collections.abc import Callable, Mapping, Sequence
 from functools import lru_cache
 from pathlib import Path
@@ -63,15 +64,68 @@ def insert_many_once(
     conflict_columns: list[str],
     returning: list[InstrumentedAttribute[Any]],
 ) -> list[tuple[Any, ...]]:
-    """One multi-row ``INSERT ... ON CONFLICT DO NOTHING RETURNING ...``: the returned columns of the rows
-    actually inserted, in no particular order (match them by key)."""
+    """One multi-row ``INSERT ... ON CONFLICT DO NOTHING RETURNING ...`` (rows of the same columns): the
+    returned columns of the rows actually inserted, in no particular order (match them by key)."""
     if not values:
         return []
-    # executemany of one cached statement (SQLAlchemy batches it as "insertmanyvalues"), not a multi-VALUES
-    # statement: that one is compiled afresh for every group and costs more than the insert itself
     mapped: Any = model  # a mapped class is hashable; typeshed's lru_cache wants it said
     stmt = _insert_once_statement(_dialect_name(session), mapped, tuple(conflict_columns), tuple(returning))
-    return [tuple(r) for r in session.connection().execute(stmt, values)]
+    shape = _values_clause(session.get_bind().dialect, stmt, tuple(values[0]))
+    if shape is None:  # executemany, which SQLAlchemy batches as "insertmanyvalues"
+        return [tuple(r) for r in session.connection().execute(stmt, values)]
+    # The statement's text for this many rows, built once per count, and the rows' values straight to the
+    # driver: SQLAlchemy's own batching processed each row's parameters in Python, as much again as the
+    # insert
+    head, row, tail, columns, positional = shape
+    connection = session.connection()
+    out: list[tuple[Any, ...]] = []
+    per_statement = max(1, MAX_PARAMETERS // len(columns))
+    for first in range(0, len(values), per_statement):
+        rows = values[first : first + per_statement]
+        sql = _rows_sql(head, row, tail, len(rows), positional)
+        params: Any
+        if positional:
+            params = tuple(r[k] if f is None else f(r[k]) for r in rows for k, f in columns)
+        else:
+            params = {
+                f"{k}_{i}": r[k] if f is None else f(r[k]) for i, r in enumerate(rows) for k, f in columns
+            }
+        out += [tuple(r) for r in connection.exec_driver_sql(sql, params)]
+    return out
+
+
+MAX_PARAMETERS = 900
+"""Parameters of one statement at most: below SQLite's oldest limit (999) and PostgreSQL's (65,535)."""
+
+
+@lru_cache(maxsize=64)
+def _values_clause(
+    dialect: Dialect, stmt: Any, columns: tuple[str, ...]
+) -> tuple[str, str, str, tuple[tuple[str, _Conversion], ...], bool] | None:
+    """The one-row statement's SQL cut around its row of values (before, the row, after), its parameters in
+    order with their conversions, and whether they are positional; None when it cannot be cut so (a column
+    computed by SQLAlchemy at execution, or text other than one ``VALUES (...)`` before ``ON CONFLICT``)."""
+    compiled = stmt.compile(dialect=dialect, column_keys=list(columns))
+    conversions = getattr(compiled, "_bind_processors", None)
+    if conversions is None or set(compiled.binds) != set(columns):
+        return None
+    sql = str(compiled)
+    at, end = sql.find(" VALUES ("), sql.find(") ON CONFLICT ")
+    if at < 0 or end < at or sql.count(" VALUES (") != 1:
+        return None
+    order = compiled.positiontup if compiled.positional else list(compiled.binds)
+    conversion = tuple((k, conversions.get(k)) for k in order)
+    return sql[: at + 8], sql[at + 8 : end + 1], sql[end + 1 :], conversion, bool(compiled.positional)
+
+
+_NAMED = re.compile(r"%\((\w+)\)s")
+
+
+@lru_cache(maxsize=256)
+def _rows_sql(head: str, row: str, tail: str, n: int, positional: bool) -> str:
+    """The statement for ``n`` rows (named parameters take the row's index as a suffix)."""
+    rows = [row] * n if positional else [_NAMED.sub(rf"%(\1_{i})s", row) for i in range(n)]
+    return head + ", ".join(rows) + tail
 
 
 @lru_cache(maxsize=64)

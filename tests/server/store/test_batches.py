@@ -11,13 +11,14 @@ from sqlalchemy.exc import IntegrityError
 
 from server.store.batches import (
     AcceptedBatch,
+    _values,
     clear_covered_bodies,
     find_batch,
     insert_batch_once,
     insert_batches_once,
     logged_batches,
 )
-from server.store.db import make_session_factory
+from server.store.db import _insert_once_statement, _values_clause, make_session_factory
 from server.store.models import BatchLogRow, BatchRow, BuildingRow
 from server.store.repositories import save_tracker_snapshot
 
@@ -179,3 +180,53 @@ def test_batch_for_unknown_building_violates_the_foreign_key(migrated_engine: En
     with pytest.raises(IntegrityError), make_session_factory(migrated_engine).begin() as session:
         insert_batch_once(session, _batch())
     assert _count(migrated_engine) == 0
+
+
+def test_a_large_group_is_inserted_in_several_statements_with_every_retry_found(
+    migrated_engine: Engine,
+) -> None:
+    """More rows than one statement's parameters take: each new batch gets its row id, a repeat within the
+    group or of an earlier group gets None, and every column (the applied flag, NULL times) is stored."""
+    _with_building(migrated_engine)
+    sessions = make_session_factory(migrated_engine)
+    with sessions.begin() as session:
+        assert insert_batches_once(session, [_batch("b-early", device_id="phone-7")])[0] is not None
+    batches = [
+        replace(_batch(f"b-{k}", device_id=f"phone-{k % 9}", seq=k), tracker_call=k if k % 3 else None)
+        for k in range(250)
+    ]
+    batches[40] = replace(batches[3], seq=999)  # a repeat within the group
+    batches.append(replace(_batch("b-early", device_id="phone-7"), seq=5))  # a retry of an earlier group
+    batches[100] = replace(batches[100], t_first_ms=None, t_last_ms=None)
+    with sessions.begin() as session:
+        ids = insert_batches_once(session, batches)
+    assert ids[40] is None
+    assert ids[-1] is None
+    fresh = [i for k, i in enumerate(ids) if k not in (40, len(ids) - 1)]
+    assert None not in fresh
+    assert len(set(fresh)) == len(fresh) == 249
+    assert _count(migrated_engine) == 250
+    statement = _insert_once_statement(
+        migrated_engine.dialect.name, BatchRow, ("building_id", "device_id", "batch_id"),
+        (BatchRow.id, BatchRow.device_id, BatchRow.batch_id),
+    )  # fmt: skip
+    columns = tuple(_values(batches[0]))
+    assert (
+        _values_clause(migrated_engine.dialect, statement, columns) is not None
+    )  # not SQLAlchemy's batching
+    with sessions() as session:
+        stored = {
+            (r.device_id, r.batch_id): r
+            for r in session.execute(select(BatchRow).where(BatchRow.batch_id != "b-early")).scalars()
+        }
+        for k, b in enumerate(batches[:-1]):
+            if k == 40:
+                continue
+            row = stored[(b.device_id, b.batch_id)]
+            assert row.id == ids[k]
+            assert (row.seq, row.applied, row.tracker_call) == (
+                b.seq,
+                b.tracker_call is not None,
+                b.tracker_call,
+            )
+            assert (row.t_first_ms, row.t_last_ms) == (b.t_first_ms, b.t_last_ms)
