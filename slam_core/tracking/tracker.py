@@ -39,7 +39,6 @@ Pure numerics: no I/O, no clock. Times are the phones' epoch milliseconds.
 from __future__ import annotations
 
 import math
-from array import array
 from dataclasses import replace
 from typing import Any
 
@@ -63,7 +62,7 @@ from slam_core.tracking.batches import (
 )
 from slam_core.tracking.encounter_stage import EncounterStage
 from slam_core.tracking.fingerprint_stage import FingerprintStage
-from slam_core.tracking.floors import Floors
+from slam_core.tracking.floor_stage import FloorStage
 from slam_core.tracking.params import CROWD_SOLVERS, TrackerParams
 from slam_core.tracking.rounds import Round, lay_steps, round_at
 from slam_core.tracking.signature_stage import SignatureStage
@@ -100,7 +99,7 @@ class BuildingTracker:
         self.graph = CrowdGraph(CrowdGraphParams(detection_sigma_m=fp.anchors.detection_sigma_m))
         self.signatures = SignatureStage(params, self.crowd, self.graph)
         self.fingerprints = FingerprintStage(params.fingerprints, params.detection.stale_ap_ms, params.floors)
-        self.floors = Floors(params.floors)
+        self.floor_stage = FloorStage(params.floors)
         self.encounters = EncounterStage(params, calibration)
         self._users: dict[str, UserTrack] = {}
         self.trails = Trails()  # the tracked users' recent steps, by filter slot
@@ -136,40 +135,30 @@ class BuildingTracker:
         (``levels`` per scan, None: floor 0; a floor the building does not have: ValueError naming its
         floors)."""
         for level in set(() if levels is None else np.asarray(levels).tolist()):
-            self.floors.index(level)
+            self.floor_stage.index(level)
         return self.fingerprints.load_radio_map(map_id, xy, bssids, rss, t_ms, levels)
 
     def set_floor_plan(self, plan: PlanIndex | None, level: int = 0) -> None:
         """The plan that weighs the steps of the users on floor ``level`` from now on (beyond the papers);
         None: that floor has none."""
-        self.floors.index(level)
+        self.floor_stage.index(level)
         self.filters.set_floor_plan(level, plan)
 
     @property
     def levels(self) -> tuple[int, ...]:
         """The building's floors, lowest first."""
-        return self.floors.levels
+        return self.floor_stage.levels
 
     def set_levels(self, levels: tuple[int, ...], elevations_m: tuple[float, ...] | None = None) -> None:
         """The building's floors (and their heights where known; NaN: from the storey height). A user's belief
         keeps its share on the floors that stay; a floor taken away takes its users' share with it (a user
         left with nothing starts over, unsure among all floors)."""
-        old = self.floors
-        new = Floors(self.params.floors, tuple(levels), elevations_m)
-        new.adopt(old)
-        if new.levels != old.levels:
-            for u in self._users.values():
-                p = np.zeros(len(new.levels))
-                for level, q in zip(old.levels, u.floor_belief, strict=True):
-                    if level in new.levels:
-                        p[new.index(level)] = q
-                u.floor_belief = array("d", (p / p.sum() if p.sum() > 0 else new.uniform()).tolist())
-        self.floors = new
+        self.floor_stage.set_levels(levels, elevations_m)
         self._follow_floors([n for n, u in self._users.items() if u.slot >= 0])
 
     def floor_of(self, user: str) -> tuple[int, float]:
         """The floor the user is believed on and the belief's probability."""
-        return self.floors.believed(np.asarray(self._users[user].floor_belief))
+        return self.floor_stage.believed(user)
 
     # ------------------------------------------------------------------ users and anchors
     @property
@@ -204,6 +193,7 @@ class BuildingTracker:
             u = self._users.pop(name)
             self.front_end.forget(name)
             self._stretches.forget(name)
+            self.floor_stage.leave(name)
             if u.slot >= 0:
                 self.filters.remove_user(u.slot)
                 self.encounters.remove(name)
@@ -215,7 +205,7 @@ class BuildingTracker:
         """Add an operator-known anchor on floor ``level`` (or pin an existing one there); returns its crowd
         index."""
         self._check_type(anchor_type)
-        self.floors.index(level)
+        self.floor_stage.index(level)
         if index is None:
             index = self.crowd.add_known(xy, anchor_type, level)
         else:
@@ -293,7 +283,9 @@ class BuildingTracker:
             if b.detect_type.size and np.any((b.detect_type < 0) | (b.detect_type >= self.n_types)):
                 raise ValueError(f"user batch of {b.user!r}: anchor type outside [0, {self.n_types})")
             for level in set(b.fix_level.tolist()):
-                self.floors.index(level)  # a floor the building does not have: ValueError naming its floors
+                self.floor_stage.index(
+                    level
+                )  # a floor the building does not have: ValueError naming its floors
         reports = {b.user: UserReport() for b in batches}
         for b in batches:
             u = self._users.get(b.user)
@@ -304,7 +296,8 @@ class BuildingTracker:
         batches = [self._dead_reckon(b, reports[b.user]) for b in batches]
         for b in batches:
             if b.user not in self._users:  # unsure of its floor until a fix names it or the radio tells
-                self._users[b.user] = UserTrack(floor_belief=array("d", self.floors.uniform().tolist()))
+                self._users[b.user] = UserTrack()
+                self.floor_stage.join(b.user)
             if b.ble_id is not None:
                 self._by_ble[b.ble_id] = b.user
         callers = [self._users[b.user] for b in batches]
@@ -382,7 +375,7 @@ class BuildingTracker:
         if self.params.fingerprints.enabled:
             names = [b.user for b in batches if self.is_tracking(b.user) and b.scan_t.size]
             rows = self._rows(names)
-            if not self.floors.single:
+            if not self.floor_stage.single:
                 self._weigh_floors(batches, rows)
                 rows = self._rows(names)
             self.fingerprints.fix(self.filters, batches, self._users, rows, reports, self.trails)
@@ -409,12 +402,10 @@ class BuildingTracker:
             u = self._users[b.user]
             _, bssids, rss = b.fresh_scan(int(np.argmax(b.scan_t)), stale)
             ll = self.fingerprints.floor_evidence(
-                self.floors.levels, u.number, bssids, rss, np.array([row.x, row.y])
+                self.floor_stage.levels, u.number, bssids, rss, np.array([row.x, row.y])
             )
-            if not math.isfinite(ll[self.floors.index(row.floor)]):
-                continue  # the believed floor's crowd never walked here: no evidence either way
-            u.floor_belief = array("d", self.floors.weigh(np.asarray(u.floor_belief), ll).tolist())
-            moved.append(b.user)
+            if self.floor_stage.weigh_near(b.user, row.floor, ll):
+                moved.append(b.user)
         self._follow_floors(moved)
 
     def _follow_floors(self, names: list[str]) -> None:
@@ -425,7 +416,7 @@ class BuildingTracker:
             u = self._users[name]
             if u.slot < 0:
                 continue
-            level, _ = self.floors.believed(np.asarray(u.floor_belief))
+            level, _ = self.floor_stage.believed(name)
             if int(self.filters.levels[u.slot]) != level:
                 changing.append((u.slot, level))
         if not changing:
@@ -594,15 +585,15 @@ class BuildingTracker:
         anywhere on it), picks the floor whose map then places the scan."""
         if not (self.params.cold_start.enabled and self.params.fingerprints.enabled):
             return None
-        u = self._users[b.user]
-        if not self.floors.single and b.scan_t.size:
+        if not self.floor_stage.single and b.scan_t.size:
             stale = self.params.detection.stale_ap_ms
-            belief = np.asarray(u.floor_belief)
-            for c in np.argsort(b.scan_t, kind="stable").tolist():
-                _, bssids, rss = b.fresh_scan(int(c), stale)
-                ll = self.fingerprints.floor_evidence(self.floors.levels, NOBODY, bssids, rss, None)
-                belief = self.floors.weigh(belief, ll)
-            u.floor_belief = array("d", belief.tolist())
+            self.floor_stage.weigh_scans(
+                b.user,
+                (b.fresh_scan(int(c), stale)[1:] for c in np.argsort(b.scan_t, kind="stable").tolist()),
+                lambda levels, bssids, rss: self.fingerprints.floor_evidence(
+                    levels, NOBODY, bssids, rss, None
+                ),
+            )
         return self._candidates(b, latest=False)
 
     def _candidates(self, b: UserBatch, latest: bool) -> tuple[int, np.ndarray, np.ndarray, int] | None:
@@ -612,8 +603,7 @@ class BuildingTracker:
         nearest places in signal space are anywhere; a user being placed is weighed by every scan's."""
         if not b.scan_t.size:
             return None
-        u = self._users[b.user]
-        level = self.floors.believed(np.asarray(u.floor_belief))[0]
+        level = self.floor_stage.believed(b.user)[0]
         spread = math.inf if latest else self.params.fingerprints.max_spread_m
         stale = self.params.detection.stale_ap_ms
         order = np.argsort(b.scan_t, kind="stable")
@@ -653,7 +643,7 @@ class BuildingTracker:
         if math.isfinite(azimuth):
             u.heading = heading
         sigma = max(sigma, self.params.start_sigma_floor_m)
-        u.floor_belief = array("d", self.floors.start(level).tolist())
+        self.floor_stage.start(user, level)
         slot = self.filters.add_user(
             float(xy[0]), float(xy[1]), heading, sigma, self._crowd_map(level, built), level=level
         )
@@ -698,11 +688,7 @@ class BuildingTracker:
             ]
             if rising:  # a change of floor: the anchor is the landing, on the floor arrived at
                 for name, rise, _ in rising:
-                    u = self._users[name]
-                    before = np.asarray(u.floor_belief)
-                    after = self.floors.rise(before, rise)
-                    self.floors.learn(before, after, rise)  # the crowd measures the storeys
-                    u.floor_belief = array("d", after.tolist())
+                    self.floor_stage.rise(name, rise)  # the crowd measures the storeys
                 self._follow_floors([n for n, _, _ in rising])
                 self._carry([(n, r) for n, r, t in rising if t == self._escalator_type])
             unmeasured = [
@@ -714,9 +700,7 @@ class BuildingTracker:
             ]
             if unmeasured:  # a phone without a barometer at stairs, a lift or an escalator: maybe a new floor
                 for name in unmeasured:
-                    u = self._users[name]
-                    maybe = self.floors.maybe_changed(np.asarray(u.floor_belief))
-                    u.floor_belief = array("d", maybe.tolist())
+                    self.floor_stage.maybe_changed(name)
             slots = np.array([self._users[n].slot for n in names], dtype=np.int64)
             before = self.filters.summaries(slots)
             levels = self.filters.levels[slots].tolist()
@@ -743,7 +727,7 @@ class BuildingTracker:
             for name, flag, level in zip(rnd.fix_users, recentred, rnd.fix_level, strict=True):
                 reports[name].recentred += int(flag)
                 self._users[name].pin()
-                self._users[name].floor_belief = array("d", self.floors.start(level).tolist())
+                self.floor_stage.start(name, level)
             self._follow_floors(rnd.fix_users)
 
     def _carry(self, rides: list[tuple[str, float]]) -> None:
@@ -802,12 +786,12 @@ class BuildingTracker:
         if not users:
             return {}
         summary = self.filters.summaries(np.array([self._users[n].slot for n in users], dtype=np.int64))
-        if self.floors.single:
+        if self.floor_stage.single:
             return {  # rows as Python floats at once: indexing each numpy row cost more than the row
                 n: EstimateRow(self._users[n].last_t_ms, x, y, (xx, xy, yy), (bx, by), heading)
                 for n, (x, y, xx, xy, yy, bx, by, heading) in zip(users, summary.tolist(), strict=True)
             }
-        floors = [self.floors.believed(np.asarray(self._users[n].floor_belief)) for n in users]
+        floors = self.floor_stage.believed_of(users)
         return {
             n: EstimateRow(self._users[n].last_t_ms, x, y, (xx, xy, yy), (bx, by), heading, level, p)
             for n, (x, y, xx, xy, yy, bx, by, heading), (level, p) in zip(

@@ -5,7 +5,6 @@ pool of rows (``Trails``), which compiled lookups search for many users at once.
 from __future__ import annotations
 
 import math
-from array import array
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -48,8 +47,6 @@ class UserTrack:
     """``gyro_displacement`` since the last absolute observation (fix, anchor): what a revision turns."""
     since_laid: np.ndarray = field(default_factory=lambda: np.zeros(2))
     """What the filter was moved by since then (steps as sent, plus earlier revisions)."""
-    floor_belief: array[float] = field(default_factory=lambda: array("d", [1.0]))
-    """The belief over the building's floors, one probability per level (``slam_core.tracking.floors``)."""
 
     # A user travels in a snapshot as one flat tuple, its fields in declaration order and its 2-vectors as
     # plain floats: thousands of tiny arrays, or of dicts naming every field, pickle slowly one by one, in
@@ -61,13 +58,13 @@ class UserTrack:
         return (
             self.number, self.slot, self.last_t_ms, self.heading, self.walked, self.heading_offset,
             float(d[0]), float(d[1]), float(o[0]), float(o[1]), float(g[0]), float(g[1]),
-            float(sg[0]), float(sg[1]), float(sl[0]), float(sl[1]), self.placed, self.floor_belief,
+            float(sg[0]), float(sg[1]), float(sl[0]), float(sl[1]), self.placed,
         )  # fmt: skip
 
     def __setstate__(self, state: tuple[object, ...]) -> None:
         (
             self.number, self.slot, self.last_t_ms, self.heading, self.walked, self.heading_offset,
-            dx, dy, ox, oy, gx, gy, sgx, sgy, slx, sly, self.placed, self.floor_belief,
+            dx, dy, ox, oy, gx, gy, sgx, sgy, slx, sly, self.placed,
         ) = state  # type: ignore[assignment]  # fmt: skip
         self.displacement = np.array([dx, dy])
         self.origin = np.array([ox, oy])

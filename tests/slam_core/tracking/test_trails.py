@@ -7,7 +7,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import pickle
-from array import array
 
 import numpy as np
 import pytest
@@ -92,7 +91,6 @@ def test_a_pickled_track_is_restored_exactly() -> None:
     track.since_gyro, track.since_laid = np.array([0.5, -1.5]), np.array([2.5, 3.5])
     track.gyro_displacement = np.array([-4.0, 8.0])
     track.placed = False
-    track.floor_belief = array("d", [0.25, 0.75])
     track.slot = 3
     trails.reset(3)
     restored, restored_trails = pickle.loads(pickle.dumps((track, trails), protocol=pickle.HIGHEST_PROTOCOL))
