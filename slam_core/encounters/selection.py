@@ -266,11 +266,39 @@ def _choose(
 
 def latest_per_pair(t_ms: np.ndarray, keys: np.ndarray) -> np.ndarray:
     """Indices, in increasing order, of each pair's latest reading (the last of equal times): the only
-    reading of a pair ``EncounterSelector.choose`` considers, so a caller may narrow its input to them."""
-    backwards = np.argsort(np.asarray(t_ms), kind="stable")[::-1]
-    _, first = np.unique(np.asarray(keys)[backwards], return_index=True)
-    latest: np.ndarray = np.sort(backwards[first])
+    reading of a pair ``EncounterSelector.choose`` considers, so a caller may narrow its input to them.
+    ``keys`` are pair keys (int64 >= 0); one pass over a hash table of them, not a sort of the readings."""
+    keys = np.asarray(keys, dtype=np.int64)
+    if keys.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    latest: np.ndarray = _latest(np.asarray(t_ms, dtype=np.int64), keys)
     return latest
+
+
+@njit(cache=True, nogil=True)
+def _latest(t_ms: np.ndarray, keys: np.ndarray) -> np.ndarray:
+    capacity = 16
+    while capacity < 2 * keys.size:
+        capacity *= 2
+    table = np.full(capacity, _EMPTY, dtype=np.int64)
+    best = np.empty(capacity, dtype=np.int64)
+    n = 0
+    for i in range(keys.size):
+        at = _slot(table, keys[i])
+        if table[at] != keys[i]:
+            table[at] = keys[i]
+            best[at] = i
+            n += 1
+        elif t_ms[i] >= t_ms[best[at]]:  # later, or as late and after it
+            best[at] = i
+    out = np.empty(n, dtype=np.int64)
+    j = 0
+    for at in range(capacity):
+        if table[at] != _EMPTY:
+            out[j] = best[at]
+            j += 1
+    out.sort()
+    return out
 
 
 UserId = TypeVar("UserId", int, str)

@@ -127,6 +127,19 @@ def test_fitting_where_the_model_is_used_avoids_the_sensitivity_cut() -> None:
     assert np.max(np.abs(everywhere.feature_at(grid) - truth)) > 0.65  # 0.79-0.82 dB
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_the_latest_readings_are_those_of_a_sort_by_time(seed: int) -> None:
+    """Random readings (times with many ties, keys repeated, large pair keys): the hash table's choice is the
+    sort's (each key's first in the readings sorted latest first, ties latest index first)."""
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(1, 3_000))
+    t = rng.integers(0, 50, n).astype(np.int64) + 1_700_000_000_000
+    keys = rng.choice(rng.integers(0, 2**60, 200), n).astype(np.int64)
+    backwards = np.argsort(t, kind="stable")[::-1]
+    _, first = np.unique(keys[backwards], return_index=True)
+    assert latest_per_pair(t, keys).tolist() == np.sort(backwards[first]).tolist()
+
+
 def test_each_pairs_latest_reading_is_found_and_the_last_of_equal_times() -> None:
     t = np.array([5, 9, 7, 9, 1, 3], dtype=np.int64)
     keys = np.array([10, 10, 20, 10, 30, 20], dtype=np.int64)
