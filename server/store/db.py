@@ -105,17 +105,14 @@ def _values_clause(
     """The one-row statement's SQL cut around its row of values (before, the row, after), its parameters in
     order with their conversions, and whether they are positional; None when it cannot be cut so (a column
     computed by SQLAlchemy at execution, or text other than one ``VALUES (...)`` before ``ON CONFLICT``)."""
-    compiled = stmt.compile(dialect=dialect, column_keys=list(columns))
-    conversions = getattr(compiled, "_bind_processors", None)
-    if conversions is None or set(compiled.binds) != set(columns):
+    compiled = _compiled(dialect, stmt, columns, returning=True)
+    if compiled is None:
         return None
-    sql = str(compiled)
+    sql, conversion, positional = compiled
     at, end = sql.find(" VALUES ("), sql.find(") ON CONFLICT ")
     if at < 0 or end < at or sql.count(" VALUES (") != 1:
         return None
-    order = compiled.positiontup if compiled.positional else list(compiled.binds)
-    conversion = tuple((k, conversions.get(k)) for k in order)
-    return sql[: at + 8], sql[at + 8 : end + 1], sql[end + 1 :], conversion, bool(compiled.positional)
+    return sql[: at + 8], sql[at + 8 : end + 1], sql[end + 1 :], conversion, positional
 
 
 _NAMED = re.compile(r"%\((\w+)\)s")
@@ -227,13 +224,16 @@ _Conversion = Callable[[Any], Any] | None
 
 @lru_cache(maxsize=64)
 def _compiled(
-    dialect: Dialect, stmt: Any, columns: tuple[str, ...]
+    dialect: Dialect, stmt: Any, columns: tuple[str, ...], returning: bool = False
 ) -> tuple[str, tuple[tuple[str, _Conversion], ...], bool] | None:
     """The statement's SQL for this dialect, its parameters in order with their conversions, and whether
-    they are positional; None when this SQLAlchemy does not say (the caller falls back to ``execute``)."""
+    they are positional; None when this SQLAlchemy does not say (the caller falls back to ``execute``), or
+    when the statement returns rows and the caller did not say it reads them (``returning``)."""
     compiled = stmt.compile(dialect=dialect, column_keys=list(columns))
     conversions = getattr(compiled, "_bind_processors", None)
-    if conversions is None or set(compiled.binds) != set(columns) or compiled.effective_returning:
+    if conversions is None or set(compiled.binds) != set(columns):
+        return None
+    if compiled.effective_returning and not returning:
         return None
     order = compiled.positiontup if compiled.positional else list(compiled.binds)
     return str(compiled), tuple((k, conversions.get(k)) for k in order), bool(compiled.positional)

@@ -309,19 +309,16 @@ class EncounterDetector:
         """Phones heard other phones (in arrival order); an encounter each time a pair's RSS, averaged over
         both directions and ``bt_smoothing_ms``, passes the cut-off (``SightingPairs``). A phone hearing
         itself is no sighting."""
-        user_id = self.user_id
-        ids = [
-            (user_id(receiver), user_id(sender))  # interned in arrival order, receiver first
-            for receiver, sender in zip(receivers, senders, strict=True)
-            if receiver != sender
-        ]
-        if len(ids) < len(receivers):
-            kept = [k for k, (r, s) in enumerate(zip(receivers, senders, strict=True)) if r != s]
-            t_ms, rss_dbm = np.asarray(t_ms)[kept], np.asarray(rss_dbm)[kept]
-        if not ids:
+        kept = [k for k, (r, s) in enumerate(zip(receivers, senders, strict=True)) if r != s]
+        if not kept:
             return DetectionArrays.empty()
-        pairs = np.array(ids, dtype=np.int64)
-        return self.add_sighting_ids(pairs[:, 0], pairs[:, 1], t_ms, rss_dbm)
+        user_id = self.user_id
+        pairs = np.array(  # interned in arrival order, receiver first
+            [(user_id(receivers[k]), user_id(senders[k])) for k in kept], dtype=np.int64
+        )
+        return self.add_sighting_ids(
+            pairs[:, 0], pairs[:, 1], np.asarray(t_ms)[kept], np.asarray(rss_dbm)[kept]
+        )
 
     def add_sighting_ids(
         self, receivers: np.ndarray, senders: np.ndarray, t_ms: np.ndarray, rss_dbm: np.ndarray

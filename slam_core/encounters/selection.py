@@ -36,6 +36,7 @@ import numpy as np
 from numba import njit
 
 from slam_core.encounters.detection import DetectionArrays, EncounterDetector
+from slam_core.encounters.sighting_pairs import home_slot
 from slam_core.filter.dense_ids import unique_ints, unique_ints_inverse
 
 
@@ -195,7 +196,7 @@ class _PairTable:
 def _slot(table: np.ndarray, key: np.int64) -> int:
     """Where ``key`` is in the table, or the free entry where it would go."""
     mask = table.size - 1  # a power of two
-    i = int((key * np.int64(-7046029254386353131)) >> np.int64(17)) & mask  # Fibonacci-style scramble
+    i = home_slot(key, mask)
     while table[i] != _EMPTY and table[i] != key:
         i = (i + 1) & mask
     return i

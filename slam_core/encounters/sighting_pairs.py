@@ -110,11 +110,19 @@ class SightingPairs:
 
 
 @njit(cache=True, nogil=True)
+def home_slot(key: np.int64, mask: int) -> int:
+    """Where a pair key's probe starts in an open-addressing table of ``mask + 1`` entries (a power of two):
+    a Fibonacci-style scramble of the key. The encounter tables' one hash (these pairs, the selector's
+    cooldowns and latest readings)."""
+    return int((key * np.int64(-7046029254386353131)) >> np.int64(17)) & mask
+
+
+@njit(cache=True, nogil=True)
 def _find(keys: np.ndarray, key: np.int64) -> tuple[int, int]:
     """Where ``key`` is (or -1), and where it would be inserted (the first forgotten entry on its probe,
     else the free one that ends it)."""
     mask = keys.size - 1  # a power of two
-    i = int((key * np.int64(-7046029254386353131)) >> np.int64(17)) & mask  # Fibonacci-style scramble
+    i = home_slot(key, mask)
     spare = -1
     while keys[i] != _EMPTY:
         if keys[i] == key:

@@ -283,9 +283,8 @@ class BuildingTracker:
             if b.detect_type.size and np.any((b.detect_type < 0) | (b.detect_type >= self.n_types)):
                 raise ValueError(f"user batch of {b.user!r}: anchor type outside [0, {self.n_types})")
             for level in set(b.fix_level.tolist()):
-                self.floor_stage.index(
-                    level
-                )  # a floor the building does not have: ValueError naming its floors
+                # a floor the building does not have: ValueError naming its floors
+                self.floor_stage.index(level)
         reports = {b.user: UserReport() for b in batches}
         for b in batches:
             u = self._users.get(b.user)
