@@ -44,6 +44,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "is scored",
     )
     parser.add_argument(
+        "--warm-pick",
+        choices=("earliest", "alternate"),
+        default="earliest",
+        help="with --msindoor: which walks warm the crowd: the earliest (--warm-split's share; a building on "
+        "its first day) or every other walk by start time (alternate: a building walked everywhere)",
+    )
+    parser.add_argument(
         "--calibration",
         type=Path,
         metavar="FILE",
@@ -96,8 +103,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--no-start-fix",
         dest="start_fix",
         action="store_false",
-        help="with --msindoor --warm-split: the scored walks get no fix at their first waypoint; the crowd's "
-        "map places them (reports seconds_to_5m)",
+        help="with --msindoor and a warm crowd: the scored walks get no fix at their first waypoint; the "
+        "crowd's map places them (reports seconds_to_5m)",
     )
     parser.add_argument(
         "--radio-map",
@@ -110,8 +117,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--compare",
         action="store_true",
-        help="run pdr, semanticslam and dynamicslam (with --msindoor --warm-split, also dynamicslam with no "
-        "start fix); their CDFs on one figure (Figure 14)",
+        help="run pdr, semanticslam and dynamicslam (with --msindoor and a warm crowd, also dynamicslam "
+        "with no start fix); their CDFs on one figure (Figure 14)",
     )
     parser.add_argument(
         "--json", type=output_file, required=True, metavar="OUT", help="where to write the metrics"
@@ -127,8 +134,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.msindoor is not None:
         return _msindoor(args)
-    if args.warm_split is not None or args.calibration is not None:
-        print("crowdslam evaluate: --warm-split and --calibration apply to --msindoor only")
+    if args.warm_split is not None or args.calibration is not None or args.warm_pick != "earliest":
+        print("crowdslam evaluate: --warm-split, --warm-pick and --calibration apply to --msindoor only")
         return 2
 
     try:
@@ -195,7 +202,7 @@ def _msindoor(args: argparse.Namespace) -> int:
         print(f"crowdslam evaluate: {error}")
         return 2
     runs = [(mode, replace(options, mode=mode)) for mode in (MODES if args.compare else (args.mode,))]
-    if args.compare and options.warm_split is not None and options.start_fix:
+    if args.compare and options.warms and options.start_fix:
         runs.append(("no-start-fix", replace(options, mode="dynamicslam", start_fix=False)))
     results: dict[str, Any] = {}
     lines = []
@@ -236,6 +243,8 @@ def _msindoor(args: argparse.Namespace) -> int:
     plot = args.plot or args.json.with_suffix(".png")
     floor = "/".join(args.msindoor.resolve().parts[-2:])
     title = f"{floor} crowd replay" + (f", warm split {args.warm_split}" if args.warm_split else "")
+    if args.warm_pick == "alternate":
+        title += ", every other walk warms"
     if not options.floor_plan:
         title += ", no floor plan"
     _plot_lines(plot, lines, "waypoint error (m)", "CDF", title)
@@ -385,6 +394,7 @@ def _replay_options(args: argparse.Namespace) -> ReplayOptions:
     return ReplayOptions(
         mode=args.mode,
         warm_split=args.warm_split,
+        warm_pick=args.warm_pick,
         particles=args.particles,
         sampling=args.sampling,
         motion_model=args.motion_model,

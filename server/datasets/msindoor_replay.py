@@ -10,7 +10,8 @@ waypoint times, so the scored estimate is the one the server held at the waypoin
 by later sensor data.
 
 With ``warm_split`` the earlier walks (by recorded start time) are replayed first as a crowd of their own
-and build the building's shared map; only the later walks, replayed afterwards, are scored.
+and build the building's shared map; only the later walks, replayed afterwards, are scored. With
+``warm_pick`` "alternate" every other walk warms the crowd instead: a building walked everywhere.
 
 A building's folder (its floors as subfolders, ``msindoor.building_floors``) is replayed as one crowd in one
 building, each floor with its plan and each walk's fix naming its floor; the warm split takes each floor's
@@ -24,7 +25,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -47,10 +48,14 @@ from server.ingestion.convert import BuildingContext, building_context, to_user_
 from server.ingestion.floor_plans import engine_plan
 from server.ingestion.radio_maps import RadioMap
 from server.slam.config import ReplayOptions, replay_params
+from slam_core.crowd.fingerprints import NOBODY
 from slam_core.encounters.models import Calibration
 from slam_core.filter.floor_plan import PlanIndex
 from slam_core.sim.statistics import error_summary
+from slam_core.tracking.fingerprint_stage import FingerprintStage
+from slam_core.tracking.floors import Floors
 from slam_core.tracking.tracker import BuildingTracker, TrackerParams, UserBatch
+from slam_core.wifi.pairs import fresh_mask
 
 REPLAY_BASE_MS = 1_700_000_000_000
 """Replay time of every walk's first sample (a valid wire timestamp)."""
@@ -77,6 +82,9 @@ class _Walk:
     """Per entry of ``errors``: how many floors off the server's floor was."""
     floor_seen: list[tuple[float, bool]] = field(default_factory=list)
     """(time since the walk's first sample in ms, right floor) after every call that estimated it."""
+    belief_seen: list[tuple[float, bool]] = field(default_factory=list)
+    """... after every call, whether the server's most probable floor was the right one, placed or not (a
+    phone being placed has a floor before it has a position it is told)."""
     scored: list[tuple[float, float]] = field(default_factory=list)
     """(time, error) of every scored waypoint, inf while the user had no reported position."""
 
@@ -156,9 +164,9 @@ def replay_msindoor(
         found = [read_trace(p) for p in floor.traces]
         found = [t for t in found if len(t.waypoints) >= 2 and len(t.streams.get("accelerometer", ()))]
         found.sort(key=lambda t: (t.start_ms, t.path.name))
-        n_warm = 0 if options.warm_split is None else int(len(found) * options.warm_split)
-        warm += [(level, t) for t in found[:n_warm]]
-        later += [(level, t) for t in found[n_warm:]]
+        picks = options.warm_walks(len(found))
+        warm += [(level, t) for t, pick in zip(found, picks, strict=True) if pick]
+        later += [(level, t) for t, pick in zip(found, picks, strict=True) if not pick]
         if options.floor_plan:
             reading = read_floor_plan(floor)
             index = None if reading.plan is None else engine_plan(reading.plan)
@@ -232,6 +240,7 @@ def replay_msindoor(
         "motion_model": options.motion_model,
         "crowd_solver": options.crowd_solver,
         "warm_split": options.warm_split,
+        "warm_pick": options.warm_pick if options.warms else None,
         "floor_plan": any(index is not None for _, index, _ in readings.values()),
         "floor_plan_reading": (plan_readings.get(floors[0][0]) if single else plan_readings) or None,
         "heading_axes": any(index is not None for _, index, _ in readings.values()) and options.heading_axes,
@@ -240,6 +249,9 @@ def replay_msindoor(
         "seconds_to_5m": _median_or_none([w.seconds_to(5.0) for w in scored]),
         "walks_within_5m": sum(math.isfinite(w.seconds_to(5.0)) for w in scored) / max(1, len(scored)),
         "start_to_warm_track_m": None if reach is None or not reach.size else error_summary(reach),
+        "oracle_walks_right_floor_by_10s": None
+        if len(phases) < 2 or single
+        else _floor_oracle(warm, later, tracker.params),
         "starts_within_5m_of_warm_track": None
         if reach is None or not reach.size
         else float(np.mean(reach <= 5.0)),
@@ -291,10 +303,10 @@ def _floor_scores(walks: list[_Walk]) -> dict[str, Any]:
     their 10th second and of their estimates after it."""
     errors = [e for w in walks for e in w.errors]
     floors_off = [f for w in walks for f in w.floor_errors]
-    by_10 = [
-        next((right for t, right in reversed(w.floor_seen) if t <= FLOOR_BY_MS), False)
-        for w in walks
-        if w.floor_seen
+    # a walk the server had not placed by its 10th second was on no floor the phone was told of
+    by_10 = [next((right for t, right in reversed(w.floor_seen) if t <= FLOOR_BY_MS), False) for w in walks]
+    believed_by_10 = [
+        next((right for t, right in reversed(w.belief_seen) if t <= FLOOR_BY_MS), False) for w in walks
     ]
     after = [right for w in walks for t, right in w.floor_seen if t > FLOOR_BY_MS]
     return {
@@ -303,6 +315,7 @@ def _floor_scores(walks: list[_Walk]) -> dict[str, Any]:
         if errors
         else None,
         "walks_right_floor_by_10s": float(np.mean(by_10)) if by_10 else None,
+        "walks_believed_right_floor_by_10s": float(np.mean(believed_by_10)) if believed_by_10 else None,
         "right_floor_after_10s": float(np.mean(after)) if after else None,
     }
 
@@ -332,6 +345,49 @@ def _start_reach(warm: list[Trace], scored: list[Trace]) -> np.ndarray:
         t = np.clip(((p - a) * d).sum(axis=1) / length2, 0.0, 1.0)
         out[k] = float(np.min(np.hypot(*(a + t[:, None] * d - p).T)))
     return out
+
+
+def _floor_oracle(
+    warm: list[tuple[int, Trace]],
+    scored: list[tuple[int, Trace]],
+    params: TrackerParams,
+) -> float:
+    """The share of scored walks put on their floor by their first ``FLOOR_BY_MS`` of scans, as the
+    tracker weighs a phone not yet placed (``FingerprintStage.floor_evidence`` anywhere on each floor,
+    ``Floors.weigh`` from a uniform belief), but on a perfect crowd's maps: the warm walks' scans at their
+    surveyed positions and floors (a radio map). What bounds a cold phone's floor from its radio alone; a
+    walk with no scan that tells two floors apart by then is on none."""
+    levels = tuple(sorted({level for level, _ in warm} | {level for level, _ in scored}))
+    stage = FingerprintStage(
+        replace(params.fingerprints, enabled=True), params.detection.stale_ap_ms, params.floors
+    )
+    floors = Floors(params.floors, levels)
+    xy, bssids, rss, times, on = [], [], [], [], []
+    for level, trace in warm:
+        w = trace.waypoints
+        for scan in trace.wifi:
+            if w[0, 0] <= scan.t_ms <= w[-1, 0]:
+                xy.append([np.interp(scan.t_ms, w[:, 0], w[:, 1]), np.interp(scan.t_ms, w[:, 0], w[:, 2])])
+                fresh = fresh_mask(scan.t_ms, scan.last_seen_ms, stage.stale_ap_ms)
+                bssids.append([b for b, f in zip(scan.bssid, fresh, strict=True) if f])
+                rss.append(scan.rssi_dbm[fresh])
+                times.append(scan.t_ms)
+                on.append(level)
+    stage.load_radio_map("oracle", np.array(xy), bssids, rss, np.array(times), np.array(on))
+    right = []
+    for level, trace in scored:
+        first = min(float(s[0, 0]) for s in trace.streams.values() if len(s))
+        belief, informed = floors.uniform(), False
+        for scan in trace.wifi:
+            if scan.t_ms - first > FLOOR_BY_MS:
+                break
+            fresh = fresh_mask(scan.t_ms, scan.last_seen_ms, stage.stale_ap_ms)
+            heard = [b for b, f in zip(scan.bssid, fresh, strict=True) if f]
+            evidence = stage.floor_evidence(levels, NOBODY, heard, scan.rssi_dbm[fresh], None)
+            informed |= int(np.isfinite(evidence).sum()) >= 2
+            belief = floors.weigh(belief, evidence)
+        right.append(informed and floors.believed(belief)[0] == level)
+    return float(np.mean(right)) if right else math.nan
 
 
 def _windows(trace: Trace, window_ms: int) -> int:
@@ -420,8 +476,9 @@ def _apply(
     for end, index, batch in call:
         walk = walks[index]
         _score(tracker, walk, end, options.mode)
+        level, _ = tracker.floor_of(batch.user)
+        walk.belief_seen.append((end - walk.start_ms, level == walk.level))
         if tracker.is_placed(batch.user):
-            level, _ = tracker.floor_of(batch.user)
             walk.floor_seen.append((end - walk.start_ms, level == walk.level))
         report = outcome.reports[batch.user]
         truth = walk.truth(end)

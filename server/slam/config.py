@@ -39,10 +39,18 @@ def tracker_params(settings: Settings) -> TrackerParams:
     return in_mode(params, settings.mode, settings.fingerprint_fixes)
 
 
+WARM_PICKS = ("earliest", "alternate")
+
+
 @dataclass(frozen=True)
 class ReplayOptions:
     mode: str = "dynamicslam"
     warm_split: float | None = None
+    """The earliest fraction of each floor's walks (by start time) that first builds the building's map; the
+    rest is scored (``warm_pick`` "earliest": a building on its first day, the hard case)."""
+    warm_pick: str = "earliest"
+    """Which walks warm the crowd: "earliest" (``warm_split``'s fraction) or "alternate" (every other walk of
+    each floor by start time, the first included: a building walked everywhere, as after a month of use)."""
     particles: int = 75
     sampling: str = "iterative"
     motion_model: str = "bias-scale"
@@ -80,6 +88,24 @@ class ReplayOptions:
             raise ValueError("liars must be >= 0")
         if self.warm_split is not None and not 0.0 < self.warm_split < 1.0:
             raise ValueError("warm_split must be in (0, 1)")
+        if self.warm_pick not in WARM_PICKS:
+            raise ValueError(f"unknown warm_pick {self.warm_pick!r}; valid: {', '.join(WARM_PICKS)}")
+        if self.warm_pick == "alternate" and self.warm_split is not None:
+            raise ValueError(
+                "warm_split is the earliest walks' share; warm_pick 'alternate' warms every other walk"
+            )
+
+    @property
+    def warms(self) -> bool:
+        """Whether some walks first warm the crowd and only the others are scored."""
+        return self.warm_split is not None or self.warm_pick == "alternate"
+
+    def warm_walks(self, n: int) -> list[bool]:
+        """Of a floor's ``n`` walks sorted by start time, which warm the crowd."""
+        if self.warm_pick == "alternate":
+            return [k % 2 == 0 for k in range(n)]
+        n_warm = 0 if self.warm_split is None else int(n * self.warm_split)
+        return [k < n_warm for k in range(n)]
 
 
 def replay_params(base: TrackerParams, options: ReplayOptions) -> TrackerParams:

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from server.cli.main import main
-from server.datasets.msindoor import read_trace
+from server.datasets.msindoor import Trace, read_trace
 from server.datasets.msindoor_batches import trace_batches
 from server.datasets.msindoor_replay import replay_msindoor
 from server.ingestion.convert import building_context, to_user_batch
@@ -416,3 +416,82 @@ def test_a_folder_that_is_neither_a_floor_nor_a_building_is_refused(tmp_path: Pa
         replay_msindoor(
             tmp_path, ReplayOptions(mode="pdr"), tracker_params(Settings()), load_calibration(None)
         )
+
+
+def test_the_warm_crowd_is_the_earliest_share_or_every_other_walk() -> None:
+    assert ReplayOptions(warm_split=0.5).warm_walks(5) == [True, True, False, False, False]
+    assert ReplayOptions(warm_pick="alternate").warm_walks(5) == [True, False, True, False, True]
+    assert ReplayOptions().warm_walks(3) == [False] * 3
+    assert ReplayOptions(warm_pick="alternate").warms
+    assert not ReplayOptions().warms
+    with pytest.raises(ValueError, match="every other walk"):
+        ReplayOptions(warm_pick="alternate", warm_split=0.5)
+    with pytest.raises(ValueError, match="unknown warm_pick 'latest'; valid: earliest, alternate"):
+        ReplayOptions(warm_pick="latest")
+
+
+def test_alternate_walks_warm_the_crowd_and_the_others_are_scored(small_floor: Path) -> None:
+    result, errors = replay_msindoor(
+        small_floor,
+        ReplayOptions(mode="dynamicslam", warm_pick="alternate", particles=30),
+        tracker_params(Settings()),
+        load_calibration(None),
+    )
+    traces = sorted(
+        (read_trace(FLOOR / "path_data_files" / f"{n}.txt") for n in WALKS), key=lambda t: t.start_ms
+    )
+    scored = tuple(t.path.stem for t in traces[1::2])
+    assert result["warm_pick"] == "alternate"
+    assert result["n_scored_walks"] == len(scored)
+    assert errors.size == _waypoints_after_the_first(scored)
+    assert result["oracle_walks_right_floor_by_10s"] is None  # one floor: nothing to tell apart
+
+
+def _scan_walk(level_aps: list[str], t0: int, scans_at: list[int], rss: float = -60.0) -> Trace:
+    """A walk standing at (0, 0) with an accelerometer and scans hearing ``level_aps`` at ``scans_at``."""
+    from server.datasets.msindoor import WifiScan
+
+    n = len(level_aps)
+    scans = [
+        WifiScan(
+            t0 + t,
+            [""] * n,
+            list(level_aps),
+            np.full(n, rss) - np.arange(n),
+            np.full(n, 2412, dtype=np.int64),
+            np.full(n, t0 + t, dtype=np.int64),
+        )
+        for t in scans_at
+    ]
+    return Trace(
+        path=Path("w.txt"),
+        header={},
+        streams={"accelerometer": np.array([[float(t0), 0.0, 0.0, 9.8]])},
+        wifi=scans,
+        waypoints=np.array([[float(t0), 0.0, 0.0], [t0 + 60_000.0, 10.0, 0.0]]),
+    )
+
+
+def test_the_floor_oracle_names_a_walks_floor_from_its_first_ten_seconds_of_scans() -> None:
+    """Two floors with their own APs and one heard on both: a scored walk hearing a floor's APs is put on
+    it; one whose first scan comes after its 10th second is not on any floor by then."""
+    from server.datasets.msindoor_replay import _floor_oracle
+
+    lower = [f"aa:00:00:00:00:{k:02x}" for k in range(6)] + ["cc:00:00:00:00:00"]
+    upper = [f"bb:00:00:00:00:{k:02x}" for k in range(6)] + ["cc:00:00:00:00:00"]
+    every_2s = list(range(0, 60_000, 2_000))
+    warm = [(0, _scan_walk(lower, 0, every_2s)), (1, _scan_walk(upper, 100_000, every_2s))]
+    for level in (0, 1):  # a floor's map needs min_references scans of others
+        warm += [
+            (level, _scan_walk(lower if level == 0 else upper, 200_000 * (k + 2), every_2s)) for k in range(2)
+        ]
+    base = tracker_params(Settings())
+    params = replace(base, fingerprints=replace(base.fingerprints, per_cell=1000))
+    on_upper = _scan_walk(upper[3:], 1_000_000, [1_000, 5_000])
+    on_lower = _scan_walk(lower[3:], 2_000_000, [3_000])
+    late = _scan_walk(lower, 3_000_000, [12_000, 14_000])
+    assert _floor_oracle(warm, [(1, on_upper), (0, on_lower)], params) == 1.0
+    assert _floor_oracle(warm, [(0, on_upper)], params) == 0.0
+    assert _floor_oracle(warm, [(0, on_lower), (0, late)], params) == 0.5
+    # APs one floor's crowd alone ever heard compare no floors: as for a phone being placed, no evidence
+    assert _floor_oracle(warm, [(1, _scan_walk(upper[:3], 4_000_000, [1_000]))], params) == 0.0
