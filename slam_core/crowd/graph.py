@@ -91,11 +91,59 @@ class CrowdGraph:
         track.displacement.append(np.asarray(displacement, dtype=float).copy())
         track.walked.append(float(walked_m))
 
-    def solve(self, initial: dict[int, np.ndarray]) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray]]:
-        """Anchor means and 2x2 covariances for every unknown anchor seen; ``initial`` seeds the means."""
-        problem = self.problem(initial)
-        if problem is None:
-            return {}, {}
+    def solve(
+        self, initial: dict[int, np.ndarray], touching: set[int] | None = None
+    ) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray]]:
+        """Anchor means and 2x2 covariances for every unknown anchor seen (or only those in the connected
+        parts of the graph that hold an anchor of ``touching``); ``initial`` seeds the means. Each connected
+        part (users and the unknown anchors they detected: a floor's crowd, or a quarter no one walked from
+        another) is solved on its own: the parts share no variable, so their optima are the joint one's, and
+        a floor's solve neither waits for nor moves the others' anchors."""
+        means: dict[int, np.ndarray] = {}
+        covs: dict[int, np.ndarray] = {}
+        for users in self.components():
+            if touching is not None and not any(
+                a in touching and a not in self._known for u in users for a in self._users[u].anchor
+            ):
+                continue
+            problem = self.problem(initial, users)
+            if problem is not None:
+                part_means, part_covs = self._solved(problem)
+                means.update(part_means)
+                covs.update(part_covs)
+        return means, covs
+
+    def components(self) -> list[list[int]]:
+        """The users with unknown anchors, grouped by the connected parts of the graph (two users are in one
+        when a chain of their detections' unknown anchors joins them; known anchors are fixed and join
+        nothing), each in the order users were added, the parts by their first user."""
+        parent: dict[int, int] = {}
+
+        def root(a: int) -> int:
+            while parent[a] != a:
+                parent[a] = parent[parent[a]]
+                a = parent[a]
+            return a
+
+        first: dict[int, int] = {}  # a user's first unknown anchor
+        for u, t in self._users.items():
+            unknown = [a for a in t.anchor if a not in self._known]
+            if not unknown:
+                continue
+            for a in unknown:
+                parent.setdefault(a, a)
+            r = root(unknown[0])
+            for a in unknown[1:]:
+                other = root(a)
+                if other != r:
+                    parent[other] = r
+            first[u] = unknown[0]
+        parts: dict[int, list[int]] = {}
+        for u, a in first.items():
+            parts.setdefault(root(a), []).append(u)
+        return list(parts.values())
+
+    def _solved(self, problem: GraphProblem) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray]]:
         result = least_squares(
             problem.residuals,
             problem.x0,
@@ -119,12 +167,14 @@ class CrowdGraph:
             covs[a] = 0.5 * (block + block.T) + 1e-4 * np.eye(2)
         return means, covs
 
-    def problem(self, initial: dict[int, np.ndarray]) -> GraphProblem | None:
+    def problem(self, initial: dict[int, np.ndarray], among: list[int] | None = None) -> GraphProblem | None:
         """The weighted residuals, their analytic Jacobian and the starting point over the variables
-        (unknown anchors' x, y; each user's bias; each user's scale), or None when nothing is to solve."""
+        (unknown anchors' x, y; each user's bias; each user's scale) of the users ``among`` (all by default)
+        and the anchors they detected, or None when nothing is to solve."""
         p = self.params
-        anchors = sorted({a for t in self._users.values() for a in t.anchor if a not in self._known})
-        users = [u for u, t in self._users.items() if t.anchor]
+        tracks = self._users if among is None else {u: self._users[u] for u in among}
+        anchors = sorted({a for t in tracks.values() for a in t.anchor if a not in self._known})
+        users = [u for u, t in tracks.items() if t.anchor]
         if not anchors or not users:
             return None
         a_index = {a: i for i, a in enumerate(anchors)}

@@ -110,7 +110,7 @@ class BuildingTracker:
             (vertical.elevator_type, vertical.stairs_type, vertical.escalator_type)
         )
         self._by_ble: dict[str, str] = {}
-        self._last_solve_ms = -(2**62)
+        self._last_solve_ms: dict[int, int] = {}  # by floor: each floor's crowd map is solved on its own
         self._graph_users: list[int] = []
         self._started = 0
         self.n_types = fp.anchors.type_posterior.shape[0]
@@ -356,19 +356,8 @@ class BuildingTracker:
         crowd_size = len(self.crowd)
         for rnd in rounds:
             self._run_round(rnd, reports, changed)
-        if (
-            self.params.crowd_solver == "graph"
-            and changed
-            and newest - self._last_solve_ms >= self.params.graph_solve_period_ms
-        ):
-            self._last_solve_ms = newest
-            means, covs = self.graph.solve(self.crowd.means())
-            for c, mean in means.items():
-                if self.crowd.is_live(c):
-                    self.crowd.set_estimate(c, mean, covs[c])
-                    changed.add(c)
-            for users, level in self._by_level(self.filters.active_users):
-                self.filters.refresh_crowd_anchors(users, self.crowd.snapshot(level))
+        if self.params.crowd_solver == "graph" and changed:
+            self._solve_crowd_map(changed, newest)
         if len(self.crowd) != crowd_size:
             self._offer_crowd_map()
         if self.params.fingerprints.enabled:
@@ -379,6 +368,30 @@ class BuildingTracker:
                 rows = self._rows(names)
             self.fingerprints.fix(self.filters, batches, self._users, rows, reports, self.trails)
         return changed
+
+    def _solve_crowd_map(self, changed: set[int], newest: int) -> None:
+        """The joint solve of the crowd's map (``CrowdGraph``) on the floors whose anchors changed, at most
+        every ``graph_solve_period_ms`` of phone time a floor; the solved floors' users take its estimates
+        into their particles' maps (which overwrites their own copies: a floor whose map did not change keeps
+        them, as it would in a building of that floor alone). Adds the re-estimated anchors to ``changed``."""
+        crowd, period = self.crowd, self.params.graph_solve_period_ms
+        levels = {crowd.level(c) for c in changed if crowd.is_live(c)}
+        due = {lv for lv in levels if newest - self._last_solve_ms.get(lv, -(2**62)) >= period}
+        if not due:
+            return
+        initial = crowd.means()
+        on_due = {c for c in initial if crowd.level(c) in due}
+        means, covs = self.graph.solve(initial, on_due)
+        solved = due | {crowd.level(c) for c in means if crowd.is_live(c)}
+        for lv in solved:
+            self._last_solve_ms[lv] = newest
+        for c, mean in means.items():
+            if crowd.is_live(c):
+                crowd.set_estimate(c, mean, covs[c])
+                changed.add(c)
+        for users, level in self._by_level(self.filters.active_users):
+            if level in solved:
+                self.filters.refresh_crowd_anchors(users, crowd.snapshot(level))
 
     def _by_level(self, slots: np.ndarray) -> list[tuple[np.ndarray, int]]:
         """The slots grouped by the floor they are on (one group in a one-floor building)."""

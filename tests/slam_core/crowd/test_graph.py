@@ -82,3 +82,45 @@ def test_nothing_to_solve_without_detections() -> None:
     graph.add_user(0, np.zeros(2))
     assert graph.solve({}) == ({}, {})
     assert graph.problem({}) is None
+
+
+def _two_floors(rng: np.random.Generator) -> tuple[CrowdGraph, CrowdGraph, CrowdGraph]:
+    """One graph holding two crowds that share no unknown anchor (two floors: anchors 1-4 and 11-14, the
+    known anchor 0 seen by both), and each crowd's graph alone."""
+    both, lower, upper = CrowdGraph(), CrowdGraph(), CrowdGraph()
+    for graph in (both, lower, upper):
+        graph.set_known(0, np.zeros(2))
+    for u in range(10):
+        offset = 0 if u < 5 else 10
+        start = rng.normal(0, 0.3, 2)
+        alone = lower if u < 5 else upper
+        for graph in (both, alone):
+            graph.add_user(u, start)
+        displacement, walked = np.zeros(2), 0.0
+        for a in [0, *(rng.permutation(4) + 1 + offset)]:
+            step = rng.normal(0, 8.0, 2)
+            displacement, walked = displacement + step, walked + float(np.linalg.norm(step))
+            for graph in (both, alone):
+                graph.add_detection(u, int(a), displacement, walked)
+    return both, lower, upper
+
+
+def test_crowds_that_share_no_anchor_are_solved_apart_as_they_would_be_alone() -> None:
+    """The parts of a graph (users joined by the unknown anchors they detected; a known anchor joins none) are
+    solved one by one: each part's anchors equal its crowd's solve alone, and a solve touching one part's
+    anchors leaves the other's unsolved."""
+    both, lower, upper = _two_floors(np.random.default_rng(4))
+    assert both.components() == [[0, 1, 2, 3, 4], [5, 6, 7, 8, 9]]
+    means, covs = both.solve({})
+    alone = {**lower.solve({})[0], **upper.solve({})[0]}
+    assert sorted(means) == sorted(alone) == [1, 2, 3, 4, 11, 12, 13, 14]
+    for a, mean in alone.items():
+        np.testing.assert_allclose(means[a], mean, atol=1e-9)
+        np.testing.assert_allclose(covs[a], covs[a].T)
+        assert np.all(np.linalg.eigvalsh(covs[a]) > 0)
+    touched, _ = both.solve({}, touching={12})
+    assert sorted(touched) == [11, 12, 13, 14]
+    assert both.solve({}, touching={0}) == ({}, {})  # a known anchor is in no part
+    # a user who walks from one crowd's anchors to the other's joins them into one part
+    both.add_detection(4, 13, np.array([1.0, 1.0]), 100.0)
+    assert both.components() == [[0, 1, 2, 3, 4, 5, 6, 7, 8, 9]]

@@ -386,3 +386,41 @@ def test_a_phone_that_finds_its_own_floor_changes_is_not_moved_twice_by_its_baro
         outcome = tracker.apply([batch])
     assert outcome.estimates["sdk"].floor == 1  # one storey, not two
     assert tracker.front_end.fired["stairs"] == 1  # the server's detector saw it and kept it to itself
+
+
+def _copies(tracker: BuildingTracker, user: str, anchor: int) -> np.ndarray:
+    """The user's particles' own copies of a crowd anchor (one row a particle)."""
+    s, slot = tracker.filters.state, tracker._users[user].slot
+    particles, k = np.nonzero(s.map_crowd_id[slot] == anchor)
+    return s.map_mu[slot, particles, k]
+
+
+def test_a_floor_s_crowd_map_is_solved_on_its_own_and_only_its_users_take_it() -> None:
+    """The joint solve runs on the floors whose anchors changed, at most once a period each; the particles of
+    a floor that was not solved keep their own copies of its anchors."""
+    tracker = BuildingTracker(TrackerParams(), CAL, seed=0)
+    tracker.set_levels((0, 1))
+    tracker.apply([_fix("down", (0.0, 0.0), T0, 0), _fix("up", (0.0, 0.0), T0, 1)])
+    crowd, graph = tracker.crowd, tracker.graph
+    anchors = {}
+    for user, level in ((7, 0), (8, 1)):  # an anchor a floor, each detected 12 m east of a start at (0, 0)
+        anchors[level] = crowd.contribute(user, np.array([10.0, 0.0]), np.eye(2), 1, T0, level=level)
+        graph.add_user(user, np.zeros(2))
+        graph.add_detection(user, anchors[level], np.array([12.0, 0.0]), 12.0)
+    for name, level in (("down", 0), ("up", 1)):
+        slot = np.array([tracker._users[name].slot])
+        tracker.filters.merge_crowd_map(slot, crowd.snapshot(level))
+        np.testing.assert_allclose(_copies(tracker, name, anchors[level]), [[10.0, 0.0]] * 75)
+    changed = {anchors[1]}
+    tracker._solve_crowd_map(changed, T0 + 10_000)
+    solved = crowd.anchor(anchors[1])[0]
+    assert solved[0] > 11.0  # the floor's detection moved it
+    np.testing.assert_allclose(_copies(tracker, "up", anchors[1]), [solved] * 75)
+    np.testing.assert_allclose(crowd.anchor(anchors[0])[0], [10.0, 0.0])  # the other floor: untouched
+    np.testing.assert_allclose(_copies(tracker, "down", anchors[0]), [[10.0, 0.0]] * 75)
+    assert tracker._last_solve_ms == {1: T0 + 10_000}
+    tracker._solve_crowd_map({anchors[1]}, T0 + 12_000)  # within its period: not again
+    assert tracker._last_solve_ms == {1: T0 + 10_000}
+    tracker._solve_crowd_map({anchors[0]}, T0 + 12_000)  # the other floor's first
+    assert tracker._last_solve_ms == {0: T0 + 12_000, 1: T0 + 10_000}
+    assert crowd.anchor(anchors[0])[0][0] > 11.0
