@@ -12,6 +12,8 @@ from server.cli.user_errors import floor_folder, output_file
 from server.data import scenario_argument
 
 if TYPE_CHECKING:
+    from collections.abc import Callable
+
     from server.slam.config import ReplayOptions
 
 
@@ -113,6 +115,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="with --msindoor --warm-split: build the warm walks into a radio map (SignalSLAM, each walk "
         "tagged at its first and last waypoints, as a server's signal-map build) that the tracker loads",
     )
+    parser.add_argument(
+        "--floors-alone",
+        action="store_true",
+        help="with --msindoor SITE (a building): also replay each floor alone and report, per floor, its "
+        "figures in the building against alone (floors_alone)",
+    )
     parser.add_argument("--sweep", choices=("particles", "density", "anchor-density"))
     parser.add_argument(
         "--compare",
@@ -181,11 +189,12 @@ def summary(world: str, run: str, result: dict[str, Any]) -> str:
 def _msindoor(args: argparse.Namespace) -> int:
     # deferred: the command's dependencies load when it runs (`crowdslam --help` loads none)
     from dataclasses import replace
+    from functools import partial
 
     from tqdm import tqdm
 
-    from server.datasets.msindoor import TraceFormatError
-    from server.datasets.msindoor_replay import replay_msindoor
+    from server.datasets.msindoor import TraceFormatError, building_floors
+    from server.datasets.msindoor_replay import floors_alone, replay_msindoor
     from server.settings import Settings
     from server.signal_maps.tagged_walks import radio_map_of_walks
     from server.slam.config import load_calibration, tracker_params
@@ -194,6 +203,9 @@ def _msindoor(args: argparse.Namespace) -> int:
 
     if args.sweep or args.liars:
         print("crowdslam evaluate: --sweep and --liars apply to --scenario only")
+        return 2
+    if args.floors_alone and len(building_floors(args.msindoor)) < 2:
+        print("crowdslam evaluate: --floors-alone compares a building's floors; give a building (SITE)")
         return 2
     try:
         options = _replay_options(args)
@@ -226,6 +238,15 @@ def _msindoor(args: argparse.Namespace) -> int:
             except (TraceFormatError, ValueError, OSError) as error:
                 print(f"crowdslam evaluate: {error}")
                 return 2
+        if args.floors_alone:
+            opened: list[Any] = []
+            try:
+                result["floors_alone"] = floors_alone(
+                    args.msindoor, result, run_options, params, calibration, partial(_floor_bar, opened, name)
+                )
+            finally:
+                for floor_bar in opened:
+                    floor_bar.close()
         results[name] = result
         readings = result["floor_plan_reading"] or {}
         per_floor = readings.items() if result["per_floor"] is not None else [("", readings)]
@@ -256,6 +277,21 @@ def _msindoor(args: argparse.Namespace) -> int:
     for name, r in results.items():
         print(summary(floor, name, r))
     return 0
+
+
+def _floor_bar(opened: list[Any], run: str, folder: str) -> Callable[[int, int], None]:
+    """A progress bar for a floor replayed alone (kept in ``opened`` to be closed), as a replay's callback."""
+    # deferred: the command's dependencies load when it runs (`crowdslam --help` loads none)
+    from tqdm import tqdm
+
+    bar = tqdm(desc=f"replay {folder} alone ({run})", unit="batch")
+    opened.append(bar)
+
+    def tick(n: int, total: int) -> None:
+        bar.total = total
+        bar.update(n)
+
+    return tick
 
 
 def _run(scenario: Any, args: argparse.Namespace, mode: str, particles: int, bar: Any) -> tuple[Any, Any]:

@@ -290,6 +290,41 @@ def replay_msindoor(
     return result, errors
 
 
+def floors_alone(
+    building_dir: Path,
+    result: dict[str, Any],
+    options: ReplayOptions,
+    base_params: TrackerParams,
+    calibration: Calibration,
+    progress: Callable[[str], Callable[[int, int], None] | None] | None = None,
+) -> dict[str, dict[str, Any]]:
+    """Each floor of a building replayed alone with the same options, beside its figures in the building's
+    replay (``result``): by level, both medians and p90s and the building's over the floor's alone. A floor
+    should do no worse among the others (the same walks, warmed and scored alike) than alone, but for the
+    filters' seed noise. ``progress`` gives a floor's progress callback by its folder's name."""
+    per_floor = result.get("per_floor")
+    if per_floor is None:
+        raise ValueError(f"{building_dir}: a floor, not a building of floors; nothing to compare it with")
+    out: dict[str, dict[str, Any]] = {}
+    for level, folder in building_floors(building_dir):
+        inside = per_floor.get(str(level))
+        if inside is None or inside["median_m"] is None:
+            continue
+        alone, _ = replay_msindoor(
+            folder, options, base_params, calibration, progress(folder.name) if progress else None
+        )
+        out[str(level)] = {
+            "floor": folder.name,
+            "median_m": inside["median_m"],
+            "p90_m": inside["p90_m"],
+            "alone_median_m": alone["median_m"],
+            "alone_p90_m": alone["p90_m"],
+            "median_vs_alone": inside["median_m"] / alone["median_m"],
+            "p90_vs_alone": inside["p90_m"] / alone["p90_m"],
+        }
+    return out
+
+
 def _summary_or_none(errors: np.ndarray) -> dict[str, Any]:
     """``error_summary``, or its keys with None when a floor had no scored waypoint with a position."""
     if errors.size:

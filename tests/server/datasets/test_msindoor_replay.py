@@ -495,3 +495,23 @@ def test_the_floor_oracle_names_a_walks_floor_from_its_first_ten_seconds_of_scan
     assert _floor_oracle(warm, [(0, on_lower), (0, late)], params) == 0.5
     # APs one floor's crowd alone ever heard compare no floors: as for a phone being placed, no evidence
     assert _floor_oracle(warm, [(1, _scan_walk(upper[:3], 4_000_000, [1_000]))], params) == 0.0
+
+
+def test_each_floor_is_compared_with_itself_alone(
+    small_building: Path, small_floor: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--floors-alone`` replays each floor of a building alone with the same options and reports both; in
+    pdr mode nothing is shared between floors, so each floor's figures equal its own alone."""
+    out = tmp_path / "b.json"
+    args = ["evaluate", "--msindoor", str(small_building), "--mode", "pdr", "--warm-split", "0.4"]
+    assert main([*args, "--floors-alone", "--json", str(out)]) == 0
+    result = json.loads(out.read_text())
+    alone = result["floors_alone"]
+    assert [alone[lv]["floor"] for lv in ("0", "1")] == ["F1", "F2"]
+    for level, floor in alone.items():
+        assert floor["median_m"] == result["per_floor"][level]["median_m"]
+        assert floor["alone_median_m"] == pytest.approx(floor["median_m"])
+        assert floor["p90_vs_alone"] == pytest.approx(1.0)
+    code = main(["evaluate", "--msindoor", str(small_floor), "--floors-alone", "--json", str(out)])
+    assert code == 2
+    assert "--floors-alone compares a building's floors" in capsys.readouterr().out
