@@ -46,7 +46,7 @@ FORBIDDEN = {
 
 LAYERS: dict[str, list[list[str]]] = {
     "slam_core": [
-        ["geo", "background_call", "wifi"],
+        ["geo", "background_call", "wifi", "zones"],
         ["filter"],
         ["sensing", "encounters"],
         ["crowd", "signalslam"],
