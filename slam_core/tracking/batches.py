@@ -184,6 +184,16 @@ class EncounterResult:
     """The floor they met on."""
 
 
+@dataclass(frozen=True)
+class ZoneEvent:
+    user: str
+    zone_id: str
+    kind: str  # "enter", "exit" or "dwell"
+    t_ms: int
+    probability: float
+    """The probability that the user was inside then."""
+
+
 @dataclass
 class TrackerOutcome:
     reports: dict[str, UserReport]
@@ -191,3 +201,4 @@ class TrackerOutcome:
     encounters: list[EncounterResult]  # the detections chosen as human anchors (applied, or gated)
     anchors_changed: list[int]  # crowd indices created or re-estimated
     detections: int = 0  # encounter detections, chosen or not
+    zone_events: list[ZoneEvent] = field(default_factory=list)  # entries, exits, dwells of the call's users

@@ -11,6 +11,7 @@ from slam_core.filter.params import FilterParams
 from slam_core.sensing.detectors import DetectorParams
 from slam_core.sensing.pdr.online import PdrParams
 from slam_core.tracking.floors import FloorParams
+from slam_core.zones.presence import ZoneParams
 
 MODES = ("pdr", "semanticslam", "dynamicslam")
 """How a user is tracked: ``pdr`` its own dead reckoning, ``semanticslam`` with the crowd's building anchors,
@@ -70,6 +71,8 @@ class TrackerParams:
     cold_start: ColdStartParams = field(default_factory=ColdStartParams)
     floors: FloorParams = field(default_factory=FloorParams)
     """Each user's belief over the building's floors (``slam_core.tracking.floors``)."""
+    zones: ZoneParams = field(default_factory=ZoneParams)
+    """When a user is in a zone (``slam_core.zones.presence``)."""
     revise_headings: bool = True
     """When the PDR front-end's north offset estimate moves, translate the user's particles by the revision
     of the path dead-reckoned since its last absolute observation (``BuildingTracker._revise_headings``)."""

@@ -68,6 +68,7 @@ from slam_core.tracking.rounds import Round, lay_steps, round_at
 from slam_core.tracking.signature_stage import SignatureStage
 from slam_core.tracking.stretches import StraightStretches
 from slam_core.tracking.trails import Trails, UserTrack
+from slam_core.tracking.zone_stage import ZoneStage
 
 CLOCK_JUMP_BACK_MS = 60_000
 """A batch whose every time is this far behind its user's last one: the phone's clock went back (set by hand,
@@ -100,6 +101,7 @@ class BuildingTracker:
         self.signatures = SignatureStage(params, self.crowd, self.graph)
         self.fingerprints = FingerprintStage(params.fingerprints, params.detection.stale_ap_ms, params.floors)
         self.floor_stage = FloorStage(params.floors)
+        self.zones = ZoneStage(params.zones)
         self.encounters = EncounterStage(params, calibration)
         self._users: dict[str, UserTrack] = {}
         self.trails = Trails()  # the tracked users' recent steps, by filter slot
@@ -198,6 +200,7 @@ class BuildingTracker:
                 self.filters.remove_user(u.slot)
                 self.encounters.remove(name)
                 self.trails.release(u.slot)
+                self.zones.release(np.array([u.slot]))
         gone = set(users)
         self._by_ble = {k: v for k, v in self._by_ble.items() if v not in gone}
 
@@ -324,7 +327,17 @@ class BuildingTracker:
         for user, row in estimates.items():  # an output is kept only finite: the caller then undoes the call
             if not all(math.isfinite(v) for v in (row.x, row.y, *row.cov, *row.best, row.heading)):
                 raise ValueError(f"user {user!r}: the filter's estimate is not finite")
-        return TrackerOutcome(reports, estimates, encounters, sorted(changed), detections)
+        zone_events = (
+            self.zones.update(
+                self.filters,
+                list(estimates),
+                np.array([self._users[n].slot for n in estimates], dtype=np.int64),
+                np.array([row.t_ms for row in estimates.values()], dtype=np.int64),
+            )
+            if len(self.zones)
+            else []
+        )
+        return TrackerOutcome(reports, estimates, encounters, sorted(changed), detections, zone_events)
 
     def _confirm_placements(self, names: list[str]) -> None:
         """Users being placed whose estimate is now confident count as placed (for good)."""
