@@ -36,6 +36,7 @@ from schemas.sensors import PositionFix
 from server.datasets.msindoor import (
     PlanReading,
     Trace,
+    WifiScan,
     building_floors,
     iter_windows,
     read_floor,
@@ -105,11 +106,21 @@ class _Walk:
     before: tuple[np.ndarray, np.ndarray] | None = None  # the estimate and displacement after the last call
 
     def truth(self, t_ms: float) -> np.ndarray | None:
-        """The surveyed position at ``t_ms`` (straight between clicks), inside the surveyed span only."""
-        w = self.waypoints
-        if not w[0, 0] <= t_ms <= w[-1, 0]:
-            return None
-        return np.array([np.interp(t_ms, w[:, 0], w[:, 1]), np.interp(t_ms, w[:, 0], w[:, 2])])
+        """The surveyed position at ``t_ms`` (``_surveyed_at``)."""
+        return _surveyed_at(self.waypoints, t_ms)
+
+
+def _surveyed_at(waypoints: np.ndarray, t_ms: float) -> np.ndarray | None:
+    """The surveyed position at ``t_ms`` (straight between clicks), inside the surveyed span only."""
+    w = waypoints
+    if not w[0, 0] <= t_ms <= w[-1, 0]:
+        return None
+    return np.array([np.interp(t_ms, w[:, 0], w[:, 1]), np.interp(t_ms, w[:, 0], w[:, 2])])
+
+
+def _first_sample_ms(trace: Trace) -> float:
+    """The time of the walk's first sensor sample: where its replay, and its first 10 s, begin."""
+    return min(float(s[0, 0]) for s in trace.streams.values() if len(s))
 
 
 CORRECTIONS = ("building_anchor", "signature_anchor", "human_anchor", "fingerprint_fix", "none")
@@ -339,10 +350,8 @@ def _floor_scores(walks: list[_Walk]) -> dict[str, Any]:
     errors = [e for w in walks for e in w.errors]
     floors_off = [f for w in walks for f in w.floor_errors]
     # a walk the server had not placed by its 10th second was on no floor the phone was told of
-    by_10 = [next((right for t, right in reversed(w.floor_seen) if t <= FLOOR_BY_MS), False) for w in walks]
-    believed_by_10 = [
-        next((right for t, right in reversed(w.belief_seen) if t <= FLOOR_BY_MS), False) for w in walks
-    ]
+    by_10 = [_right_by_10s(w.floor_seen) for w in walks]
+    believed_by_10 = [_right_by_10s(w.belief_seen) for w in walks]
     after = [right for w in walks for t, right in w.floor_seen if t > FLOOR_BY_MS]
     return {
         "right_floor": float(np.mean([f == 0 for f in floors_off])) if floors_off else None,
@@ -353,6 +362,11 @@ def _floor_scores(walks: list[_Walk]) -> dict[str, Any]:
         "walks_believed_right_floor_by_10s": float(np.mean(believed_by_10)) if believed_by_10 else None,
         "right_floor_after_10s": float(np.mean(after)) if after else None,
     }
+
+
+def _right_by_10s(seen: list[tuple[float, bool]]) -> bool:
+    """Whether the last floor seen by the walk's 10th second was the right one (False: none seen by then)."""
+    return next((right for t, right in reversed(seen) if t <= FLOOR_BY_MS), False)
 
 
 def _plan_reading(reading: PlanReading, index: PlanIndex | None, traces: list[Trace]) -> dict[str, Any]:
@@ -399,30 +413,35 @@ def _floor_oracle(
     floors = Floors(params.floors, levels)
     xy, bssids, rss, times, on = [], [], [], [], []
     for level, trace in warm:
-        w = trace.waypoints
         for scan in trace.wifi:
-            if w[0, 0] <= scan.t_ms <= w[-1, 0]:
-                xy.append([np.interp(scan.t_ms, w[:, 0], w[:, 1]), np.interp(scan.t_ms, w[:, 0], w[:, 2])])
-                fresh = fresh_mask(scan.t_ms, scan.last_seen_ms, stage.stale_ap_ms)
-                bssids.append([b for b, f in zip(scan.bssid, fresh, strict=True) if f])
-                rss.append(scan.rssi_dbm[fresh])
+            at = _surveyed_at(trace.waypoints, scan.t_ms)
+            if at is not None:
+                heard, heard_rss = _fresh_entries(scan, stage.stale_ap_ms)
+                xy.append(at)
+                bssids.append(heard)
+                rss.append(heard_rss)
                 times.append(scan.t_ms)
                 on.append(level)
     stage.load_radio_map("oracle", np.array(xy), bssids, rss, np.array(times), np.array(on))
     right = []
     for level, trace in scored:
-        first = min(float(s[0, 0]) for s in trace.streams.values() if len(s))
+        first = _first_sample_ms(trace)
         belief, informed = floors.uniform(), False
         for scan in trace.wifi:
             if scan.t_ms - first > FLOOR_BY_MS:
                 break
-            fresh = fresh_mask(scan.t_ms, scan.last_seen_ms, stage.stale_ap_ms)
-            heard = [b for b, f in zip(scan.bssid, fresh, strict=True) if f]
-            evidence = stage.floor_evidence(levels, NOBODY, heard, scan.rssi_dbm[fresh], None)
+            heard, heard_rss = _fresh_entries(scan, stage.stale_ap_ms)
+            evidence = stage.floor_evidence(levels, NOBODY, heard, heard_rss, None)
             informed |= int(np.isfinite(evidence).sum()) >= 2
             belief = floors.weigh(belief, evidence)
         right.append(informed and floors.believed(belief)[0] == level)
     return float(np.mean(right)) if right else math.nan
+
+
+def _fresh_entries(scan: WifiScan, stale_ms: int) -> tuple[list[str], np.ndarray]:
+    """A scan's BSSIDs and RSS heard within ``stale_ms`` of it (``fresh_mask``), as a phone's batch keeps."""
+    fresh = fresh_mask(scan.t_ms, scan.last_seen_ms, stale_ms)
+    return [b for b, f in zip(scan.bssid, fresh, strict=True) if f], scan.rssi_dbm[fresh]
 
 
 def _windows(trace: Trace, window_ms: int) -> int:
@@ -436,8 +455,7 @@ def _tick(progress: Callable[[int, int], None] | None, n: int, total: int) -> No
 
 
 def _prepare(trace: Trace, base_ms: int, start_fix: bool, level: int = 0) -> _Walk:
-    first = min(float(s[0, 0]) for s in trace.streams.values() if len(s))
-    moved = shifted(trace, base_ms - int(first))
+    moved = shifted(trace, base_ms - int(_first_sample_ms(trace)))
     return _Walk(trace.path.stem, moved, moved.waypoints, level, base_ms, pending=1 if start_fix else 0)
 
 

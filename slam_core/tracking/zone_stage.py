@@ -10,7 +10,7 @@ import numpy as np
 
 from slam_core.filter.dynamic_slam import DynamicSlam
 from slam_core.tracking.batches import ZoneEvent
-from slam_core.zones.geometry import ZoneSet, inside_shares, ring_problem, zone_set
+from slam_core.zones.geometry import ZoneSet, inside_shares, zone_set
 from slam_core.zones.presence import KINDS, ZoneParams, ZonePresence
 
 
@@ -32,11 +32,7 @@ class ZoneStage:
         without events. ValueError (naming the zone) for an outline that is no zone's, nothing changed."""
         if not len(ids) == len(rings) == len(levels) == len(dwell_ms) or len(set(ids)) != len(ids):
             raise ValueError("one outline, floor and dwell time per zone, each zone id once")
-        for zone_id, ring in zip(ids, rings, strict=True):
-            problem = ring_problem(ring)
-            if problem is not None:
-                raise ValueError(f"zone {zone_id!r}: {problem}")
-        zones = zone_set(rings, levels)
+        zones = zone_set(rings, levels, ids)
         old = {zone_id: k for k, zone_id in enumerate(self.ids)}
         self.presence.renumber_zones(np.array([old.get(z, -1) for z in ids], dtype=np.int64))
         self.ids = list(ids)

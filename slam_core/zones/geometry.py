@@ -66,15 +66,16 @@ def ring_problem(ring: np.ndarray) -> str | None:
     return None
 
 
-def zone_set(rings: list[np.ndarray], levels: list[int]) -> ZoneSet:
-    """The zones' arrays, in the given order; ValueError naming the first ring that is no outline."""
-    if len(rings) != len(levels):
-        raise ValueError("one floor per zone")
+def zone_set(rings: list[np.ndarray], levels: list[int], names: list[str] | None = None) -> ZoneSet:
+    """The zones' arrays, in the given order; ValueError naming the first ring that is no outline (by its
+    zone's name in ``names``, else by its index)."""
+    if len(rings) != len(levels) or (names is not None and len(names) != len(rings)):
+        raise ValueError("one floor (and name, where named) per zone")
     starts, xs, ys = [0], [], []
     for k, ring in enumerate(rings):
         problem = ring_problem(ring)
         if problem is not None:
-            raise ValueError(f"zone {k}: {problem}")
+            raise ValueError(f"zone {k if names is None else repr(names[k])}: {problem}")
         ring = np.asarray(ring, dtype=np.float64)
         if np.array_equal(ring[0], ring[-1]):
             ring = ring[:-1]

@@ -61,7 +61,7 @@ class ZonePresence:
         have_rows, have_zones = self.inside.shape
         if rows <= have_rows and zones <= have_zones:
             return
-        shape = (max(rows, 2 * have_rows if rows > have_rows else have_rows), max(zones, have_zones))
+        shape = (have_rows if rows <= have_rows else max(rows, 2 * have_rows), max(zones, have_zones))
         for name in ("inside", "since_ms", "dwelled"):
             old = getattr(self, name)
             new = np.zeros(shape, dtype=old.dtype)
