@@ -10,6 +10,7 @@ from pydantic import Field, TypeAdapter
 from schemas.anchors import BuildingAnchor
 from schemas.common import Identifier, TimeMs, WireModel
 from schemas.estimates import EncounterEvent, Estimate
+from schemas.zones import ZoneKind
 
 
 class PositionMessage(WireModel):
@@ -35,6 +36,18 @@ class UserForgottenMessage(WireModel):
     user_id: Identifier
 
 
+class ZoneMessage(WireModel):
+    """A user entered a zone, left it, or has stayed in it for the zone's dwell time
+    (``schemas.zones.ZoneEvent``)."""
+
+    type: Literal["zone"] = "zone"
+    zone_id: Identifier
+    user_id: Identifier
+    kind: ZoneKind
+    t_ms: TimeMs
+    probability: float = Field(ge=0.0, le=1.0, description="The share of its position inside the zone then.")
+
+
 class HeartbeatMessage(WireModel):
     type: Literal["heartbeat"] = "heartbeat"
     t_ms: TimeMs
@@ -44,7 +57,12 @@ class HeartbeatMessage(WireModel):
 
 
 LiveMessage = Annotated[
-    PositionMessage | EncounterMessage | AnchorMessage | UserForgottenMessage | HeartbeatMessage,
+    PositionMessage
+    | EncounterMessage
+    | AnchorMessage
+    | ZoneMessage
+    | UserForgottenMessage
+    | HeartbeatMessage,
     Field(discriminator="type"),
 ]
 LIVE_MESSAGE_ADAPTER: TypeAdapter[LiveMessage] = TypeAdapter(LiveMessage)

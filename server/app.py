@@ -18,7 +18,18 @@ from starlette.types import Receive, Scope, Send
 
 from schemas.errors import Problem
 from server import __version__
-from server.api import anchors, batches, buildings, current_key, health, live, positions, signal_maps, users
+from server.api import (
+    anchors,
+    batches,
+    buildings,
+    current_key,
+    health,
+    live,
+    positions,
+    signal_maps,
+    users,
+    zones,
+)
 from server.api.contract import allowed_methods, install_openapi, operation_id
 from server.api.deps import revalidate_keys
 from server.api.limits import BATCHES_PATH, BodyLimit
@@ -167,7 +178,18 @@ def create_app(settings: Settings, tune_gc: bool = False, warming: Progress | No
     )
     app.state.settings = settings  # what serves the app reads (the WebSocket frame bound)
     _install_error_handlers(app)
-    for module in (health, current_key, buildings, batches, positions, users, anchors, live, signal_maps):
+    for module in (
+        health,
+        current_key,
+        buildings,
+        batches,
+        positions,
+        users,
+        anchors,
+        zones,
+        live,
+        signal_maps,
+    ):
         app.include_router(module.router)
     app.include_router(health.metrics_router(settings.metrics_need_key))
     install_pages(app)

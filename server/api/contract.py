@@ -88,14 +88,18 @@ def operation_id(route: APIRoute) -> str:
 
 
 def allowed_methods(app: FastAPI, path: str) -> set[str]:
-    """The methods the spec gives for this request path, from every path template that matches it: a
-    405's ``Allow``. (Starlette's own names only the first route whose path matched, while one path may
-    be served by several routes.) Empty for a path the spec does not document."""
-    methods: set[str] = set()
-    for template, item in app.openapi()["paths"].items():
-        pattern = re.sub(r"\\{[^/}]+\\}", "[^/]+", re.escape(template))
-        if re.fullmatch(pattern, path):
-            methods |= {method.upper() for method in item}
+    """The methods the spec gives for this request path, from the path templates that match it with the
+    fewest parameters: a 405's ``Allow``. (Starlette's own names only the first route whose path matched,
+    while one path may be served by several routes.) Empty for a path the spec does not document."""
+    matching = [
+        (template.count("{"), item)
+        for template, item in app.openapi()["paths"].items()
+        if re.fullmatch(re.sub(r"\\{[^/}]+\\}", "[^/]+", re.escape(template)), path)
+    ]
+    # the templates with the fewest parameters: a literal segment names its own resource (``.../zones/
+    # occupancy`` is not a zone's, whose id may not be ``occupancy``)
+    fewest = min((n for n, _ in matching), default=0)
+    methods = {method.upper() for n, item in matching if n == fewest for method in item}
     if "GET" in methods:
         methods.add("HEAD")
     return methods

@@ -1,8 +1,8 @@
 """The path of one group of batches through a building: dedupe by the batch rows' unique constraint, order
 each device's batches, convert them, apply them to the tracker, write the batch rows, the log, the anchor-map
-deltas and the positions in one transaction, record them once it commits, and answer each batch. A group
-that fails is applied again one batch at a time from the building as SQL holds it, so that a batch that
-fails fails alone (``docs/architecture.md``)."""
+deltas, the positions and the zone visits in one transaction, record them once it commits, and answer each
+batch. A group that fails is applied again one batch at a time from the building as SQL holds it, so that a
+batch that fails fails alone (``docs/architecture.md``)."""
 
 from __future__ import annotations
 
@@ -23,6 +23,7 @@ from server.buildings.rows import anchor_row, position_row
 from server.buildings.submissions import BatchHeader, GroupResult, Submission
 from server.buildings.upkeep import Upkeep
 from server.buildings.users import Users
+from server.buildings.zones import Zones
 from server.errors import (
     BatchFailedError,
     DiskFullError,
@@ -54,12 +55,14 @@ class BatchPath:
         self,
         building: Building,
         users: Users,
+        zones: Zones,
         upkeep: Upkeep,
         snapshots: GroupSnapshots,
         reload: Callable[[], None],
     ) -> None:
         self.building = building
         self._users = users
+        self._zones = zones
         self._upkeep = upkeep
         self._snapshots = snapshots
         self._reload = reload
@@ -181,6 +184,7 @@ class BatchPath:
             device_rows += self._snapshots.periodic(session, len(group))
             self._upkeep.prune_if_due(session)
         b.devices.saved(device_rows)
+        messages += b.take_told()
         # recorded once committed: a batch whose transaction failed is not in the recording (one acknowledged
         # but cut from it by a crash is recorded again when the building loads and replays it)
         self._upkeep.record([group[i] for i in to_record], estimates_to_record)
@@ -217,6 +221,7 @@ class BatchPath:
                 messages.append(AnchorMessage(anchor=anchor))
         messages += [PositionMessage(estimate=e) for e in estimates.values()]
         messages += [EncounterMessage(encounter=e) for e in encounters]
+        messages += self._zones.record(session, outcome.zone_events)
         by_user: dict[str, list[EncounterEvent]] = {}
         for e in encounters:
             by_user.setdefault(e.user_a, []).append(e)

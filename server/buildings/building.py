@@ -11,6 +11,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from schemas.anchors import BuildingAnchor
 from schemas.estimates import Estimate, EstimateSource
+from schemas.live import LiveMessage
 from server.buildings import snapshot as tracker_snapshot
 from server.buildings.config import TrackingConfig
 from server.buildings.counters import Counters
@@ -59,6 +60,13 @@ class Building:
         self.history = loaded.history
         self.device_of_user = loaded.device_of_user
         self.tracker_call = loaded.tracker_call
+        self.told: list[LiveMessage] = []
+        """Live messages of transactions outside the batch path (zone exits of users forgotten idle before a
+        snapshot), told with the next group's: a reload drops them with the state they came from."""
+
+    def take_told(self) -> list[LiveMessage]:
+        told, self.told = self.told, []
+        return told
 
     def state(self) -> tracker_snapshot.BuildingState:
         """What a snapshot holds: the tracker and the building's bookkeeping, as of its last tracker call."""

@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Generic, TypeVar
 from schemas.anchors import BuildingAnchor, KnownAnchorIn
 from schemas.floor_plans import FloorPlan
 from schemas.live import LiveMessage
+from schemas.zones import Zone, ZoneIn
 from server.ingestion.convert import BuildingContext
 
 if TYPE_CHECKING:
@@ -72,6 +73,23 @@ class PutFloorPlan(Call[FloorPlan]):
 
     def run(self, host: BuildingHost) -> FloorPlan:
         return host.floor_plans.put(self.level, self.body)
+
+
+@dataclass(frozen=True)
+class PutZone(Call[Zone]):
+    zone_id: str
+    body: ZoneIn
+
+    def run(self, host: BuildingHost) -> Zone:
+        return host.zones.put(self.zone_id, self.body)
+
+
+@dataclass(frozen=True)
+class DeleteZone(Call[None]):
+    zone_id: str
+
+    def run(self, host: BuildingHost) -> None:
+        host.zones.delete(self.zone_id)
 
 
 @dataclass(frozen=True)

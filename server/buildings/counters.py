@@ -34,6 +34,10 @@ class Counters:
     """Logged batch bodies cleared once a snapshot covered them."""
     pruned_positions: int = 0
     """Position history rows deleted past their retention."""
+    pruned_visits: int = 0
+    """Closed zone visits deleted with the position history of their time."""
+    zone_events: int = 0
+    """Entries, exits and dwells stored (``server.buildings.zones``)."""
     pruned_batches: int = 0
     """Batch id rows deleted past their retention."""
     reclaimed_pages: int = 0

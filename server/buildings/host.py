@@ -6,9 +6,9 @@ processed form the next group: under load, one tracker call and one transaction 
 
 The host owns the building as loaded (``server.buildings.building.Building``), the ``Recovery`` that loads
 it and writes its snapshots, and its parts, each one concern: the batch path (``batch_path``), anchor edits
-(``anchor_edits``), floor plans (``floor_plans``), users (``users``), and the recording and retention
-(``upkeep``). A part changes the building only in a transaction of its own; a part that must write a
-snapshot with its change asks the host (``save_snapshot``), which alone decides what goes before one.
+(``anchor_edits``), floor plans (``floor_plans``), zones (``zones``), users (``users``), and the recording
+and retention (``upkeep``). A part changes the building only in a transaction of its own; a part that must
+write a snapshot with its change asks the host (``save_snapshot``), which alone decides what goes before one.
 """
 
 from __future__ import annotations
@@ -26,6 +26,7 @@ from server.buildings.recovery import Recovery, load_radio_map
 from server.buildings.submissions import GroupResult, Submission
 from server.buildings.upkeep import Upkeep
 from server.buildings.users import Users
+from server.buildings.zones import Zones
 from server.recordings.recorder import BuildingRecorder
 from server.settings import Settings
 from server.slam.config import load_calibration, tracker_params
@@ -60,7 +61,8 @@ class BuildingHost:
         self.upkeep = Upkeep(self.building)
         self.anchor_edits = AnchorEdits(self.building, self.save_snapshot, self.reload)
         self.floor_plans = FloorPlans(self.building, self.save_snapshot, self.reload)
-        self.batches = BatchPath(self.building, self.users, self.upkeep, self, self.reload)
+        self.zones = Zones(self.building, self.save_snapshot, self.reload)
+        self.batches = BatchPath(self.building, self.users, self.zones, self.upkeep, self, self.reload)
         self._load(start=True)
 
     # what the building's handle reads of it
@@ -175,8 +177,9 @@ class BuildingHost:
         return rows
 
     def _snapshot_start(self, session: Session) -> list[dict[str, object]]:
-        """Before a snapshot: idle users forgotten, the devices' unsaved rows written."""
-        self.users.evict_idle()
+        """Before a snapshot: idle users forgotten (their zone visits closed), the devices' unsaved rows
+        written."""
+        self.building.told += self.zones.close_lost(session, self.users.evict_idle())
         rows = self.building.devices.unsaved_rows()
         repo.upsert_devices(session, rows)
         return rows

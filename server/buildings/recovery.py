@@ -33,6 +33,7 @@ from server.ingestion import convert
 from server.ingestion.extent import Extent
 from server.ingestion.floor_plans import engine_plan
 from server.ingestion.radio_maps import latest_radio_map
+from server.ingestion.zones import set_tracker_zones
 from server.store import repositories as repo
 from server.store.batches import LoggedBatch, clear_covered_bodies, logged_batches
 from server.store.models import BuildingRow, FloorRow
@@ -132,6 +133,7 @@ class Recovery:
                     )
                     ids.link(index, row.public_id, row.label)
             plans = {f.level: repo.floor_plan(session, self.building_id, f.level) for f in floors}
+            zones = repo.list_zones(session, self.building_id)
         # floors and plans as SQL has them, set before the log replays: the snapshot holds them too (a plan
         # is uploaded with a snapshot), and a building started anew has them from here only
         tracker.set_levels(*building_levels(floors))
@@ -139,6 +141,17 @@ class Recovery:
             tracker.set_floor_plan(
                 None if plan is None else engine_plan(FloorPlan.model_validate_json(plan)), level
             )
+        # the zones too (who is inside comes with the snapshot; a tracker started anew has nobody inside, so
+        # the visits SQL holds open are closed where their users were last seen)
+        set_tracker_zones(tracker, zones)
+        if state is None and zones:
+            with self._sessions.begin() as session:
+                visits = repo.open_visits(session, self.building_id)
+                users = {v.user_id for v in visits}
+                last = {r.user_id: r.t_ms for r in repo.latest_positions_of(session, self.building_id, users)}
+                repo.close_visits(
+                    session, [(v.id, max(v.entered_ms, last.get(v.user_id, 0))) for v in visits]
+                )
         loaded = Loaded(
             tracker,
             ids,

@@ -97,7 +97,8 @@ class Upkeep:
     # ------------------------------------------------------------------ retention in SQL
     def prune_if_due(self, session: Session) -> None:
         """In a group's transaction, at most every ``Retention.prune_period_s``: delete a chunk of position
-        history and of batch ids past their retention, and hand free SQLite pages back."""
+        history (and the zone visits of its time) and of batch ids past their retention, and hand free SQLite
+        pages back."""
         b = self.building
         r = b.config.retention
         if time.monotonic() - self._last_prune < r.prune_period_s:
@@ -115,6 +116,10 @@ class Upkeep:
             session, b.building_id, positions_before, batches_before, r.prune_chunk
         )
         b.counters.pruned_positions += positions
+        if positions_before is not None:  # zone visits are kept as long as the positions they came from
+            b.counters.pruned_visits += repo.prune_visits(
+                session, b.building_id, positions_before, r.prune_chunk
+            )
         b.counters.pruned_batches += batches
         b.counters.reclaimed_pages += reclaim_free_pages(session, RECLAIM_PAGES)
         self._last_prune = time.monotonic()

@@ -26,10 +26,10 @@ class Users:
             self._last_heard[user] = now
 
     def forget(self, user_id: str) -> list[LiveMessage]:
-        """Forget a user, as a person may ask: its filter, its latest position and its history. A snapshot
-        is written in the same transaction, so a restart does not bring the user back from the batch log;
-        a later batch of its device starts a new filter. The recordings keep its batches (see the
-        operations document). State changes only if the transaction commits."""
+        """Forget a user, as a person may ask: its filter, its latest position, its history and its zone
+        visits. A snapshot is written in the same transaction, so a restart does not bring the user back from
+        the batch log; a later batch of its device starts a new filter. The recordings keep its batches (see
+        the operations document). State changes only if the transaction commits."""
         b = self.building
         tracked = user_id in b.tracker.users
         if tracked:
@@ -40,6 +40,7 @@ class Users:
         try:
             with b.writer_turns, b.sessions.begin() as session:
                 deleted = repo.delete_user_positions(session, b.building_id, user_id)
+                deleted += repo.delete_user_visits(session, b.building_id, user_id)
                 if not tracked and not deleted:
                     raise NotFoundError(f"no user {user_id!r} in building {b.building_id!r}")
                 rows = self._save_snapshot(session) if tracked else []
@@ -60,13 +61,14 @@ class Users:
             repo.upsert_devices(session, [row])
         b.devices.saved([row])
 
-    def evict_idle(self) -> None:
+    def evict_idle(self) -> list[str]:
         """Forget the users not heard from for ``Retention.user_idle_s``: called right before a snapshot is
-        written, so a restart's replay never spans an eviction."""
+        written, so a restart's replay never spans an eviction. Returns them (their visits are closed in the
+        snapshot's transaction)."""
         b = self.building
         idle_s = b.config.retention.user_idle_s
         if idle_s is None:
-            return
+            return []
         now = time.time()
         idle = [u for u in b.tracker.users if now - self._last_heard.setdefault(u, now) > idle_s]
         if idle:
@@ -75,3 +77,4 @@ class Users:
                 del self._last_heard[u]
                 b.history.forget(u)
             b.counters.users_evicted += len(idle)
+        return idle

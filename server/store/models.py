@@ -255,3 +255,47 @@ class TrackerSnapshotRow(Base):
     tracker_call: Mapped[int] = mapped_column(BigInteger)
     state: Mapped[bytes] = mapped_column(LargeBinary)
     taken_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), server_default=func.now())
+
+
+class ZoneRow(Base):
+    """A zone an operator drew (``schemas.zones.ZoneIn``): its outline as a JSON list of [x, y] in the local
+    frame, the ring not closed."""
+
+    __tablename__ = "zones"
+    __table_args__ = (ForeignKeyConstraint(["building_id"], ["buildings.id"], ondelete="CASCADE"),)
+
+    building_id: Mapped[str] = mapped_column(String(64), primary_key=True)
+    id: Mapped[str] = mapped_column(String(64), primary_key=True)
+    floor: Mapped[int] = mapped_column(Integer)
+    name: Mapped[str] = mapped_column(String(128))
+    ring: Mapped[str] = mapped_column(Text)
+    dwell_s: Mapped[float | None] = mapped_column(Float)
+    updated_at: Mapped[datetime] = mapped_column(DateTime(timezone=True))
+
+
+class ZoneVisitRow(Base):
+    """One user's stay in a zone: written by the batch that entered it, closed by the one that left it, in
+    their transactions (``left_ms`` null: inside still). Occupancy at any time, and the zone's events, are
+    read from these rows."""
+
+    __tablename__ = "zone_visits"
+    __table_args__ = (
+        ForeignKeyConstraint(
+            ["building_id", "zone_id"], ["zones.building_id", "zones.id"], ondelete="CASCADE"
+        ),
+        Index("ix_zone_visits_zone_entered", "building_id", "zone_id", "entered_ms"),
+        Index("ix_zone_visits_user", "building_id", "user_id", "zone_id"),
+        Index("ix_zone_visits_building_stored", "building_id", "stored_at_ms"),
+    )
+
+    id: Mapped[int] = mapped_column(BigIntPk, primary_key=True, autoincrement=True)
+    building_id: Mapped[str] = mapped_column(String(64))
+    zone_id: Mapped[str] = mapped_column(String(64))
+    user_id: Mapped[str] = mapped_column(String(64))
+    entered_ms: Mapped[int] = mapped_column(BigInteger)
+    entered_probability: Mapped[float] = mapped_column(Float)
+    left_ms: Mapped[int | None] = mapped_column(BigInteger)
+    left_probability: Mapped[float | None] = mapped_column(Float)
+    dwelled_ms: Mapped[int | None] = mapped_column(BigInteger)
+    stored_at_ms: Mapped[int] = mapped_column(BigInteger)
+    """Server time of the entry's write: visits are pruned by it, with the position history."""

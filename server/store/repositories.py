@@ -25,6 +25,8 @@ from server.store.models import (
     PositionSnapshotRow,
     StreamPositionRow,
     TrackerSnapshotRow,
+    ZoneRow,
+    ZoneVisitRow,
 )
 
 # ----------------------------------------------------------------------------- buildings
@@ -125,6 +127,128 @@ def save_floor_plan(session: Session, building_id: str, level: int, geojson: str
     """Insert or replace the floor's plan (the floor must exist)."""
     values = {"building_id": building_id, "level": level, "geojson": geojson, "updated_at": datetime.now(UTC)}
     upsert(session, FloorPlanRow, [values], ["building_id", "level"])
+
+
+# ----------------------------------------------------------------------------- zones
+
+
+def list_zones(session: Session, building_id: str) -> list[ZoneRow]:
+    stmt = select(ZoneRow).where(ZoneRow.building_id == building_id).order_by(ZoneRow.id)
+    return list(session.execute(stmt).scalars())
+
+
+def save_zone(session: Session, row: dict[str, Any]) -> None:
+    """Insert or replace a zone (its visits stay)."""
+    upsert(session, ZoneRow, [{**row, "updated_at": datetime.now(UTC)}], ["building_id", "id"])
+
+
+def delete_zone(session: Session, building_id: str, zone_id: str) -> bool:
+    """Delete a zone and its visits; whether it existed."""
+    session.execute(
+        delete(ZoneVisitRow).where(ZoneVisitRow.building_id == building_id, ZoneVisitRow.zone_id == zone_id)
+    )
+    result = session.execute(delete(ZoneRow).where(ZoneRow.building_id == building_id, ZoneRow.id == zone_id))
+    return bool(cast(CursorResult[Any], result).rowcount)
+
+
+def _open_visit(building_id: str, zone_id: str, user_id: str) -> ColumnElement[bool]:
+    return (
+        (ZoneVisitRow.building_id == building_id)
+        & (ZoneVisitRow.zone_id == zone_id)
+        & (ZoneVisitRow.user_id == user_id)
+        & ZoneVisitRow.left_ms.is_(None)
+    )
+
+
+def record_zone_events(
+    session: Session, building_id: str, events: Sequence[tuple[str, str, str, int, float]], stored_at_ms: int
+) -> None:
+    """Apply zone events ``(user, zone, kind, t_ms, probability)``, in order, to the visits: an entry opens
+    one, an exit closes the user's open visit of the zone, a dwell marks it."""
+    for user, zone, kind, t_ms, p in events:
+        if kind == "enter":
+            session.execute(
+                insert(ZoneVisitRow).values(
+                    building_id=building_id,
+                    zone_id=zone,
+                    user_id=user,
+                    entered_ms=t_ms,
+                    entered_probability=p,
+                    stored_at_ms=stored_at_ms,
+                )
+            )
+        elif kind == "exit":
+            session.execute(
+                update(ZoneVisitRow)
+                .where(_open_visit(building_id, zone, user))
+                .values(left_ms=t_ms, left_probability=p)
+            )
+        else:
+            session.execute(
+                update(ZoneVisitRow).where(_open_visit(building_id, zone, user)).values(dwelled_ms=t_ms)
+            )
+
+
+def open_visits(
+    session: Session, building_id: str, users: Collection[str] | None = None
+) -> list[ZoneVisitRow]:
+    """The visits still open (of ``users``, or of everyone), in the order they were entered."""
+    stmt = select(ZoneVisitRow).where(ZoneVisitRow.building_id == building_id, ZoneVisitRow.left_ms.is_(None))
+    if users is not None:
+        stmt = stmt.where(ZoneVisitRow.user_id.in_(list(users)))
+    return list(session.execute(stmt.order_by(ZoneVisitRow.id)).scalars())
+
+
+def close_visits(session: Session, visits: Sequence[tuple[int, int]]) -> None:
+    """Close visits ``(row id, left_ms)`` the tracker no longer follows (the user was forgotten idle, or the
+    building's filters started anew): left with probability 0."""
+    for row_id, left_ms in visits:
+        session.execute(
+            update(ZoneVisitRow)
+            .where(ZoneVisitRow.id == row_id, ZoneVisitRow.left_ms.is_(None))
+            .values(left_ms=left_ms, left_probability=0.0)
+        )
+
+
+def zone_occupancy(session: Session, building_id: str, at_ms: int | None = None) -> dict[str, int]:
+    """Users inside each zone now (``at_ms`` None: the open visits) or at ``at_ms`` (entered by then and not
+    yet left); zones with nobody are left out."""
+    inside: ColumnElement[bool] = ZoneVisitRow.left_ms.is_(None)
+    if at_ms is not None:
+        inside = (ZoneVisitRow.entered_ms <= at_ms) & (inside | (ZoneVisitRow.left_ms > at_ms))
+    stmt = (
+        select(ZoneVisitRow.zone_id, func.count(func.distinct(ZoneVisitRow.user_id)))
+        .where(ZoneVisitRow.building_id == building_id, inside)
+        .group_by(ZoneVisitRow.zone_id)
+    )
+    return {str(zone): int(n) for zone, n in session.execute(stmt)}
+
+
+def zone_visits(
+    session: Session, building_id: str, zone_id: str, since_ms: int, until_ms: int, limit: int
+) -> list[ZoneVisitRow]:
+    """The zone's visits that overlap [since_ms, until_ms), in the order they were entered (at most
+    ``limit``)."""
+    stmt = (
+        select(ZoneVisitRow)
+        .where(
+            ZoneVisitRow.building_id == building_id,
+            ZoneVisitRow.zone_id == zone_id,
+            ZoneVisitRow.entered_ms < until_ms,
+            ZoneVisitRow.left_ms.is_(None) | (ZoneVisitRow.left_ms >= since_ms),
+        )
+        .order_by(ZoneVisitRow.entered_ms, ZoneVisitRow.id)
+        .limit(limit)
+    )
+    return list(session.execute(stmt).scalars())
+
+
+def delete_user_visits(session: Session, building_id: str, user_id: str) -> int:
+    """Delete a user's visits (a person asked to be forgotten); how many went."""
+    result = session.execute(
+        delete(ZoneVisitRow).where(ZoneVisitRow.building_id == building_id, ZoneVisitRow.user_id == user_id)
+    )
+    return int(cast(CursorResult[Any], result).rowcount or 0)
 
 
 # ----------------------------------------------------------------------------- keys
@@ -304,6 +428,16 @@ def latest_positions(session: Session, building_id: str) -> list[LatestPositionR
     return list(session.execute(stmt).scalars())
 
 
+def latest_positions_of(
+    session: Session, building_id: str, users: Collection[str]
+) -> list[LatestPositionRow]:
+    """The latest snapshots of these users (those that have one)."""
+    stmt = select(LatestPositionRow).where(
+        LatestPositionRow.building_id == building_id, LatestPositionRow.user_id.in_(list(users))
+    )
+    return list(session.execute(stmt).scalars())
+
+
 def prune_history(
     session: Session,
     building_id: str,
@@ -335,9 +469,16 @@ def prune_history(
     return positions, batches
 
 
+def prune_visits(session: Session, building_id: str, before_ms: int, limit: int) -> int:
+    """Delete at most ``limit`` closed zone visits entered (stored) before ``before_ms``: they go with the
+    position history they came from. Open ones stay, however old."""
+    old = (ZoneVisitRow.stored_at_ms < before_ms) & ZoneVisitRow.left_ms.is_not(None)
+    return _delete_some(session, ZoneVisitRow, building_id, old, limit)
+
+
 def _delete_some(
     session: Session,
-    table: type[PositionSnapshotRow] | type[BatchRow],
+    table: type[PositionSnapshotRow] | type[BatchRow] | type[ZoneVisitRow],
     building_id: str,
     old: ColumnElement[bool],
     limit: int,

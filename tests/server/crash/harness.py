@@ -9,7 +9,8 @@ then sent again until it is answered, as a phone or an operator's script would, 
 acknowledged are sent again: each must answer ``duplicate``.
 
 What must be equal, bit for bit, to the run without a crash: every receipt of a batch applied in both runs,
-the users' latest estimates and floors, their position histories, the anchor map, the keys, the signal map
+the users' latest estimates and floors, their position histories, the anchor map, the zones and their
+visits, the keys, the signal map
 the building loaded, the batches in the recordings; and no building may be failing.
 """
 
@@ -366,10 +367,14 @@ class Runner:
             (k["scope"], k.get("device_id"), k.get("revoked_at") is not None)
             for k in self._get(f"{base}/keys")
         )
+        zones = self._get(f"{base}/zones")
+        visits = {z["id"]: self._get(f"{base}/zones/{z['id']}/visits") for z in zones}
         jobs = [
             {k: j.get(k) for k in ("status", "segments", "scans", "access_points", "radio_map_scans")}
             for j in self._get(f"{base}/signal-maps")
         ]
+        zones = self._get(f"{base}/zones")
+        visits = {z["id"]: self._get(f"{base}/zones/{z['id']}/visits") for z in zones}
         health = self._get("/healthz")
         return {
             "positions": positions,
@@ -377,6 +382,8 @@ class Runner:
             "histories": histories,
             "keys": keys,
             "signal_maps": jobs,
+            "zones": zones,
+            "visits": visits,
             "failing_buildings": health["failing_buildings"],
         }
 

@@ -9,8 +9,9 @@ Built from the simulated world of three storeys (``server/data/three-floors.json
 - phones 2 and 3 start with a fix and meet another halfway (the signal-map build's walks between two
   landmarks), phone 4 with a fix; the others' barometers tell their changes of floor;
 - operators pin the world's known anchors (on every floor) before the crowd walks, then, while it walks,
-  pin an anchor, move it, upload a floor plan, pin two anchors and merge them, delete the first, build a
-  signal map that the building loads, forget phone 4's user and revoke its key.
+  pin an anchor, move it, upload a floor plan, pin two anchors and merge them, delete the first, draw a
+  zone and delete another (the crowd's visits to zones drawn beforehand), build a signal map that the
+  building loads, forget phone 4's user and revoke its key.
 
 Every request is posted one after another (a phone's next batch once the last is answered), so every batch
 is an tracker call of its own, and the run has one outcome: a crash anywhere must not change it.
@@ -128,6 +129,11 @@ def crash_scenario() -> CrashScenario:
             Step(f"pin known-{k}", "PUT", f"/v1/buildings/{BUILDING}/anchors/known-{k}", "operator", body)
         )
 
+    # a zone where each phone is halfway through its walk (visits to keep over the crashes)
+    zones = f"/v1/buildings/{BUILDING}/zones"
+    for u in range(USERS):
+        setup.append(Step(f"draw zone-{u}", "PUT", f"{zones}/zone-{u}", "operator", _zone(sim, u, 0.5)))
+
     batches = [_shifted(b) for b in simulated_batches(sim, BUILDING)]
     firsts = {d: next(b for b in batches if b.device_id == d) for d in devices}
     # phone 0: a lift pinned where it starts, read instead of a fix
@@ -198,6 +204,8 @@ def crash_scenario() -> CrashScenario:
     )
     at(0.55, Step("delete the kiosk", "DELETE", f"{anchors}/kiosk", "operator", again=frozenset({404})))
     at(0.60, Step("signal map", "POST", f"/v1/buildings/{BUILDING}/signal-maps", "operator", killable=False))
+    at(0.50, Step("draw zone-late", "PUT", f"{zones}/zone-late", "operator", _zone(sim, 2, 0.8)))
+    at(0.65, Step("delete zone-3", "DELETE", f"{zones}/zone-3", "operator", again=frozenset({404})))
     forget = f"/v1/buildings/{BUILDING}/users/{FORGOTTEN}"
     at(0.70, Step("forget phone 4", "DELETE", forget, "operator", again=frozenset({404})))
     revoke = f"/v1/buildings/{BUILDING}/keys/{{prefix of {FORGOTTEN}}}"
@@ -222,6 +230,24 @@ def _rises(sim: Simulation, user: int) -> dict[str, float]:
     with its detection of the way), by the way's anchor type."""
     elevations = sim.scenario.raw["storeys"]["elevations_m"]
     return {way: float(elevations[to] - elevations[frm]) for _, frm, to, way in sim.users[user].transitions}
+
+
+def _zone(sim: Simulation, user: int, share: float) -> dict[str, Any]:
+    """A 10 m square zone, with a 20 s dwell, around where the user truly is ``share`` into its walk (on its
+    floor there)."""
+    tr = sim.users[user]
+    k = int(share * (len(tr.t) - 1))
+    x, y = (float(v) for v in tr.xy[k])
+    width, height = (float(sim.scenario["floor"][n]) for n in ("width_m", "height_m"))
+    x0, x1 = max(0.0, x - 5.0), min(width, x + 5.0)
+    y0, y1 = max(0.0, y - 5.0), min(height, y + 5.0)
+    ring = [[x0, y0], [x1, y0], [x1, y1], [x0, y1], [x0, y0]]
+    return {
+        "floor": tr.level_at(float(tr.t[k])) + FLOOR_OFFSET,
+        "name": f"around phone {user}",
+        "polygon": {"type": "Polygon", "coordinates": [ring]},
+        "dwell_s": 20.0,
+    }
 
 
 def _size(floor: dict[str, Any]) -> dict[str, float]:

@@ -1,7 +1,8 @@
 """A crash changes nothing: the scenario (``tests.server.crash.scenario``: three floors without a floor 0,
 fixes, a tag with its floor, a lift pinned on floor 3 read as a start, rises, operators pinning, moving,
-merging and deleting anchors, a floor plan, a signal map loaded, a user forgotten, a key revoked) run with
-SIGKILLs at seeded points equals the same scenario run without (``tests.server.crash.harness``).
+merging and deleting anchors, a floor plan, zones drawn and deleted with the crowd's visits, a signal map
+loaded, a user forgotten, a key revoked) run with SIGKILLs at seeded points equals the same scenario run
+without (``tests.server.crash.harness``).
 
 Twenty kill points in all: eight on SQLite and eight on PostgreSQL (each the building's process or the whole
 server), four of the worker holding the building in a cluster. ``bench/crash_anywhere.py`` runs more."""
@@ -54,6 +55,9 @@ def test_a_crash_anywhere_changes_nothing(
     tmp_path: Path,
 ) -> None:
     url = None if store == "sqlite" else str(request.getfixturevalue("postgres_url"))
+    visits = [v for zone in reference.final["visits"].values() for v in zone]
+    assert len(visits) >= 3  # the crowd visits the zones, and leaves some: what the crashes must keep
+    assert any(v["left_ms"] is not None for v in visits)
     kills = kill_points(scenario, 8, SEED + (store == "postgresql"), ("building", "server"))
     assert {k.target for k in kills} == {"building", "server"}
     with embedded(tmp_path, url) as server:
@@ -91,6 +95,8 @@ def test_the_scenario_holds_what_the_crash_test_needs(scenario: CrashScenario) -
         "upload floor 2's plan",
         "merge dup-a and dup-b",
         "delete the kiosk",
+        "draw zone-late",
+        "delete zone-3",
         "signal map",
         "forget phone 4",
         "revoke",
