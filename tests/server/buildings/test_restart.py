@@ -16,13 +16,16 @@ from sqlalchemy import Engine, func, select
 
 from schemas.anchors import KnownAnchorIn
 from schemas.common import Position
+from schemas.live import ZoneMessage
 from schemas.sensors import SensorBatch
+from schemas.zones import ZoneIn, ZonePolygon
 from server.buildings.config import Retention, TrackingConfig
 from server.buildings.host import BuildingHost
 from server.buildings.submissions import Submission
 from server.settings import Settings
 from server.simulation.phones import KnownAnchor, known_anchors, simulated_batches
 from server.slam.config import load_calibration, tracker_params
+from server.store import repositories as repo
 from server.store.db import make_engine, make_session_factory
 from server.store.migrate import upgrade
 from server.store.models import BatchLogRow, BatchRow, BuildingRow, TrackerSnapshotRow
@@ -264,7 +267,6 @@ def test_a_snapshot_taken_with_other_parameters_is_refused_and_the_sql_map_is_ke
 
 
 def test_the_batch_path_prunes_history_but_keeps_every_users_latest_position(sqlite_url: str) -> None:
-    from server.store import repositories as repo
     from server.store.models import PositionSnapshotRow
 
     engine = _fresh_building(sqlite_url)
@@ -295,7 +297,6 @@ def test_the_batch_path_prunes_history_but_keeps_every_users_latest_position(sql
 def test_the_history_keeps_one_estimate_a_period_and_the_latest_position_every_batch(sqlite_url: str) -> None:
     """``position_history_period_s``: a user's history rows are at least the period apart in the phone's time
     (the first estimate of each period kept), while its latest position follows every batch."""
-    from server.store import repositories as repo
     from server.store.models import PositionSnapshotRow
 
     engine = _fresh_building(sqlite_url)
@@ -324,15 +325,31 @@ def test_idle_users_are_forgotten_at_a_snapshot_and_stay_forgotten_after_a_resta
         return _building(engine, retention=Retention(user_idle_s=1e-9))
 
     first = session()
+    everywhere = [[-1e4, -1e4], [1e4, -1e4], [1e4, 1e4], [-1e4, 1e4], [-1e4, -1e4]]
+    zone = ZoneIn(floor=0, name="all", polygon=ZonePolygon(type="Polygon", coordinates=[everywhere]))
+    first.zones.put("all", zone)
     groups = _groups(CROWD)
     for group in groups[:8]:
         first.process(group)
     users = len(first.tracker.users)
     assert users > 0
+    with make_session_factory(engine)() as s:
+        inside = {v.user_id for v in repo.open_visits(s, "hq")}
+        latest = {r.user_id: r.t_ms for r in repo.latest_positions(s, "hq")}
+    assert inside == set(latest)  # every placed user is in the zone
     first.snapshot()  # everyone is idle by now
     assert first.tracker.users == []
     assert first.counters.users_evicted == users
-    receipts = first.process(groups[8]).receipts
+    with make_session_factory(engine)() as s:  # their visits closed where they were last seen
+        assert repo.open_visits(s, "hq") == []
+        left = {v.user_id: v.left_ms for v in repo.zone_visits(s, "hq", "all", 0, 2**62, 100)}
+    assert left == latest
+    result = first.process(groups[8])
+    exits = [m for m in result.messages if isinstance(m, ZoneMessage)]
+    assert {(m.user_id, m.kind, m.t_ms, m.probability) for m in exits} == {
+        (u, "exit", t, 0.0) for u, t in latest.items()
+    }
+    receipts = result.receipts
     assert all(getattr(r, "status", None) == "applied" for r in receipts)
     assert not any(getattr(r, "tracking", True) for r in receipts)  # back without a fix: not tracked
     restarted = session()  # the snapshot has no users, the log only the batch after it
@@ -348,7 +365,6 @@ def test_a_building_without_floor_0_comes_back_with_a_user_who_started_at_a_lift
     places the phone on floor 2 again, in a building whose floors are 1 and 2 (a replay that took every
     known anchor on floor 0 refused the log, and the building never loaded again)."""
     from schemas.anchors import AnchorType
-    from schemas.sensors import SensorBatch
     from server.store.models import FloorRow
 
     engine = make_engine(database_url)
