@@ -53,6 +53,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "its first day) or every other walk by start time (alternate: a building walked everywhere)",
     )
     parser.add_argument(
+        "--zones",
+        action="store_true",
+        help="draw a zone per room (--scenario) or shop (--msindoor): its frontage, 4 m around it; report "
+        'under "zones" the visits the server tells against the true ones (visit_f1, enter_delay_p50_s, '
+        "false_transitions_per_hour), and the same for a point test of the estimates (naive)",
+    )
+    parser.add_argument(
         "--calibration",
         type=Path,
         metavar="FILE",
@@ -443,4 +450,5 @@ def _replay_options(args: argparse.Namespace) -> ReplayOptions:
         radio_map=args.radio_map,
         start_fix=args.start_fix,
         heading_axes=args.heading_axes,
+        zones=args.zones,
     )

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from schemas.floor_plans import FloorPlan
+from schemas.floor_plans import FloorPlan, MultiPolygonGeometry, PolygonGeometry
 
 VECTOR_TYPES = {
     "TYPE_ACCELEROMETER": "accelerometer",
@@ -409,3 +409,27 @@ def shifted(trace: Trace, offset_ms: int) -> Trace:
         dist2=trace.dist2,
         magnetic_accuracy_changes=[(t + offset_ms, a) for t, a in trace.magnetic_accuracy_changes],
     )
+
+
+def shop_frontages(plan: FloorPlan, reach_m: float) -> list[tuple[str, np.ndarray]]:
+    """A zone per shop of the plan (each obstacle polygon), as ``evaluate --zones`` draws them: the shop
+    grown by ``reach_m`` on every side (its frontage: the walkable area in front of it, where the surveyed
+    walks pass; they never enter a shop, so the shop's own floor inside the zone changes nothing). Named by
+    the shop's name, or its number; outlines (K, 2) not closed, simplified to 0.2 m, at most 512 positions.
+    Shops whose outline cannot be grown into one simple polygon are left out."""
+    import shapely  # deferred: only the evaluation draws zones
+
+    out = []
+    for k, feature in enumerate(plan.features):
+        g = feature.geometry
+        if feature.properties.kind != "obstacle" or not isinstance(g, PolygonGeometry | MultiPolygonGeometry):
+            continue
+        for rings in [g.coordinates] if isinstance(g, PolygonGeometry) else g.coordinates:
+            shop = shapely.make_valid(shapely.Polygon(rings[0]))
+            grown = shop.buffer(reach_m, quad_segs=2).simplify(0.2)
+            if grown.geom_type != "Polygon" or grown.is_empty:
+                continue
+            ring = np.asarray(grown.exterior.coords, dtype=np.float64)[:-1]
+            if 3 <= len(ring) <= 512:
+                out.append((feature.properties.name or f"shop {k}", ring))
+    return out

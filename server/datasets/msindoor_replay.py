@@ -43,6 +43,7 @@ from server.datasets.msindoor import (
     read_floor_plan,
     read_trace,
     shifted,
+    shop_frontages,
 )
 from server.datasets.msindoor_batches import trace_windows
 from server.ingestion.convert import BuildingContext, building_context, to_user_batch
@@ -52,11 +53,13 @@ from server.slam.config import ReplayOptions, replay_params
 from slam_core.crowd.fingerprints import NOBODY
 from slam_core.encounters.models import Calibration
 from slam_core.filter.floor_plan import PlanIndex
+from slam_core.sim.simulation import FRONTAGE_M
 from slam_core.sim.statistics import error_summary
 from slam_core.tracking.fingerprint_stage import FingerprintStage
 from slam_core.tracking.floors import Floors
 from slam_core.tracking.tracker import BuildingTracker, TrackerParams, UserBatch
 from slam_core.wifi.pairs import fresh_mask
+from slam_core.zones.visits import ZoneTally
 
 REPLAY_BASE_MS = 1_700_000_000_000
 """Replay time of every walk's first sample (a valid wire timestamp)."""
@@ -170,6 +173,7 @@ def replay_msindoor(
     warm: list[tuple[int, Trace]] = []
     later: list[tuple[int, Trace]] = []
     readings: dict[int, tuple[PlanReading, PlanIndex | None, list[Trace]]] = {}
+    zones: list[tuple[str, np.ndarray, int]] = []
     for level, folder in floors:
         floor = read_floor(folder)
         found = [read_trace(p) for p in floor.traces]
@@ -183,6 +187,15 @@ def replay_msindoor(
             index = None if reading.plan is None else engine_plan(reading.plan)
             tracker.set_floor_plan(index, level)
             readings[level] = (reading, index, found)
+        if options.zones:
+            plan = (readings[level][0] if level in readings else read_floor_plan(floor)).plan
+            for name, ring in shop_frontages(plan, FRONTAGE_M) if plan is not None else []:
+                zones.append((f"{level}/{len(zones)} {name}", ring, level))
+    tally = None
+    if zones:
+        ids = [z[0] for z in zones]
+        tracker.zones.set_zones(ids, [z[1] for z in zones], [z[2] for z in zones], [None] * len(zones))
+        tally = ZoneTally(tracker.zones.zones, ids)
     traces = [t for _, t in warm + later]
     if not traces:
         raise ValueError(f"{floor_dir}: no walk has an accelerometer stream and two waypoints")
@@ -215,7 +228,9 @@ def replay_msindoor(
         start_fix = options.start_fix or not last  # the warm crowd always starts at its first waypoint
         walks = [_prepare(t, base, start_fix, level) for level, t in phase_traces]
         audited = audit if last else _Audit()  # the scored walks only
-        end = _replay_phase(tracker, walks, ctx, options, counts, advance, audited, start_fix)
+        end = _replay_phase(
+            tracker, walks, ctx, options, counts, advance, audited, start_fix, tally if last else None
+        )
         if last:
             scored = walks
         elif radio_map_of is not None and single:
@@ -296,8 +311,10 @@ def replay_msindoor(
         "fingerprint_fix_error_m": error_summary(np.array(audit.fix_errors)) if audit.fix_errors else None,
         "corrections": audit.summary(),
         "radio_map_scans": radio_scans,
-        "seconds": time.perf_counter() - started,
     }
+    if tally is not None:
+        result["zones"] = tally.result()
+    result["seconds"] = time.perf_counter() - started
     return result, errors
 
 
@@ -468,6 +485,7 @@ def _replay_phase(
     advance: Callable[[int], None],
     audit: _Audit,
     start_fix: bool = True,
+    tally: ZoneTally | None = None,
 ) -> int:
     """Replay these walks concurrently, each started by a fix at its first waypoint unless ``start_fix`` is
     off; returns the replay time of the last window's end."""
@@ -494,7 +512,7 @@ def _replay_phase(
     for item in queue:
         end, index, _ = item
         if call and (end > call_end or any(i == index for _, i, _ in call)):
-            _apply(tracker, walks, call, options, counts, audit)
+            _apply(tracker, walks, call, options, counts, audit, tally)
             advance(len(call))
             call = []
         if not call:
@@ -502,7 +520,7 @@ def _replay_phase(
         call.append(item)
         last_end = max(last_end, end)
     if call:
-        _apply(tracker, walks, call, options, counts, audit)
+        _apply(tracker, walks, call, options, counts, audit, tally)
         advance(len(call))
     for walk in walks:  # waypoints after the walk's last sample: its final estimate
         _score(tracker, walk, math.inf, options.mode)
@@ -516,8 +534,12 @@ def _apply(
     options: ReplayOptions,
     counts: dict[str, int],
     audit: _Audit,
+    tally: ZoneTally | None = None,
 ) -> None:
     outcome = tracker.apply([b for _, _, b in call])
+    if tally is not None:
+        for e in outcome.zone_events:
+            tally.told(e.user, e.zone_id, e.kind, e.t_ms)
     counts["steps"] += sum(r.steps_detected for r in outcome.reports.values())
     counts["signatures_applied"] += sum(r.signatures_applied for r in outcome.reports.values())
     counts["signatures_gated"] += sum(r.signatures_gated for r in outcome.reports.values())
@@ -535,6 +557,10 @@ def _apply(
             walk.floor_seen.append((end - walk.start_ms, level == walk.level))
         report = outcome.reports[batch.user]
         truth = walk.truth(end)
+        if tally is not None and truth is not None:  # the estimate the phone is told, or none yet
+            told = tracker.estimate(batch.user) if tracker.is_placed(batch.user) else None
+            xy = np.array([np.nan, np.nan]) if told is None else np.array([told.x, told.y])
+            tally.sample(walk.name, end, truth, walk.level, xy, level)
         if report.fingerprint_fix is not None and truth is not None:
             audit.fix_errors.append(float(np.linalg.norm(np.asarray(report.fingerprint_fix) - truth)))
         row, moved = tracker.estimate(batch.user), tracker.displacement(batch.user)

@@ -29,9 +29,10 @@ from server.slam.config import ReplayOptions, replay_params
 from slam_core.encounters.models import Calibration
 from slam_core.sim.encounters import meetings_per_user
 from slam_core.sim.map_quality import map_quality
-from slam_core.sim.simulation import Scenario, Simulation, simulate
+from slam_core.sim.simulation import Scenario, Simulation, room_zones, simulate
 from slam_core.sim.statistics import error_summary
 from slam_core.tracking.tracker import BuildingTracker, TrackerOutcome, TrackerParams
+from slam_core.zones.visits import ZoneTally
 
 
 def evaluate_scenario(
@@ -58,6 +59,11 @@ def evaluate_scenario(
         )
         known[f"known-{k}"] = index
     ctx = building_context("simulated", tracker, known, None, None)
+    tally = None
+    if options.zones:
+        ids, rings, zone_levels = room_zones(sim.world)
+        tracker.zones.set_zones(ids, rings, zone_levels, [None] * len(ids))
+        tally = ZoneTally(tracker.zones.zones, ids)
     users = {device_id(u): u for u in range(len(sim.users))}
     liars = liar_devices(len(sim.users), options.liars) if options.liars else set()
     score = _Score(sim, users)
@@ -65,6 +71,9 @@ def evaluate_scenario(
         user_batch = to_user_batch(batch, ctx).user_batch
         outcome = tracker.apply([user_batch])
         score.outcome(outcome)
+        if tally is not None:
+            for e in outcome.zone_events:
+                tally.told(e.user, e.zone_id, e.kind, e.t_ms)
         if progress is not None:
             progress(1)
         if not batch.steps or not tracker.is_placed(user_batch.user) or batch.device_id in liars:
@@ -77,6 +86,9 @@ def evaluate_scenario(
             xy, t_ms, floor = np.array([row.x, row.y]), row.t_ms, row.floor
         assert xy is not None
         score.estimate(users[user_batch.user], xy, t_ms, floor)
+        if tally is not None:
+            u, t = users[user_batch.user], (t_ms - EPOCH_MS) / 1000.0
+            tally.sample(user_batch.user, t_ms, sim.true_position(u, t), sim.true_level(u, t), xy, floor)
     errors = np.array(score.errors)
     n_users = len(sim.users)
     expected = scenario.raw.get("expected_statistics", {})
@@ -119,6 +131,8 @@ def evaluate_scenario(
     if score.range_error:
         result["encounter_true_distance_median_m"] = float(np.median(score.true_distance))
         result["encounter_range_bias_median_m"] = float(np.median(score.range_error))
+    if tally is not None:
+        result["zones"] = tally.result()
     result["seconds"] = time.perf_counter() - started
     return result, errors
 

@@ -73,6 +73,9 @@ class ReplayOptions:
     radio_map: bool = False
     """With a warm split: build the warm walks into a radio map (SignalSLAM, tagged at each walk's first and
     last waypoints) that the tracker loads before the scored walks."""
+    zones: bool = False
+    """Draw zones (each room's or shop's frontage) and score the visits the tracker tells against the true
+    ones, and against a point test of the estimates (``slam_core.zones.visits.ZoneTally``)."""
     heading_axes: bool = False
     """Weigh each straight stretch of a walk by the plan's grid (``FloorPlanParams.heading_axes``; off by
     default: it did not help on both shipped floors)."""

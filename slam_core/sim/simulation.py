@@ -8,6 +8,7 @@ scenario dict; the seed picks the world and the walks. The caller loads the JSON
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass, field
 from typing import Any
@@ -249,6 +250,29 @@ def _storey_world(scenario: Scenario, rng: np.random.Generator) -> World:
         storeys["floor_loss_db"],
         storeys["phone_height_m"],
     )
+
+
+FRONTAGE_M = 4.0
+"""A room's or shop's zone reaches this far out of it: the walkable area in front of it, where people pass
+(``evaluate --zones``)."""
+
+
+def room_zones(world: World, reach_m: float = FRONTAGE_M) -> tuple[list[str], list[np.ndarray], list[int]]:
+    """A zone per room of the world on every floor, as ``evaluate --zones`` draws them: the room (the block
+    between four corridors) grown by ``reach_m`` on every side, so it holds the corridors in front of it,
+    which is where the walks go (no walk enters a room). Ids ``L<floor>-<column>-<row>``; outlines (4, 2)."""
+    hw = world.corridor_half_width
+    xs, ys = _grid_lines(world.width, world.spacing), _grid_lines(world.height, world.spacing)
+    ids, rings, levels = [], [], []
+    for level in range(world.levels):
+        for i, (x0, x1) in enumerate(itertools.pairwise(xs)):
+            for j, (y0, y1) in enumerate(itertools.pairwise(ys)):
+                a, b = x0 + hw - reach_m, x1 - hw + reach_m
+                c, d = y0 + hw - reach_m, y1 - hw + reach_m
+                ids.append(f"L{level}-{i}-{j}")
+                rings.append(np.array([[a, c], [b, c], [b, d], [a, d]]))
+                levels.append(level)
+    return ids, rings, levels
 
 
 def count_walls(world: World, a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -209,3 +209,26 @@ def inside_shares(
                     share += math.exp(logw[u, p] - top)
             out[k, z] = share / total
     return out
+
+
+def points_inside(zones: ZoneSet, x: np.ndarray, y: np.ndarray, level: np.ndarray) -> np.ndarray:
+    """(N, Z): whether each point (on floor ``level``) lies inside each zone: the point test of a platform
+    that decides "inside" from one estimate (or from the truth), the same test as a particle's."""
+    x = np.ascontiguousarray(x, dtype=np.float64).reshape(-1, 1)
+    y = np.ascontiguousarray(y, dtype=np.float64).reshape(-1, 1)
+    n = x.shape[0]
+    if n == 0 or len(zones) == 0:
+        return np.zeros((n, len(zones)), dtype=np.bool_)
+    shares = inside_shares(
+        x,
+        y,
+        np.zeros((n, 1)),
+        np.arange(n, dtype=np.int64),
+        np.ascontiguousarray(level, dtype=np.int64).reshape(-1),
+        zones.level,
+        zones.start,
+        zones.vx,
+        zones.vy,
+        zones.bbox,
+    )
+    return shares > 0.5

@@ -9,8 +9,11 @@ naive baseline, also ``visits_of``). Pure numerics.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
+
+from slam_core.zones.geometry import ZoneSet, points_inside
 
 MIN_VISIT_MS = 10_000
 """A visit counts when it lasts at least this long (passing a shop front is no visit)."""
@@ -108,3 +111,78 @@ def _unmatched(told: list[int], true: list[int]) -> int:
         if gap.size and gap.min() <= TOLERANCE_MS:
             taken[int(np.argmin(gap))] = True
     return int(left.size - taken.sum())
+
+
+class ZoneTally:
+    """What ``evaluate --zones`` counts over a run: for each user, at each scored estimate, whether its true
+    position and its estimate (the naive point test) lie in each zone; and the entries and exits the
+    tracker told. ``result`` scores both against the truth."""
+
+    def __init__(self, zones: ZoneSet, ids: list[str]) -> None:
+        self.zones = zones
+        self.index = {zone_id: k for k, zone_id in enumerate(ids)}
+        self._t: dict[str, list[int]] = {}
+        self._true: dict[str, list[np.ndarray]] = {}
+        self._naive: dict[str, list[np.ndarray]] = {}
+        self._told: dict[tuple[str, int], tuple[list[str], list[int]]] = {}
+
+    def sample(
+        self, user: str, t_ms: int, truth: np.ndarray, true_level: int, estimate: np.ndarray, level: int
+    ) -> None:
+        """A scored estimate of ``user`` at ``t_ms`` (its samples in time order)."""
+        inside = points_inside(
+            self.zones,
+            np.array([truth[0], estimate[0]]),
+            np.array([truth[1], estimate[1]]),
+            np.array([true_level, level]),
+        )
+        self._t.setdefault(user, []).append(int(t_ms))
+        self._true.setdefault(user, []).append(inside[0])
+        self._naive.setdefault(user, []).append(inside[1])
+
+    def told(self, user: str, zone_id: str, kind: str, t_ms: int) -> None:
+        """An event the tracker told (dwells are no transitions)."""
+        if kind in ("enter", "exit"):
+            kinds, times = self._told.setdefault((user, self.index[zone_id]), ([], []))
+            kinds.append(kind)
+            times.append(int(t_ms))
+
+    def result(self) -> dict[str, Any]:
+        """The tracker's figures (``visit_f1``, ``enter_delay_p50_s``, ``false_transitions_per_hour``) and the
+        same under ``naive``, with the counts behind them."""
+        told, naive = [], []
+        hours = 0.0
+        true_visits = 0
+        for user, times in self._t.items():
+            t = np.asarray(times, dtype=np.int64)
+            hours += (int(t[-1]) - int(t[0])) / 3.6e6
+            truth = np.asarray(self._true[user]).reshape(t.size, -1)
+            guess = np.asarray(self._naive[user]).reshape(t.size, -1)
+            for z in range(len(self.zones)):
+                true = visits_of(t, truth[:, z])
+                true_visits += sum(v[1] - v[0] >= MIN_VISIT_MS for v in true)
+                kinds, at = self._told.get((user, z), ([], []))
+                told.append(score_visits(true, visits_of_events(kinds, at, int(t[-1]))))
+                naive.append(score_visits(true, visits_of(t, guess[:, z])))
+        return {
+            **_figures(told, hours),
+            "naive": _figures(naive, hours),
+            "zones": len(self.zones),
+            "true_visits": int(true_visits),
+            "user_hours": hours,
+        }
+
+
+def _figures(scores: list[VisitScore], hours: float) -> dict[str, Any]:
+    matched = sum(s.matched for s in scores)
+    total = sum(s.told + s.true for s in scores)
+    delays = [d for s in scores for d in s.enter_delays_ms]
+    false = sum(s.false_transitions for s in scores)
+    return {
+        "visit_f1": 1.0 if total == 0 else 2.0 * matched / total,
+        "visits_matched": matched,
+        "visits_told": sum(s.told for s in scores),
+        "enter_delay_p50_s": float(np.median(delays)) / 1000.0 if delays else None,
+        "false_transitions": int(false),
+        "false_transitions_per_hour": false / hours if hours > 0 else None,
+    }

@@ -10,10 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from schemas.floor_plans import PlanKind
-from server.datasets.msindoor import TraceFormatError, read_floor, read_floor_plan, read_trace
+from schemas.floor_plans import FLOOR_PLAN_EXAMPLE, FloorPlan, PlanKind
+from server.datasets.msindoor import TraceFormatError, read_floor, read_floor_plan, read_trace, shop_frontages
 from server.datasets.msindoor_batches import trace_batches
 from server.ingestion.floor_plans import engine_plan
+from slam_core.zones.geometry import ring_problem
 from tests.conftest import SAMPLE_FLOOR, whole_floor
 
 pytestmark = pytest.mark.walks
@@ -184,3 +185,18 @@ def test_a_map_without_a_usable_outline_gives_no_plan(
     tmp_path: Path, features: list[dict[str, object]]
 ) -> None:
     assert read_floor_plan(read_floor(_write_map(tmp_path, features))).plan is None
+
+
+def test_a_shops_frontage_is_the_shop_grown_by_its_reach() -> None:
+    plan = FloorPlan.model_validate(FLOOR_PLAN_EXAMPLE)
+    [(name, ring)] = shop_frontages(plan, 4.0)  # the cafe alone: the outline is walkable, the wall a line
+    assert name == "Cafe"
+    assert ring_problem(ring) is None
+    lo, hi = ring.min(axis=0), ring.max(axis=0)
+    np.testing.assert_allclose([*lo, *hi], [6.0, 6.0, 24.0, 22.0], atol=0.01)
+    # its area: the 10 x 8 m cafe, four 4 m strips along its sides, and corners between a square's and a
+    # quarter circle's (quad_segs=2 cuts each corner's arc in two chords)
+    area = 0.5 * abs(
+        np.dot(ring[:, 0], np.roll(ring[:, 1], -1)) - np.dot(ring[:, 1], np.roll(ring[:, 0], -1))
+    )
+    assert 80 + 4 * (2 * 10 + 2 * 8) + 4 * (np.pi * 16 / 4) * 0.85 < area < 80 + 4 * 36 + 4 * 16

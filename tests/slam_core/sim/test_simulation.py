@@ -7,7 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from slam_core.sim.simulation import Scenario, count_walls, simulate
+from slam_core.sim.simulation import Scenario, count_walls, room_zones, simulate
+from slam_core.zones.geometry import points_inside, zone_set
 from tests.conftest import TESTBED
 
 
@@ -95,3 +96,18 @@ def test_one_setting_changes_in_a_copy(scenario: Scenario) -> None:
         scenario.with_setting("lobby", "count", 2)
     with pytest.raises(ValueError, match="corridor"):  # the copy is validated like any scenario
         scenario.with_setting("floor", "corridors", "ring")
+
+
+def test_a_room_zone_holds_the_corridors_in_front_of_the_room() -> None:
+    sim = simulate(Scenario.from_dict(json.loads(TESTBED.read_text())), 0)
+    ids, rings, levels = room_zones(sim.world)
+    assert len(ids) == len(set(ids)) == 30  # 6 x 5 rooms between the corridors every 10 m of 60 x 50 m
+    assert set(levels) == {0}
+    zones = zone_set(rings, levels)
+    # every true position is on a corridor: in front of one room at least, four at a crossing
+    xy = np.concatenate([u.xy for u in sim.users])
+    counts = points_inside(zones, xy[:, 0], xy[:, 1], np.zeros(len(xy), dtype=np.int64)).sum(axis=1)
+    assert counts.min() >= 1
+    assert counts.max() == 4
+    assert ids[0] == "L0-0-0"
+    np.testing.assert_allclose(rings[0], [[-3, -3], [13, -3], [13, 13], [-3, 13]])
