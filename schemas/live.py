@@ -38,7 +38,7 @@ class UserForgottenMessage(WireModel):
 
 class ZoneMessage(WireModel):
     """A user entered a zone, left it, or has stayed in it for the zone's dwell time
-    (``schemas.zones.ZoneEvent``)."""
+    (``schemas.zones.WebhookPayload`` is its webhook body)."""
 
     type: Literal["zone"] = "zone"
     zone_id: Identifier

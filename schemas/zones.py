@@ -18,6 +18,7 @@ MAX_VISITS = 10_000
 """Visits one answer lists at most (``limit``)."""
 
 ZoneKind = Literal["enter", "exit", "dwell"]
+WebhookEvent = Literal["zone.enter", "zone.exit", "zone.dwell"]
 
 
 class ZonePolygon(WireModel):
@@ -92,19 +93,24 @@ class ZoneOccupancy(WireModel):
     zones: dict[str, int]
 
 
-class ZoneEvent(WireModel):
-    """A user entered a zone, left it, or has stayed in it for the zone's ``dwell_s``; ``probability`` is
-    the share of its position's probability inside the zone then (0 when the server stopped tracking it)."""
+class WebhookPayload(WireModel):
+    """The JSON body of a webhook delivery: a user entered a zone, left it, or has stayed in it for the
+    zone's ``dwell_s``. ``id`` is the event's, the same in every delivery of it (a receiver that sees it
+    twice, after a retry whose answer was lost, drops the second)."""
 
+    id: str = Field(min_length=1, max_length=64)
+    event: WebhookEvent
     building_id: Identifier
     zone_id: Identifier
     user_id: Identifier
-    kind: ZoneKind
     t_ms: TimeMs
-    probability: float = Field(ge=0.0, le=1.0)
+    probability: float = Field(
+        ge=0.0,
+        le=1.0,
+        description="The share of the user's position inside the zone then (0 when the server stopped "
+        "tracking it).",
+    )
 
-
-WebhookEvent = Literal["zone.enter", "zone.exit", "zone.dwell"]
 
 WEBHOOK_EXAMPLE: dict[str, Any] = {
     "url": "https://apps.example.com/crowdslam",
@@ -138,16 +144,27 @@ class Webhook(WireModel):
     id: Identifier
     url: str
     events: list[WebhookEvent]
+    suspended: bool = Field(
+        description="After a delivery gave up, the webhook takes no new events until it is PUT again."
+    )
 
 
 class WebhookDelivery(WireModel):
-    """One attempt to deliver one event."""
+    """One event's delivery to a webhook: tried in order with the webhook's other deliveries, again with
+    backoff after a failure, until the receiver answers 2xx or the tries run out."""
 
     id: int
     webhook_id: Identifier
     event: WebhookEvent
-    attempt: int = Field(ge=1)
-    at_ms: TimeMs
-    status: Literal["delivered", "failed", "gave_up", "refused"]
-    http_status: int | None
-    error: str | None
+    body: str = Field(description="The JSON body as signed and sent.")
+    created_ms: TimeMs
+    attempts: int = Field(ge=0)
+    status: Literal["pending", "delivered", "gave_up"]
+    http_status: int | None = Field(description="The receiver's answer to the last try, if it answered.")
+    error: str | None = Field(description="Why the last try failed.")
+    next_attempt_ms: TimeMs | None
+    delivered_ms: TimeMs | None
+
+
+MAX_WEBHOOKS = 20
+"""Webhooks a building may hold."""

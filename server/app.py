@@ -28,6 +28,7 @@ from server.api import (
     positions,
     signal_maps,
     users,
+    webhooks,
     zones,
 )
 from server.api.contract import allowed_methods, install_openapi, operation_id
@@ -58,6 +59,8 @@ from server.store.db import make_engine, make_session_factory
 from server.store.migrate import current_revision, head_revision
 from server.store.vacuum import vacuum_in_background
 from server.store.wal_checkpoints import checkpoint_in_background
+from server.webhooks.addresses import AllowedHosts
+from server.webhooks.dispatcher import DispatchConfig, Dispatcher
 
 logger = logging.getLogger(__name__)
 
@@ -145,6 +148,19 @@ def create_app(settings: Settings, tune_gc: bool = False, warming: Progress | No
             tune_gc_for_serving()
         loop = asyncio.get_running_loop()
         revalidation = loop.create_task(_revalidate_keys_forever(app.state.crowdslam))
+        # every serving process sends the webhook deliveries its buildings' transactions queued (claimed one
+        # by one: a cluster's fronts share them)
+        dispatch = loop.create_task(
+            Dispatcher(
+                sessions,
+                DispatchConfig(
+                    AllowedHosts.parse(settings.webhook_allowed_hosts),
+                    settings.webhook_max_attempts,
+                    settings.webhook_retry_s,
+                    settings.webhook_timeout_s,
+                ),
+            ).run()
+        )
         loading: set[asyncio.Task[None]] = set()  # held until done: the loop keeps only weak references
 
         def built(building_id: str) -> None:
@@ -157,8 +173,11 @@ def create_app(settings: Settings, tune_gc: bool = False, warming: Progress | No
             yield
         finally:
             revalidation.cancel()
+            dispatch.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await revalidation
+            with contextlib.suppress(asyncio.CancelledError):
+                await dispatch
             app.state.crowdslam.signal_maps.close()
             await tracking.close()
             await disconnect()
@@ -187,6 +206,7 @@ def create_app(settings: Settings, tune_gc: bool = False, warming: Progress | No
         users,
         anchors,
         zones,
+        webhooks,
         live,
         signal_maps,
     ):

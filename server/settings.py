@@ -231,6 +231,39 @@ class Settings(BaseSettings):
         "answers duplicate).",
     )
 
+    webhook_allowed_hosts: str = Field(
+        default="",
+        description="Host names and CIDRs (comma-separated) a webhook may reach although they are loopback, "
+        "link-local, private or otherwise not public, e.g. receiver.internal,10.0.5.0/24. Every other such "
+        "address is refused when the webhook is stored and at every delivery (checked on the resolved "
+        "address).",
+    )
+    webhook_max_attempts: int = Field(
+        default=8,
+        ge=1,
+        le=50,
+        description="Tries of one webhook delivery before it gives up; the webhook is then suspended (its "
+        "pending deliveries given up, no new ones) until an operator PUTs it again.",
+    )
+    webhook_retry_s: float = Field(
+        default=2.0,
+        gt=0.0,
+        le=3600.0,
+        description="A failed delivery is tried again after this long, doubled at each try (at most 10 "
+        "minutes); with the defaults a receiver may be down about 8 minutes before the webhook is suspended.",
+    )
+    webhook_timeout_s: float = Field(
+        default=5.0, gt=0.0, le=60.0, description="How long a webhook receiver has to answer a delivery."
+    )
+
+    @field_validator("webhook_allowed_hosts")
+    @classmethod
+    def _hosts_and_networks(cls, text: str) -> str:
+        from server.webhooks.addresses import AllowedHosts  # the rule lives with the check
+
+        AllowedHosts.parse(text)
+        return text
+
     @field_validator("database_url")
     @classmethod
     def _a_store_crowdslam_runs_on(cls, url: str | None) -> str | None:

@@ -38,6 +38,8 @@ class Counters:
     """Closed zone visits deleted with the position history of their time."""
     zone_events: int = 0
     """Entries, exits and dwells stored (``server.buildings.zones``)."""
+    webhook_deliveries: int = 0
+    """Deliveries of those events queued for the building's webhooks (``server.webhooks``)."""
     pruned_batches: int = 0
     """Batch id rows deleted past their retention."""
     reclaimed_pages: int = 0

@@ -17,7 +17,7 @@ from schemas.live import LiveMessage
 from schemas.zones import MAX_ZONES, Zone, ZoneIn
 from server.buildings.building import Building, SaveSnapshot
 from server.errors import InvalidInputError, NotFoundError
-from server.ingestion.zones import set_tracker_zones, stored_ring, wire_zone, zone_messages
+from server.ingestion.zones import set_tracker_zones, stored_ring, webhook_events, wire_zone, zone_messages
 from server.store import repositories as repo
 from server.store.models import ZoneRow
 from slam_core.tracking.batches import ZoneEvent
@@ -101,11 +101,15 @@ class Zones:
         """In a group's transaction: the events of a tracker call stored as visits; their live messages."""
         if not events:
             return []
+        b, now_ms = self.building, int(time.time() * 1000)
         repo.record_zone_events(
             session,
-            self.building.building_id,
+            b.building_id,
             [(e.user, e.zone_id, e.kind, e.t_ms, e.probability) for e in events],
-            int(time.time() * 1000),
+            now_ms,
+        )
+        b.counters.webhook_deliveries += repo.enqueue_deliveries(
+            session, b.building_id, webhook_events(b.building_id, events), now_ms
         )
         self.building.counters.zone_events += len(events)
         return zone_messages(events)
@@ -125,4 +129,7 @@ class Zones:
             for v, (_, left_ms) in zip(visits, closed, strict=True)
         ]
         b.counters.zone_events += len(events)
+        b.counters.webhook_deliveries += repo.enqueue_deliveries(
+            session, b.building_id, webhook_events(b.building_id, events), int(time.time() * 1000)
+        )
         return zone_messages(events)

@@ -4,13 +4,14 @@ stored zone as the tracker's zone stage and the API read it, and the stage's eve
 from __future__ import annotations
 
 import json
+import uuid
 from collections.abc import Sequence
 from typing import Protocol
 
 import numpy as np
 
 from schemas.live import LiveMessage, ZoneMessage
-from schemas.zones import Zone, ZoneIn, ZonePolygon
+from schemas.zones import WebhookPayload, Zone, ZoneIn, ZonePolygon
 from slam_core.tracking.batches import ZoneEvent
 from slam_core.tracking.tracker import BuildingTracker
 from slam_core.zones.geometry import ring_problem
@@ -75,6 +76,25 @@ def wire_zone(zone: StoredZone, occupancy: int) -> Zone:
         dwell_s=zone.dwell_s,
         occupancy=occupancy,
     )
+
+
+def webhook_events(building_id: str, events: Sequence[ZoneEvent]) -> list[tuple[str, str]]:
+    """Each event as a webhook delivers it: its name and its JSON body (``WebhookPayload``)."""
+    out: list[tuple[str, str]] = []
+    for e in events:
+        payload = WebhookPayload.model_validate(
+            {
+                "id": uuid.uuid4().hex,
+                "event": f"zone.{e.kind}",
+                "building_id": building_id,
+                "zone_id": e.zone_id,
+                "user_id": e.user,
+                "t_ms": e.t_ms,
+                "probability": min(1.0, max(0.0, e.probability)),
+            }
+        )
+        out.append((payload.event, payload.model_dump_json()))
+    return out
 
 
 def zone_messages(events: Sequence[ZoneEvent]) -> list[LiveMessage]:

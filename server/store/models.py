@@ -299,3 +299,50 @@ class ZoneVisitRow(Base):
     dwelled_ms: Mapped[int | None] = mapped_column(BigInteger)
     stored_at_ms: Mapped[int] = mapped_column(BigInteger)
     """Server time of the entry's write: visits are pruned by it, with the position history."""
+
+
+class WebhookRow(Base):
+    """Where a building's zone events are POSTed (``schemas.zones.WebhookIn``); its secret signs them."""
+
+    __tablename__ = "webhooks"
+    __table_args__ = (ForeignKeyConstraint(["building_id"], ["buildings.id"], ondelete="CASCADE"),)
+
+    building_id: Mapped[str] = mapped_column(String(64), primary_key=True)
+    id: Mapped[str] = mapped_column(String(64), primary_key=True)
+    url: Mapped[str] = mapped_column(Text)
+    secret: Mapped[str] = mapped_column(String(256))
+    events: Mapped[str] = mapped_column(String(64))
+    """The events it takes, comma-separated (``zone.enter,zone.exit``)."""
+    suspended_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True))
+    """When a delivery gave up: no new events until the webhook is PUT again."""
+    updated_at: Mapped[datetime] = mapped_column(DateTime(timezone=True))
+
+
+class WebhookDeliveryRow(Base):
+    """One event for one webhook: written in the transaction of the batch that caused it (an outbox), sent
+    after, in order per webhook, and kept as its delivery log."""
+
+    __tablename__ = "webhook_deliveries"
+    __table_args__ = (
+        ForeignKeyConstraint(
+            ["building_id", "webhook_id"], ["webhooks.building_id", "webhooks.id"], ondelete="CASCADE"
+        ),
+        Index("ix_webhook_deliveries_hook", "building_id", "webhook_id", "id"),
+        Index("ix_webhook_deliveries_due", "status", "next_attempt_ms"),
+    )
+
+    id: Mapped[int] = mapped_column(BigIntPk, primary_key=True, autoincrement=True)
+    building_id: Mapped[str] = mapped_column(String(64))
+    webhook_id: Mapped[str] = mapped_column(String(64))
+    event: Mapped[str] = mapped_column(String(16))
+    body: Mapped[str] = mapped_column(Text)
+    created_ms: Mapped[int] = mapped_column(BigInteger)
+    attempts: Mapped[int] = mapped_column(Integer, default=0)
+    status: Mapped[str] = mapped_column(String(16))
+    """pending, delivered or gave_up."""
+    next_attempt_ms: Mapped[int | None] = mapped_column(BigInteger)
+    claimed_until_ms: Mapped[int | None] = mapped_column(BigInteger)
+    """A dispatcher sending it holds it until then (another process's may take it after)."""
+    http_status: Mapped[int | None] = mapped_column(Integer)
+    error: Mapped[str | None] = mapped_column(Text)
+    delivered_ms: Mapped[int | None] = mapped_column(BigInteger)

@@ -25,6 +25,8 @@ from server.store.models import (
     PositionSnapshotRow,
     StreamPositionRow,
     TrackerSnapshotRow,
+    WebhookDeliveryRow,
+    WebhookRow,
     ZoneRow,
     ZoneVisitRow,
 )
@@ -248,6 +250,155 @@ def delete_user_visits(session: Session, building_id: str, user_id: str) -> int:
     result = session.execute(
         delete(ZoneVisitRow).where(ZoneVisitRow.building_id == building_id, ZoneVisitRow.user_id == user_id)
     )
+    return int(cast(CursorResult[Any], result).rowcount or 0)
+
+
+# ----------------------------------------------------------------------------- webhooks
+
+
+def list_webhooks(session: Session, building_id: str) -> list[WebhookRow]:
+    stmt = select(WebhookRow).where(WebhookRow.building_id == building_id).order_by(WebhookRow.id)
+    return list(session.execute(stmt).scalars())
+
+
+def get_webhook(session: Session, building_id: str, webhook_id: str) -> WebhookRow | None:
+    return session.get(WebhookRow, (building_id, webhook_id))
+
+
+def save_webhook(session: Session, row: dict[str, Any]) -> None:
+    """Insert or replace a webhook; a suspended one takes events again."""
+    values = {**row, "suspended_at": None, "updated_at": datetime.now(UTC)}
+    upsert(session, WebhookRow, [values], ["building_id", "id"])
+
+
+def delete_webhook(session: Session, building_id: str, webhook_id: str) -> bool:
+    """Delete a webhook and its delivery log; whether it existed."""
+    session.execute(
+        delete(WebhookDeliveryRow).where(
+            WebhookDeliveryRow.building_id == building_id, WebhookDeliveryRow.webhook_id == webhook_id
+        )
+    )
+    result = session.execute(
+        delete(WebhookRow).where(WebhookRow.building_id == building_id, WebhookRow.id == webhook_id)
+    )
+    return bool(cast(CursorResult[Any], result).rowcount)
+
+
+def enqueue_deliveries(
+    session: Session, building_id: str, events: Sequence[tuple[str, str]], now_ms: int
+) -> int:
+    """In the transaction of the change that caused them: each event ``(name, body)`` queued for every
+    webhook of the building that takes it and is not suspended; how many deliveries were queued."""
+    hooks = session.execute(
+        select(WebhookRow.id, WebhookRow.events).where(
+            WebhookRow.building_id == building_id, WebhookRow.suspended_at.is_(None)
+        )
+    ).all()
+    rows = [
+        {
+            "building_id": building_id,
+            "webhook_id": hook_id,
+            "event": name,
+            "body": body,
+            "created_ms": now_ms,
+            "attempts": 0,
+            "status": "pending",
+            "next_attempt_ms": now_ms,
+        }
+        for name, body in events
+        for hook_id, takes in hooks
+        if name in takes.split(",")
+    ]
+    if rows:
+        session.execute(insert(WebhookDeliveryRow), rows)
+    return len(rows)
+
+
+def webhook_deliveries(
+    session: Session, building_id: str, webhook_id: str, limit: int
+) -> list[WebhookDeliveryRow]:
+    """The webhook's latest deliveries, newest first."""
+    stmt = (
+        select(WebhookDeliveryRow)
+        .where(WebhookDeliveryRow.building_id == building_id, WebhookDeliveryRow.webhook_id == webhook_id)
+        .order_by(WebhookDeliveryRow.id.desc())
+        .limit(limit)
+    )
+    return list(session.execute(stmt).scalars())
+
+
+def claim_due_deliveries(session: Session, now_ms: int, hold_ms: int, limit: int) -> list[WebhookDeliveryRow]:
+    """Claim, for up to ``limit`` webhooks, the oldest pending delivery when it is due and nobody holds it:
+    a webhook's deliveries go one at a time, in order. Each claim is a conditional update, so of several
+    dispatchers (a cluster's fronts) one takes it."""
+    heads = (
+        select(func.min(WebhookDeliveryRow.id))
+        .where(WebhookDeliveryRow.status == "pending")
+        .group_by(WebhookDeliveryRow.building_id, WebhookDeliveryRow.webhook_id)
+    )
+    rows = session.execute(
+        select(WebhookDeliveryRow)
+        .where(
+            WebhookDeliveryRow.id.in_(heads),
+            WebhookDeliveryRow.next_attempt_ms <= now_ms,
+            WebhookDeliveryRow.claimed_until_ms.is_(None) | (WebhookDeliveryRow.claimed_until_ms < now_ms),
+        )
+        .order_by(WebhookDeliveryRow.id)
+        .limit(limit)
+    ).scalars()
+    claimed = []
+    for row in list(rows):
+        result = session.execute(
+            update(WebhookDeliveryRow)
+            .where(
+                WebhookDeliveryRow.id == row.id,
+                WebhookDeliveryRow.status == "pending",
+                WebhookDeliveryRow.claimed_until_ms.is_(None)
+                | (WebhookDeliveryRow.claimed_until_ms < now_ms),
+            )
+            .values(claimed_until_ms=now_ms + hold_ms)
+        )
+        if cast(CursorResult[Any], result).rowcount:
+            claimed.append(row)
+    return claimed
+
+
+def finish_attempt(session: Session, delivery_id: int, **values: Any) -> None:
+    """Record a try of a delivery (its status, answer, error, next try) and release it."""
+    session.execute(
+        update(WebhookDeliveryRow)
+        .where(WebhookDeliveryRow.id == delivery_id)
+        .values(**values, claimed_until_ms=None, attempts=WebhookDeliveryRow.attempts + 1)
+    )
+
+
+def suspend_webhook(session: Session, building_id: str, webhook_id: str, reason: str) -> None:
+    """A delivery gave up: the webhook takes no new events, and its pending ones are given up."""
+    session.execute(
+        update(WebhookRow)
+        .where(WebhookRow.building_id == building_id, WebhookRow.id == webhook_id)
+        .values(suspended_at=datetime.now(UTC))
+    )
+    session.execute(
+        update(WebhookDeliveryRow)
+        .where(
+            WebhookDeliveryRow.building_id == building_id,
+            WebhookDeliveryRow.webhook_id == webhook_id,
+            WebhookDeliveryRow.status == "pending",
+        )
+        .values(status="gave_up", error=reason, next_attempt_ms=None, claimed_until_ms=None)
+    )
+
+
+def prune_deliveries(session: Session, before_ms: int, limit: int) -> int:
+    """Delete at most ``limit`` finished deliveries created before ``before_ms``."""
+    doomed = (
+        select(WebhookDeliveryRow.id)
+        .where(WebhookDeliveryRow.created_ms < before_ms, WebhookDeliveryRow.status != "pending")
+        .limit(limit)
+        .scalar_subquery()
+    )
+    result = session.execute(delete(WebhookDeliveryRow).where(WebhookDeliveryRow.id.in_(doomed)))
     return int(cast(CursorResult[Any], result).rowcount or 0)
 
 
