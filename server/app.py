@@ -99,6 +99,8 @@ def create_app(settings: Settings, tune_gc: bool = False, warming: Progress | No
     collector is then tuned for its latency at the end of start-up (``tune_gc_for_serving``), process-wide.
     ``warming`` hears how the start-up's compile of the filter's kernels goes (a minute on a cold cache)."""
 
+    allowed_hosts = AllowedHosts.parse(settings.webhook_allowed_hosts)  # a typo stops the start, named
+
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         url = settings.resolved_database_url
@@ -154,7 +156,7 @@ def create_app(settings: Settings, tune_gc: bool = False, warming: Progress | No
             Dispatcher(
                 sessions,
                 DispatchConfig(
-                    AllowedHosts.parse(settings.webhook_allowed_hosts),
+                    allowed_hosts,
                     settings.webhook_max_attempts,
                     settings.webhook_retry_s,
                     settings.webhook_timeout_s,

@@ -66,7 +66,7 @@ LAYERS: dict[str, list[list[str]]] = {
             "dashboard",
         ],
         ["store", "slam"],
-        ["auth", "ingestion", "recordings"],
+        ["auth", "ingestion", "recordings", "webhooks"],
         ["buildings"],
         ["datasets", "simulation", "cluster"],
         ["signal_maps", "replay", "metrics"],

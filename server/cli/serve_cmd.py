@@ -57,7 +57,10 @@ def run(args: argparse.Namespace) -> int:
     from server.app import create_app
     from server.cli.kernel_progress import KernelProgress
 
-    app = create_app(settings, tune_gc=True, warming=KernelProgress("crowdslam serve"))
+    try:
+        app = create_app(settings, tune_gc=True, warming=KernelProgress("crowdslam serve"))
+    except ValueError as exc:  # a setting only the app can read (CROWDSLAM_WEBHOOK_ALLOWED_HOSTS)
+        raise SystemExit(f"crowdslam serve: {exc}") from None
     uvicorn.run(
         app,
         host=args.host,

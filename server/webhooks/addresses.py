@@ -38,7 +38,9 @@ class AllowedHosts:
             except ValueError:
                 pass
             if not all(part and part.replace("-", "").isalnum() for part in entry.split(".")):
-                raise ValueError(f"webhook_allowed_hosts: {entry!r} is neither a host name nor a CIDR")
+                raise ValueError(
+                    f"CROWDSLAM_WEBHOOK_ALLOWED_HOSTS: {entry!r} is neither a host name nor a CIDR"
+                )
             names.add(entry.lower())
         return cls(frozenset(names), tuple(networks))
 

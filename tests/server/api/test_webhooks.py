@@ -293,3 +293,9 @@ def test_a_delivery_to_an_address_no_longer_allowed_gives_up(sqlite_site: Site) 
     assert log[0]["attempts"] == 1
     assert "not a public address" in log[0]["error"]
     assert got.received == []
+
+
+def test_a_bad_allowance_stops_the_server_naming_it(tmp_path: Path) -> None:
+    settings = Settings(data_dir=tmp_path, webhook_allowed_hosts="10.0.0.0/8,not a host!")
+    with pytest.raises(ValueError, match="CROWDSLAM_WEBHOOK_ALLOWED_HOSTS: 'not a host!'"):
+        create_app(settings)
