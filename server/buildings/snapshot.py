@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 from slam_core.encounters.models import Calibration
 from slam_core.tracking.tracker import BuildingTracker, TrackerParams
 
-FORMAT_VERSION = 21
+FORMAT_VERSION = 22
 """Bump when BuildingTracker's attributes change, or a pickled class moves to another module: old snapshots
 are then refused, not misread."""
 

@@ -539,7 +539,7 @@ def _apply(
     outcome = tracker.apply([b for _, _, b in call])
     if tally is not None:
         for e in outcome.zone_events:
-            tally.told(e.user, e.zone_id, e.kind, e.t_ms)
+            tally.told(e.user, e.zone_id, e.kind, e.t_ms, e.told_ms)
     counts["steps"] += sum(r.steps_detected for r in outcome.reports.values())
     counts["signatures_applied"] += sum(r.signatures_applied for r in outcome.reports.values())
     counts["signatures_gated"] += sum(r.signatures_gated for r in outcome.reports.values())

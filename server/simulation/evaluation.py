@@ -73,7 +73,7 @@ def evaluate_scenario(
         score.outcome(outcome)
         if tally is not None:
             for e in outcome.zone_events:
-                tally.told(e.user, e.zone_id, e.kind, e.t_ms)
+                tally.told(e.user, e.zone_id, e.kind, e.t_ms, e.told_ms)
         if progress is not None:
             progress(1)
         if not batch.steps or not tracker.is_placed(user_batch.user) or batch.device_id in liars:

@@ -190,8 +190,12 @@ class ZoneEvent:
     zone_id: str
     kind: str  # "enter", "exit" or "dwell"
     t_ms: int
+    """When it happened: the last time the probability inside crossed one half (``slam_core.zones.
+    presence``)."""
     probability: float
-    """The probability that the user was inside then."""
+    """The probability that the user was inside when the event was decided."""
+    told_ms: int = 0
+    """When it was decided (the user's time of the estimate that made it sure)."""
 
 
 @dataclass

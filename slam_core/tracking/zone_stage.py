@@ -57,13 +57,14 @@ class ZoneStage:
         events = self.presence.update(slots, t_ms, self.inside(filters, slots), self.dwell_ms)
         name = dict(zip(np.asarray(slots).tolist(), users, strict=True))
         return [
-            ZoneEvent(name[r], self.ids[z], KINDS[k], t, p)
-            for r, z, k, t, p in zip(
+            ZoneEvent(name[r], self.ids[z], KINDS[k], t, p, told)
+            for r, z, k, t, p, told in zip(
                 events.row.tolist(),
                 events.zone.tolist(),
                 events.kind.tolist(),
                 events.t_ms.tolist(),
                 events.probability.tolist(),
+                events.told_ms.tolist(),
                 strict=True,
             )
         ]

@@ -69,10 +69,12 @@ class VisitScore:
     true: int
     """True visits of at least ``MIN_VISIT_MS``."""
     enter_delays_ms: tuple[int, ...]
-    """For each match, how much later the tracker told the entry than it happened (negative: earlier)."""
+    """For each match, how much later the tracker's entry was than the true one (negative: earlier)."""
     false_transitions: int
     """Entries and exits told (of visits of any length) left over once each true entry and exit (of any
     length) takes the nearest told one of its kind within the tolerance."""
+    matched_entries: tuple[tuple[int, int], ...] = ()
+    """For each match, the true entry's time and the told one's."""
 
     @property
     def f1(self) -> float:
@@ -88,17 +90,18 @@ def score_visits(true: list[tuple[int, int]], told: list[tuple[int, int]]) -> Vi
     long_true = [v for v in true if v[1] - v[0] >= MIN_VISIT_MS]
     long_told = [v for v in told if v[1] - v[0] >= MIN_VISIT_MS]
     used = [False] * len(long_told)
-    delays = []
+    pairs = []
     for start, end in long_true:
         for k, (s, e) in enumerate(long_told):
             if not used[k] and abs(s - start) <= TOLERANCE_MS and abs(e - end) <= TOLERANCE_MS:
                 used[k] = True
-                delays.append(s - start)
+                pairs.append((start, s))
                 break
     false = _unmatched([v[0] for v in told], [v[0] for v in true]) + _unmatched(
         [v[1] for v in told], [v[1] for v in true]
     )
-    return VisitScore(len(delays), len(long_told), len(long_true), tuple(delays), false)
+    delays = tuple(s - start for start, s in pairs)
+    return VisitScore(len(pairs), len(long_told), len(long_true), delays, false, tuple(pairs))
 
 
 def _unmatched(told: list[int], true: list[int]) -> int:
@@ -125,6 +128,7 @@ class ZoneTally:
         self._true: dict[str, list[np.ndarray]] = {}
         self._naive: dict[str, list[np.ndarray]] = {}
         self._told: dict[tuple[str, int], tuple[list[str], list[int]]] = {}
+        self._decided: dict[tuple[str, int, int], int] = {}  # (user, zone, entry's stamp) -> when told
 
     def sample(
         self, user: str, t_ms: int, truth: np.ndarray, true_level: int, estimate: np.ndarray, level: int
@@ -140,19 +144,25 @@ class ZoneTally:
         self._true.setdefault(user, []).append(inside[0])
         self._naive.setdefault(user, []).append(inside[1])
 
-    def told(self, user: str, zone_id: str, kind: str, t_ms: int) -> None:
-        """An event the tracker told (dwells are no transitions)."""
+    def told(self, user: str, zone_id: str, kind: str, t_ms: int, told_ms: int | None = None) -> None:
+        """An event the tracker told (dwells are no transitions): stamped ``t_ms``, decided at ``told_ms``
+        (the stamp when not given)."""
         if kind in ("enter", "exit"):
-            kinds, times = self._told.setdefault((user, self.index[zone_id]), ([], []))
+            z = self.index[zone_id]
+            kinds, times = self._told.setdefault((user, z), ([], []))
             kinds.append(kind)
             times.append(int(t_ms))
+            if kind == "enter":
+                self._decided[(user, z, int(t_ms))] = int(t_ms if told_ms is None else told_ms)
 
     def result(self) -> dict[str, Any]:
-        """The tracker's figures (``visit_f1``, ``enter_delay_p50_s``, ``false_transitions_per_hour``) and the
-        same under ``naive``, with the counts behind them."""
+        """The tracker's figures (``visit_f1``, ``enter_delay_p50_s``: of the entries' stamps,
+        ``false_transitions_per_hour``) and the same under ``naive``, with the counts behind them; and
+        ``told_after_p50_s``: how long after the true entry the tracker was sure of a matched one."""
         told, naive = [], []
         hours = 0.0
         true_visits = 0
+        told_after: list[int] = []
         for user, times in self._t.items():
             t = np.asarray(times, dtype=np.int64)
             hours += (int(t[-1]) - int(t[0])) / 3.6e6
@@ -162,10 +172,13 @@ class ZoneTally:
                 true = visits_of(t, truth[:, z])
                 true_visits += sum(v[1] - v[0] >= MIN_VISIT_MS for v in true)
                 kinds, at = self._told.get((user, z), ([], []))
-                told.append(score_visits(true, visits_of_events(kinds, at, int(t[-1]))))
+                score = score_visits(true, visits_of_events(kinds, at, int(t[-1])))
+                told.append(score)
+                told_after += [self._decided[(user, z, s)] - start for start, s in score.matched_entries]
                 naive.append(score_visits(true, visits_of(t, guess[:, z])))
         return {
             **_figures(told, hours),
+            "told_after_p50_s": float(np.median(told_after)) / 1000.0 if told_after else None,
             "naive": _figures(naive, hours),
             "zones": len(self.zones),
             "true_visits": int(true_visits),

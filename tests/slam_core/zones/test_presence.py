@@ -21,8 +21,15 @@ def _run(presence: ZonePresence, probabilities: list[float], dwell: np.ndarray =
 
 
 def test_a_user_enters_when_sure_and_leaves_when_sure_of_the_opposite() -> None:
-    events = _run(ZonePresence(), [0.5, 0.85, 0.5, 0.3, 0.15, 0.5, 0.9])
-    assert events == [(ENTER, 1000), (EXIT, 4000), (ENTER, 6000)]
+    """Each event is told when sure (0.8 in, 0.2 out) and stamped with the last crossing of one half."""
+    presence = ZonePresence()
+    told = []
+    for k, p in enumerate([0.3, 0.6, 0.85, 0.5, 0.3, 0.15, 0.5, 0.9]):
+        e = presence.update(np.array([3]), np.array([1000 * k]), np.array([[p]]), NO_DWELL)
+        told += list(
+            zip(e.kind.tolist(), e.t_ms.tolist(), e.told_ms.tolist(), e.probability.tolist(), strict=True)
+        )
+    assert told == [(ENTER, 1000, 2000, 0.85), (EXIT, 4000, 5000, 0.15), (ENTER, 6000, 7000, 0.9)]
 
 
 def test_an_estimate_hovering_at_a_boundary_causes_no_event() -> None:
@@ -58,7 +65,9 @@ def test_users_and_zones_are_apart_and_rows_are_reused_without_events() -> None:
 
 
 def test_bad_arguments_are_refused() -> None:
-    with pytest.raises(ValueError, match="exit_probability < enter_probability"):
+    with pytest.raises(ValueError, match="stamp_probability"):
+        ZoneParams(enter_probability=0.4, exit_probability=0.2)
+    with pytest.raises(ValueError, match="stamp_probability < enter_probability"):
         ZoneParams(enter_probability=0.5, exit_probability=0.5)
     presence = ZonePresence()
     with pytest.raises(ValueError, match="one dwell time per zone"):

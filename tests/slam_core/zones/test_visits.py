@@ -60,13 +60,14 @@ def test_a_tally_scores_told_visits_and_the_point_test_against_the_truth() -> No
         estimate = truth + np.array([0.0, 0.3])
         tally.sample("u", s * 1000, truth, 0, estimate, 0)
         tally.sample("v", s * 1000, truth, 1, estimate, 1)  # another floor: the zone is not there
-    tally.told("u", "shop", "enter", 11_000)
+    tally.told("u", "shop", "enter", 11_000, 12_500)
     tally.told("u", "shop", "dwell", 12_000)
     tally.told("u", "shop", "exit", 31_000)
     result = tally.result()
     assert result["visit_f1"] == 1.0
     assert result["visits_matched"] == 1
     assert result["enter_delay_p50_s"] == 1.0
+    assert result["told_after_p50_s"] == 2.5
     assert result["false_transitions"] == 0
     assert result["true_visits"] == 1
     assert result["user_hours"] == 2 * 60 / 3600
