@@ -1,7 +1,7 @@
 """Building benchmark: one building's batch path without HTTP, the part of the server that holds one core.
 
     python bench/building.py [--phones 1000] [--seconds 20] [--group 32] [--path process|thread|both]
-                             [--postgres URL] [--json OUT] [--profile OUT.prof]
+                             [--zones N] [--postgres URL] [--json OUT] [--profile OUT.prof]
 
 A building's tracking as its own process builds it (``server.buildings.host.open_building``: SQLite,
 its write-ahead log checkpointed by a thread beside the batch path, recording on: the server's defaults; with
@@ -21,6 +21,11 @@ as the server does); ``both`` alternates the two group by group and reports each
 compare. Without the HTTP front, the load generator and the dashboards on the same cores, this is steadier
 than ``bench/load.py`` and says what a change to the batch path costs.
 
+With ``--zones N`` the building has N zones drawn over the phones' floor (a grid of rectangles, each a
+twentieth of the floor's width, some with a dwell time) before the first batch: what the zone stage, the
+visits and their events cost a batch (``bench/against.py . --here-args "--zones 100" -- bench/building.py
+...`` compares it with none, alternately).
+
 It also reports the pauses that hold a group, and so every batch queued behind it, with the building at
 the end of the run: ``group_ms_p99`` and ``group_ms_max`` (per call of ``process``), ``snapshot_pickle_ms``
 (the state pickled in the building's thread when a periodic snapshot is taken) and ``full_gc_ms`` (one
@@ -39,6 +44,7 @@ import argparse
 import contextlib
 import cProfile
 import gc
+import math
 import pickle
 import statistics
 import sys
@@ -58,10 +64,11 @@ from server.slam.numba_cache import configure_numba_cache
 configure_numba_cache()
 
 import numba
-from load import Crowd, _body
+from load import FLOOR_M, Crowd, _body
 from report import emit
 
 from schemas.live import LIVE_MESSAGE_ADAPTER
+from schemas.zones import ZoneIn, ZonePolygon
 from server.buildings import snapshot as tracker_snapshot
 from server.buildings.host import open_building
 from server.buildings.submissions import Submission, batch_fields, received_batch
@@ -81,7 +88,13 @@ THREADS = numba.get_num_threads()
 
 
 def run(
-    phones: int, seconds: int, group: int, path: str, profile: Path | None, postgres: str | None
+    phones: int,
+    seconds: int,
+    group: int,
+    path: str,
+    profile: Path | None,
+    postgres: str | None,
+    zones: int = 0,
 ) -> dict[str, object]:
     with contextlib.ExitStack() as stack:
         tmp = stack.enter_context(tempfile.TemporaryDirectory())
@@ -101,6 +114,8 @@ def run(
         # the tracking a building's process serves with: its own engine with the write-ahead log
         # checkpointed by a thread beside the batch path, recording, snapshots and retention as configured
         building = open_building(settings, "load", engine)
+        for k, body in enumerate(_zones(zones)):
+            building.zones.put(f"zone-{k}", body)
         crowd = Crowd.create(phones, seed=0)
         start_ms = int(time.time() * 1000)
         per_second: list[float] = []
@@ -185,10 +200,34 @@ def run(
         "group_ms_max": round(max(group_ms), 1),
         "snapshot_pickle_ms": round(pickle_s * 1e3, 1),
         "full_gc_ms": round(gc_s * 1e3, 1),
+        "zones": zones,
+        "zone_events": building.counters.zone_events,
         "fingerprint_fixes": building.counters.fingerprint_fixes,
         "encounters": building.counters.encounters,
         "database": "postgresql" if postgres else "sqlite",
     }
+
+
+def _zones(n: int) -> list[ZoneIn]:
+    """``n`` zones in a grid over the load's floor: rectangles a twentieth of its width across, every third
+    with a dwell of a minute."""
+    columns = max(1, math.ceil(math.sqrt(n)))
+    rows = max(1, math.ceil(n / columns))
+    width, height = FLOOR_M[0] / columns, FLOOR_M[1] / rows
+    side_x, side_y = FLOOR_M[0] / 20, FLOOR_M[1] / 20
+    out = []
+    for k in range(n):
+        x0, y0 = (k % columns) * width, (k // columns) * height
+        ring = [(x0, y0), (x0 + side_x, y0), (x0 + side_x, y0 + side_y), (x0, y0 + side_y), (x0, y0)]
+        out.append(
+            ZoneIn(
+                floor=0,
+                name=f"zone {k}",
+                polygon=ZonePolygon(type="Polygon", coordinates=[ring]),
+                dwell_s=60.0 if k % 3 == 0 else None,
+            )
+        )
+    return out
 
 
 def _front(raw: bytes) -> bytes:
@@ -226,12 +265,15 @@ def main() -> int:
     parser.add_argument(
         "--postgres", metavar="URL", help="a PostgreSQL server whose databases may be created and dropped"
     )
+    parser.add_argument("--zones", type=int, default=0, help="zones drawn over the floor first")
     parser.add_argument("--json", type=Path, help="also write the result here")
     parser.add_argument("--profile", type=Path, help="write a cProfile of the measured seconds here")
     args = parser.parse_args()
     if args.phones < 1 or args.seconds < 1 or args.group < 1:
         parser.error("--phones, --seconds and --group must be at least 1")
-    result = run(args.phones, args.seconds, args.group, args.path, args.profile, args.postgres)
+    if args.zones < 0:
+        parser.error("--zones must not be negative")
+    result = run(args.phones, args.seconds, args.group, args.path, args.profile, args.postgres, args.zones)
     emit(result, args.json)
     return 0
 
