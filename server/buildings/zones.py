@@ -108,11 +108,19 @@ class Zones:
             [(e.user, e.zone_id, e.kind, e.t_ms, e.probability) for e in events],
             now_ms,
         )
-        b.counters.webhook_deliveries += repo.enqueue_deliveries(
-            session, b.building_id, webhook_events(b.building_id, events), now_ms
-        )
+        self._enqueue(session, events, now_ms)
         self.building.counters.zone_events += len(events)
         return zone_messages(events)
+
+    def _enqueue(self, session: Session, events: Sequence[ZoneEvent], now_ms: int) -> None:
+        """The events queued for the building's webhooks (an outbox: sent after the transaction commits, by
+        ``server.webhooks.dispatcher``); nothing to build when it has none."""
+        b = self.building
+        hooks = repo.active_webhooks(session, b.building_id)
+        if hooks:
+            b.counters.webhook_deliveries += repo.enqueue_deliveries(
+                session, b.building_id, hooks, webhook_events(b.building_id, events), now_ms
+            )
 
     def close_lost(self, session: Session, users: Sequence[str]) -> list[LiveMessage]:
         """In a transaction that forgets idle ``users``: their open visits closed at their latest estimate's
@@ -129,7 +137,5 @@ class Zones:
             for v, (_, left_ms) in zip(visits, closed, strict=True)
         ]
         b.counters.zone_events += len(events)
-        b.counters.webhook_deliveries += repo.enqueue_deliveries(
-            session, b.building_id, webhook_events(b.building_id, events), int(time.time() * 1000)
-        )
+        self._enqueue(session, events, int(time.time() * 1000))
         return zone_messages(events)

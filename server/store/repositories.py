@@ -8,7 +8,18 @@ from collections.abc import Collection, Mapping, Sequence
 from datetime import UTC, datetime
 from typing import Any, cast
 
-from sqlalchemy import ColumnElement, CursorResult, Table, delete, exists, func, insert, select, update
+from sqlalchemy import (
+    ColumnElement,
+    CursorResult,
+    Table,
+    bindparam,
+    delete,
+    exists,
+    func,
+    insert,
+    select,
+    update,
+)
 from sqlalchemy.orm import Session
 
 from server.store.db import execute_many, insert_once, upsert
@@ -153,42 +164,43 @@ def delete_zone(session: Session, building_id: str, zone_id: str) -> bool:
     return bool(cast(CursorResult[Any], result).rowcount)
 
 
-def _open_visit(building_id: str, zone_id: str, user_id: str) -> ColumnElement[bool]:
-    return (
-        (ZoneVisitRow.building_id == building_id)
-        & (ZoneVisitRow.zone_id == zone_id)
-        & (ZoneVisitRow.user_id == user_id)
-        & ZoneVisitRow.left_ms.is_(None)
-    )
+_OPEN_VISIT = (
+    (ZoneVisitRow.building_id == bindparam("b"))
+    & (ZoneVisitRow.zone_id == bindparam("z"))
+    & (ZoneVisitRow.user_id == bindparam("u"))
+    & ZoneVisitRow.left_ms.is_(None)
+)
+_ENTER = insert(ZoneVisitRow)
+_EXIT = (
+    update(ZoneVisitRow).where(_OPEN_VISIT).values(left_ms=bindparam("t"), left_probability=bindparam("p"))
+)
+_DWELL = update(ZoneVisitRow).where(_OPEN_VISIT).values(dwelled_ms=bindparam("t"))
 
 
 def record_zone_events(
     session: Session, building_id: str, events: Sequence[tuple[str, str, str, int, float]], stored_at_ms: int
 ) -> None:
-    """Apply zone events ``(user, zone, kind, t_ms, probability)``, in order, to the visits: an entry opens
-    one, an exit closes the user's open visit of the zone, a dwell marks it."""
-    for user, zone, kind, t_ms, p in events:
-        if kind == "enter":
-            session.execute(
-                insert(ZoneVisitRow).values(
-                    building_id=building_id,
-                    zone_id=zone,
-                    user_id=user,
-                    entered_ms=t_ms,
-                    entered_probability=p,
-                    stored_at_ms=stored_at_ms,
-                )
-            )
-        elif kind == "exit":
-            session.execute(
-                update(ZoneVisitRow)
-                .where(_open_visit(building_id, zone, user))
-                .values(left_ms=t_ms, left_probability=p)
-            )
-        else:
-            session.execute(
-                update(ZoneVisitRow).where(_open_visit(building_id, zone, user)).values(dwelled_ms=t_ms)
-            )
+    """Apply one tracker call's zone events ``(user, zone, kind, t_ms, probability)`` to the visits: an
+    entry opens one, an exit closes the user's open visit of the zone, a dwell marks it. A call tells a user
+    at most one entry or exit of a zone (and a dwell after its entry), so the entries go first, then the
+    exits, then the dwells, each kind in one statement."""
+    enters = [
+        {
+            "building_id": building_id,
+            "zone_id": zone,
+            "user_id": user,
+            "entered_ms": t_ms,
+            "entered_probability": p,
+            "stored_at_ms": stored_at_ms,
+        }
+        for user, zone, kind, t_ms, p in events
+        if kind == "enter"
+    ]
+    execute_many(session, _ENTER, enters)
+    exits = [{"b": building_id, "z": z, "u": u, "t": t, "p": p} for u, z, k, t, p in events if k == "exit"]
+    execute_many(session, _EXIT, exits)
+    dwells = [{"b": building_id, "z": z, "u": u, "t": t} for u, z, k, t, _ in events if k == "dwell"]
+    execute_many(session, _DWELL, dwells)
 
 
 def open_visits(
@@ -284,16 +296,26 @@ def delete_webhook(session: Session, building_id: str, webhook_id: str) -> bool:
     return bool(cast(CursorResult[Any], result).rowcount)
 
 
+_ACTIVE_HOOKS = select(WebhookRow.id, WebhookRow.events).where(
+    WebhookRow.building_id == bindparam("b"), WebhookRow.suspended_at.is_(None)
+)
+_DELIVERY = insert(WebhookDeliveryRow)
+
+
+def active_webhooks(session: Session, building_id: str) -> list[tuple[str, str]]:
+    """The building's webhooks that take events: (id, events taken, comma-separated)."""
+    return [(str(i), str(e)) for i, e in session.connection().execute(_ACTIVE_HOOKS, {"b": building_id})]
+
+
 def enqueue_deliveries(
-    session: Session, building_id: str, events: Sequence[tuple[str, str]], now_ms: int
+    session: Session,
+    building_id: str,
+    hooks: Sequence[tuple[str, str]],
+    events: Sequence[tuple[str, str]],
+    now_ms: int,
 ) -> int:
-    """In the transaction of the change that caused them: each event ``(name, body)`` queued for every
-    webhook of the building that takes it and is not suspended; how many deliveries were queued."""
-    hooks = session.execute(
-        select(WebhookRow.id, WebhookRow.events).where(
-            WebhookRow.building_id == building_id, WebhookRow.suspended_at.is_(None)
-        )
-    ).all()
+    """In the transaction of the change that caused them: each event ``(name, body)`` queued for every one
+    of ``hooks`` (``active_webhooks``) that takes it; how many deliveries were queued."""
     rows = [
         {
             "building_id": building_id,
@@ -309,8 +331,7 @@ def enqueue_deliveries(
         for hook_id, takes in hooks
         if name in takes.split(",")
     ]
-    if rows:
-        session.execute(insert(WebhookDeliveryRow), rows)
+    execute_many(session, _DELIVERY, rows)
     return len(rows)
 
 

@@ -61,6 +61,7 @@ class Dashboard {
     return {
       users: new Map(), anchors: new Map(), encounters: [], floor: 0, plan: null, extent: null, overlay: null,
       geo: null, selectedUser: null, selectedAnchors: new Set(), newestMs: 0, corrections: new Map(),
+      zones: new Map(), selectedZone: null, drawing: null,
     };
   }
 
@@ -205,7 +206,9 @@ class Dashboard {
     root.dataset.building = building.id;
     showMessage("");
     this.tools.show(this.identity.scope === "operator");
-    await Promise.all([this.loadFloor(), this.loadAnchors(), this.loadPositions(), this.loadOverlays()]);
+    await Promise.all([
+      this.loadFloor(), this.loadAnchors(), this.loadZones(), this.loadPositions(), this.loadOverlays(),
+    ]);
     this.fitFloor();
     this.live = new LiveSocket({
       buildingId: building.id,
@@ -283,6 +286,22 @@ class Dashboard {
     }
     this.renderLegend();
     this.view.dirty = true;
+  }
+
+  async loadZones() {
+    try {
+      const zones = await this.api.get(this.path("/zones"));
+      this.scene.zones = new Map(zones.map((z) => [z.id, z]));
+    } catch (err) {
+      showProblem(err);
+    }
+    this.publishZones();
+    this.view.dirty = true;
+  }
+
+  // Each zone's count where tests and people read it: data-zones="id:count,...".
+  publishZones() {
+    root.dataset.zones = [...this.scene.zones.values()].map((z) => `${z.id}:${z.occupancy}`).join(",");
   }
 
   async loadPositions() {
@@ -375,6 +394,14 @@ class Dashboard {
         if (m.deleted) this.scene.anchors.delete(m.anchor.id);
         else this.scene.anchors.set(m.anchor.id, m.anchor);
         anchorsChanged = true;
+      } else if (m.type === "zone") {
+        const z = this.scene.zones.get(m.zone_id);
+        if (z && m.kind !== "dwell") z.occupancy = Math.max(0, z.occupancy + (m.kind === "enter" ? 1 : -1));
+        const name = z ? z.name : m.zone_id;
+        const said = { enter: "entered", exit: "left", dwell: "has stayed in" }[m.kind];
+        this.correction(m.user_id, `${said} ${name} (p ${m.probability.toFixed(2)}), ${fmtTime(m.t_ms)}`);
+        this.publishZones();
+        if (this.scene.selectedZone === m.zone_id) this.renderDetails();
       } else if (m.type === "user_forgotten") {
         this.scene.users.delete(m.user_id);
         this.scene.corrections.delete(m.user_id);
@@ -566,6 +593,10 @@ class Dashboard {
       ]), heading, list);
       return;
     }
+    if (s.selectedZone && s.zones.has(s.selectedZone)) {
+      this.renderZone(s.zones.get(s.selectedZone), dl, body);
+      return;
+    }
     const ids = [...s.selectedAnchors];
     if (ids.length === 1 && s.anchors.has(ids[0])) {
       const a = s.anchors.get(ids[0]);
@@ -587,6 +618,45 @@ class Dashboard {
     p.className = "hint";
     p.textContent = "Click a person or an anchor on the map.";
     body.replaceChildren(p);
+  }
+
+  // A zone's figures, then its visits of the last day and a histogram of how long they lasted.
+  renderZone(z, dl, body) {
+    body.replaceChildren(dl([
+      ["zone", z.id], ["name", z.name], ["floor", String(z.floor)], ["inside now", String(z.occupancy)],
+      ["dwell event", z.dwell_s ? `after ${z.dwell_s} s` : "none"],
+    ]));
+    const since = Date.now() - 86400000;
+    const asked = z.id;
+    this.api.get(this.path(`/zones/${encodeURIComponent(z.id)}/visits?since=${since}&limit=1000`)).then((visits) => {
+      if (this.scene.selectedZone !== asked) return;
+      const closed = visits.filter((v) => v.seconds !== null);
+      const bins = [["< 1 min", 60], ["1-5 min", 300], ["5-15 min", 900], ["15-60 min", 3600], ["> 1 h", Infinity]];
+      const counts = bins.map(() => 0);
+      for (const v of closed) counts[bins.findIndex(([, top]) => v.seconds < top)] += 1;
+      const most = Math.max(1, ...counts);
+      const heading = document.createElement("p");
+      heading.className = "hint";
+      heading.textContent = `${visits.length} visits in the last 24 h (${visits.length - closed.length} inside now)`;
+      const chart = document.createElement("div");
+      chart.className = "histogram";
+      chart.replaceChildren(...bins.map(([label], k) => {
+        const row = document.createElement("div");
+        const bar = document.createElement("span");
+        bar.className = "bar";
+        bar.style.width = `${(100 * counts[k]) / most}%`;
+        row.append(Object.assign(document.createElement("span"), { textContent: label, className: "label" }), bar,
+          Object.assign(document.createElement("span"), { textContent: String(counts[k]) }));
+        return row;
+      }));
+      const list = document.createElement("ul");
+      list.replaceChildren(...visits.slice(-8).reverse().map((v) => {
+        const li = document.createElement("li");
+        li.textContent = `${v.user_id}: ${fmtTime(v.entered_ms)}${v.seconds === null ? ", inside" : `, ${Math.round(v.seconds)} s`}`;
+        return li;
+      }));
+      body.append(heading, chart, list);
+    }).catch((err) => showProblem(err));
   }
 
   // ---------------------------------------------------------------- the map's input
@@ -652,8 +722,14 @@ class Dashboard {
       this.tools.picked(x, y);
       return;
     }
-    const hit = this.view.hit(px, py, this.scene);
     const s = this.scene;
+    if (s.drawing) {
+      s.drawing.push(this.view.toWorld(px, py).map((v) => Math.round(v * 100) / 100));
+      this.view.dirty = true;
+      return;
+    }
+    const hit = this.view.hit(px, py, this.scene);
+    s.selectedZone = hit || shift ? null : this.view.zoneAt(px, py, s);
     if (hit && hit.kind === "anchor" && shift) {
       s.selectedUser = null;
       if (s.selectedAnchors.has(hit.id)) s.selectedAnchors.delete(hit.id); else s.selectedAnchors.add(hit.id);

@@ -1,5 +1,6 @@
-// The floor drawn on a canvas in metres: the plan (or the floor's extent), a signal-map overlay, anchors,
-// encounters, people with their 2-sigma ellipse and trail, a scale bar and a north arrow. Pan by dragging,
+// The floor drawn on a canvas in metres: the plan (or the floor's extent), a signal-map overlay, zones with
+// their counts, anchors, encounters, people with their 2-sigma ellipse and trail, a scale bar and a north
+// arrow. Pan by dragging,
 // zoom with the wheel; hit-testing gives what was clicked.
 
 export const ANCHOR_STYLE = {
@@ -117,6 +118,7 @@ export class MapView {
     ctx.clearRect(0, 0, w, h);
     this.drawFloor(scene);
     if (scene.overlay) this.drawOverlay(scene.overlay);
+    this.drawZones(scene);
     this.drawAnchors(scene);
     const fading = this.drawEncounters(scene, nowMs);
     this.drawUsers(scene);
@@ -168,6 +170,67 @@ export class MapView {
       ctx.strokeRect(sx0, sy0, sx1 - sx0, sy1 - sy0);
       ctx.setLineDash([]);
     }
+  }
+
+  // Each zone of the floor, shaded by whether anyone is in it, named with its count; the outline being drawn.
+  drawZones(scene) {
+    const ctx = this.ctx;
+    const ring = (points) => {
+      ctx.beginPath();
+      points.forEach(([x, y], i) => {
+        const [sx, sy] = this.toScreen(x, y);
+        if (i === 0) ctx.moveTo(sx, sy); else ctx.lineTo(sx, sy);
+      });
+    };
+    ctx.font = "12px system-ui, sans-serif";
+    ctx.textAlign = "center";
+    for (const z of scene.zones.values()) {
+      if (z.floor !== scene.floor) continue;
+      const points = z.polygon.coordinates[0];
+      ring(points);
+      ctx.closePath();
+      ctx.fillStyle = z.occupancy > 0 ? "rgba(255, 159, 28, 0.28)" : "rgba(25, 130, 196, 0.12)";
+      ctx.fill();
+      ctx.lineWidth = z.id === scene.selectedZone ? 3 : 1.5;
+      ctx.strokeStyle = z.occupancy > 0 ? "#e07a00" : "#1982c4";
+      ctx.stroke();
+      const n = points.length - 1;
+      const cx = points.slice(0, n).reduce((a, p) => a + p[0], 0) / n;
+      const cy = points.slice(0, n).reduce((a, p) => a + p[1], 0) / n;
+      const [sx, sy] = this.toScreen(cx, cy);
+      ctx.fillStyle = "#17324d";
+      ctx.fillText(`${z.name} · ${z.occupancy}`, sx, sy);
+    }
+    if (scene.drawing && scene.drawing.length) {
+      ring(scene.drawing);
+      ctx.setLineDash([5, 4]);
+      ctx.strokeStyle = "#e07a00";
+      ctx.lineWidth = 2;
+      ctx.stroke();
+      ctx.setLineDash([]);
+      for (const [x, y] of scene.drawing) {
+        const [sx, sy] = this.toScreen(x, y);
+        ctx.fillStyle = "#e07a00";
+        ctx.fillRect(sx - 3, sy - 3, 6, 6);
+      }
+    }
+  }
+
+  // The zone of the floor under a point (the last drawn, when they overlap), or null.
+  zoneAt(px, py, scene) {
+    const [x, y] = this.toWorld(px, py);
+    let found = null;
+    for (const z of scene.zones.values()) {
+      if (z.floor !== scene.floor) continue;
+      const ring = z.polygon.coordinates[0];
+      let inside = false;
+      for (let i = 0, j = ring.length - 2; i < ring.length - 1; j = i++) {
+        const [xi, yi] = ring[i], [xj, yj] = ring[j];
+        if ((yi > y) !== (yj > y) && x < xi + ((y - yi) * (xj - xi)) / (yj - yi)) inside = !inside;
+      }
+      if (inside) found = z.id;
+    }
+    return found;
   }
 
   drawOverlay(overlay) {

@@ -1,4 +1,4 @@
-// Operator tools: pin, move, delete and merge anchors; upload a floor plan; start a signal-map build and
+// Operator tools: pin, move, delete and merge anchors; draw, redraw and delete zones; upload a floor plan; start a signal-map build and
 // watch it; list and revoke keys. Each goes through the public REST API; a refusal shows its Problem.
 
 import { ANCHOR_STYLE } from "./map.js";
@@ -16,6 +16,10 @@ export class OperatorTools {
     $("anchor-delete").addEventListener("click", () => this.confirmThen($("anchor-delete"), () => this.deleteSelected()));
     $("anchor-merge").addEventListener("click", () => this.merge());
     $("plan-form").addEventListener("submit", (ev) => { ev.preventDefault(); this.uploadPlan(); });
+    $("zone-draw").addEventListener("click", () => this.drawZone());
+    $("zone-cancel").addEventListener("click", () => this.endDrawing(""));
+    $("zone-form").addEventListener("submit", (ev) => { ev.preventDefault(); this.saveZone(); });
+    $("zone-delete").addEventListener("click", () => this.confirmThen($("zone-delete"), () => this.deleteZone()));
     $("build-start").addEventListener("click", () => this.startBuild());
     $("keys-card").addEventListener("toggle", () => { if ($("keys-card").open) this.loadKeys(); });
   }
@@ -59,6 +63,57 @@ export class OperatorTools {
     const n = this.app.scene.selectedAnchors.size;
     $("anchor-delete").disabled = !this.enabled || n === 0;
     $("anchor-merge").disabled = !this.enabled || n < 2;
+    $("zone-delete").disabled = !this.enabled || !this.app.scene.selectedZone;
+    const drawing = Boolean(this.app.scene.drawing);
+    $("zone-finish").disabled = !this.enabled || !drawing;
+    $("zone-cancel").disabled = !drawing;
+  }
+
+  // A zone is drawn corner by corner on the map, then saved on the floor shown (a zone selected is
+  // redrawn under its own id).
+  drawZone() {
+    this.app.scene.drawing = [];
+    this.selectionChanged();
+    this.app.message("Click the map at each corner of the zone, then Save zone.", "ok");
+  }
+
+  endDrawing(text) {
+    this.app.scene.drawing = null;
+    this.app.view.dirty = true;
+    this.selectionChanged();
+    this.app.message(text, "ok");
+  }
+
+  async saveZone() {
+    const s = this.app.scene;
+    const corners = s.drawing || [];
+    if (corners.length < 3) {
+      this.app.message("A zone needs at least three corners.");
+      return;
+    }
+    const name = $("zone-name").value.trim();
+    const id = s.selectedZone || name.toLowerCase().replace(/[^a-z0-9._:-]+/g, "-").replace(/^[^a-z0-9]+/, "").slice(0, 64) || `zone-${Date.now()}`;
+    const dwell = $("zone-dwell").value ? Number($("zone-dwell").value) : null;
+    const body = {
+      floor: s.floor, name, dwell_s: dwell,
+      polygon: { type: "Polygon", coordinates: [[...corners, corners[0]]] },
+    };
+    const zone = await this.act(() => this.app.api.put(this.app.path(`/zones/${encodeURIComponent(id)}`), body));
+    if (!zone) return;
+    s.zones.set(zone.id, zone);
+    this.app.publishZones();
+    this.endDrawing(`Saved zone ${zone.id}.`);
+  }
+
+  async deleteZone() {
+    const id = this.app.scene.selectedZone;
+    if (!id) return;
+    const done = await this.act(() => this.app.api.del(this.app.path(`/zones/${encodeURIComponent(id)}`)), () => `Deleted zone ${id}.`);
+    if (done === undefined) return;
+    this.app.scene.zones.delete(id);
+    this.app.scene.selectedZone = null;
+    this.app.publishZones();
+    this.app.refresh();
   }
 
   pick() {

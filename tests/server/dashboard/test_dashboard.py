@@ -434,3 +434,46 @@ def test_the_slider_replays_the_crowd_as_it_was(browser: Browser, demo: Demo) ->
     wait_for(lambda: int(root_data(page, "updated-ms")) >= newest, 10, "live again")
     watch.assert_clean()
     page.context.close()
+
+
+def test_an_operator_draws_a_zone_that_counts_the_crowd_live(browser: Browser, demo: Demo) -> None:
+    watch = Watch()
+    page = open_page(browser, watch)
+    page.goto(f"{demo.base}/dashboard/#key={demo.operator_key}&building={demo.building}")
+    expect(page.locator("#app")).to_have_attribute("data-building", demo.building, timeout=20_000)
+    page.fill("#zone-name", "Whole floor")
+    page.fill("#zone-dwell", "2")
+    page.click("#zone-draw")
+    for x, y in [(1, 1), (59, 1), (59, 49), (1, 49)]:  # the testbed's floor, 60 x 50 m, corner by corner
+        sx, sy = page.evaluate(f"() => window.crowdslamDashboard.view.toScreen({x}, {y})")
+        page.locator("#map").click(position={"x": sx, "y": sy})
+    page.click("#zone-finish")
+    expect(page.locator("#message")).to_contain_text("Saved zone whole-floor", timeout=10_000)
+    zones = httpx.get(f"{demo.base}/v1/buildings/demo/zones", headers=auth(demo.dashboard_key)).json()
+    [zone] = [z for z in zones if z["id"] == "whole-floor"]
+    assert zone["name"] == "Whole floor"
+    assert zone["dwell_s"] == 2.0
+    ring = zone["polygon"]["coordinates"][0]
+    assert len(ring) == 5
+    assert all(
+        abs(a - b) < 0.5
+        for p, q in zip(ring, [(1, 1), (59, 1), (59, 49), (1, 49), (1, 1)], strict=True)
+        for a, b in zip(p, q, strict=True)
+    )
+    # the crowd walks into it: its count on the page rises with the live zone messages, as the API says
+    page.wait_for_function(
+        "() => /whole-floor:[1-9]/.test(document.querySelector('#app').dataset.zones)", timeout=30_000
+    )
+    # selected, it shows its figures and its visits
+    sx, sy = page.evaluate("() => window.crowdslamDashboard.view.toScreen(30, 3)")
+    page.locator("#map").click(position={"x": sx, "y": sy})
+    expect(page.locator("#details-body")).to_contain_text("Whole floor")
+    expect(page.locator("#details-body")).to_contain_text("visits in the last 24 h", timeout=10_000)
+    # and deletes it (the button asks twice)
+    page.click("#zone-delete")
+    page.click("#zone-delete")
+    expect(page.locator("#message")).to_contain_text("Deleted zone whole-floor", timeout=10_000)
+    zones = httpx.get(f"{demo.base}/v1/buildings/demo/zones", headers=auth(demo.dashboard_key)).json()
+    assert all(z["id"] != "whole-floor" for z in zones)
+    watch.assert_clean()
+    page.context.close()
