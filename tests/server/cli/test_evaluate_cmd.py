@@ -136,3 +136,17 @@ def test_an_output_that_cannot_be_written_is_refused_before_the_run(
         main(["evaluate", "--scenario", str(small_scenario), "--json", str(out)])
     assert stopped.value.code == 2
     assert "--json" in capsys.readouterr().err
+
+
+def test_zones_are_scored_against_the_truth_and_the_point_test(small_scenario: Path, tmp_path: Path) -> None:
+    out = tmp_path / "zones.json"
+    assert main(["evaluate", "--scenario", str(small_scenario), "--zones", "--json", str(out)]) == 0
+    zones = json.loads(out.read_text())["zones"]
+    assert zones["zones"] == 30  # a room between the corridors, 6 x 5
+    assert zones["true_visits"] >= 4
+    for figures in (zones, zones["naive"]):
+        assert {"visit_f1", "enter_delay_p50_s", "false_transitions_per_hour", "visits_matched"} <= set(figures)
+    # four short walks: a few visits, so loose bounds (the testbed's figures are in docs/experiments.md)
+    assert zones["visit_f1"] >= 0.6
+    assert zones["false_transitions"] < zones["naive"]["false_transitions"]
+    assert abs(zones["enter_delay_p50_s"]) <= 3.0
