@@ -145,7 +145,9 @@ def test_zones_are_scored_against_the_truth_and_the_point_test(small_scenario: P
     assert zones["zones"] == 30  # a room between the corridors, 6 x 5
     assert zones["true_visits"] >= 4
     for figures in (zones, zones["naive"]):
-        assert {"visit_f1", "enter_delay_p50_s", "false_transitions_per_hour", "visits_matched"} <= set(figures)
+        assert {"visit_f1", "enter_delay_p50_s", "false_transitions_per_hour", "visits_matched"} <= set(
+            figures
+        )
     # four short walks: a few visits, so loose bounds (the testbed's figures are in docs/experiments.md)
     assert zones["visit_f1"] >= 0.6
     assert zones["false_transitions"] < zones["naive"]["false_transitions"]
