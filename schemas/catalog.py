@@ -15,6 +15,7 @@ from schemas.floor_plans import FLOOR_PLAN_EXAMPLE, FloorPlan
 from schemas.live import LIVE_MESSAGE_ADAPTER, LiveBatch
 from schemas.sensors import BATCH_EXAMPLE, SensorBatch
 from schemas.signal_maps import SIGNAL_MAP_JOB_EXAMPLE, SignalMapJob
+from schemas.zones import WEBHOOK_EXAMPLE, ZONE_EXAMPLE, WebhookIn, WebhookPayload, Zone, ZoneIn, ZoneVisit
 
 PUBLIC_MODELS: dict[str, type[BaseModel] | TypeAdapter[Any]] = {
     "SensorBatch": SensorBatch,
@@ -32,6 +33,11 @@ PUBLIC_MODELS: dict[str, type[BaseModel] | TypeAdapter[Any]] = {
     "KeyCreated": KeyCreated,
     "SignalMapJob": SignalMapJob,
     "FloorPlan": FloorPlan,
+    "ZoneIn": ZoneIn,
+    "Zone": Zone,
+    "ZoneVisit": ZoneVisit,
+    "WebhookIn": WebhookIn,
+    "WebhookPayload": WebhookPayload,
 }
 
 EXAMPLES: dict[str, dict[str, Any]] = {
@@ -42,6 +48,8 @@ EXAMPLES: dict[str, dict[str, Any]] = {
     "problem": PROBLEM_EXAMPLE,
     "signal-map-job": SIGNAL_MAP_JOB_EXAMPLE,
     "floor-plan": FLOOR_PLAN_EXAMPLE,
+    "zone": ZONE_EXAMPLE,
+    "webhook": WEBHOOK_EXAMPLE,
 }
 """Named examples, each valid against its model (a test checks)."""
 
@@ -53,6 +61,8 @@ EXAMPLE_MODELS: dict[str, type[BaseModel]] = {
     "problem": Problem,
     "signal-map-job": SignalMapJob,
     "floor-plan": FloorPlan,
+    "zone": ZoneIn,
+    "webhook": WebhookIn,
 }
 
 
