@@ -52,10 +52,24 @@ class BodyTooLargeError(ProblemError):
     status = 413
     title = "Request body too large"
 
-    def __init__(self, n_bytes: int, limit: int) -> None:
-        super().__init__(f"the body has {n_bytes} bytes; at most {limit} bytes are accepted per request")
+    def __init__(self, n_bytes: int, limit: int, what: str = "") -> None:
+        if what:  # a compressed body: counted as it was inflated, and stopped past the limit
+            text = (
+                f"the body has more than {limit} bytes {what}; at most {limit} bytes are accepted per request"
+            )
+        else:
+            text = f"the body has {n_bytes} bytes; at most {limit} bytes are accepted per request"
+        super().__init__(text)
         self.n_bytes = n_bytes
         self.limit = limit
+
+
+class UnsupportedEncodingError(ProblemError):
+    status = 415
+    title = "Unsupported content encoding"
+
+    def __init__(self, encoding: str) -> None:
+        super().__init__(f"Content-Encoding {encoding[:40]!r} is not accepted: send gzip, or no encoding")
 
 
 class InvalidInputError(ProblemError):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import time
+import zlib
 from typing import Any
 
 from fastapi import APIRouter, Request, Response, WebSocket, WebSocketDisconnect
@@ -21,9 +22,11 @@ from server.buildings.submissions import Submission
 from server.errors import (
     BodyTooLargeError,
     InvalidInputError,
+    MalformedBodyError,
     ProblemError,
     TooManyRequestsError,
     UnexpectedError,
+    UnsupportedEncodingError,
     problem_response_parts,
 )
 from server.ingestion.decoding import decode_batch
@@ -76,7 +79,27 @@ MAX_CLOCK_AHEAD_MS = 300_000
 """A batch timed more than five minutes ahead of the server's clock is refused: applied, it would set its
 user's timeline in the future and every later batch would look out of order."""
 
-_WANTED_HEADERS = (b"authorization", b"content-length")
+_WANTED_HEADERS = (b"authorization", b"content-length", b"content-encoding")
+
+
+def _decoded(body: bytes, encoding: str | None, limit: int) -> bytes:
+    """The body as JSON bytes: as sent, or gunzipped (``Content-Encoding: gzip``, which a phone on a slow
+    link may use). The decompressed size is held to ``limit`` as it is produced (a small body that inflates
+    without end is refused, 413, before it takes the memory); a body that is not gzip is 400."""
+    if encoding is None or encoding.strip().lower() in ("", "identity"):
+        return body
+    if encoding.strip().lower() != "gzip":
+        raise UnsupportedEncodingError(encoding)
+    inflate = zlib.decompressobj(wbits=31)  # a gzip header and trailer
+    try:
+        out = inflate.decompress(body, limit + 1)
+    except zlib.error as exc:
+        raise MalformedBodyError(f"the body is not gzip ({exc}), though Content-Encoding says so") from None
+    if len(out) > limit:
+        raise BodyTooLargeError(len(out), limit, "decompressed")
+    if not inflate.eof or inflate.unused_data:
+        raise MalformedBodyError("the gzip body is cut short, or has data after its end")
+    return out
 
 
 async def _read_body(receive: Receive, limit: int) -> bytes | None:
@@ -94,7 +117,12 @@ async def _read_body(receive: Receive, limit: int) -> bytes | None:
 
 
 async def _answer_batch(
-    state: AppState, building_id: str, authorization: str | None, length: str | None, receive: Receive
+    state: AppState,
+    building_id: str,
+    authorization: str | None,
+    length: str | None,
+    receive: Receive,
+    encoding: str | None = None,
 ) -> tuple[int, bytes, dict[str, str]] | None:
     """The whole POST /batches exchange: key, size, body, ingestion; a ProblemError becomes its Problem.
     None when the client left before sending its body."""
@@ -108,7 +136,7 @@ async def _answer_batch(
         body = await _read_body(receive, limit)
         if body is None:
             return None
-        receipt = await ingest(state, caller, building_id, body)
+        receipt = await ingest(state, caller, building_id, _decoded(body, encoding, limit))
     except ProblemError as exc:
         status, problem, headers = problem_response_parts(exc.to_problem())
         if exc.retry_after_s is not None:
@@ -128,12 +156,14 @@ async def serve_batch(state: AppState, building_id: str, scope: Scope, receive: 
         headers = {name: value for name, value in scope["headers"] if name in _WANTED_HEADERS}
         authorization = headers.get(b"authorization")
         length = headers.get(b"content-length")
+        encoding = headers.get(b"content-encoding")
         answer = await _answer_batch(
             state,
             building_id,
             None if authorization is None else authorization.decode("latin-1"),
             None if length is None else length.decode("latin-1"),
             receive,
+            None if encoding is None else encoding.decode("latin-1"),
         )
     except Exception:
         logger.exception("POST %s failed", scope["path"])
@@ -162,7 +192,8 @@ async def serve_batch(state: AppState, building_id: str, scope: Scope, receive: 
             400,
             (403, "A device key of another building or device, or a key that is not a device key."),
             404,
-            413,
+            (413, PROBLEMS[413] + " A gzip body counts decompressed too."),
+            (415, "A Content-Encoding other than gzip or identity."),
             (
                 422,
                 PROBLEMS[422] + " Beyond the schema: the batch names the building it is posted to, and its "
@@ -180,13 +211,16 @@ async def serve_batch(state: AppState, building_id: str, scope: Scope, receive: 
 )
 async def post_batch(building_id: str, request: Request) -> Response:
     """Post one sensor batch (device key). A retried batch (same ``batch_id``) answers ``duplicate`` and
-    changes nothing; a batch whose ``seq`` is not after the device's last applied one answers ``late``."""
+    changes nothing; a batch whose ``seq`` is not after the device's last applied one answers ``late``. The
+    body may be gzip-compressed (``Content-Encoding: gzip``); its decompressed size counts against the
+    batch limit."""
     answer = await _answer_batch(
         request.app.state.crowdslam,
         building_id,
         request.headers.get("authorization"),
         request.headers.get("content-length"),
         request.receive,
+        request.headers.get("content-encoding"),
     )
     if answer is None:  # the client left: nobody reads this
         return Response(status_code=400)
