@@ -105,7 +105,7 @@ def zone_messages(events: Sequence[ZoneEvent]) -> list[LiveMessage]:
                 "user_id": e.user,
                 "kind": e.kind,
                 "t_ms": e.t_ms,
-                "probability": e.probability,
+                "probability": min(1.0, max(0.0, e.probability)),
             }
         )
         for e in events
