@@ -12,7 +12,7 @@ from sqlalchemy.orm import Session
 
 from schemas.anchors import BuildingAnchor, KnownAnchorIn
 from schemas.live import AnchorMessage, LiveMessage
-from server.buildings.building import Building, SaveSnapshot
+from server.buildings.building import Building, SaveSnapshot, commit_with_snapshot
 from server.buildings.rows import anchor_row
 from server.errors import ConflictError, InvalidInputError
 from server.ingestion import convert
@@ -109,14 +109,4 @@ class AnchorEdits:
         return merged, messages
 
     def _commit(self, write: Callable[[Session], object]) -> None:
-        """The edit's rows and a snapshot in one transaction; if it fails, the tracker goes back to what SQL
-        holds (the edit undone) and the error is raised."""
-        b = self.building
-        try:
-            with b.writer_turns, b.sessions.begin() as session:
-                write(session)
-                rows = self._save_snapshot(session)
-        except Exception:
-            self._reload()
-            raise
-        b.devices.saved(rows)
+        commit_with_snapshot(self.building, self._save_snapshot, self._reload, write)

@@ -26,6 +26,25 @@ SaveSnapshot = Callable[[Session], list[dict[str, object]]]
 ledger counts saved once that transaction commits (``BuildingHost.save_snapshot``)."""
 
 
+def commit_with_snapshot(
+    building: Building,
+    save_snapshot: SaveSnapshot,
+    reload: Callable[[], None],
+    write: Callable[[Session], object],
+) -> None:
+    """An edit the tracker has already taken (an anchor, a plan, a zone): its rows and a snapshot in one
+    transaction, so a restart replays the batches after it with the edit and none before it. If it fails,
+    the tracker goes back to what SQL holds (the edit undone) and the error is raised."""
+    try:
+        with building.writer_turns, building.sessions.begin() as session:
+            write(session)
+            rows = save_snapshot(session)
+    except Exception:
+        reload()
+        raise
+    building.devices.saved(rows)
+
+
 class Building:
     """One building's shared state. Its parts (``server.buildings.host``: the batch path, anchor edits,
     floor plans, users, upkeep) read and change it from the building's one thread, each its own concern; a

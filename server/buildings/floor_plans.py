@@ -7,7 +7,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from schemas.floor_plans import FloorPlan
-from server.buildings.building import Building, SaveSnapshot
+from server.buildings.building import Building, SaveSnapshot, commit_with_snapshot
 from server.errors import InvalidInputError, NotFoundError
 from server.ingestion import floor_plans as plan_frames
 from server.store import repositories as repo
@@ -40,12 +40,10 @@ class FloorPlans:
             if repo.floor_plan(session, b.building_id, level) == stored:
                 return local
         b.tracker.set_floor_plan(index, level)
-        try:
-            with b.writer_turns, b.sessions.begin() as session:
-                repo.save_floor_plan(session, b.building_id, level, stored)
-                rows = self._save_snapshot(session)
-        except Exception:
-            self._reload()  # the tracker as SQL holds it: without the plan
-            raise
-        b.devices.saved(rows)
+        commit_with_snapshot(
+            b,
+            self._save_snapshot,
+            self._reload,
+            lambda s: repo.save_floor_plan(s, b.building_id, level, stored),
+        )
         return local

@@ -15,7 +15,7 @@ from sqlalchemy.orm import Session
 
 from schemas.live import LiveMessage
 from schemas.zones import MAX_ZONES, Zone, ZoneIn
-from server.buildings.building import Building, SaveSnapshot
+from server.buildings.building import Building, SaveSnapshot, commit_with_snapshot
 from server.errors import InvalidInputError, NotFoundError
 from server.ingestion.zones import set_tracker_zones, stored_ring, webhook_events, wire_zone, zone_messages
 from server.store import repositories as repo
@@ -70,14 +70,7 @@ class Zones:
             raise InvalidInputError(f"building {b.building_id!r} has {MAX_ZONES} zones, the most it may hold")
         new = ZoneRow(**row)
         set_tracker_zones(b.tracker, [*others, new])
-        try:
-            with b.writer_turns, b.sessions.begin() as session:
-                repo.save_zone(session, row)
-                devices = self._save_snapshot(session)
-        except Exception:
-            self._reload()  # the tracker's zones as SQL holds them
-            raise
-        b.devices.saved(devices)
+        commit_with_snapshot(b, self._save_snapshot, self._reload, lambda s: repo.save_zone(s, row))
         return wire_zone(new, occupancy)
 
     def delete(self, zone_id: str) -> None:
@@ -88,14 +81,9 @@ class Zones:
         if zone_id not in {r.id for r in rows}:
             raise NotFoundError(f"no zone {zone_id!r} in building {b.building_id!r}")
         set_tracker_zones(b.tracker, [r for r in rows if r.id != zone_id])
-        try:
-            with b.writer_turns, b.sessions.begin() as session:
-                repo.delete_zone(session, b.building_id, zone_id)
-                devices = self._save_snapshot(session)
-        except Exception:
-            self._reload()
-            raise
-        b.devices.saved(devices)
+        commit_with_snapshot(
+            b, self._save_snapshot, self._reload, lambda s: repo.delete_zone(s, b.building_id, zone_id)
+        )
 
     def record(self, session: Session, events: Sequence[ZoneEvent]) -> list[LiveMessage]:
         """In a group's transaction: the events of a tracker call stored as visits; their live messages."""
