@@ -146,12 +146,7 @@ class Recovery:
         set_tracker_zones(tracker, zones)
         if state is None and zones:
             with self._sessions.begin() as session:
-                visits = repo.open_visits(session, self.building_id)
-                users = {v.user_id for v in visits}
-                last = {r.user_id: r.t_ms for r in repo.latest_positions_of(session, self.building_id, users)}
-                repo.close_visits(
-                    session, [(v.id, max(v.entered_ms, last.get(v.user_id, 0))) for v in visits]
-                )
+                repo.close_lost_visits(session, self.building_id)
         loaded = Loaded(
             tracker,
             ids,

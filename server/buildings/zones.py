@@ -116,14 +116,8 @@ class Zones:
         b = self.building
         if not users:
             return []
-        visits = repo.open_visits(session, b.building_id, users)
-        last = {row.user_id: row.t_ms for row in repo.latest_positions_of(session, b.building_id, users)}
-        closed = [(v.id, max(v.entered_ms, last.get(v.user_id, v.entered_ms))) for v in visits]
-        repo.close_visits(session, closed)
-        events = [
-            ZoneEvent(v.user_id, v.zone_id, "exit", left_ms, 0.0)
-            for v, (_, left_ms) in zip(visits, closed, strict=True)
-        ]
+        closed = repo.close_lost_visits(session, b.building_id, users)
+        events = [ZoneEvent(user, zone, "exit", left_ms, 0.0) for user, zone, left_ms in closed]
         b.counters.zone_events += len(events)
         self._enqueue(session, events, int(time.time() * 1000))
         return zone_messages(events)

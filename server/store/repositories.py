@@ -213,15 +213,25 @@ def open_visits(
     return list(session.execute(stmt.order_by(ZoneVisitRow.id)).scalars())
 
 
-def close_visits(session: Session, visits: Sequence[tuple[int, int]]) -> None:
-    """Close visits ``(row id, left_ms)`` the tracker no longer follows (the user was forgotten idle, or the
-    building's filters started anew): left with probability 0."""
-    for row_id, left_ms in visits:
+def close_lost_visits(
+    session: Session, building_id: str, users: Collection[str] | None = None
+) -> list[tuple[str, str, int]]:
+    """Close the open visits (of ``users``, or of everyone) the tracker no longer follows (the user was
+    forgotten idle, or the building's filters started anew): left where the user was last seen (its latest
+    position's time, not before the entry), with probability 0. Returns each as (user, zone, left_ms)."""
+    visits = open_visits(session, building_id, users)
+    whose = {v.user_id for v in visits}
+    last = {r.user_id: r.t_ms for r in latest_positions_of(session, building_id, whose)}
+    closed = []
+    for v in visits:
+        left_ms = max(v.entered_ms, last.get(v.user_id, v.entered_ms))
         session.execute(
             update(ZoneVisitRow)
-            .where(ZoneVisitRow.id == row_id, ZoneVisitRow.left_ms.is_(None))
+            .where(ZoneVisitRow.id == v.id, ZoneVisitRow.left_ms.is_(None))
             .values(left_ms=left_ms, left_probability=0.0)
         )
+        closed.append((v.user_id, v.zone_id, left_ms))
+    return closed
 
 
 def zone_occupancy(session: Session, building_id: str, at_ms: int | None = None) -> dict[str, int]:
