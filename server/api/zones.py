@@ -94,10 +94,10 @@ async def get_zone(building_id: str, zone_id: Identifier, caller: Caller, state:
 
     def query() -> Zone:
         with state.sessions() as session:
-            for z in repo.list_zones(session, building_id):
-                if z.id == zone_id:
-                    return wire_zone(z, repo.zone_occupancy(session, building_id).get(zone_id, 0))
-        raise NotFoundError(f"no zone {zone_id!r} in building {building_id!r}")
+            zone = repo.get_zone(session, building_id, zone_id)
+            if zone is None:
+                raise NotFoundError(f"no zone {zone_id!r} in building {building_id!r}")
+            return wire_zone(zone, repo.zone_occupancy(session, building_id).get(zone_id, 0))
 
     return await asyncio.to_thread(query)
 
@@ -171,7 +171,7 @@ async def list_zone_visits(
 
     def query() -> list[ZoneVisit]:
         with state.sessions() as session:
-            if zone_id not in {z.id for z in repo.list_zones(session, building_id)}:
+            if repo.get_zone(session, building_id, zone_id) is None:
                 raise NotFoundError(f"no zone {zone_id!r} in building {building_id!r}")
             rows = repo.zone_visits(session, building_id, zone_id, since_ms, until_ms, limit)
             return [_visit(r) for r in rows]

@@ -47,6 +47,8 @@ class Zones:
             raise NotFoundError(f"building {b.building_id!r} has no floor {body.floor}; its floors: {floors}")
         with b.sessions() as session:
             size = {f.level: (f.width_m, f.height_m) for f in repo.list_floors(session, b.building_id)}
+            rows = repo.list_zones(session, b.building_id)
+            occupancy = repo.zone_occupancy(session, b.building_id).get(zone_id, 0)
         try:
             ring = stored_ring(zone_id, body, size.get(body.floor, (None, None)))
         except ValueError as exc:
@@ -59,9 +61,6 @@ class Zones:
             "ring": ring,
             "dwell_s": body.dwell_s,
         }
-        with b.sessions() as session:
-            rows = repo.list_zones(session, b.building_id)
-            occupancy = repo.zone_occupancy(session, b.building_id).get(zone_id, 0)
         others = [r for r in rows if r.id != zone_id]
         same = [r for r in rows if r.id == zone_id]
         if same and all(getattr(same[0], k) == v for k, v in row.items()):

@@ -67,7 +67,7 @@ def set_tracker_zones(tracker: BuildingTracker, zones: Sequence[StoredZone]) -> 
 
 
 def wire_zone(zone: StoredZone, occupancy: int) -> Zone:
-    ring = [(float(x), float(y)) for x, y in json.loads(zone.ring)]
+    ring = [(x, y) for x, y in ring_of(zone).tolist()]
     return Zone(
         id=zone.id,
         floor=zone.floor,

@@ -150,6 +150,10 @@ def list_zones(session: Session, building_id: str) -> list[ZoneRow]:
     return list(session.execute(stmt).scalars())
 
 
+def get_zone(session: Session, building_id: str, zone_id: str) -> ZoneRow | None:
+    return session.get(ZoneRow, (building_id, zone_id))
+
+
 def save_zone(session: Session, row: dict[str, Any]) -> None:
     """Insert or replace a zone (its visits stay)."""
     upsert(session, ZoneRow, [{**row, "updated_at": datetime.now(UTC)}], ["building_id", "id"])
