@@ -125,24 +125,26 @@ class ZoneTally:
         self.zones = zones
         self.index = {zone_id: k for k, zone_id in enumerate(ids)}
         self._t: dict[str, list[int]] = {}
-        self._true: dict[str, list[np.ndarray]] = {}
-        self._naive: dict[str, list[np.ndarray]] = {}
+        self._points: dict[str, list[tuple[float, float, int, float, float, int]]] = {}
+        """Per user, per sample: the true position and floor, the estimate and its floor."""
         self._told: dict[tuple[str, int], tuple[list[str], list[int]]] = {}
         self._decided: dict[tuple[str, int, int], int] = {}  # (user, zone, entry's stamp) -> when told
 
     def sample(
         self, user: str, t_ms: int, truth: np.ndarray, true_level: int, estimate: np.ndarray, level: int
     ) -> None:
-        """A scored estimate of ``user`` at ``t_ms`` (its samples in time order)."""
-        inside = points_inside(
-            self.zones,
-            np.array([truth[0], estimate[0]]),
-            np.array([truth[1], estimate[1]]),
-            np.array([true_level, level]),
-        )
+        """A scored estimate of ``user`` at ``t_ms`` (its samples in time order); which zones hold it and the
+        truth is found once, for all samples, by ``result``."""
         self._t.setdefault(user, []).append(int(t_ms))
-        self._true.setdefault(user, []).append(inside[0])
-        self._naive.setdefault(user, []).append(inside[1])
+        point = (
+            float(truth[0]),
+            float(truth[1]),
+            int(true_level),
+            float(estimate[0]),
+            float(estimate[1]),
+            level,
+        )
+        self._points.setdefault(user, []).append(point)
 
     def told(self, user: str, zone_id: str, kind: str, t_ms: int, told_ms: int | None = None) -> None:
         """An event the tracker told (dwells are no transitions): stamped ``t_ms``, decided at ``told_ms``
@@ -166,8 +168,9 @@ class ZoneTally:
         for user, times in self._t.items():
             t = np.asarray(times, dtype=np.int64)
             hours += (int(t[-1]) - int(t[0])) / 3.6e6
-            truth = np.asarray(self._true[user]).reshape(t.size, -1)
-            guess = np.asarray(self._naive[user]).reshape(t.size, -1)
+            p = np.asarray(self._points[user], dtype=np.float64).reshape(t.size, 6)
+            truth = points_inside(self.zones, p[:, 0], p[:, 1], p[:, 2].astype(np.int64))
+            guess = points_inside(self.zones, p[:, 3], p[:, 4], p[:, 5].astype(np.int64))
             for z in range(len(self.zones)):
                 true = visits_of(t, truth[:, z])
                 true_visits += sum(v[1] - v[0] >= MIN_VISIT_MS for v in true)
