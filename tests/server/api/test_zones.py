@@ -11,7 +11,7 @@ from fastapi.testclient import TestClient
 
 from schemas.zones import ZONE_EXAMPLE
 from server.app import create_app
-from tests.server.api.test_api import T0
+from tests.server.api.test_api import T0, _batch
 from tests.server.conftest import Api
 
 ZONES = "/v1/buildings/hq/zones"
@@ -23,21 +23,11 @@ def _zone(x0: float, x1: float, y0: float = 0.0, y1: float = 10.0, **extra: Any)
 
 
 def _walk(seq: int, device: str = "phone-1") -> dict[str, Any]:
-    """A second of walking east at 1.4 m/s along y = 5, from x = 5 m at T0."""
-    body: dict[str, Any] = {
-        "building_id": "hq",
-        "device_id": device,
-        "batch_id": f"{device}-{seq}",
-        "seq": seq,
-        "steps": [
-            {"t_ms": T0 + seq * 1000 + 100, "length_m": 0.7, "azimuth_rad": 1.5707963},
-            {"t_ms": T0 + seq * 1000 + 600, "length_m": 0.7, "azimuth_rad": 1.5707963},
-        ],
-    }
+    """A second of walking east at 1.4 m/s along y = 5 (``test_api``'s batch), from a fix at x = 5 m at T0
+    sure to 0.3 m: the cloud starts narrower than a zone's edge."""
+    body = _batch(seq, device)
     if seq == 0:
-        body["landmarks"] = [
-            {"kind": "fix", "t_ms": T0, "position": {"x_m": 5.0, "y_m": 5.0}, "sigma_m": 0.3}
-        ]
+        body["landmarks"][0]["sigma_m"] = 0.3
     return body
 
 
