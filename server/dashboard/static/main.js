@@ -401,7 +401,8 @@ class Dashboard {
         const said = { enter: "entered", exit: "left", dwell: "has stayed in" }[m.kind];
         this.correction(m.user_id, `${said} ${name} (p ${m.probability.toFixed(2)}), ${fmtTime(m.t_ms)}`);
         this.publishZones();
-        if (this.scene.selectedZone === m.zone_id) this.renderDetails();
+        const inside = $("zone-inside"); // the selected zone's count; its visits are fetched when it is chosen
+        if (z && inside && this.scene.selectedZone === m.zone_id) inside.textContent = String(z.occupancy);
       } else if (m.type === "user_forgotten") {
         this.scene.users.delete(m.user_id);
         this.scene.corrections.delete(m.user_id);
@@ -626,6 +627,7 @@ class Dashboard {
       ["zone", z.id], ["name", z.name], ["floor", String(z.floor)], ["inside now", String(z.occupancy)],
       ["dwell event", z.dwell_s ? `after ${z.dwell_s} s` : "none"],
     ]));
+    body.querySelectorAll("dd")[3].id = "zone-inside";
     const since = Date.now() - 86400000;
     const asked = z.id;
     this.api.get(this.path(`/zones/${encodeURIComponent(z.id)}/visits?since=${since}&limit=1000`)).then((visits) => {
