@@ -94,6 +94,19 @@ class BatchReceipt(WireModel):
     )
 
 
+class DevicePosition(WireModel):
+    """A device's own view (``GET .../devices/{device}/position``): the user it posts as and, once that user
+    is placed, its latest estimate. A phone shows itself from it after a reload."""
+
+    device_id: Identifier
+    user_id: Identifier | None = Field(description="None until the device has posted a batch.")
+    estimate: Estimate | None = Field(
+        default=None,
+        description="The user's latest estimate; None until a position fix, a tag or a known anchor "
+        "places it.",
+    )
+
+
 class FailingBuilding(WireModel):
     """A building in trouble lately, by an error of the server's (each logged): batches it could not apply
     (each refused alone with a 500, nothing of it kept), logged batches it could not apply again when it

@@ -7,7 +7,7 @@ from typing import Any
 from pydantic import BaseModel, TypeAdapter
 
 from schemas.anchors import ANCHOR_EXAMPLE, AnchorMergeIn, BuildingAnchor, KnownAnchorIn
-from schemas.api import KEY_CREATE_ADAPTER, BatchReceipt, KeyCreated
+from schemas.api import KEY_CREATE_ADAPTER, BatchReceipt, DevicePosition, KeyCreated
 from schemas.buildings import BUILDING_EXAMPLE, Building
 from schemas.errors import PROBLEM_EXAMPLE, Problem
 from schemas.estimates import ESTIMATE_EXAMPLE, EncounterEvent, Estimate
@@ -29,6 +29,7 @@ PUBLIC_MODELS: dict[str, type[BaseModel] | TypeAdapter[Any]] = {
     "LiveBatch": LiveBatch,
     "Problem": Problem,
     "BatchReceipt": BatchReceipt,
+    "DevicePosition": DevicePosition,
     "KeyCreateIn": KEY_CREATE_ADAPTER,
     "KeyCreated": KeyCreated,
     "SignalMapJob": SignalMapJob,

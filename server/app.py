@@ -48,6 +48,7 @@ from server.errors import (
 from server.gc_tuning import tune_gc_for_serving
 from server.live.broadcast import Broadcaster
 from server.metrics import Metrics
+from server.phone.pages import install_phone_page
 from server.rate_limit import RateLimiter, retry_after_header
 from server.settings import Settings
 from server.signal_maps.jobs import SignalMapService
@@ -215,6 +216,7 @@ def create_app(settings: Settings, tune_gc: bool = False, warming: Progress | No
         app.include_router(module.router)
     app.include_router(health.metrics_router(settings.metrics_need_key))
     install_pages(app)
+    install_phone_page(app)
     app.batch_fast_path = not settings.fastapi_telemetry  # telemetry's spans wrap every request
     app.add_middleware(BodyLimit, limit=settings.max_request_bytes, plan_limit=settings.max_plan_bytes)
     install_openapi(app)

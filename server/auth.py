@@ -40,6 +40,24 @@ class Principal:
         if self.building_id not in (None, building_id):
             raise ForbiddenError(f"this key is for building {self.building_id!r}, not {building_id!r}")
 
+    def require_member(self, building_id: str) -> None:
+        """Any key of the building reads what every client of it needs: the building, its floors and their
+        plans (a phone draws itself on them). A site-wide operator key reads every building."""
+        if self.building_id not in (None, building_id):
+            raise ForbiddenError(f"this key is for building {self.building_id!r}, not {building_id!r}")
+
+    def require_own_device(self, building_id: str, device_id: str) -> None:
+        """A device key reads its own device only; dashboards and operators read any of their building's."""
+        if self.scope != KeyScope.DEVICE:
+            self.require_reader(building_id)
+            return
+        self.require_member(building_id)
+        if self.device_id != device_id:
+            raise ForbiddenError(
+                f"a device key reads its own device only; this key's device is {self.device_id!r}, "
+                f"not {device_id!r}"
+            )
+
     def require_device(self, building_id: str, device_id: str | None) -> None:
         """A device key posts only as its own device (None: not known yet) in its own building."""
         if self.scope != KeyScope.DEVICE:

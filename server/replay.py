@@ -32,6 +32,9 @@ class ReplayReport:
     duplicates: int = 0
     late: int = 0
     rejected: int = 0
+    steps: int | None = None
+    """Steps the server's PDR found in the batches' raw IMU (an offline replay counts them; a server's
+    ``/metrics`` says them as ``crowdslam_steps_detected``)."""
     latest: dict[str, Estimate] = field(default_factory=dict)
 
     def count(self, receipt: BatchReceipt) -> None:
@@ -49,6 +52,7 @@ class ReplayReport:
             "duplicates": self.duplicates,
             "late": self.late,
             "rejected": self.rejected,
+            **({} if self.steps is None else {"steps": self.steps}),
             "latest": {u: e.model_dump(mode="json") for u, e in sorted(self.latest.items())},
         }
 
@@ -91,6 +95,7 @@ def replay_offline(
                     report.count(receipt)
                 if progress is not None:
                     progress(1)
+            report.steps = sum(b.counters.steps_detected for b in buildings.values())
         finally:
             engine.dispose()
     return report

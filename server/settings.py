@@ -255,6 +255,12 @@ class Settings(BaseSettings):
     webhook_timeout_s: float = Field(
         default=5.0, gt=0.0, le=60.0, description="How long a webhook receiver has to answer a delivery."
     )
+    tls_cert: Path | None = Field(
+        default=None,
+        description="PEM certificate (chain) to serve HTTPS with, beside tls_key (crowdslam serve "
+        "--tls-cert). Phones give the phone page their motion sensors only over HTTPS.",
+    )
+    tls_key: Path | None = Field(default=None, description="The PEM private key of tls_cert.")
 
     @field_validator("database_url")
     @classmethod

@@ -106,7 +106,8 @@ def list_buildings(caller: Caller, session: DbSession) -> list[Building]:
 
 @router.get("/{building_id}", response_model=Building, responses=problems(403, 404))
 def get_building(building_id: str, caller: Caller, session: DbSession) -> Building:
-    caller.require_reader(building_id)
+    """The building, its geo-reference and floors (any key of the building)."""
+    caller.require_member(building_id)
     row = repo.get_building(session, building_id)
     if row is None:
         raise NotFoundError(f"no building {building_id!r}")
@@ -245,8 +246,8 @@ async def put_floor_plan(
 
 @router.get("/{building_id}/floor-plans", response_model=list[int], responses=problems(403, 404))
 def list_floor_plans(building_id: str, caller: Caller, session: DbSession) -> list[int]:
-    """The levels whose floor has a plan (dashboard or operator key)."""
-    caller.require_reader(building_id)
+    """The levels whose floor has a plan (any key of the building)."""
+    caller.require_member(building_id)
     if repo.get_building(session, building_id) is None:
         raise NotFoundError(f"no building {building_id!r}")
     return repo.floor_plan_levels(session, building_id)
@@ -258,8 +259,8 @@ def list_floor_plans(building_id: str, caller: Caller, session: DbSession) -> li
     responses=problems(403, (404, "No such building, or its floor has no plan.")),
 )
 async def get_floor_plan(building_id: str, level: Level, caller: Caller, state: State) -> Response:
-    """The floor's plan in the local frame (dashboard or operator key)."""
-    caller.require_reader(building_id)
+    """The floor's plan in the local frame (any key of the building: a phone draws itself on it)."""
+    caller.require_member(building_id)
 
     def query() -> str | None:
         with state.sessions() as session:

@@ -1,4 +1,4 @@
-"""Dashboards read positions: every user's latest estimate, and one user's history."""
+"""Dashboards read positions: every user's latest estimate, and one user's history. A phone reads its own."""
 
 from __future__ import annotations
 
@@ -6,7 +6,8 @@ from typing import Annotated
 
 from fastapi import APIRouter, Query
 
-from schemas.common import MAX_TIME_MS, MIN_TIME_MS, Position
+from schemas.api import DevicePosition
+from schemas.common import MAX_TIME_MS, MIN_TIME_MS, Identifier, Position
 from schemas.estimates import Estimate, EstimateSource
 from server.api.contract import PROBLEMS, problems
 from server.api.deps import Caller, DbSession
@@ -80,3 +81,24 @@ def get_user_history(
         raise NotFoundError(f"no building {building_id!r}")
     rows = repo.position_history(session, building_id, user_id, since_ms, until_ms, limit)
     return [estimate_from_row(r) for r in rows]
+
+
+@router.get(
+    "/devices/{device_id}/position",
+    response_model=DevicePosition,
+    responses=problems(403, 404),
+)
+def get_device_position(
+    building_id: str, device_id: Identifier, caller: Caller, session: DbSession
+) -> DevicePosition:
+    """The user a device posts as and that user's latest estimate: its own device's with a device key (a phone
+    shows itself after a reload), any device's with a dashboard or operator key. Until the device has posted
+    (``user_id`` null) or its user is placed (``estimate`` null) it says so; the receipt of each applied
+    batch carries the same estimate."""
+    caller.require_own_device(building_id, device_id)
+    if repo.get_building(session, building_id) is None:
+        raise NotFoundError(f"no building {building_id!r}")
+    user_id = repo.device_user(session, building_id, device_id)
+    rows = [] if user_id is None else repo.latest_positions_of(session, building_id, [user_id])
+    estimate = estimate_from_row(rows[0]) if rows else None
+    return DevicePosition(device_id=device_id, user_id=user_id, estimate=estimate)

@@ -16,6 +16,8 @@ import httpx
 import uvicorn
 from fastapi import FastAPI
 
+from server.tls import TlsFiles
+
 CLI = [sys.executable, "-c", "import sys; from server.cli.main import main; sys.exit(main(sys.argv[1:]))"]
 """``crowdslam`` run by this interpreter, whether or not the console script is on PATH."""
 
@@ -54,10 +56,15 @@ def wait_until_ready(
 
 @contextmanager
 def running_server(
-    app: FastAPI, host: str, port: int, start_timeout_s: float = 120.0, ws_compression: bool = False
+    app: FastAPI,
+    host: str,
+    port: int,
+    start_timeout_s: float = 120.0,
+    ws_compression: bool = False,
+    tls: TlsFiles | None = None,
 ) -> Iterator[str]:
-    """Start serving ``app`` (``port`` 0: a free one); yields its base URL once it accepts connections,
-    stops it on exit."""
+    """Start serving ``app`` (``port`` 0: a free one; HTTPS with ``tls``); yields its base URL once it accepts
+    connections, stops it on exit."""
     port = port or free_port(host)
     config = uvicorn.Config(
         app,
@@ -67,6 +74,8 @@ def running_server(
         ws="websockets-sansio",
         ws_per_message_deflate=ws_compression,
         ws_max_size=app.state.settings.max_ws_frame_bytes,
+        ssl_certfile=None if tls is None else str(tls.cert),
+        ssl_keyfile=None if tls is None else str(tls.key),
     )
     server = uvicorn.Server(config)
     thread = threading.Thread(target=server.run, daemon=True)
@@ -80,7 +89,7 @@ def running_server(
             raise ServerDidNotStartError(f"the server did not start within {start_timeout_s:.0f} s")
         time.sleep(0.05)
     try:
-        yield f"http://{host}:{port}"
+        yield f"{'http' if tls is None else 'https'}://{host}:{port}"
     finally:
         server.should_exit = True
         thread.join(timeout=120)  # the lifespan's shutdown snapshots every building

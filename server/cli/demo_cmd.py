@@ -8,10 +8,14 @@ import re
 import secrets
 import signal
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
+from server.cli import tls_options
 from server.cli.user_errors import port_number
 from server.data import scenario_argument, shipped_scenario
+
+if TYPE_CHECKING:
+    from server.tls import TlsFiles
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -33,6 +37,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--rounds", dest="crowds", type=int, default=argparse.SUPPRESS, help=argparse.SUPPRESS
     )
     parser.add_argument("--building", default="demo")
+    tls_options.add_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -61,6 +66,7 @@ def run(args: argparse.Namespace) -> int:
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, _interrupt)
     settings = get_settings()
+    tls = tls_options.tls_files(args, settings, "demo")
     engine = make_engine(settings.resolved_database_url)
     upgrade(engine)
     with make_session_factory(engine).begin() as session:
@@ -69,16 +75,26 @@ def run(args: argparse.Namespace) -> int:
     scenario = Scenario.from_dict(json.loads(args.scenario.read_text()))
     app = create_app(settings, tune_gc=True, warming=KernelProgress("crowdslam demo"))
     dashboard: str | None = None
+    phone: str | None = None
     try:
         with (
-            running_server(app, args.host, args.port, ws_compression=settings.ws_compression) as base,
-            httpx.Client(base_url=base, timeout=60.0) as client,
+            running_server(
+                app, args.host, args.port, ws_compression=settings.ws_compression, tls=tls
+            ) as base,
+            # the demo's own phones post to this very server on loopback: its certificate names the LAN host
+            httpx.Client(base_url=base, timeout=60.0, verify=tls is None) as client,
         ):
             sim = simulate(scenario, 0)
             prepare_building(client, args.building, operator_key, sim)
             dashboard = client.post(
                 f"/v1/buildings/{args.building}/keys",
                 json={"scope": "dashboard"},
+                headers={"Authorization": f"Bearer {operator_key}"},
+            ).json()["key"]
+            phone_device = f"phone-{secrets.token_hex(3)}"
+            phone = client.post(
+                f"/v1/buildings/{args.building}/keys",
+                json={"scope": "device", "device_id": phone_device},
                 headers={"Authorization": f"Bearer {operator_key}"},
             ).json()["key"]
             ws_base = base.replace("http", "ws", 1)
@@ -92,6 +108,7 @@ def run(args: argparse.Namespace) -> int:
             )
             print(f"  anchor map:  curl -H 'Authorization: Bearer {operator_key}' {building_url}/anchors")
             print(f"  operator key:        {operator_key}")
+            print_phone_link(args.host, args.port, tls, phone, args.building)
             foxglove_live = app.state.crowdslam.foxglove
             if foxglove_live is not None:
                 url = f"ws://{settings.foxglove_host}:{foxglove_live.port}"
@@ -131,13 +148,33 @@ def run(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         pass
     finally:
-        revoke_demo_keys(settings.resolved_database_url, args.building, operator_key, dashboard)
+        revoke_demo_keys(settings.resolved_database_url, args.building, operator_key, dashboard, phone)
     return 0
 
 
-def revoke_demo_keys(database_url: str, building_id: str, operator_key: str, dashboard: str | None) -> None:
-    """The keys a demo run printed stop working when it stops: its operator key (site-wide) and its
-    dashboard key. A Ctrl-C meanwhile is not stopped halfway: the revocation is one transaction."""
+def print_phone_link(host: str, port: int, tls: TlsFiles | None, key: str, building_id: str) -> None:
+    """The phone page's link for a phone of this run, and its QR code when a phone on the network can open it
+    (a phone gives motion sensors only to an HTTPS page, or to one on its own localhost)."""
+    import segno
+
+    base = tls_options.public_base(host, port, tls)
+    link = f"{base}/phone/#key={key}&building={building_id}"
+    print(f"  phone page:          {link}")
+    if host in tls_options.LOOPBACK or tls is None:
+        print(
+            "  a real phone:        crowdslam demo --host 0.0.0.0 --tls-self-signed, then scan the QR code "
+            "it prints (the phone must be on this network)"
+        )
+        return
+    print("  scan with a phone on this network (accept the self-signed certificate once):")
+    segno.make(link, error="m").terminal(compact=True)
+
+
+def revoke_demo_keys(
+    database_url: str, building_id: str, operator_key: str, dashboard: str | None, phone: str | None = None
+) -> None:
+    """The keys a demo run printed stop working when it stops: its operator key (site-wide), its dashboard
+    key and its phone's key. A Ctrl-C meanwhile is not stopped halfway: the revocation is one transaction."""
     from server.auth import key_prefix
     from server.store import repositories as repo
     from server.store.db import make_engine, make_session_factory
@@ -145,7 +182,7 @@ def revoke_demo_keys(database_url: str, building_id: str, operator_key: str, das
     engine = make_engine(database_url)
     try:
         with make_session_factory(engine).begin() as session:
-            for building, key in ((None, operator_key), (building_id, dashboard)):
+            for building, key in ((None, operator_key), (building_id, dashboard), (building_id, phone)):
                 prefix = None if key is None else key_prefix(key)
                 if prefix is not None:
                     repo.revoke_keys(session, building, prefix)

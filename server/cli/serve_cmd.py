@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from server.cli import tls_options
 from server.cli.user_errors import port_number
 
 
@@ -23,6 +24,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--nats", default=None, metavar="URL", help="the cluster's NATS (default: CROWDSLAM_NATS_URL)"
     )
+    tls_options.add_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -52,6 +54,13 @@ def run(args: argparse.Namespace) -> int:
         asyncio.run(serve(settings))
         return 0
 
+    tls = tls_options.tls_files(args, settings, "serve")
+    if tls is not None:
+        where = tls_options.public_base(args.host, args.port, tls)
+        print(
+            f"crowdslam serve: HTTPS ({tls.cert}); phones open {where}/phone/ by a dashboard's phone link",
+            flush=True,
+        )
     import uvicorn
 
     from server.app import create_app
@@ -69,5 +78,7 @@ def run(args: argparse.Namespace) -> int:
         ws="websockets-sansio",
         ws_per_message_deflate=settings.ws_compression,
         ws_max_size=settings.max_ws_frame_bytes,
+        ssl_certfile=None if tls is None else str(tls.cert),
+        ssl_keyfile=None if tls is None else str(tls.key),
     )
     return 0

@@ -624,6 +624,12 @@ def latest_positions_of(
     return list(session.execute(stmt).scalars())
 
 
+def device_user(session: Session, building_id: str, device_id: str) -> str | None:
+    """The user a device posts as (its own id unless assigned); None for a device that has posted nothing."""
+    stmt = select(DeviceRow.user_id).where(DeviceRow.building_id == building_id, DeviceRow.id == device_id)
+    return session.execute(stmt).scalar_one_or_none()
+
+
 def prune_history(
     session: Session,
     building_id: str,

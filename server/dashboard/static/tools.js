@@ -2,6 +2,7 @@
 // watch it; list and revoke keys. Each goes through the public REST API; a refusal shows its Problem.
 
 import { ANCHOR_STYLE } from "./map.js";
+import { PhoneLinks } from "./phones.js";
 
 const $ = (id) => document.getElementById(id);
 const BUILD_POLL_MS = 2000;
@@ -22,6 +23,7 @@ export class OperatorTools {
     $("zone-delete").addEventListener("click", () => this.confirmThen($("zone-delete"), () => this.deleteZone()));
     $("build-start").addEventListener("click", () => this.startBuild());
     $("keys-card").addEventListener("toggle", () => { if ($("keys-card").open) this.loadKeys(); });
+    this.phones = new PhoneLinks(this);
   }
 
   show(enabled) {

@@ -1,0 +1,240 @@
+"""A phone with no app, proven without a phone: the page, a real walk's IMU through CDP sensor emulation, the
+server, and the estimate back on the page. Both sensor paths (the Generic Sensor API, and DeviceMotion where
+it is absent), a network cut that loses nothing and applies nothing twice, and refused permissions."""
+
+from __future__ import annotations
+
+import math
+import re
+import tempfile
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+from playwright.sync_api import Browser, Page, expect
+
+from server.datasets.msindoor import Trace
+from server.datasets.msindoor_batches import trace_batches
+from server.recordings.recorder import RecordedBatch
+from server.replay import replay_offline
+from server.settings import Settings
+from tests.server.dashboard.conftest import Watch, open_page
+from tests.server.phone.conftest import PhoneServer, SensorPlayer
+
+NO_GENERIC_SENSORS = """
+for (const name of ["Accelerometer", "Gyroscope", "AbsoluteOrientationSensor", "RelativeOrientationSensor",
+  "Magnetometer", "LinearAccelerationSensor", "GravitySensor"]) delete window[name];
+"""
+
+
+def data(page: Page, name: str) -> str:
+    return page.locator("#app").get_attribute(f"data-{name}") or ""
+
+
+def wait_for(predicate: object, timeout_s: float, what: str) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():  # type: ignore[operator]
+            return
+        time.sleep(0.2)
+    raise AssertionError(f"not within {timeout_s:.0f} s: {what}")
+
+
+def replayed_steps(walk: Trace) -> int:
+    """What ``crowdslam replay --offline`` counts on the same walk, posted as the server's importer does."""
+    batches = [
+        RecordedBatch(i, b.model_dump_json(exclude_none=True).encode())
+        for i, b in enumerate(trace_batches(walk, "replayed", "walk"))
+    ]
+    with tempfile.TemporaryDirectory() as folder:
+        report = replay_offline(batches, Settings(data_dir=Path(folder)))
+    return report.steps
+
+
+def open_phone(browser: Browser, server: PhoneServer, building: str, device: str, watch: Watch) -> Page:
+    key = server.device_key(building, device)
+    page = open_page(browser, watch, viewport=(412, 860))
+    page.context.grant_permissions(["accelerometer", "gyroscope", "magnetometer"], origin=server.base)
+    page.goto(f"{server.base}/phone/#key={key}&building={building}")
+    expect(page.locator("#phone")).to_be_visible(timeout=20_000)
+    assert "key=" not in page.url  # the key left the address bar at once
+    expect(page.locator("#placement")).to_contain_text("Not placed yet")
+    return page
+
+
+def tap_here(page: Page, x_m: float, y_m: float) -> float:
+    """'I am here', the plan zoomed in where the walk starts (as a person does to tap their place), then a
+    tap there; the fix's sigma as the page says it."""
+    box = page.locator("#map").bounding_box()
+    assert box is not None
+    px, py = page.evaluate(f"window.crowdslamPhone.view.toScreen({x_m}, {y_m})")
+    page.mouse.move(box["x"] + px, box["y"] + py)
+    for _ in range(10):
+        page.mouse.wheel(0, -100)
+    page.locator("#here").click()
+    px, py = page.evaluate(f"window.crowdslamPhone.view.toScreen({x_m}, {y_m})")
+    page.mouse.click(box["x"] + px, box["y"] + py)
+    expect(page.locator("#message")).to_contain_text("goes to the server")
+    said = re.search(r"within ([\d.]+) m", page.locator("#message").inner_text())
+    assert said is not None
+    return float(said.group(1))
+
+
+def own_history(server: PhoneServer, building: str, device: str) -> list[dict[str, object]]:
+    response = httpx.get(
+        f"{server.base}/v1/buildings/{building}/users/{device}/positions",
+        headers=server.auth(server.operator),
+    )
+    assert response.status_code == 200, response.text
+    return list(response.json())
+
+
+def test_a_walk_through_the_generic_sensor_api_is_tracked_and_a_network_cut_loses_nothing(
+    browser: Browser, phone_server: PhoneServer, walk: Trace, tmp_path: Path
+) -> None:
+    server, building, device = phone_server, "mall-generic", "phone-generic"
+    server.building(building)
+    watch = Watch()
+    page = open_phone(browser, server, building, device, watch)
+    player = SensorPlayer(page, walk)
+    start = walk.waypoints[0]
+    sigma = tap_here(page, float(start[1]), float(start[2]))
+    assert 2.0 <= sigma <= 4.0  # a finger's 20 px on the zoomed plan
+    page.locator("#start").click()
+    expect(page.locator("#app")).to_have_attribute("data-state", "running", timeout=10_000)
+    assert data(page, "mode") == "generic"
+    expect(page.locator('#sensors li[data-sensor="accelerometer"]')).to_have_attribute("data-state", "ok")
+    expect(page.locator('#sensors li[data-sensor="orientation"]')).to_have_attribute("data-state", "ok")
+
+    offline_seen: list[str] = []
+
+    def cut() -> None:
+        page.route("**/v1/buildings/*/batches", lambda route: route.abort("internetdisconnected"))
+
+    def during_cut() -> None:
+        offline_seen.append(page.locator("#link").get_attribute("data-state") or "")
+        offline_seen.append(data(page, "queued"))
+
+    def restore() -> None:
+        page.unroute("**/v1/buildings/*/batches")
+
+    # the network is cut from 3 s to 13 s into the walk: ten batches wait in the page, then go in order
+    player.play(during=[(3.0, cut), (12.0, during_cut), (13.0, restore)])
+    page.locator("#stop").click()
+    wait_for(lambda: data(page, "queued") == "0" and data(page, "state") == "idle", 60, "every batch sent")
+    assert offline_seen[0] == "offline", offline_seen
+    assert int(offline_seen[1]) >= 5, offline_seen
+
+    # nothing lost, nothing applied twice: every batch the page sealed was applied once, in order
+    sealed = page.evaluate("window.crowdslamPhone.outbox.seq")
+    assert data(page, "lost") == "0"
+    assert data(page, "refused") == "0"
+    assert data(page, "late") == "0"
+    assert int(data(page, "applied")) == sealed
+    assert server.counter("batches", building) == sealed
+    assert server.counter("late", building) == 0
+    history = own_history(server, building, device)
+    times = [int(e["t_ms"]) for e in history]  # type: ignore[call-overload]
+    assert times == sorted(set(times)), "an estimate was published twice"
+
+    # the steps the server counted from the page's samples are the replayed walk's, within 10 %
+    expected = replayed_steps(walk)
+    counted = server.counter("steps_detected", building)
+    assert abs(counted - expected) <= 0.1 * expected, (counted, expected)
+
+    # the estimate moved along the walk, ended near its end, and the page shows it with its ring
+    positions = np.array([[e["position"]["x_m"], e["position"]["y_m"]] for e in history])  # type: ignore[index]
+    travelled = float(np.linalg.norm(np.diff(positions, axis=0), axis=1).sum())
+    walked = float(np.linalg.norm(np.diff(walk.waypoints[:, 1:], axis=0), axis=1).sum())
+    assert travelled > 0.5 * walked, (travelled, walked)
+    latest = httpx.get(
+        f"{server.base}/v1/buildings/{building}/devices/{device}/position",
+        headers=server.auth(server.operator),
+    ).json()["estimate"]
+    final = (latest["position"]["x_m"], latest["position"]["y_m"])
+    error = math.dist(final, walk.waypoints[-1, 1:])
+    # measured 2.1 m on a 17.7 m walk (the same walk replayed offline from an exact start: 1.3 m)
+    assert error < 5.0, (final, walk.waypoints[-1], walked)
+    expect(page.locator("#app")).to_have_attribute("data-placed", "true")
+    expect(page.locator("#placement")).to_contain_text("95 %")
+    assert math.isclose(float(data(page, "x")), final[0], abs_tol=0.01)
+    assert math.isclose(float(data(page, "y")), final[1], abs_tol=0.01)
+    per_minute = page.evaluate("window.crowdslamPhone.outbox.bytesPerMinute()") / 1024
+    print(
+        f"phone page: {sealed} batches, {counted:.0f} steps (replay {expected}), travelled {travelled:.1f} m "
+        f"of {walked:.1f} m, final error {error:.1f} m, {per_minute:.0f} KiB a minute"
+    )
+    page.screenshot(path=str(tmp_path / "phone.png"))
+    # the only errors the page logged are the posts the cut refused
+    cut_errors = [e for e in watch.console_errors if "ERR_INTERNET_DISCONNECTED" in e]
+    assert cut_errors, "the cut was not seen"
+    watch.console_errors = [e for e in watch.console_errors if e not in cut_errors]
+    watch.assert_clean()
+
+
+def test_a_walk_through_devicemotion_where_the_generic_sensor_api_is_absent(
+    browser: Browser, phone_server: PhoneServer, walk: Trace
+) -> None:
+    server, building, device = phone_server, "mall-events", "phone-events"
+    server.building(building)
+    watch = Watch()
+    key = server.device_key(building, device)
+    page = open_page(browser, watch, viewport=(412, 860))
+    page.add_init_script(NO_GENERIC_SENSORS)
+    page.context.grant_permissions(["accelerometer", "gyroscope", "magnetometer"], origin=server.base)
+    page.goto(f"{server.base}/phone/#key={key}&building={building}")
+    expect(page.locator("#phone")).to_be_visible(timeout=20_000)
+    player = SensorPlayer(page, walk, events=True)
+    start = walk.waypoints[0]
+    tap_here(page, float(start[1]), float(start[2]))
+    page.locator("#start").click()
+    expect(page.locator("#app")).to_have_attribute("data-state", "running", timeout=10_000)
+    assert data(page, "mode") == "events"
+    player.play()
+    page.locator("#stop").click()
+    wait_for(lambda: data(page, "queued") == "0" and data(page, "state") == "idle", 60, "every batch sent")
+    expected = replayed_steps(walk)
+    counted = server.counter("steps_detected", building)
+    assert abs(counted - expected) <= 0.1 * expected, (counted, expected)
+    expect(page.locator("#app")).to_have_attribute("data-placed", "true")
+    watch.assert_clean()
+
+
+def test_refused_motion_access_says_what_it_costs(browser: Browser, phone_server: PhoneServer) -> None:
+    """iOS asks on a tap (DeviceMotionEvent.requestPermission); a refusal is said, and nothing is sent."""
+    server, building = phone_server, "mall-refused"
+    server.building(building)
+    watch = Watch()
+    key = server.device_key(building, "phone-refused")
+    page = open_page(browser, watch, viewport=(412, 860))
+    page.add_init_script(NO_GENERIC_SENSORS + "DeviceMotionEvent.requestPermission = async () => 'denied';")
+    page.goto(f"{server.base}/phone/#key={key}&building={building}")
+    expect(page.locator("#phone")).to_be_visible(timeout=20_000)
+    page.locator("#start").click()
+    expect(page.locator("#message")).to_contain_text("Motion sensors were refused")
+    expect(page.locator("#message")).to_contain_text("cannot count your steps")
+    assert data(page, "state") == "refused"
+    time.sleep(1.5)
+    assert data(page, "sent") == "0"
+    watch.assert_clean()
+
+
+def test_the_page_keeps_only_the_key_and_forgets_it_on_request(
+    browser: Browser, phone_server: PhoneServer
+) -> None:
+    server, building = phone_server, "mall-forget"
+    server.building(building)
+    watch = Watch()
+    page = open_phone(browser, server, building, "phone-forget", watch)
+    stored = page.evaluate("Object.keys(localStorage)")
+    assert stored == ["crowdslam.phone"]
+    page.reload()  # the stored key opens the page again, without the link
+    expect(page.locator("#phone")).to_be_visible(timeout=20_000)
+    page.get_by_text("This phone", exact=True).click()
+    page.locator("#forget").click()
+    expect(page.locator("#forget")).to_have_text("Tap again to forget")
+    page.locator("#forget").click()
+    expect(page.locator("#welcome")).to_be_visible()
+    assert page.evaluate("localStorage.length") == 0
+    watch.assert_clean()
