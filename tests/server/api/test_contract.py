@@ -28,6 +28,7 @@ OPERATION_IDS = {
     "list_keys",
     "revoke_key",
     "assign_device",
+    "get_device_position",
     "put_floor_plan",
     "get_floor_plan",
     "list_floor_plans",

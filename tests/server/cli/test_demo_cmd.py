@@ -39,6 +39,7 @@ def test_crowds_one_after_another_walk_the_same_building(tmp_path: Path) -> None
     assert "sqlite" in out  # the embedded default
     assert "/docs" in out
     assert "/live?token=csk_" in out
+    assert re.search(r"phone page:\s+http://127\.0\.0\.1:\d+/phone/#key=csk_\S+&building=demo", out)
     rounds = re.findall(
         r"crowd (\d): (\d+) batches, (\d+) errors, .* error median ([\d.]+) m, p90 ([\d.]+) m", out
     )
@@ -58,7 +59,8 @@ def test_crowds_one_after_another_walk_the_same_building(tmp_path: Path) -> None
             count = lambda sql: connection.exec_driver_sql(sql).scalar()  # noqa: E731
             assert count("SELECT COUNT(*) FROM latest_positions") == 0
             assert count("SELECT COUNT(*) FROM position_snapshots") == 0
-            assert count("SELECT COUNT(*) FROM api_keys WHERE scope = 'device'") == 2 * 8
+            # the crowds' phones, and the one phone the demo printed a link for
+            assert count("SELECT COUNT(*) FROM api_keys WHERE scope = 'device'") == 2 * 8 + 1
             assert count("SELECT COUNT(*) FROM api_keys WHERE scope = 'device' AND revoked_at IS NULL") == 0
             # nor the keys the demo printed: its operator and dashboard keys end with it
             assert count("SELECT COUNT(*) FROM api_keys WHERE scope IN ('operator', 'dashboard')") == 2

@@ -4,15 +4,20 @@ out when the key is revoked; the page and the API docs never reach past loopback
 
 from __future__ import annotations
 
+import io
 import json
 import os
+import re
 import time
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
+from urllib.parse import parse_qs, urlsplit
 
 import httpx
 import numpy as np
 import pytest
+import zxingcpp
+from PIL import Image
 from playwright.sync_api import Browser, Page, expect
 
 from schemas.floor_plans import FLOOR_PLAN_EXAMPLE
@@ -477,3 +482,33 @@ def test_an_operator_draws_a_zone_that_counts_the_crowd_live(browser: Browser, d
     assert all(z["id"] != "whole-floor" for z in zones)
     watch.assert_clean()
     page.context.close()
+
+
+def test_an_operator_mints_a_phone_link_whose_qr_code_opens_the_phone_page(
+    browser: Browser, demo: Demo
+) -> None:
+    watch = Watch()
+    page = open_page(browser, watch)
+    page.goto(f"{demo.base}/dashboard/#key={demo.operator_key}&building={demo.building}")
+    expect(page.locator("#tools")).to_be_visible(timeout=20_000)
+    page.get_by_text("Phone link", exact=True).click()
+    page.locator("#phone-device").fill("phone-visitor")
+    page.locator("#phone-mint").click()
+    expect(page.locator("#phone-result")).to_be_visible(timeout=10_000)
+    link = page.locator("#phone-link").inner_text()
+    assert re.fullmatch(rf"{re.escape(demo.base)}/phone/#key=csk_[\w-]+&building=demo", link), link
+    # the code on the screen reads back as the link (zxing-cpp, a decoder independent of the page's encoder)
+    shot = Image.open(io.BytesIO(page.locator("#phone-qr").screenshot())).convert("L")
+    assert [code.text for code in zxingcpp.read_barcodes(np.asarray(shot))] == [link]
+    key = parse_qs(urlsplit(link).fragment)["key"][0]
+    identity = httpx.get(f"{demo.base}/v1/key", headers=auth(key)).json()
+    assert identity == {"scope": "device", "building_id": "demo", "device_id": "phone-visitor"}
+    phone = open_page(browser, watch, viewport=(412, 860))
+    phone.goto(link)
+    expect(phone.locator("#phone")).to_be_visible(timeout=20_000)
+    expect(phone.locator("#building-name")).not_to_be_empty()
+    watch.assert_clean()
+    revoked = httpx.delete(
+        f"{demo.base}/v1/buildings/demo/keys/{key.split('_')[1]}", headers=auth(demo.operator_key)
+    )
+    assert revoked.status_code == 204
