@@ -1,5 +1,5 @@
 // The floor drawn on a canvas in metres: the plan (or the floor's extent), a signal-map overlay, zones with
-// their counts, anchors, encounters, people with their 2-sigma ellipse and trail, a scale bar and a north
+// their counts, anchors, encounters, people with their 95 % ring and trail, a scale bar and a north
 // arrow. Pan by dragging,
 // zoom with the wheel; hit-testing gives what was clicked.
 
@@ -15,12 +15,16 @@ const BUSY = 300; // beyond this many people on screen, ellipses are outlines an
 // shades and long tangles neither read better nor draw cheaply (they are most of a frame's raster time)
 const BUSY_TRAIL_POINTS = 5;
 
-// Eigen-decomposition of a 2x2 covariance: the 2-sigma ellipse's radii and angle (radians, local frame).
+// A 2-D Gaussian holds 95 % of its mass within this many sigmas: sqrt of chi-square's 95 % point, 2 dof.
+export const RING_95 = Math.sqrt(5.991);
+
+// Eigen-decomposition of a 2x2 covariance: its 95 % ellipse's radii and angle (radians, local frame), and the
+// largest sigma.
 export function ellipse(cov) {
   const a = cov[0][0], b = cov[0][1], c = cov[1][1];
   const mid = (a + c) / 2, half = Math.sqrt(((a - c) / 2) ** 2 + b * b);
   const l1 = Math.max(mid + half, 0), l2 = Math.max(mid - half, 0);
-  return { rx: 2 * Math.sqrt(l1), ry: 2 * Math.sqrt(l2), angle: 0.5 * Math.atan2(2 * b, a - c), sigma: Math.sqrt(l1) };
+  return { rx: RING_95 * Math.sqrt(l1), ry: RING_95 * Math.sqrt(l2), angle: 0.5 * Math.atan2(2 * b, a - c), sigma: Math.sqrt(l1) };
 }
 
 // Viridis, sampled: enough for a legible heat map without a library.

@@ -9,7 +9,6 @@ import { Outbox } from "./outbox.js";
 import { TagScanner, canScan, tagReading } from "./tags.js";
 
 const STORE = "crowdslam.phone"; // the only thing kept: { key, building }
-const RING_95 = Math.sqrt(5.991) / 2; // chi-square, 2 dof, 95 %: the ring's radii over map.js's 2-sigma ones
 const TRAIL_POINTS = 120;
 const FINGER_PX = 20; // a tap is this imprecise: the fix's sigma is at least this on the plan's scale
 const MIN_FIX_SIGMA_M = 2;
@@ -131,6 +130,7 @@ class PhonePage {
     $("welcome").hidden = false;
     $("welcome-message").textContent = text;
     root.dataset.state = "idle";
+    root.dataset.ready = "false";
   }
 
   async open(key, buildingId) {
@@ -183,6 +183,7 @@ class PhonePage {
     await this.showFloor(levels.includes(0) ? 0 : levels[0]);
     await this.loadOwnPosition();
     this.showLink();
+    root.dataset.ready = "true"; // the plan drawn and the phone's own position read
   }
 
   unauthorized(text) {
@@ -399,7 +400,7 @@ class PhonePage {
     root.dataset.placed = "true";
     placement.dataset.placed = "true";
     const e = ellipse(est.covariance_m2);
-    const r95 = e.rx * RING_95;
+    const r95 = e.rx;
     const floorName = $("floor").querySelector(`option[value="${est.floor}"]`)?.textContent ?? String(est.floor);
     placement.textContent = `On floor ${floorName}` + (est.floor_probability < 0.995 ? ` (${Math.round(est.floor_probability * 100)} % sure)` : "")
       + `, within ${r95 < 10 ? r95.toFixed(1) : Math.round(r95)} m (95 %).`;
@@ -420,7 +421,7 @@ class PhonePage {
     u.trail[2 * u.trailLength + 1] = est.position.y_m;
     u.trailLength += 1;
     u.est = est;
-    u.ellipse = { ...e, rx: r95, ry: e.ry * RING_95 };
+    u.ellipse = e;
     this.scene.newestMs = est.t_ms;
     this.scene.selectedUser = est.user_id;
     if (this.chosenFloor === null && est.floor !== this.scene.floor) this.showFloor(est.floor);

@@ -14,6 +14,7 @@ import httpx
 import numpy as np
 from playwright.sync_api import Browser, Page, expect
 
+from schemas.sensors import TagReading
 from server.datasets.msindoor import Trace
 from server.datasets.msindoor_batches import trace_batches
 from server.recordings.recorder import RecordedBatch
@@ -57,7 +58,7 @@ def open_phone(browser: Browser, server: PhoneServer, building: str, device: str
     page = open_page(browser, watch, viewport=(412, 860))
     page.context.grant_permissions(["accelerometer", "gyroscope", "magnetometer"], origin=server.base)
     page.goto(f"{server.base}/phone/#key={key}&building={building}")
-    expect(page.locator("#phone")).to_be_visible(timeout=20_000)
+    expect(page.locator("#app")).to_have_attribute("data-ready", "true", timeout=20_000)
     assert "key=" not in page.url  # the key left the address bar at once
     expect(page.locator("#placement")).to_contain_text("Not placed yet")
     return page
@@ -161,6 +162,7 @@ def test_a_walk_through_the_generic_sensor_api_is_tracked_and_a_network_cut_lose
     assert math.isclose(float(data(page, "x")), final[0], abs_tol=0.01)
     assert math.isclose(float(data(page, "y")), final[1], abs_tol=0.01)
     per_minute = page.evaluate("window.crowdslamPhone.outbox.bytesPerMinute()") / 1024
+    assert per_minute < 150  # gzip-compressed: ~90 KiB a minute (the raw JSON is ~320)
     print(
         f"phone page: {sealed} batches, {counted:.0f} steps (replay {expected}), travelled {travelled:.1f} m "
         f"of {walked:.1f} m, final error {error:.1f} m, {per_minute:.0f} KiB a minute"
@@ -184,7 +186,7 @@ def test_a_walk_through_devicemotion_where_the_generic_sensor_api_is_absent(
     page.add_init_script(NO_GENERIC_SENSORS)
     page.context.grant_permissions(["accelerometer", "gyroscope", "magnetometer"], origin=server.base)
     page.goto(f"{server.base}/phone/#key={key}&building={building}")
-    expect(page.locator("#phone")).to_be_visible(timeout=20_000)
+    expect(page.locator("#app")).to_have_attribute("data-ready", "true", timeout=20_000)
     player = SensorPlayer(page, walk, events=True)
     start = walk.waypoints[0]
     tap_here(page, float(start[1]), float(start[2]))
@@ -237,4 +239,37 @@ def test_the_page_keeps_only_the_key_and_forgets_it_on_request(
     page.locator("#forget").click()
     expect(page.locator("#welcome")).to_be_visible()
     assert page.evaluate("localStorage.length") == 0
+    watch.assert_clean()
+
+
+def test_a_tags_qr_code_becomes_a_tag_reading_or_is_refused_saying_why(
+    browser: Browser, phone_server: PhoneServer
+) -> None:
+    """What ``BarcodeDetector`` reads (headless Chromium has no camera): the page's own conversion."""
+    watch = Watch()
+    page = open_page(browser, watch)
+    page.goto(f"{phone_server.base}/phone/")
+    expect(page.locator("#welcome")).to_be_visible(timeout=20_000)
+    readings = page.evaluate(
+        """async () => {
+          const { tagReading } = await import("/phone/assets/tags.js");
+          return ["#6e1ebc 40.684492,-74.401406 z1", "lobby-north", "https://example.com/x", "# bad"]
+            .map((text) => tagReading(text, 1796559880000.4));
+        }"""
+    )
+    assert readings[0] == [
+        {
+            "kind": "tag",
+            "t_ms": 1796559880000,
+            "tag_id": "6e1ebc",
+            "payload": "#6e1ebc 40.684492,-74.401406 z1",
+        },
+        "",
+    ]
+    assert readings[1] == [{"kind": "tag", "t_ms": 1796559880000, "tag_id": "lobby-north"}, ""]
+    assert readings[2] == [None, "this QR code is not a building tag"]
+    assert readings[3][0] is None
+    # each reading the page makes is one the server's contract accepts
+    TagReading.model_validate(readings[0][0])
+    TagReading.model_validate(readings[1][0])
     watch.assert_clean()
