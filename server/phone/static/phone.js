@@ -12,6 +12,7 @@ const STORE = "crowdslam.phone"; // the only thing kept: { key, building }
 const TRAIL_POINTS = 120;
 const FINGER_PX = 20; // a tap is this imprecise: the fix's sigma is at least this on the plan's scale
 const MIN_FIX_SIGMA_M = 2;
+const FOLLOW_AFTER_TOUCH_MS = 10000;
 
 const $ = (id) => document.getElementById(id);
 const root = $("app");
@@ -30,6 +31,7 @@ class PhonePage {
       geo: null, selectedUser: null, selectedAnchors: new Set(), newestMs: 0, zones: new Map(), drawing: null,
     };
     this.chosenFloor = null; // a floor the user picked; else the estimate's
+    this.touchedMs = 0; // the map follows the estimate unless the user moved it lately
     this.landmarks = [];
     this.picking = false;
     this.sensors = new MotionSensors((name, state) => this.sensorState(name, state));
@@ -70,6 +72,7 @@ class PhonePage {
     let drag = null;
     const touches = new Map();
     canvas.addEventListener("pointerdown", (ev) => {
+      this.touchedMs = Date.now();
       canvas.setPointerCapture(ev.pointerId);
       touches.set(ev.pointerId, [ev.offsetX, ev.offsetY]);
       drag = { x: ev.offsetX, y: ev.offsetY, moved: touches.size > 1 };
@@ -102,6 +105,7 @@ class PhonePage {
     canvas.addEventListener("pointercancel", (ev) => { touches.delete(ev.pointerId); drag = null; });
     canvas.addEventListener("wheel", (ev) => {
       ev.preventDefault();
+      this.touchedMs = Date.now();
       this.view.zoomAt(ev.offsetX, ev.offsetY, ev.deltaY < 0 ? 1.2 : 1 / 1.2);
     }, { passive: false });
   }
@@ -246,6 +250,7 @@ class PhonePage {
     $("start").disabled = true;
     if (!await MotionSensors.askPermission()) {
       $("start").disabled = false;
+      for (const name of ["accelerometer", "gyroscope", "orientation"]) this.sensorState(name, "refused");
       this.refusedMotion();
       return;
     }
@@ -425,7 +430,18 @@ class PhonePage {
     this.scene.newestMs = est.t_ms;
     this.scene.selectedUser = est.user_id;
     if (this.chosenFloor === null && est.floor !== this.scene.floor) this.showFloor(est.floor);
+    this.follow(est.position.x_m, est.position.y_m);
     this.view.dirty = true;
+  }
+
+  // Keep the estimate on screen: centred again when it nears an edge, unless the user moved the map lately.
+  follow(x, y) {
+    if (Date.now() - this.touchedMs < FOLLOW_AFTER_TOUCH_MS) return;
+    const canvas = $("map");
+    const w = canvas.clientWidth, h = canvas.clientHeight;
+    const [sx, sy] = this.view.toScreen(x, y);
+    if (sx > 0.2 * w && sx < 0.8 * w && sy > 0.2 * h && sy < 0.8 * h) return;
+    this.view.pan(w / 2 - sx, h / 2 - sy);
   }
 }
 

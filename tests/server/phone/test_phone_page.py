@@ -12,6 +12,7 @@ from pathlib import Path
 
 import httpx
 import numpy as np
+import pytest
 from playwright.sync_api import Browser, Page, expect
 
 from schemas.sensors import TagReading
@@ -203,20 +204,47 @@ def test_a_walk_through_devicemotion_where_the_generic_sensor_api_is_absent(
     watch.assert_clean()
 
 
-def test_refused_motion_access_says_what_it_costs(browser: Browser, phone_server: PhoneServer) -> None:
-    """iOS asks on a tap (DeviceMotionEvent.requestPermission); a refusal is said, and nothing is sent."""
-    server, building = phone_server, "mall-refused"
+@pytest.mark.parametrize("platform", ["ios", "chrome"])
+def test_refused_motion_access_says_what_it_costs(
+    browser: Browser, phone_server: PhoneServer, platform: str
+) -> None:
+    """The page asks on a tap (``DeviceMotionEvent.requestPermission``: iOS, and this Chromium too), refused
+    by iOS's dialog or by the site's motion permission blocked in Chrome: the refusal is said with its cost,
+    and nothing is sent."""
+    server, building = phone_server, f"mall-refused-{platform}"
     server.building(building)
     watch = Watch()
-    key = server.device_key(building, "phone-refused")
+    key = server.device_key(building, f"phone-refused-{platform}")
     page = open_page(browser, watch, viewport=(412, 860))
-    page.add_init_script(NO_GENERIC_SENSORS + "DeviceMotionEvent.requestPermission = async () => 'denied';")
+    if platform == "ios":
+        page.add_init_script(
+            NO_GENERIC_SENSORS + "DeviceMotionEvent.requestPermission = async () => 'denied';"
+        )
+    else:
+        cdp = page.context.new_cdp_session(page)
+        context_id = cdp.send("Target.getTargetInfo")["targetInfo"]["browserContextId"]
+        for kind in ("accelerometer", "gyroscope", "absolute-orientation", "linear-acceleration", "gravity"):
+            cdp.send("Emulation.setSensorOverrideEnabled", {"enabled": True, "type": kind})
+        browser_cdp = browser.new_browser_cdp_session()
+        for name in ("accelerometer", "gyroscope", "magnetometer"):
+            browser_cdp.send(
+                "Browser.setPermission",
+                {
+                    "permission": {"name": name},
+                    "setting": "denied",
+                    "origin": server.base,
+                    "browserContextId": context_id,
+                },
+            )
     page.goto(f"{server.base}/phone/#key={key}&building={building}")
-    expect(page.locator("#phone")).to_be_visible(timeout=20_000)
+    expect(page.locator("#app")).to_have_attribute("data-ready", "true", timeout=20_000)
     page.locator("#start").click()
-    expect(page.locator("#message")).to_contain_text("Motion sensors were refused")
+    expect(page.locator("#message")).to_contain_text("Motion sensors were refused", timeout=10_000)
     expect(page.locator("#message")).to_contain_text("cannot count your steps")
     assert data(page, "state") == "refused"
+    accelerometer = page.locator('#sensors li[data-sensor="accelerometer"]')
+    expect(accelerometer).to_have_attribute("data-state", "refused")
+    expect(accelerometer).to_contain_text("without it the server cannot follow this phone")
     time.sleep(1.5)
     assert data(page, "sent") == "0"
     watch.assert_clean()
