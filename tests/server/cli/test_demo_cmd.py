@@ -217,3 +217,30 @@ def test_a_crowds_clock_runs_at_most_a_minute_ahead_of_the_wall_clock() -> None:
     assert crowd_epoch_ms(now, 200.0, 5.0) == now - 100_000  # it gains 160 s, 60 s of which it may
     assert crowd_epoch_ms(now, 200.0, 0.0) == now - 140_000  # flat out it gains all 200 s
     assert crowd_epoch_ms(now, 50.0, 5.0) == now
+
+
+def test_the_phone_link_is_a_qr_code_only_where_a_phone_can_open_it(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A phone opens the demo's page over HTTPS on the network: there the link comes with its QR code; on
+    loopback or plain HTTP the demo says how to get one instead."""
+    from server.cli.demo_cmd import print_phone_link
+    from server.tls import self_signed
+
+    tls = self_signed(tmp_path / "tls", ["192.168.1.20"])
+    print_phone_link("127.0.0.1", 8000, None, "csk_ab_cd", "demo")
+    out = capsys.readouterr().out
+    assert "phone page:          http://127.0.0.1:8000/phone/#key=csk_ab_cd&building=demo" in out
+    assert "crowdslam demo --host 0.0.0.0 --tls-self-signed" in out
+    assert not set("\u2588\u2580\u2584") & set(out)  # no code: a phone cannot open that address
+
+    print_phone_link("0.0.0.0", 8443, tls, "csk_ab_cd", "demo")
+    out = capsys.readouterr().out
+    link = re.search(r"phone page:\s+(\S+)", out)
+    assert link is not None
+    assert re.fullmatch(r"https://[\d.]+:8443/phone/#key=csk_ab_cd&building=demo", link.group(1))
+    assert "0.0.0.0" not in link.group(1)  # the machine's address on its network, which a phone can reach
+    code_rows = [
+        line for line in out.splitlines() if "\u2588" in line or "\u2580" in line or "\u2584" in line
+    ]
+    assert len(code_rows) >= 12  # the QR code, two modules a line
