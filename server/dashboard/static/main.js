@@ -4,7 +4,7 @@
 import { Api, ProblemError } from "./api.js";
 import { fmtFloor, fmtTime } from "./format.js";
 import { LiveSocket } from "./live.js";
-import { MapView, ellipse, viridis, ANCHOR_STYLE } from "./map.js";
+import { MapView, ellipse, moveTo, person, viridis, ANCHOR_STYLE } from "./map.js";
 import { History } from "./history.js";
 import { OperatorTools } from "./tools.js";
 
@@ -351,21 +351,12 @@ class Dashboard {
   updateUser(est, trail = true) {
     let u = this.scene.users.get(est.user_id);
     if (!u) {
-      // the trail is a fixed buffer: a busy floor's page holds the same memory after a minute as after an hour
-      u = { id: est.user_id, trail: new Float64Array(2 * TRAIL_POINTS), trailLength: 0, colour: colourOf(est.user_id), est };
+      u = person(est, colourOf(est.user_id), TRAIL_POINTS);
       this.scene.users.set(est.user_id, u);
     }
     if (est.t_ms < u.est.t_ms && u.trailLength) return; // an older estimate after a newer one
-    u.est = est;
-    u.ellipse = ellipse(est.covariance_m2);
     if (!trail) u.trailLength = 0;
-    if (u.trailLength === TRAIL_POINTS) {
-      u.trail.copyWithin(0, 2);
-      u.trailLength -= 1;
-    }
-    u.trail[2 * u.trailLength] = est.position.x_m;
-    u.trail[2 * u.trailLength + 1] = est.position.y_m;
-    u.trailLength += 1;
+    moveTo(u, est);
     if (est.source === "fix" || est.source === "fingerprint") this.correction(est.user_id, `${est.source} at ${fmtTime(est.t_ms)}`);
     if (est.t_ms > this.scene.newestMs) this.scene.newestMs = est.t_ms;
   }

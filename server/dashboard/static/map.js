@@ -27,6 +27,25 @@ export function ellipse(cov) {
   return { rx: RING_95 * Math.sqrt(l1), ry: RING_95 * Math.sqrt(l2), angle: 0.5 * Math.atan2(2 * b, a - c), sigma: Math.sqrt(l1) };
 }
 
+// A person as the map draws them. The trail is a fixed buffer of `points` positions: a busy floor's page holds
+// the same memory after a minute as after an hour.
+export function person(est, colour, points) {
+  return { id: est.user_id, trail: new Float64Array(2 * points), trailLength: 0, colour, est, ellipse: ellipse(est.covariance_m2) };
+}
+
+// The person's newest estimate: its ring, and its position at the trail's end (the oldest dropped when full).
+export function moveTo(u, est) {
+  u.est = est;
+  u.ellipse = ellipse(est.covariance_m2);
+  if (2 * u.trailLength === u.trail.length) {
+    u.trail.copyWithin(0, 2);
+    u.trailLength -= 1;
+  }
+  u.trail[2 * u.trailLength] = est.position.x_m;
+  u.trail[2 * u.trailLength + 1] = est.position.y_m;
+  u.trailLength += 1;
+}
+
 // Viridis, sampled: enough for a legible heat map without a library.
 const VIRIDIS = [[68, 1, 84], [72, 40, 120], [62, 74, 137], [49, 104, 142], [38, 130, 142], [31, 158, 137],
   [53, 183, 121], [110, 206, 88], [181, 222, 43], [253, 231, 37]];

@@ -3,7 +3,7 @@
 // client of the public API: what it may do is what its device key may do.
 
 import { Api, ProblemError } from "/dashboard/assets/api.js";
-import { MapView, ellipse } from "/dashboard/assets/map.js";
+import { MapView, ellipse, moveTo, person } from "/dashboard/assets/map.js";
 import { MotionSensors, SENSOR_ROLES } from "./sensors.js";
 import { Outbox } from "./outbox.js";
 import { TagScanner, canScan, tagReading } from "./tags.js";
@@ -414,19 +414,11 @@ class PhonePage {
     root.dataset.estimateMs = String(est.t_ms);
     let u = this.scene.users.get(est.user_id);
     if (!u) {
-      u = { id: est.user_id, trail: new Float64Array(2 * TRAIL_POINTS), trailLength: 0, colour: "#1d6fb8", est };
+      u = person(est, "#1d6fb8", TRAIL_POINTS);
       this.scene.users.clear();
       this.scene.users.set(est.user_id, u);
     }
-    if (u.trailLength === TRAIL_POINTS) {
-      u.trail.copyWithin(0, 2);
-      u.trailLength -= 1;
-    }
-    u.trail[2 * u.trailLength] = est.position.x_m;
-    u.trail[2 * u.trailLength + 1] = est.position.y_m;
-    u.trailLength += 1;
-    u.est = est;
-    u.ellipse = e;
+    moveTo(u, est);
     this.scene.newestMs = est.t_ms;
     this.scene.selectedUser = est.user_id;
     if (this.chosenFloor === null && est.floor !== this.scene.floor) this.showFloor(est.floor);

@@ -84,6 +84,15 @@ def open_page(browser: Browser, watch: Watch, viewport: tuple[int, int] = (1280,
     return page
 
 
+def wait_for(predicate: object, timeout_s: float, what: str) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():  # type: ignore[operator]
+            return
+        time.sleep(0.2)
+    raise AssertionError(f"not within {timeout_s:.0f} s: {what}")
+
+
 @dataclass
 class Demo:
     base: str

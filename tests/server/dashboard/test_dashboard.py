@@ -25,21 +25,12 @@ from schemas.signal_maps import SignalMapJob, SignalMapStatus
 from server.cli.background_server import free_port, migrate_with_operator_key, serve_process
 from server.datasets.signalslam_plots import write_scan_maps
 from server.signal_maps.jobs import RECORD
-from tests.server.dashboard.conftest import Demo, Watch, open_page
+from tests.server.dashboard.conftest import Demo, Watch, open_page, wait_for
 
 
 def root_data(page: Page, name: str) -> str:
     value = page.locator("#app").get_attribute(f"data-{name}")
     return value or ""
-
-
-def wait_for(predicate: object, timeout_s: float, what: str) -> None:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():  # type: ignore[operator]
-            return
-        time.sleep(0.2)
-    raise AssertionError(f"not within {timeout_s:.0f} s: {what}")
 
 
 def auth(key: str) -> dict[str, str]:

@@ -21,7 +21,7 @@ from server.datasets.msindoor_batches import trace_batches
 from server.recordings.recorder import RecordedBatch
 from server.replay import replay_offline
 from server.settings import Settings
-from tests.server.dashboard.conftest import Watch, open_page
+from tests.server.dashboard.conftest import Watch, open_page, wait_for
 from tests.server.phone.conftest import PhoneServer, SensorPlayer
 
 NO_GENERIC_SENSORS = """
@@ -32,15 +32,6 @@ for (const name of ["Accelerometer", "Gyroscope", "AbsoluteOrientationSensor", "
 
 def data(page: Page, name: str) -> str:
     return page.locator("#app").get_attribute(f"data-{name}") or ""
-
-
-def wait_for(predicate: object, timeout_s: float, what: str) -> None:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():  # type: ignore[operator]
-            return
-        time.sleep(0.2)
-    raise AssertionError(f"not within {timeout_s:.0f} s: {what}")
 
 
 def replayed_steps(walk: Trace) -> int:
