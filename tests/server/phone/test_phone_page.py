@@ -14,6 +14,7 @@ import httpx
 import numpy as np
 import pytest
 from playwright.sync_api import Browser, Page, expect
+from scipy.spatial.transform import Rotation
 
 from schemas.sensors import TagReading
 from server.datasets.msindoor import Trace
@@ -291,4 +292,44 @@ def test_a_tags_qr_code_becomes_a_tag_reading_or_is_refused_saying_why(
     # each reading the page makes is one the server's contract accepts
     TagReading.model_validate(readings[0][0])
     TagReading.model_validate(readings[1][0])
+    watch.assert_clean()
+
+
+def test_the_pages_sensor_conversions_match_their_oracles(
+    browser: Browser, phone_server: PhoneServer
+) -> None:
+    """W3C's Z-X'-Y'' Euler angles as a quaternion (scipy's intrinsic ZXY as the oracle), and the 50 Hz cap on
+    a 60 Hz stream with strictly increasing integer times."""
+    watch = Watch()
+    page = open_page(browser, watch)
+    page.goto(f"{phone_server.base}/phone/")
+    expect(page.locator("#welcome")).to_be_visible(timeout=20_000)
+    rng = np.random.default_rng(0)
+    angles = np.column_stack([rng.uniform(0, 360, 50), rng.uniform(-180, 180, 50), rng.uniform(-90, 90, 50)])
+    got = np.array(
+        page.evaluate(
+            """async (angles) => {
+              const { quaternionFromEuler } = await import("/phone/assets/sensors.js");
+              return angles.map(([a, b, g]) => quaternionFromEuler(a, b, g));
+            }""",
+            angles.tolist(),
+        )
+    )
+    expected = Rotation.from_euler("ZXY", angles, degrees=True).as_quat()  # x, y, z, w
+    same_sign = np.sign(np.sum(got * expected, axis=1))[:, None]  # q and -q are one rotation
+    np.testing.assert_allclose(got, expected * same_sign, atol=1e-12)
+
+    kept = page.evaluate(
+        """async () => {
+          const { Stream } = await import("/phone/assets/sensors.js");
+          const s = new Stream(["x"]);
+          for (let i = 0; i < 600; i++) s.push(1796559880000 + i * 1000 / 60 + (i % 3) * 0.4, [i], 3);
+          s.push(1796559880000 + 599 * 1000 / 60, [0], 3);  // a repeated time: dropped
+          return s.take().t_ms;
+        }"""
+    )
+    t = np.array(kept)
+    assert np.all(np.diff(t) > 0)
+    rate = (len(t) - 1) / ((t[-1] - t[0]) / 1000)
+    assert 45 <= rate <= 50.5, rate
     watch.assert_clean()
