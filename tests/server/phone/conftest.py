@@ -35,16 +35,15 @@ class PhoneServer:
     def auth(self, key: str) -> dict[str, str]:
         return {"Authorization": f"Bearer {key}"}
 
-    def building(self, building_id: str) -> None:
-        """A building whose ground floor is the sample floor, with its plan."""
+    def building(self, building_id: str, upper_floors: int = 0) -> None:
+        """A building whose ground floor is the sample floor, with its plan (and upper floors of its size
+        without one)."""
         floor = read_floor(SAMPLE_FLOOR)
         plan = read_floor_plan(floor).plan
         assert plan is not None
-        body = {
-            "id": building_id,
-            "name": f"Mall {building_id}",
-            "floors": [{"level": 0, "name": "F1", "width_m": floor.width_m, "height_m": floor.height_m}],
-        }
+        size = {"width_m": floor.width_m, "height_m": floor.height_m}
+        floors = [{"level": level, "name": f"F{level + 1}", **size} for level in range(1 + upper_floors)]
+        body = {"id": building_id, "name": f"Mall {building_id}", "floors": floors}
         created = httpx.post(f"{self.base}/v1/buildings", json=body, headers=self.auth(self.operator))
         assert created.status_code == 201, created.text
         put = httpx.put(

@@ -333,3 +333,24 @@ def test_the_pages_sensor_conversions_match_their_oracles(
     rate = (len(t) - 1) / ((t[-1] - t[0]) / 1000)
     assert 45 <= rate <= 50.5, rate
     watch.assert_clean()
+
+
+def test_the_floor_picker_shows_each_floor_and_a_tap_says_its_floor(
+    browser: Browser, phone_server: PhoneServer
+) -> None:
+    server, building = phone_server, "mall-floors"
+    server.building(building, upper_floors=2)
+    watch = Watch()
+    page = open_phone(browser, server, building, "phone-floors", watch)
+    assert page.locator("#floor option").all_inner_texts() == ["F1 (0)", "F2 (1)", "F3 (2)"]
+    assert page.evaluate("window.crowdslamPhone.scene.plan !== null")  # the ground floor has its plan
+    page.locator("#floor").select_option("1")
+    wait_for(lambda: page.evaluate("window.crowdslamPhone.scene.floor") == 1, 10, "floor 1 shown")
+    assert page.evaluate("window.crowdslamPhone.scene.plan === null")  # no plan there: its extent
+    tap_here(page, 100.0, 80.0)
+    fix = page.evaluate("window.crowdslamPhone.landmarks[0]")
+    assert fix["kind"] == "fix"
+    assert fix["floor"] == 1
+    assert abs(fix["position"]["x_m"] - 100.0) < 0.5
+    assert abs(fix["position"]["y_m"] - 80.0) < 0.5
+    watch.assert_clean()
