@@ -64,6 +64,7 @@ class PhonePage {
     $("pick-cancel").addEventListener("click", () => this.pick(false));
     $("scan").addEventListener("click", () => this.scan());
     $("forget").addEventListener("click", () => this.forget());
+    document.addEventListener("visibilitychange", () => this.visibility());
     $("floor").addEventListener("change", () => {
       this.chosenFloor = Number($("floor").value);
       this.showFloor(this.chosenFloor);
@@ -264,11 +265,38 @@ class PhonePage {
       return;
     }
     this.outbox.start();
+    this.keepAwake();
     root.dataset.state = "running";
     $("start").hidden = true;
     $("start").disabled = false;
     $("stop").hidden = false;
     this.showLink();
+  }
+
+  // A phone whose screen sleeps stops its sensors and timers: while walking, the page asks to stay awake
+  // (Screen Wake Lock, where offered; the lock is let go when the page is hidden, and asked again on return).
+  async keepAwake() {
+    if (!("wakeLock" in navigator) || root.dataset.state !== "running" || document.hidden) return;
+    try {
+      this.wakeLock = await navigator.wakeLock.request("screen");
+    } catch {
+      this.wakeLock = null; // refused (battery saver): the hint below says what that costs
+    }
+  }
+
+  visibility() {
+    if (root.dataset.state !== "running") return;
+    if (document.hidden) {
+      this.hiddenMs = Date.now();
+      return;
+    }
+    this.keepAwake();
+    if (this.hiddenMs) {
+      const s = Math.round((Date.now() - this.hiddenMs) / 1000);
+      message(`The page was hidden for ${s} s: the phone gives a hidden page no motion readings, so those steps `
+        + "are missing. Keep the page open while you walk.", "error");
+      this.hiddenMs = 0;
+    }
   }
 
   refusedMotion() {
@@ -279,6 +307,8 @@ class PhonePage {
 
   async stop() {
     this.sensors.stop();
+    if (this.wakeLock) this.wakeLock.release().catch(() => {});
+    this.wakeLock = null;
     if (this.outbox) await this.outbox.stop();
     root.dataset.state = "idle";
     $("start").hidden = false;
