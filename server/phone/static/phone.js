@@ -65,6 +65,8 @@ class PhonePage {
     $("scan").addEventListener("click", () => this.scan());
     $("forget").addEventListener("click", () => this.forget());
     document.addEventListener("visibilitychange", () => this.visibility());
+    // another phone link opened in this tab (the page is not loaded again for a new fragment)
+    window.addEventListener("hashchange", () => { if (location.hash.includes("key=")) this.stop().then(() => this.boot()); });
     $("floor").addEventListener("change", () => {
       this.chosenFloor = Number($("floor").value);
       this.showFloor(this.chosenFloor);
