@@ -158,6 +158,8 @@ class PhonePage {
       if (err instanceof ProblemError && err.status === 0) {
         // no network yet: keep the key and say so; the next load tries again
         localStorage.setItem(STORE, JSON.stringify({ key, building: buildingId }));
+      } else if (err instanceof ProblemError && err.status === 401) {
+        localStorage.removeItem(STORE); // a revoked or unknown key opens nothing again
       }
       this.welcome(err.message);
       return;

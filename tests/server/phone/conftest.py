@@ -154,12 +154,15 @@ class SensorPlayer:
         else:
             self._xyz("gyroscope", *(float(v) for v in row[1:4]))
 
-    def play(self, during: list[tuple[float, object]] | None = None) -> None:
-        """Every reading at its own time from now; ``during``: (seconds into the walk, callable) run then."""
+    def play(self, during: list[tuple[float, object]] | None = None, until_s: float | None = None) -> None:
+        """Every reading at its own time from now (up to ``until_s`` into the walk); ``during``: (seconds into
+        the walk, callable) run then."""
         pending = sorted(during or [], key=lambda d: d[0])
         t0 = self.rows[0][0]
         start = time.monotonic()
         for t_ms, name, row in self.rows:
+            if until_s is not None and t_ms - t0 > until_s * 1000.0:
+                return
             due = start + (t_ms - t0) / 1000.0
             while pending and pending[0][0] <= (t_ms - t0) / 1000.0:
                 pending.pop(0)[1]()  # type: ignore[operator]

@@ -354,3 +354,35 @@ def test_the_floor_picker_shows_each_floor_and_a_tap_says_its_floor(
     assert abs(fix["position"]["x_m"] - 100.0) < 0.5
     assert abs(fix["position"]["y_m"] - 80.0) < 0.5
     watch.assert_clean()
+
+
+def test_a_revoked_key_stops_the_page_and_is_forgotten(
+    browser: Browser, phone_server: PhoneServer, walk: Trace
+) -> None:
+    """Revoked while sending: the page stops and says so. Loaded again: the dead key is dropped."""
+    server, building = phone_server, "mall-revoked"
+    server.building(building)
+    watch = Watch()
+    key = server.device_key(building, "phone-revoked")
+    page = open_page(browser, watch, viewport=(412, 860))
+    page.context.grant_permissions(["accelerometer", "gyroscope", "magnetometer"], origin=server.base)
+    page.goto(f"{server.base}/phone/#key={key}&building={building}")
+    expect(page.locator("#app")).to_have_attribute("data-ready", "true", timeout=20_000)
+    player = SensorPlayer(page, walk)
+    page.locator("#start").click()
+    expect(page.locator("#app")).to_have_attribute("data-state", "running", timeout=10_000)
+    player.play(until_s=3.0)  # a few batches first
+    revoked = httpx.delete(
+        f"{server.base}/v1/buildings/{building}/keys/{key.split('_')[1]}",
+        headers=server.auth(server.operator),
+    )
+    assert revoked.status_code == 204
+    player.play(until_s=3.0)  # the walk again: the next batch meets the revocation
+    expect(page.locator("#app")).to_have_attribute("data-state", "refused", timeout=10_000)
+    expect(page.locator("#message")).to_contain_text("refuses this phone's key")
+    page.reload()
+    expect(page.locator("#welcome-message")).to_contain_text("unknown or revoked", timeout=20_000)
+    assert page.evaluate("localStorage.length") == 0
+    # the refused requests are the only errors the page logged
+    watch.console_errors = [e for e in watch.console_errors if "401" not in e]
+    watch.assert_clean()
