@@ -59,7 +59,16 @@ export class Outbox {
     await this.seal();
   }
 
-  async seal() {
+  // Seals run one after another: a batch compressed faster than the one before it must not overtake it (its
+  // seq would be applied first and the earlier batch answered late).
+  seal() {
+    this.sealing = (this.sealing || Promise.resolve())
+      .then(() => this.sealNext())
+      .catch((err) => this.events.onRefused(`it could not be prepared (${err.message})`, 0));
+    return this.sealing;
+  }
+
+  async sealNext() {
     const body = this.takeBatch();
     if (!body) return;
     const seq = this.seq++;
