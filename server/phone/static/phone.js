@@ -5,7 +5,7 @@
 import { Api, ProblemError } from "/dashboard/assets/api.js";
 import { MapView, ellipse, moveTo, person } from "/dashboard/assets/map.js";
 import { MotionSensors, SENSOR_ROLES } from "./sensors.js";
-import { Outbox } from "./outbox.js";
+import { BATCH_MS, Outbox } from "./outbox.js";
 import { TagScanner, canScan, tagReading } from "./tags.js";
 
 const STORE = "crowdslam.phone"; // the only thing kept: { key, building }
@@ -327,7 +327,12 @@ class PhonePage {
       const wire = stream.take();
       if (wire) body[name] = wire;
     }
-    if (this.landmarks.length) body.landmarks = this.landmarks.splice(0);
+    if (this.landmarks.length) {
+      // a place tapped before Start is where the user still stands: timed within this batch, whose span the
+      // server bounds (a tap minutes earlier would stretch it past a minute and have it refused)
+      const earliest = Date.now() - BATCH_MS;
+      body.landmarks = this.landmarks.splice(0).map((l) => ({ ...l, t_ms: Math.max(l.t_ms, earliest) }));
+    }
     return Object.keys(body).length ? body : null;
   }
 

@@ -353,6 +353,15 @@ def test_the_floor_picker_shows_each_floor_and_a_tap_says_its_floor(
     assert fix["floor"] == 1
     assert abs(fix["position"]["x_m"] - 100.0) < 0.5
     assert abs(fix["position"]["y_m"] - 80.0) < 0.5
+    # tapped two minutes before Start, the place is sent timed within its batch (whose span is bounded)
+    sent_ms, now_ms = page.evaluate(
+        """() => {
+          const phone = window.crowdslamPhone;
+          phone.landmarks[0].t_ms -= 120000;
+          return [phone.takeBatch().landmarks[0].t_ms, Date.now()];
+        }"""
+    )
+    assert now_ms - 1500 <= sent_ms <= now_ms
     watch.assert_clean()
 
 
