@@ -95,7 +95,8 @@ export class MotionSensors {
     this.refused = false;
   }
 
-  // iOS asks for motion access on a tap; elsewhere this resolves at once. False: refused.
+  // Motion access asked on a tap where the browser asks for it (iOS, recent Chromium); elsewhere this resolves
+  // at once. False: refused.
   static async askPermission() {
     const asks = [globalThis.DeviceMotionEvent, globalThis.DeviceOrientationEvent]
       .filter((c) => c && typeof c.requestPermission === "function");
