@@ -364,7 +364,7 @@ class PhonePage {
     });
     const kb = o.bytesPerMinute() / 1024;
     $("stats").textContent = `${s.applied} batches applied, ${o.queue.length} waiting`
-      + (s.lost ? `, ${s.lost} lost offline` : "") + (s.sent ? `; ${kb.toFixed(0)} KB a minute` : "");
+      + (s.lost ? `, ${s.lost} lost offline` : "") + (s.sent ? `; ${kb.toFixed(0)} KiB a minute` : "");
   }
 
   // ------------------------------------------------------------------ the start: a tap or a tag
