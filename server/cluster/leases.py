@@ -56,7 +56,9 @@ class Leases:
         """The building's lease, if no live lease holds it; None otherwise."""
         try:
             revision = await self.kv.create(building_token(building_id), self.owner.encode())
-        except KeyWrongLastSequenceError:
+        except (KeyWrongLastSequenceError, KeyNotFoundError):
+            # KeyNotFoundError: the create met a live lease, which expired before nats-py's check of it read
+            # the key back; it was held a moment ago, and the next attempt takes it
             return None
         return Lease(building_id, self.owner, revision)
 
